@@ -1,0 +1,3 @@
+"""motiond: a networked motion controller."""
+
+__version__ = "0.1.0"

@@ -1,0 +1,267 @@
+"""The machine configuration: pydantic models, TOML loading and readable errors.
+
+One TOML file describes the machine. Core sections are ``[machine]``, ``[axes.X]``,
+``[planner]``, ``[stepgen]``, ``[backend]``, ``[tcp]``, ``[http]``, ``[serial]``, ``[protocol]``
+and ``[jobs]``; every other section configures a module (``[laser]``, ``[switch.fan]``) and is
+validated by that module's own model. Every problem is reported as
+``FILE: [section] key: message``; unknown sections and keys are errors.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from server.errors import ConfigError
+from server.module import Module, available_modules
+
+AXIS_LETTERS = "XYZABC"
+
+
+class Strict(BaseModel):
+    """Base of every config model: unknown keys are errors, values are checked on assignment."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class MachineSection(Strict):
+    name: str = "motiond"
+    soft_limits: bool = True
+    laser_mode: bool = True
+    hold_on_disconnect: bool = False
+
+
+class AxisConfig(Strict):
+    steps_per_mm: float = Field(gt=0, le=1_000_000)
+    max_rate_mm_s: float = Field(gt=0)
+    accel_mm_s2: float = Field(gt=0)
+    min_mm: float = 0.0
+    max_mm: float
+
+    @model_validator(mode="after")
+    def _travel_not_empty(self) -> AxisConfig:
+        if self.max_mm <= self.min_mm:
+            raise ValueError("max_mm must be greater than min_mm")
+        return self
+
+
+class PlannerConfig(Strict):
+    junction_deviation_mm: float = Field(0.01, gt=0, le=10)
+    arc_tolerance_mm: float = Field(0.002, gt=0, le=1)
+    max_blocks: int = Field(4096, ge=2, le=1_000_000)
+    max_planned_s: float = Field(0.5, gt=0, le=60)
+    min_feed_mm_s: float = Field(0.01, gt=0)
+    default_feed_mm_s: float = Field(0.0, ge=0)
+
+
+class StepgenConfig(Strict):
+    tick_hz: float = Field(1000.0, ge=10, le=100_000)
+
+
+class BackendConfig(Strict):
+    kind: Literal["sim", "null"] = "sim"
+    trace_csv: Path | None = None
+    history_samples: int = Field(100_000, ge=0)
+    probe_at_mm: dict[str, float] = Field(default_factory=dict)
+
+
+class TcpConfig(Strict):
+    enabled: bool = True
+    host: str = "127.0.0.1"
+    port: int = Field(2323, ge=0, le=65535)
+    max_connections: int = Field(16, ge=1)
+
+
+class HttpConfig(Strict):
+    enabled: bool = True
+    host: str = "127.0.0.1"
+    port: int = Field(8080, ge=0, le=65535)
+    allowed_origins: list[str] = Field(default_factory=list)
+    token: str | None = None
+
+
+class SerialConfig(Strict):
+    device: str | None = None
+    baud: int = Field(115200, gt=0)
+    pty: str | None = None
+
+
+class ProtocolConfig(Strict):
+    dialect: Literal["auto", "grbl", "reprap"] = "auto"
+    line_limit: int = Field(256, ge=16, le=65536)
+    rx_buffer_bytes: int = Field(128, ge=16, le=65536)
+    outgoing_limit_bytes: int = Field(1 << 20, ge=1024)
+    token: str | None = None
+
+
+class JobsConfig(Strict):
+    data_dir: Path = Path("~/.local/share/motiond")
+    max_upload_bytes: int = Field(256 << 20, gt=0)
+
+
+class CoreConfig(Strict):
+    machine: MachineSection = Field(default_factory=MachineSection)
+    axes: dict[str, AxisConfig]
+    planner: PlannerConfig = Field(default_factory=PlannerConfig)
+    stepgen: StepgenConfig = Field(default_factory=StepgenConfig)
+    backend: BackendConfig = Field(default_factory=BackendConfig)
+    tcp: TcpConfig = Field(default_factory=TcpConfig)
+    http: HttpConfig = Field(default_factory=HttpConfig)
+    serial: SerialConfig = Field(default_factory=SerialConfig)
+    protocol: ProtocolConfig = Field(default_factory=ProtocolConfig)
+    jobs: JobsConfig = Field(default_factory=JobsConfig)
+
+    @model_validator(mode="after")
+    def _axis_letters(self) -> CoreConfig:
+        bad = [name for name in self.axes if name.upper() not in AXIS_LETTERS]
+        if bad:
+            raise ValueError(f"axis names must be among {', '.join(AXIS_LETTERS)}, not {bad}")
+        if len({name.upper() for name in self.axes}) != len(self.axes):
+            raise ValueError("an axis is named twice")
+        return self
+
+    @property
+    def axis_names(self) -> tuple[str, ...]:
+        """Axis letters, upper-case, in configuration order."""
+        return tuple(name.upper() for name in self.axes)
+
+
+@dataclass(frozen=True, slots=True)
+class ModuleSpec:
+    """One configured module instance: ``[laser]`` or ``[switch.fan]``."""
+
+    cls: type[Module]
+    section: str  # "laser" or "switch.fan"
+    instance: str | None  # "fan" for named instances
+    config: BaseModel
+
+
+@dataclass(frozen=True, slots=True)
+class Config:
+    core: CoreConfig
+    modules: tuple[ModuleSpec, ...]
+    path: Path | None = None
+
+
+CORE_SECTIONS = frozenset(CoreConfig.model_fields)
+
+
+def default_config_text() -> str:
+    """The embedded default machine: a laser cutter on the simulated backend."""
+    return resources.files("server").joinpath("default.toml").read_text()
+
+
+def load_config(path: Path | None = None, registry: Mapping[str, type[Module]] | None = None) -> Config:
+    """Load and validate a config file (the embedded default when ``path`` is None)."""
+    label = str(path) if path else "<default config>"
+    try:
+        text = path.read_text() if path else default_config_text()
+    except OSError as exc:
+        raise ConfigError([f"{label}: cannot read: {exc.strerror}"]) from exc
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError([f"{label}: not valid TOML: {exc}"]) from exc
+    return build_config(data, label, registry, path)
+
+
+def build_config(
+    data: Mapping[str, Any],
+    label: str = "<config>",
+    registry: Mapping[str, type[Module]] | None = None,
+    path: Path | None = None,
+) -> Config:
+    """Validate a parsed config mapping; raise :class:`ConfigError` listing every problem."""
+    modules_available = available_modules() if registry is None else registry
+    core_data = {key: value for key, value in data.items() if key in CORE_SECTIONS}
+    problems: list[str] = []
+    core: CoreConfig | None = None
+    try:
+        core = CoreConfig.model_validate(core_data)
+    except ValidationError as exc:
+        problems += _describe(label, exc, ())
+    specs: list[ModuleSpec] = []
+    for section, body in data.items():
+        if section in CORE_SECTIONS:
+            continue
+        specs += _module_specs(label, section, body, modules_available, problems)
+    if problems or core is None:
+        raise ConfigError(problems)
+    return Config(core, tuple(specs), path)
+
+
+def _module_specs(
+    label: str,
+    section: str,
+    body: Any,
+    registry: Mapping[str, type[Module]],
+    problems: list[str],
+) -> list[ModuleSpec]:
+    cls = registry.get(section)
+    if cls is None:
+        known = ", ".join(sorted([*CORE_SECTIONS, *registry]))
+        problems.append(f"{label}: [{section}]: unknown section (known: {known})")
+        return []
+    if not isinstance(body, dict):
+        problems.append(f"{label}: [{section}]: must be a table")
+        return []
+    if not cls.named:
+        return _one_spec(label, cls, section, None, body, problems)
+    if not body:
+        problems.append(f"{label}: [{section}]: name each instance, as [{section}.NAME]")
+    specs: list[ModuleSpec] = []
+    for instance, instance_body in body.items():
+        if not isinstance(instance_body, dict):
+            problems.append(f"{label}: [{section}] {instance}: expected a [{section}.NAME] table")
+            continue
+        specs += _one_spec(label, cls, f"{section}.{instance}", instance, instance_body, problems)
+    return specs
+
+
+def _one_spec(
+    label: str,
+    cls: type[Module],
+    section: str,
+    instance: str | None,
+    body: dict[str, Any],
+    problems: list[str],
+) -> list[ModuleSpec]:
+    try:
+        config = cls.Config.model_validate(body)
+    except ValidationError as exc:
+        problems += _describe(label, exc, (section,))
+        return []
+    return [ModuleSpec(cls, section, instance, config)]
+
+
+def _describe(label: str, exc: ValidationError, prefix: tuple[str, ...]) -> list[str]:
+    """One line per pydantic error: ``FILE: [section] key: message``."""
+    lines = []
+    for error in exc.errors():
+        loc = prefix + tuple(str(part) for part in error["loc"])
+        message = _message(error)
+        if len(loc) == 0:
+            lines.append(f"{label}: {message}")
+        elif len(loc) == 1:
+            lines.append(f"{label}: [{loc[0]}]: {message}")
+        else:
+            lines.append(f"{label}: [{'.'.join(loc[:-1])}] {loc[-1]}: {message}")
+    return lines
+
+
+def _message(error: Mapping[str, Any]) -> str:
+    kind = error["type"]
+    if kind == "extra_forbidden":
+        return "unknown key"
+    if kind == "missing":
+        return "missing required value"
+    text = str(error["msg"]).removeprefix("Value error, ")
+    if "input" in error and kind not in ("model_type", "dict_type"):
+        return f"{text} (got {error['input']!r})"
+    return text

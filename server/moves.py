@@ -1,0 +1,92 @@
+"""The data that crosses the interpreter -> planner -> step generator boundaries.
+
+Units are always machine millimetres, mm/s and seconds, and positions are absolute machine
+coordinates with one value per configured axis, in the configuration's axis order.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+from typing import Any
+
+Position = tuple[float, ...]
+
+
+class MoveKind(enum.Enum):
+    """What a move is for; the laser never fires on RAPID, JOG or HOMING moves."""
+
+    RAPID = "rapid"
+    FEED = "feed"
+    ARC = "arc"  # one chord of a G2/G3 arc
+    PROBE = "probe"
+    JOG = "jog"
+    HOMING = "homing"
+
+
+class ToolMode(enum.IntEnum):
+    """The spindle/laser modal state: M3, M4 or M5."""
+
+    CW = 3  # M3: constant power (laser) or clockwise spindle
+    CCW = 4  # M4: dynamic power (laser) or counter-clockwise spindle
+    OFF = 5  # M5
+
+
+@dataclass(slots=True)
+class Action:
+    """A non-motion command executed in order with motion (DESIGN.md rule 3).
+
+    A *follow* action (``lead_s == 0``: tool on/off, S change, coolant, output pin) takes effect
+    when motion reaches it and does not stop motion. A *lead* action (``lead_s > 0`` or
+    ``stops_motion``: dwell, pause, program end) makes motion come to a stop first; dwell then
+    waits ``lead_s`` seconds.
+
+    ``name`` is one of: ``spindle`` (params ``mode``: ToolMode, ``s``), ``coolant`` (``mist``,
+    ``flood``: bool), ``dwell``, ``pause`` (M0/M1, params ``optional``), ``program_end``,
+    ``tool_change`` (``tool``), ``motors`` (``enabled``: bool), or a module's own name.
+    """
+
+    name: str
+    params: dict[str, Any] = field(default_factory=dict)
+    lead_s: float = 0.0
+    stops_motion: bool = False
+
+
+@dataclass(slots=True)
+class Move:
+    """A straight move to ``target_mm`` (absolute machine coordinates, one value per axis).
+
+    ``feed_mm_s`` is the requested speed along the path; the planner lowers it to the axes'
+    limits. ``tool_mode`` and ``s_value`` are the modal M3/M4/M5 and S in force for this move, so
+    that laser power changes between segments ride inside the blocks without stopping motion.
+    ``actions`` run when motion reaches the start of this move.
+    """
+
+    target_mm: Position
+    feed_mm_s: float
+    kind: MoveKind
+    tool_mode: ToolMode = ToolMode.OFF
+    s_value: float = 0.0
+    line_number: int | None = None
+    actions: list[Action] = field(default_factory=list)
+
+
+@dataclass(slots=True)
+class Sync:
+    """A request the interpreter cannot fulfil alone; the dispatcher carries it out in order.
+
+    ``kind`` is one of:
+      * ``report_position`` (M114): the dispatcher answers with the current position.
+      * ``halt`` (M112) and ``clear_halt`` (M999).
+      * ``probe`` (G38.2-G38.5): after the preceding PROBE move, wait for motion to stop and
+        resynchronise the interpreter to the stopped position (params ``towards``: bool,
+        ``error_on_fail``: bool).
+      * ``home`` (G28.2 / $H): run the homing cycle, params ``axes``: list of axis indices.
+      * ``wait_idle`` (used before anything that needs the machine position to be exact).
+    """
+
+    kind: str
+    params: dict[str, Any] = field(default_factory=dict)
+
+
+Output = Move | Action | Sync
