@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import heapq
 import itertools
+import time
 from typing import Protocol
 
 
@@ -27,10 +28,10 @@ class Clock(Protocol):
 
 
 class RealClock:
-    """Event-loop time. Sleeps may overshoot by a fraction of a millisecond; callers catch up."""
+    """Monotonic time, the same the event loop uses. Sleeps may overshoot; callers catch up."""
 
     def now_s(self) -> float:
-        return asyncio.get_running_loop().time()
+        return time.monotonic()
 
     async def sleep_until(self, deadline_s: float) -> None:
         delay_s = deadline_s - self.now_s()

@@ -246,7 +246,9 @@ def _describe(label: str, exc: ValidationError, prefix: tuple[str, ...]) -> list
     for error in exc.errors():
         loc = prefix + tuple(str(part) for part in error["loc"])
         message = _message(error)
-        if len(loc) == 0:
+        if isinstance(error.get("input"), dict) and error["type"] != "missing":
+            lines.append(f"{label}: [{'.'.join(loc)}]: {message}" if loc else f"{label}: {message}")
+        elif len(loc) == 0:
             lines.append(f"{label}: {message}")
         elif len(loc) == 1:
             lines.append(f"{label}: [{loc[0]}]: {message}")
@@ -262,6 +264,6 @@ def _message(error: Mapping[str, Any]) -> str:
     if kind == "missing":
         return "missing required value"
     text = str(error["msg"]).removeprefix("Value error, ")
-    if "input" in error and kind not in ("model_type", "dict_type"):
+    if "input" in error and not isinstance(error["input"], dict):
         return f"{text} (got {error['input']!r})"
     return text

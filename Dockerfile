@@ -1,0 +1,22 @@
+# Headless motiond: docker build -t motiond . && docker run -p 2323:2323 -p 8080:8080 -v motiond-data:/data motiond
+FROM python:3.11-slim
+
+RUN useradd --create-home --uid 10001 motiond \
+    && mkdir -p /data \
+    && chown motiond:motiond /data
+
+WORKDIR /app
+COPY pyproject.toml README.md ./
+COPY server ./server
+COPY modules ./modules
+COPY web ./web
+RUN pip install --no-cache-dir .
+
+USER 10001
+VOLUME ["/data"]
+# Optional: mount a config and point MOTIOND_CONFIG at it, e.g. -e MOTIOND_CONFIG=/data/motiond.toml
+ENV MOTIOND_DATA_DIR=/data/jobs
+EXPOSE 2323 8080
+HEALTHCHECK --interval=30s --timeout=3s --retries=3 \
+    CMD ["python", "-c", "import socket; socket.create_connection(('127.0.0.1', 2323), 2).close()"]
+CMD ["motiond", "--host", "0.0.0.0"]

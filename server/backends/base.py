@@ -1,0 +1,43 @@
+"""The backend interface: where the step generator's steps and the tools' outputs go.
+
+A backend is called from the event loop at every tick; every method must return in
+microseconds and never block. Units: steps are whole numbers per axis relative to the previous
+call; times are seconds on the kernel's clock; outputs are duty cycles in [0, 1].
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Protocol
+
+
+class Backend(Protocol):
+    """What a hardware or simulated machine must provide."""
+
+    def step(self, time_s: float, delta_steps: Sequence[int]) -> None:
+        """Move each axis by ``delta_steps[i]`` whole steps (signed), completed by ``time_s``."""
+        ...
+
+    def sample(self, time_s: float, position_mm: Sequence[float], speed_mm_s: float) -> None:
+        """Record the tool's state at a tick (for traces and history; may do nothing)."""
+        ...
+
+    def set_output(self, name: str, value: float, time_s: float) -> None:
+        """Set an output pin (laser PWM, spindle, fan) to a duty cycle in [0, 1]."""
+        ...
+
+    def output(self, name: str) -> float:
+        """The last value set on an output (0.0 if never set)."""
+        ...
+
+    def probe_triggered(self, position_mm: Sequence[float]) -> bool:
+        """Whether the probe input is active with the tool at ``position_mm``."""
+        ...
+
+    def switch_triggered(self, name: str, position_mm: Sequence[float]) -> bool:
+        """Whether the named switch (``x_min``...) is active with the tool at ``position_mm``."""
+        ...
+
+    def close(self) -> None:
+        """Release the hardware; safe to call twice."""
+        ...

@@ -1,0 +1,154 @@
+"""``motiond``: serve (default), check-config, estimate, render."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import os
+import signal
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from server import __version__
+from server.config import Config, load_config
+from server.errors import ConfigError
+
+log = logging.getLogger("motiond")
+
+EPILOG = """\
+examples:
+  motiond                              serve the embedded default (a simulated laser cutter)
+  motiond --config examples/cnc.toml   serve another machine
+  motiond --pty /tmp/motiond           also serve a pseudo-terminal for serial-only senders
+  motiond check-config my.toml         list every problem in a config file
+  motiond estimate job.nc              job time, distances and bounding box
+  motiond render job.nc -o job.svg     a picture of the toolpath coloured by speed
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="motiond", description="A networked motion controller speaking Grbl 1.1 and "
+        "Smoothieware over TCP, WebSocket and serial.", epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--version", action="version", version=f"motiond {__version__}")
+    parser.add_argument("--log-level", default="info",
+                        choices=["debug", "info", "warning", "error"], help="default: info")
+    commands = parser.add_subparsers(dest="command", metavar="COMMAND")
+    serve = commands.add_parser("serve", help="run the server (the default command)")
+    _serve_options(serve)
+    _serve_options(parser)
+    check = commands.add_parser("check-config", help="validate a config file")
+    check.add_argument("file", type=Path)
+    for name, help_text in (("estimate", "estimate a job's time and extent"),
+                            ("render", "draw a job's toolpath as SVG or PNG")):
+        sub = commands.add_parser(name, help=help_text)
+        sub.add_argument("file", type=Path, help="a G-code file")
+        sub.add_argument("--config", type=Path, help="machine config (default: embedded)")
+        if name == "estimate":
+            sub.add_argument("--json", action="store_true", help="print JSON")
+            sub.add_argument("--no-progress", action="store_true", help="no progress bar")
+        else:
+            sub.add_argument("-o", "--output", type=Path, required=True,
+                             help="output file (.svg or .png)")
+    return parser
+
+
+def _serve_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", type=Path, default=_env_path("MOTIOND_CONFIG"),
+                        help="machine config file (default: $MOTIOND_CONFIG, else embedded)")
+    parser.add_argument("--host", help="bind address for TCP and HTTP (overrides config)")
+    parser.add_argument("--tcp-port", type=int, help="raw TCP port (default 2323)")
+    parser.add_argument("--http-port", type=int, help="HTTP/WebSocket port (default 8080)")
+    parser.add_argument("--serial", metavar="DEVICE", help="also serve a serial device")
+    parser.add_argument("--pty", metavar="PATH", help="also serve a pseudo-terminal linked at PATH")
+    parser.add_argument("--data-dir", type=Path, default=_env_path("MOTIOND_DATA_DIR"),
+                        help="job files directory (default: $MOTIOND_DATA_DIR, else config)")
+
+
+def _env_path(name: str) -> Path | None:
+    value = os.environ.get(name)
+    return Path(value) if value else None
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=args.log_level.upper(),
+                        format="%(asctime)s %(levelname)-7s %(name)s: %(message)s")
+    try:
+        if args.command == "check-config":
+            return check_config(args.file)
+        config = load_config(args.config)
+        if args.command == "estimate":
+            from server.offline import estimate_command
+
+            return estimate_command(args, config)
+        if args.command == "render":
+            from server.offline import render_command
+
+            return render_command(args, config)
+        return serve(args, config)
+    except ConfigError as exc:
+        for problem in exc.problems:
+            print(problem, file=sys.stderr)
+        print("motiond: refusing to start with an invalid config", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 0
+
+
+def check_config(path: Path) -> int:
+    try:
+        config = load_config(path)
+    except ConfigError as exc:
+        for problem in exc.problems:
+            print(problem, file=sys.stderr)
+        print(f"{path}: {len(exc.problems)} problem(s)", file=sys.stderr)
+        return 1
+    axes = ", ".join(config.core.axis_names)
+    modules = ", ".join(spec.section for spec in config.modules) or "none"
+    print(f"{path}: ok ({config.core.machine.name}; axes {axes}; modules {modules})")
+    return 0
+
+
+def apply_overrides(args: argparse.Namespace, config: Config) -> Config:
+    """Command-line options win over the config file."""
+    core = config.core
+    if args.host:
+        core.tcp.host = core.http.host = args.host
+    if args.tcp_port is not None:
+        core.tcp.port = args.tcp_port
+    if args.http_port is not None:
+        core.http.port = args.http_port
+    if args.serial:
+        core.serial.device = args.serial
+    if args.pty:
+        core.serial.pty = args.pty
+    if args.data_dir:
+        core.jobs.data_dir = args.data_dir
+    return config
+
+
+def serve(args: argparse.Namespace, config: Config) -> int:
+    config = apply_overrides(args, config)
+    return asyncio.run(_serve(config))
+
+
+async def _serve(config: Config) -> int:
+    from server.app import App
+    from server.transports import default_transports
+
+    app = App(config, transports=default_transports(config))
+    loop = asyncio.get_running_loop()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(signum, app.request_stop)
+    log.info("motiond %s: %s", __version__, config.core.machine.name)
+    await app.run()
+    log.info("stopped")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

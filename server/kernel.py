@@ -1,0 +1,156 @@
+"""The kernel: config, clock, events, the module registry and its supervision, machine state.
+
+The kernel owns every long-lived task of the core in one TaskGroup: the step generator, the
+second ticker and one supervised task per module. A module whose ``run()`` raises puts the
+machine in ALARM (motion stopped, tools off) with a message naming the module and the error;
+the server stays up and keeps answering.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Callable
+from typing import Any
+
+from server.clock import Clock
+from server.config import Config, ModuleSpec
+from server.dispatcher import Dispatcher, Handler
+from server.events import EventBus, MachineState
+from server.machine import Machine
+from server.module import Module
+from server.moves import Action
+from server.stepgen import MotionState
+
+log = logging.getLogger("motiond.kernel")
+
+# Alarm codes: Grbl's 1-9, plus motiond's own (Grbl leaves the numbers above 9 free).
+ALARM_HARD_LIMIT = 1
+ALARM_SOFT_LIMIT = 2
+ALARM_RESET_WHILE_MOVING = 3
+ALARM_EMERGENCY_STOP = 10
+ALARM_MODULE_FAILED = 11
+ALARM_BACKEND_FAILED = 12
+
+
+class _Context:
+    """A module's handle on the kernel (implements server.module.ModuleContext)."""
+
+    def __init__(self, kernel: Kernel, name: str) -> None:
+        self._kernel = kernel
+        self.name = name
+        self.log = logging.getLogger(f"motiond.module.{name}")
+        self.clock = kernel.clock
+
+    def register_command(self, name: str, handler: Handler, *, when_locked: bool = False) -> None:
+        self._kernel.dispatcher.register(name, handler, when_locked=when_locked)
+
+    def subscribe(self, event: str, callback: Callable[..., None]) -> None:
+        self._kernel.events.subscribe(event, callback)
+
+    def lookup(self, name: str) -> Module:
+        return self._kernel.modules[name]
+
+    def motion(self) -> MotionState:
+        return self._kernel.machine.stepgen.state
+
+    async def queue_action(self, action: Action) -> None:
+        await self._kernel.machine.queue_action(action)
+
+    def alarm(self, message: str, code: int = ALARM_MODULE_FAILED) -> None:
+        self._kernel.alarm(code, f"{self.name}: {message}")
+
+    def emit(self, event: str, *args: Any) -> None:
+        self._kernel.events.emit(event, *args)
+
+    @property
+    def machine(self) -> Machine:
+        return self._kernel.machine
+
+
+class Kernel:
+    """Owns the machine state and every core task."""
+
+    def __init__(self, config: Config, clock: Clock) -> None:
+        self.config = config
+        self.clock = clock
+        self.events = EventBus()
+        self.state = MachineState.IDLE
+        self.alarm_code = 0
+        self.alarm_message = ""
+        self.dispatcher = Dispatcher(is_locked=lambda: self.state is MachineState.ALARM)
+        self.machine = Machine(self)
+        self.modules: dict[str, Module] = {}
+        self._specs: dict[str, ModuleSpec] = {}
+        for spec in config.modules:
+            self.modules[spec.section] = spec.cls(_Context(self, spec.section), spec.config)
+            self._specs[spec.section] = spec
+        self._stop = asyncio.Event()
+        self.started = asyncio.Event()
+        self.stopped = False
+
+    # -- machine state ---------------------------------------------------------------------
+    def set_state(self, state: MachineState) -> None:
+        if state is not self.state:
+            self.state = state
+            self.events.emit("state", state)
+
+    def push(self, message: str) -> None:
+        """Send an unsolicited line (``ALARM:2``, ``[MSG:...]``) to every connection."""
+        self.events.emit("push", message)
+
+    def alarm(self, code: int, message: str) -> None:
+        """Stop motion and tools at once, lock G-code out, tell everyone why."""
+        log.error("ALARM:%d %s", code, message)
+        self.alarm_code, self.alarm_message = code, message
+        self.machine.stop_now()
+        self.set_state(MachineState.ALARM)
+        self.events.emit("halt", message)
+        self.push(f"ALARM:{code}")
+        self.push(f"[MSG:{message}]")
+
+    def clear_alarm(self) -> None:
+        """``$X`` / ``M999``: unlock after an alarm."""
+        if self.state is MachineState.ALARM:
+            self.alarm_code, self.alarm_message = 0, ""
+            self.set_state(MachineState.IDLE)
+            self.events.emit("clear_halt")
+            self.push("[MSG:Caution: Unlocked]")
+
+    # -- tasks -----------------------------------------------------------------------------
+    async def run(self) -> None:
+        """Run the step generator, the second ticker and every module until :meth:`stop`."""
+        async with asyncio.TaskGroup() as group:
+            tasks = [group.create_task(self.machine.run(), name="stepgen"),
+                     group.create_task(self._second_ticker(), name="second")]
+            for section, module in self.modules.items():
+                tasks.append(group.create_task(self._supervise(section, module), name=section))
+            self.started.set()
+            await self._stop.wait()
+            self.machine.stop_now()
+            for task in tasks:
+                task.cancel()
+        self.stopped = True
+
+    def stop(self) -> None:
+        """Ask :meth:`run` to end: tools off, motion stopped, tasks cancelled. Repeatable."""
+        if not self._stop.is_set():
+            self.machine.stop_now()
+            self.events.emit("shutdown")
+            self._stop.set()
+
+    async def _supervise(self, section: str, module: Module) -> None:
+        try:
+            await module.run()
+        except asyncio.CancelledError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - supervision: any failure alarms the machine
+            log.exception("module [%s] crashed", section)
+            self.alarm(ALARM_MODULE_FAILED, f"module [{section}] failed: {exc!r}")
+
+    async def _second_ticker(self) -> None:
+        next_s = self.clock.now_s() + 1.0
+        while True:
+            await self.clock.sleep_until(next_s)
+            self.events.emit("second", next_s)
+            next_s += 1.0

@@ -1,0 +1,256 @@
+"""The motion pipeline: interpreter -> planner -> step generator -> backend, owned by the kernel.
+
+:class:`Machine` is the default G-code handler of the dispatcher. It runs the interpreter, feeds
+moves and ordered actions to the planner (waiting while it is full: that wait is the flow
+control that delays a sender's ``ok``), carries out the interpreter's sync requests, and applies
+realtime commands (hold, resume, reset, jog cancel, overrides) at once.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from typing import TYPE_CHECKING
+
+from server.backends.base import Backend
+from server.backends.null import NullBackend
+from server.backends.sim import SimBackend
+from server.config import CoreConfig
+from server.dispatcher import Command
+from server.errors import CommandError, SoftLimitError
+from server.events import MachineState
+from server.interpreter import Interpreter, InterpreterSettings
+from server.moves import Action, Move, MoveKind, Sync
+from server.planner import Planner, PlannerSettings
+from server.stepgen import HoldState, StepGenerator
+
+if TYPE_CHECKING:
+    from server.kernel import Kernel
+
+log = logging.getLogger("motiond.machine")
+
+
+def build_backend(core: CoreConfig) -> Backend:
+    """The backend named by ``[backend] kind``."""
+    if core.backend.kind == "null":
+        return NullBackend()
+    return SimBackend(core.axis_names, [axis.steps_per_mm for axis in core.axes.values()],
+                      history_samples=core.backend.history_samples,
+                      trace_csv=core.backend.trace_csv, probe_at_mm=core.backend.probe_at_mm)
+
+
+def interpreter_settings(core: CoreConfig) -> InterpreterSettings:
+    axes = list(core.axes.values())
+    return InterpreterSettings(
+        axis_names=core.axis_names,
+        min_mm=tuple(axis.min_mm for axis in axes),
+        max_mm=tuple(axis.max_mm for axis in axes),
+        soft_limits=core.machine.soft_limits,
+        arc_tolerance_mm=core.planner.arc_tolerance_mm,
+    )
+
+
+class Machine:
+    """Owns the motion pipeline; see the module docstring."""
+
+    def __init__(self, kernel: Kernel) -> None:
+        core = kernel.config.core
+        self.kernel = kernel
+        self.core = core
+        self.backend = build_backend(core)
+        self.interpreter = Interpreter(interpreter_settings(core))
+        origin = tuple(0.0 for _ in core.axis_names)
+        self.interpreter.set_position(origin)
+        self.planner = Planner(PlannerSettings.from_config(core), origin)
+        self.stepgen = StepGenerator(
+            self.planner, self.backend, tuple(a.steps_per_mm for a in core.axes.values()), self,
+            tick_hz=core.stepgen.tick_hz)
+        self.room = asyncio.Event()
+        self.idle_event = asyncio.Event()
+        self.idle_event.set()
+        self.check_mode = False
+        self.feed_override = 100
+        self.rapid_override = 100
+        self.spindle_override = 100
+        kernel.dispatcher.set_gcode_handler(self.handle_gcode)
+
+    # -- the G-code handler -----------------------------------------------------------------
+    async def handle_gcode(self, command: Command) -> list[str]:
+        assert command.line is not None
+        try:
+            outputs = self.interpreter.execute(command.line)
+        except SoftLimitError as exc:
+            self.kernel.alarm(2, f"soft limit: {exc.message}")
+            raise
+        messages: list[str] = []
+        for output in outputs:
+            if isinstance(output, Move):
+                await self.queue_move(output)
+            elif isinstance(output, Action):
+                await self.queue_action(output)
+            else:
+                messages += await self.sync(output)
+        return messages
+
+    async def queue_move(self, move: Move) -> None:
+        """Append a move, waiting while the planner is full."""
+        if self.check_mode:
+            return
+        await self._wait_for_room()
+        self.planner.append(move)
+        self._note_input(MachineState.JOG if move.kind is MoveKind.JOG else MachineState.RUN)
+
+    async def queue_action(self, action: Action) -> None:
+        """Append an ordered action, waiting while the planner is full."""
+        if self.check_mode:
+            return
+        await self._wait_for_room()
+        self.planner.append_action(action)
+        self._note_input(MachineState.RUN)
+
+    async def _wait_for_room(self) -> None:
+        while self.planner.is_full():
+            self.room.clear()
+            await self.room.wait()
+
+    def _note_input(self, state: MachineState) -> None:
+        self.idle_event.clear()
+        self.stepgen.note_input(self.kernel.clock.now_s())
+        if self.kernel.state is MachineState.IDLE:
+            self.kernel.set_state(state)
+
+    async def wait_idle(self) -> None:
+        """Wait until every queued move has been executed."""
+        if not self.stepgen.idle:
+            self.idle_event.clear()
+            self.stepgen.request_start()
+            await self.idle_event.wait()
+
+    async def sync(self, request: Sync) -> list[str]:
+        """Carry out an interpreter request that needs the machine."""
+        kind = request.kind
+        if kind == "halt":
+            self.kernel.alarm(10, "emergency stop (M112): $X or M999 to unlock")
+            return []
+        if kind == "clear_halt":
+            self.kernel.clear_alarm()
+            return []
+        await self.wait_idle()
+        if kind == "report_position":
+            return [self.position_report()]
+        if kind == "probe":
+            return self._finish_probe(request)
+        if kind == "home":
+            self.kernel.events.emit("home_request", request.params.get("axes"))
+            return []
+        if kind == "wait_idle":
+            return []
+        raise CommandError(20, f"unsupported request {kind}")
+
+    def _finish_probe(self, request: Sync) -> list[str]:
+        position = self.stepgen.state.position_mm
+        success = self.backend.probe_triggered(position)
+        self.interpreter.set_position(position)
+        self.planner.set_position(position)
+        self.interpreter.record_probe(position, success)
+        coords = ",".join(f"{v:.3f}" for v in position)
+        report = f"[PRB:{coords}:{int(success)}]"
+        if not success and request.params.get("error_on_fail", True):
+            self.kernel.alarm(5, "probe fail: the probe did not trigger")
+        return [report]
+
+    def position_report(self) -> str:
+        """Smoothie's M114 answer: work position, then machine position."""
+        machine = self.stepgen.state.position_mm
+        work = self.interpreter.work_position(machine)
+        names = self.core.axis_names
+        wpos = " ".join(f"{n}:{v:.4f}" for n, v in zip(names, work, strict=True))
+        mpos = " ".join(f"{n}:{v:.4f}" for n, v in zip(names, machine, strict=True))
+        return f"C: {wpos} MPos: {mpos}"
+
+    # -- motion listener (called by the step generator) --------------------------------------
+    def on_action(self, action: Action) -> None:
+        events = self.kernel.events
+        if action.name == "pause":
+            self.stepgen.hold()
+            self.kernel.set_state(MachineState.HOLD)
+        elif action.name == "program_end":
+            events.emit("program_end")
+            self.kernel.push("[MSG:Pgm End]")
+        elif action.name == "motors":
+            events.emit("motors_enable" if action.params.get("enabled") else "motors_disable")
+        events.emit("action", action)
+
+    def on_idle(self) -> None:
+        self.idle_event.set()
+        if self.kernel.state in (MachineState.RUN, MachineState.JOG):
+            self.kernel.set_state(MachineState.IDLE)
+
+    def on_hold_stopped(self) -> None:
+        self.kernel.events.emit("hold_stopped")
+
+    # -- realtime commands ------------------------------------------------------------------
+    def feed_hold(self) -> None:
+        if self.kernel.state in (MachineState.RUN, MachineState.JOG) or not self.stepgen.idle:
+            if self.kernel.state is MachineState.JOG:
+                self.cancel_jog()
+                return
+            self.stepgen.hold()
+            self.kernel.set_state(MachineState.HOLD)
+            self.kernel.events.emit("hold")
+
+    def cycle_start(self) -> None:
+        if self.kernel.state is MachineState.HOLD:
+            self.stepgen.resume()
+            self.kernel.set_state(MachineState.IDLE if self.stepgen.idle else MachineState.RUN)
+            self.kernel.events.emit("resume")
+
+    def cancel_jog(self) -> None:
+        if self.kernel.state is MachineState.JOG:
+            self.stepgen.cancel_jog()
+
+    def soft_reset(self) -> None:
+        """Ctrl-X: stop at once, flush, keep the position; ALARM:3 if it was moving."""
+        moving = self.stepgen.state.moving
+        self.stop_now()
+        self.interpreter.reset()
+        if moving:
+            self.kernel.alarm(3, "reset while in motion: position may be lost, re-home")
+        elif self.kernel.state not in (MachineState.ALARM,):
+            self.kernel.set_state(MachineState.IDLE)
+
+    def stop_now(self) -> None:
+        """Halt motion at once and resynchronise everything to where the steps are."""
+        self.stepgen.stop_now()
+        position = self.stepgen.state.position_mm
+        self.interpreter.set_position(position)
+        self.room.set()
+        self.idle_event.set()
+
+    def set_overrides(self, feed: int | None = None, rapid: int | None = None,
+                      spindle: int | None = None) -> None:
+        if feed is not None:
+            self.feed_override = max(10, min(200, feed))
+        if rapid is not None:
+            self.rapid_override = rapid
+        if spindle is not None:
+            self.spindle_override = max(10, min(200, spindle))
+        self.planner.set_overrides(self.feed_override / 100, self.rapid_override / 100)
+        self.kernel.events.emit("override", self.feed_override, self.rapid_override,
+                                self.spindle_override)
+
+    @property
+    def hold_state(self) -> HoldState:
+        return self.stepgen.state.hold
+
+    # -- the task ---------------------------------------------------------------------------
+    async def run(self) -> None:
+        """The step generator task; also wakes writers waiting for planner room."""
+        try:
+            await self.stepgen.run(self.kernel.clock, self._after_tick)
+        finally:
+            self.backend.close()
+
+    def _after_tick(self) -> None:
+        if not self.room.is_set() and not self.planner.is_full():
+            self.room.set()

@@ -1,0 +1,44 @@
+"""Shared fixtures: configs built from dicts, and the corpus folder."""
+
+from __future__ import annotations
+
+import copy
+import os
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from server.config import Config, build_config
+
+REPO = Path(__file__).resolve().parent.parent
+CORPUS = Path(os.environ.get("MOTIOND_CORPUS", REPO.parent / "shared" / "corpus"))
+if not CORPUS.is_dir():  # a checkout with shared/ beside it (CI) or inside the repo's parent
+    CORPUS = REPO / ".." / "shared" / "corpus"
+
+BASE: dict[str, Any] = {
+    "axes": {
+        "x": {"steps_per_mm": 80, "max_rate_mm_s": 500, "accel_mm_s2": 3000, "max_mm": 400},
+        "y": {"steps_per_mm": 80, "max_rate_mm_s": 500, "accel_mm_s2": 3000, "max_mm": 300},
+        "z": {"steps_per_mm": 400, "max_rate_mm_s": 10, "accel_mm_s2": 200,
+              "min_mm": -50, "max_mm": 50},
+    },
+    "tcp": {"port": 0},
+    "http": {"port": 0},
+}
+
+
+def make_config(extra: dict[str, Any] | None = None, **sections: Any) -> Config:
+    """A small XYZ machine, with extra sections merged in."""
+    data = copy.deepcopy(BASE)
+    for key, value in {**(extra or {}), **sections}.items():
+        if isinstance(value, dict) and isinstance(data.get(key), dict):
+            data[key].update(value)
+        else:
+            data[key] = value
+    return build_config(data, "test.toml")
+
+
+@pytest.fixture
+def config() -> Config:
+    return make_config()

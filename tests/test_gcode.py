@@ -1,0 +1,108 @@
+"""The pure G-code parser: words, comments, framing and Grbl error numbers."""
+
+from __future__ import annotations
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from server.errors import CommandError
+from server.gcode import checksum_of, parse_line
+
+
+@pytest.mark.parametrize(
+    "text, words",
+    [
+        ("G1X10.5Y-3F1500", [("G", 1), ("X", 10.5), ("Y", -3), ("F", 1500)]),
+        ("g1 x10", [("G", 1), ("X", 10)]),
+        ("G0 X-.5 Y+3. Z0.0001", [("G", 0), ("X", -0.5), ("Y", 3), ("Z", 0.0001)]),
+        ("G 1 X 1 0", [("G", 1), ("X", 10)]),
+        ("G90 G21 G17 M3 S1000", [("G", 90), ("G", 21), ("G", 17), ("M", 3), ("S", 1000)]),
+        ("G38.2 Z-10 F100", [("G", 38.2), ("Z", -10), ("F", 100)]),
+        ("\tG1\tX1  ", [("G", 1), ("X", 1)]),
+    ],
+)
+def test_words_are_a_letter_and_a_number_with_optional_spaces(text: str, words: list) -> None:
+    line = parse_line(text)
+    assert line.error is None
+    assert line.words == words
+
+
+def test_comments_are_kept_and_removed_from_words() -> None:
+    line = parse_line("G1 (MSG, hello) X1 ; the rest (ignored")
+    assert line.words == [("G", 1), ("X", 1)]
+    assert line.comments == ["MSG, hello", "the rest (ignored"]
+
+
+def test_empty_comment_only_and_percent_lines_have_no_words() -> None:
+    for text in ("", "   ", "(comment)", "; comment", "%"):
+        line = parse_line(text)
+        assert line.error is None and line.words == []
+
+
+def test_block_delete_is_flagged() -> None:
+    line = parse_line("/G0 X1")
+    assert line.block_delete and line.words == [("G", 0), ("X", 1)]
+
+
+def test_line_number_and_valid_checksum() -> None:
+    body = "N12 G1 X5"
+    line = parse_line(f"{body}*{checksum_of(body)}")
+    assert line.error is None
+    assert (line.line_number, line.checksum) == (12, checksum_of(body))
+    assert line.words == [("G", 1), ("X", 5)]
+
+
+def test_printrun_m110_framing_checksum() -> None:
+    assert parse_line("N0 M110 N0*125").error is None
+
+
+def test_bad_checksum_is_reported_not_executed() -> None:
+    line = parse_line("N3 G1 X1*99")
+    assert line.error is not None and line.error.code == 41
+    assert line.words == []
+
+
+@pytest.mark.parametrize(
+    "text, code",
+    [
+        ("G1 X", 2),  # bad number format
+        ("G1 X1..2", 1),
+        ("#1=2", 1),  # expected command letter
+        ("G1 X1 X2", 25),  # repeated word
+        ("G1 N5", 27),  # line number not first
+        ("N1.5 G1", 27),
+        ("G1 (unclosed", 1),
+        ("G1 X1*", 41),
+    ],
+)
+def test_malformed_lines_get_grbl_error_numbers(text: str, code: int) -> None:
+    error = parse_line(text).error
+    assert isinstance(error, CommandError)
+    assert error.code == code
+
+
+def test_repeated_g_and_m_words_are_left_to_the_interpreter() -> None:
+    assert parse_line("G90 G91").error is None
+    assert parse_line("M3 M8").error is None
+
+
+@given(st.text(max_size=120))
+def test_any_text_parses_without_raising(text: str) -> None:
+    line = parse_line(text)
+    assert line.error is None or isinstance(line.error, CommandError)
+    if line.error is None:
+        assert all(letter.isupper() and len(letter) == 1 for letter, _ in line.words)
+
+
+@given(st.lists(st.tuples(st.sampled_from("GMXYZFS"), st.floats(-1e4, 1e4)), max_size=6))
+def test_formatted_words_parse_back_to_their_values(words: list[tuple[str, float]]) -> None:
+    text = " ".join(f"{letter}{value:.4f}" for letter, value in words)
+    line = parse_line(text)
+    letters = [letter for letter, _ in words if letter not in "GM"]
+    if len(set(letters)) != len(letters):
+        assert line.error is not None and line.error.code == 25
+        return
+    assert line.error is None
+    assert [(k, round(v, 4)) for k, v in line.words] == [
+        (k, round(float(f"{v:.4f}"), 4)) for k, v in words]
