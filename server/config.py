@@ -35,6 +35,8 @@ class MachineSection(Strict):
     soft_limits: bool = True
     laser_mode: bool = True
     hold_on_disconnect: bool = False
+    report_inches: bool = False
+    status_report_mask: int = Field(1, ge=0, le=3)
 
 
 class AxisConfig(Strict):

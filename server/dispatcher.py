@@ -32,7 +32,7 @@ HandlerResult = list[str] | None
 Handler = Callable[["Command"], Awaitable[HandlerResult] | HandlerResult]
 
 _NAMED = re.compile(r"([A-Za-z][A-Za-z_\-]+)(?:\s+(.*))?$", re.S)
-_DOLLAR = re.compile(r"\$([A-Za-z]*|[$#])\s*(.*)$", re.S)
+_DOLLAR = re.compile(r"\$([$#]|[A-Za-z]*)\s*(.*)$", re.S)
 _SETTING = re.compile(r"\$(\d+)\s*=\s*(.*)$")
 LOCKED_OUT = 9
 

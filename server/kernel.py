@@ -14,6 +14,7 @@ from collections.abc import Callable
 from typing import Any
 
 from server.clock import Clock
+from server.commands import CoreCommands
 from server.config import Config, ModuleSpec
 from server.dispatcher import Dispatcher, Handler
 from server.events import EventBus, MachineState
@@ -85,6 +86,7 @@ class Kernel:
         for spec in config.modules:
             self.modules[spec.section] = spec.cls(_Context(self, spec.section), spec.config)
             self._specs[spec.section] = spec
+        CoreCommands(self).register(self.dispatcher)
         self._stop = asyncio.Event()
         self.started = asyncio.Event()
         self.stopped = False

@@ -9,7 +9,10 @@ realtime commands (hold, resume, reset, jog cancel, overrides) at once.
 from __future__ import annotations
 
 import asyncio
+import copy
 import logging
+from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from server.backends.base import Backend
@@ -17,17 +20,37 @@ from server.backends.null import NullBackend
 from server.backends.sim import SimBackend
 from server.config import CoreConfig
 from server.dispatcher import Command
-from server.errors import CommandError, SoftLimitError
+from server.errors import BUSY, CommandError, SoftLimitError
 from server.events import MachineState
 from server.interpreter import Interpreter, InterpreterSettings
-from server.moves import Action, Move, MoveKind, Sync
+from server.moves import Action, Move, MoveKind, Sync, ToolMode
 from server.planner import Planner, PlannerSettings
+from server.settings import Settings
+from server.protocol import Realtime
 from server.stepgen import HoldState, StepGenerator
 
 if TYPE_CHECKING:
     from server.kernel import Kernel
 
 log = logging.getLogger("motiond.machine")
+
+
+@dataclass(slots=True)
+class ToolState:
+    """The spindle/laser and coolant state as motion last reached it."""
+
+    mode: ToolMode = ToolMode.OFF
+    s: float = 0.0
+    flood: bool = False
+    mist: bool = False
+
+
+def settings_path(kernel: Kernel) -> Path:
+    """Where ``$x=value`` settings persist: beside the config file, else in the data dir."""
+    path = kernel.config.path
+    if path is not None:
+        return path.with_name(path.stem + ".settings.toml")
+    return kernel.config.core.jobs.data_dir.expanduser() / "settings.toml"
 
 
 def build_backend(core: CoreConfig) -> Backend:
@@ -69,6 +92,11 @@ class Machine:
         self.idle_event = asyncio.Event()
         self.idle_event.set()
         self.check_mode = False
+        self.epoch = 0  # incremented by every halt/reset; lines waiting across one are dropped
+        self.tool = ToolState()
+        self._check_saved: Interpreter | None = None
+        self._defaults = core.model_copy(deep=True)
+        self.settings = Settings(self, settings_path(kernel))
         self.feed_override = 100
         self.rapid_override = 100
         self.spindle_override = 100
@@ -109,9 +137,12 @@ class Machine:
         self._note_input(MachineState.RUN)
 
     async def _wait_for_room(self) -> None:
+        epoch = self.epoch
         while self.planner.is_full():
             self.room.clear()
             await self.room.wait()
+        if epoch != self.epoch:
+            raise CommandError(BUSY, "motion was reset while this line waited; it was not run")
 
     def _note_input(self, state: MachineState) -> None:
         self.idle_event.clear()
@@ -130,7 +161,7 @@ class Machine:
         """Carry out an interpreter request that needs the machine."""
         kind = request.kind
         if kind == "halt":
-            self.kernel.alarm(10, "emergency stop (M112): $X or M999 to unlock")
+            self.emergency_stop()
             return []
         if kind == "clear_halt":
             self.kernel.clear_alarm()
@@ -171,7 +202,11 @@ class Machine:
     # -- motion listener (called by the step generator) --------------------------------------
     def on_action(self, action: Action) -> None:
         events = self.kernel.events
-        if action.name == "pause":
+        if action.name == "spindle":
+            self.tool.mode, self.tool.s = action.params["mode"], action.params["s"]
+        elif action.name == "coolant":
+            self.tool.flood, self.tool.mist = action.params["flood"], action.params["mist"]
+        elif action.name == "pause":
             self.stepgen.hold()
             self.kernel.set_state(MachineState.HOLD)
         elif action.name == "program_end":
@@ -190,6 +225,24 @@ class Machine:
         self.kernel.events.emit("hold_stopped")
 
     # -- realtime commands ------------------------------------------------------------------
+    def realtime(self, command: Realtime) -> None:
+        """Act on a realtime byte at once (status and reset are the session's)."""
+        action = _REALTIME_ACTIONS.get(command)
+        if action is not None:
+            action(self)
+            return
+        feed, rapid, spindle = _OVERRIDE_STEPS.get(command, (None, None, None))
+        self.set_overrides(
+            feed=None if feed is None else (100 if feed == 0 else self.feed_override + feed),
+            rapid=rapid,
+            spindle=None if spindle is None else (
+                100 if spindle == 0 else self.spindle_override + spindle))
+
+    def emergency_stop(self) -> None:
+        """M112: halt at once, before the lines queued ahead of it run."""
+        if self.kernel.state is not MachineState.ALARM:
+            self.kernel.alarm(10, "emergency stop (M112): $X or M999 to unlock")
+
     def feed_hold(self) -> None:
         if self.kernel.state in (MachineState.RUN, MachineState.JOG) or not self.stepgen.idle:
             if self.kernel.state is MachineState.JOG:
@@ -221,6 +274,7 @@ class Machine:
 
     def stop_now(self) -> None:
         """Halt motion at once and resynchronise everything to where the steps are."""
+        self.epoch += 1
         self.stepgen.stop_now()
         position = self.stepgen.state.position_mm
         self.interpreter.set_position(position)
@@ -239,6 +293,41 @@ class Machine:
         self.kernel.events.emit("override", self.feed_override, self.rapid_override,
                                 self.spindle_override)
 
+    # -- settings and modes -----------------------------------------------------------------
+    def apply_settings(self) -> None:
+        """Push the live config (after ``$x=value``) into the interpreter, planner and stepgen."""
+        core = self.core
+        self.interpreter.settings = interpreter_settings(core)
+        self.planner.settings = PlannerSettings.from_config(core)
+        self.planner.set_overrides(self.feed_override / 100, self.rapid_override / 100)
+        steps_per_mm = tuple(axis.steps_per_mm for axis in core.axes.values())
+        self.stepgen.set_steps_per_mm(steps_per_mm)
+        if isinstance(self.backend, SimBackend):
+            self.backend.steps_per_mm = steps_per_mm
+
+    def clear_offsets(self) -> None:
+        """``$RST=#``: work offsets and stored positions back to zero (modal state too)."""
+        position = self.interpreter.position
+        self.interpreter = Interpreter(interpreter_settings(self.core))
+        self.interpreter.set_position(position)
+
+    def restore_settings(self) -> None:
+        self.settings.restore_defaults(self._defaults)
+
+    def enter_check_mode(self) -> None:
+        """``$C``: run lines through the interpreter without moving."""
+        self._check_saved = copy.deepcopy(self.interpreter)
+        self.check_mode = True
+        self.kernel.set_state(MachineState.CHECK)
+
+    def leave_check_mode(self) -> None:
+        """Leave check mode with the modal state it had before (Grbl resets here)."""
+        if self._check_saved is not None:
+            self.interpreter = self._check_saved
+            self._check_saved = None
+        self.check_mode = False
+        self.kernel.set_state(MachineState.IDLE)
+
     @property
     def hold_state(self) -> HoldState:
         return self.stepgen.state.hold
@@ -254,3 +343,30 @@ class Machine:
     def _after_tick(self) -> None:
         if not self.room.is_set() and not self.planner.is_full():
             self.room.set()
+
+
+_REALTIME_ACTIONS = {
+    Realtime.HOLD: Machine.feed_hold,
+    Realtime.DOOR: Machine.feed_hold,
+    Realtime.RESUME: Machine.cycle_start,
+    Realtime.JOG_CANCEL: Machine.cancel_jog,
+    Realtime.SPINDLE_STOP: lambda m: m.kernel.events.emit("spindle_stop"),
+    Realtime.FLOOD: lambda m: m.kernel.events.emit("toggle_coolant", "flood"),
+    Realtime.MIST: lambda m: m.kernel.events.emit("toggle_coolant", "mist"),
+}
+# (feed step, rapid value, spindle step); a step of 0 means "back to 100%".
+_OVERRIDE_STEPS: dict[Realtime, tuple[int | None, int | None, int | None]] = {
+    Realtime.FEED_100: (0, None, None),
+    Realtime.FEED_PLUS_10: (10, None, None),
+    Realtime.FEED_MINUS_10: (-10, None, None),
+    Realtime.FEED_PLUS_1: (1, None, None),
+    Realtime.FEED_MINUS_1: (-1, None, None),
+    Realtime.RAPID_100: (None, 100, None),
+    Realtime.RAPID_50: (None, 50, None),
+    Realtime.RAPID_25: (None, 25, None),
+    Realtime.SPINDLE_100: (None, None, 0),
+    Realtime.SPINDLE_PLUS_10: (None, None, 10),
+    Realtime.SPINDLE_MINUS_10: (None, None, -10),
+    Realtime.SPINDLE_PLUS_1: (None, None, 1),
+    Realtime.SPINDLE_MINUS_1: (None, None, -1),
+}

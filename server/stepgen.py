@@ -320,6 +320,12 @@ class StepGenerator:
     def _set_hold(self, hold: HoldState) -> None:
         self.state.hold = hold
 
+    def set_steps_per_mm(self, steps_per_mm: tuple[float, ...]) -> None:
+        """Change the resolution (only while idle): step counts are re-based on the position."""
+        self.steps_per_mm = steps_per_mm
+        self._cursor.steps = [round(p * s) for p, s in
+                              zip(self.state.position_mm, steps_per_mm, strict=True)]
+
     @property
     def steps(self) -> tuple[int, ...]:
         """Steps emitted so far per axis (absolute)."""

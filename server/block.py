@@ -1,0 +1,109 @@
+"""One committed block: a straight move with its trapezoidal speed profile, or an action block.
+
+This is what the planner hands to the step generator. Units: positions in machine mm
+(absolute, one value per configured axis), speeds in mm/s along the path, accelerations in
+mm/s² along the path, times in seconds measured from the start of the block.
+
+A block's motion has three phases: a first ramp from ``entry_mm_s`` to ``cruise_mm_s`` lasting
+``accel_s``, a cruise at ``cruise_mm_s`` lasting ``cruise_s``, and a last ramp from
+``cruise_mm_s`` to ``exit_mm_s`` lasting ``decel_s``. Normally the first ramp accelerates and the
+last one decelerates; when an override lowered the nominal speed below the speed motion already
+has, the first ramp decelerates instead (at the same rate ``accel_mm_s2``). A zero-length block
+(``move`` is None) carries actions only and stands still for ``lead_s`` (a dwell) or no time.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from server.moves import Action, Move, Position
+
+
+@dataclass(slots=True)
+class Block:
+    """One planned straight move, or an action-only block (``move`` is None).
+
+    Attributes:
+        move: the move this block executes, or None for an action-only block.
+        actions: actions run when motion reaches the START of this block, in order.
+        start_mm, end_mm: where the block starts and ends (machine mm).
+        unit: direction of travel, a unit vector (all zeros for a zero-length block).
+        length_mm: path length in mm.
+        nominal_mm_s: the speed the block cruises at when it has room (feed limited by the
+            axes' max rates projected on the direction, overrides applied).
+        accel_mm_s2: the acceleration along the path (axes' limits projected on the direction).
+        entry_mm_s, cruise_mm_s, exit_mm_s: speeds at the start, plateau and end.
+        accel_s, cruise_s, decel_s: durations of the first ramp, the cruise and the last ramp.
+        lead_s: time the block stands still (a dwell), zero for motion blocks.
+        duration_s: ``accel_s + cruise_s + decel_s + lead_s``.
+    """
+
+    move: Move | None
+    actions: list[Action]
+    start_mm: Position
+    end_mm: Position
+    unit: Position
+    length_mm: float
+    nominal_mm_s: float
+    accel_mm_s2: float
+    entry_mm_s: float
+    cruise_mm_s: float
+    exit_mm_s: float
+    accel_s: float
+    cruise_s: float
+    decel_s: float
+    lead_s: float
+    duration_s: float
+
+    @property
+    def motion_s(self) -> float:
+        """Seconds of motion (the three phases, without the lead time)."""
+        return self.accel_s + self.cruise_s + self.decel_s
+
+    def speed_at(self, t_s: float) -> float:
+        """Speed in mm/s at ``t_s`` seconds after the start of the block (clamped to the block)."""
+        t1 = self.accel_s
+        if t_s < t1:
+            if t_s <= 0.0:
+                return self.entry_mm_s
+            return self.entry_mm_s + (self.cruise_mm_s - self.entry_mm_s) * (t_s / t1)
+        t_s -= t1
+        if t_s < self.cruise_s:
+            return self.cruise_mm_s
+        t_s -= self.cruise_s
+        t3 = self.decel_s
+        if t_s < t3:
+            return self.cruise_mm_s + (self.exit_mm_s - self.cruise_mm_s) * (t_s / t3)
+        return self.exit_mm_s
+
+    def distance_at(self, t_s: float) -> float:
+        """Millimetres travelled along the block at ``t_s`` seconds after its start.
+
+        Analytic (the integral of :meth:`speed_at`), clamped to ``[0, length_mm]``; it is exactly
+        ``length_mm`` once the motion phases are over.
+        """
+        if t_s <= 0.0:
+            return 0.0
+        entry, cruise, t1 = self.entry_mm_s, self.cruise_mm_s, self.accel_s
+        if t_s >= t1 + self.cruise_s + self.decel_s:
+            return self.length_mm
+        if t_s < t1:
+            done = 0.5 * t_s * (entry + self.speed_at(t_s))
+            return min(done, self.length_mm)
+        done = 0.5 * t1 * (entry + cruise)
+        t_s -= t1
+        if t_s < self.cruise_s:
+            return min(done + cruise * t_s, self.length_mm)
+        done += cruise * self.cruise_s
+        t_s -= self.cruise_s
+        if t_s < self.decel_s:
+            speed = cruise + (self.exit_mm_s - cruise) * (t_s / self.decel_s)
+            return min(done + 0.5 * t_s * (cruise + speed), self.length_mm)
+        return self.length_mm
+
+    def position_at(self, t_s: float) -> Position:
+        """Machine position (mm) at ``t_s`` s after the start; exactly ``end_mm`` at the end."""
+        distance = self.distance_at(t_s)
+        if distance >= self.length_mm:
+            return self.end_mm
+        return tuple(s + u * distance for s, u in zip(self.start_mm, self.unit, strict=True))

@@ -1,0 +1,420 @@
+"""The look-ahead planner: a bounded window of blocks, junction speeds and trapezoids.
+
+Pure computation (no asyncio, no I/O). Units are machine mm, mm/s, mm/s² and seconds.
+
+The interpreter side calls :meth:`Planner.append` / :meth:`Planner.append_action` and watches
+:meth:`Planner.is_full` for back-pressure; someone calls :meth:`Planner.plan` every few
+milliseconds of input; the step generator calls :meth:`Planner.pop` for the next block to run.
+Appending is O(1): per-block numbers go into columns of one preallocated numpy array and
+:meth:`Planner.plan` re-plans the whole waiting window with a handful of numpy operations
+(:mod:`server.trapezoid`). :class:`~server.block.Block` objects are only built at ``pop()``.
+
+Why ``pop()`` may use a plan made before more blocks were appended: appending only adds
+look-ahead, which can only raise the limits, so the old plan (which stops at the old end of the
+window) stays feasible; its exit speed becomes the fixed start speed of the next plan.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+from operator import mul
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from server.block import Block
+from server.moves import Action, Move, MoveKind, Position
+from server.trapezoid import PROFILE_ROWS, junction_speed_sq, plan_window
+
+if TYPE_CHECKING:
+    from server.config import CoreConfig
+
+__all__ = ["MIN_LENGTH_MM", "Block", "Planner", "PlannerSettings"]
+
+MIN_LENGTH_MM = 1e-6
+"""Moves shorter than this are dropped; the next block starts where the last one ended, so
+the skipped displacement is not lost."""
+
+# Rows of the per-block column array: inputs written at append time ...
+LENGTH, ACCEL, FEED, RATE, KIND, NOMINAL, JUNCTION, LEAD = range(8)
+# ... and the profile written by plan().
+ENTRY, CRUISE, EXIT, RAMP1, FLAT, RAMP2, DURATION = range(8, 8 + PROFILE_ROWS)
+_ROWS = 8 + PROFILE_ROWS
+
+# KIND codes: which override scales a block's nominal speed.
+_NO_OVERRIDE, _FEED_OVERRIDE, _RAPID_OVERRIDE = 0.0, 1.0, 2.0
+_UNSCALED_KINDS = frozenset({MoveKind.JOG, MoveKind.HOMING})
+FEED_OVERRIDE_RANGE = (0.1, 2.0)
+RAPID_OVERRIDE_RANGE = (0.25, 1.0)
+
+
+@dataclass(frozen=True, slots=True)
+class PlannerSettings:
+    """Machine limits the planner needs; per-axis tuples follow the configuration's axis order.
+
+    ``max_rate_mm_s`` and ``accel_mm_s2`` are per axis; ``junction_deviation_mm`` is δ of the
+    junction model; the window is full at ``max_blocks`` blocks or ``max_planned_s`` seconds of
+    planned motion; nominal speeds never drop below ``min_feed_mm_s``.
+    """
+
+    max_rate_mm_s: tuple[float, ...]
+    accel_mm_s2: tuple[float, ...]
+    junction_deviation_mm: float = 0.01
+    max_blocks: int = 4096
+    max_planned_s: float = 0.5
+    min_feed_mm_s: float = 0.01
+
+    def __post_init__(self) -> None:
+        if len(self.max_rate_mm_s) != len(self.accel_mm_s2) or not self.max_rate_mm_s:
+            raise ValueError("max_rate_mm_s and accel_mm_s2 need one value per axis")
+        if min(self.max_rate_mm_s) <= 0 or min(self.accel_mm_s2) <= 0:
+            raise ValueError("axis rates and accelerations must be positive")
+        if self.junction_deviation_mm <= 0 or self.min_feed_mm_s <= 0:
+            raise ValueError("junction_deviation_mm and min_feed_mm_s must be positive")
+
+    @classmethod
+    def from_config(cls, core: CoreConfig) -> PlannerSettings:
+        """Settings from the ``[axes.*]`` and ``[planner]`` sections."""
+        axes = list(core.axes.values())
+        planner = core.planner
+        return cls(
+            max_rate_mm_s=tuple(axis.max_rate_mm_s for axis in axes),
+            accel_mm_s2=tuple(axis.accel_mm_s2 for axis in axes),
+            junction_deviation_mm=planner.junction_deviation_mm,
+            max_blocks=planner.max_blocks,
+            max_planned_s=planner.max_planned_s,
+            min_feed_mm_s=planner.min_feed_mm_s,
+        )
+
+
+_Geometry = tuple[Move | None, list[Action], Position, Position, Position]
+
+
+class Planner:
+    """The waiting window of blocks, planned with look-ahead from the start speed to a stop.
+
+    ``position_mm`` is the target of the last appended move (machine mm).
+    """
+
+    def __init__(self, settings: PlannerSettings, position_mm: Position) -> None:
+        self.settings = settings
+        self._zero: Position = (0.0,) * len(settings.max_rate_mm_s)
+        self._inv_rate = tuple(1.0 / rate for rate in settings.max_rate_mm_s)
+        self._inv_accel = tuple(1.0 / accel for accel in settings.accel_mm_s2)
+        self._data = np.zeros((_ROWS, 256))
+        self._head = self._tail = self._planned_to = 0
+        self._geometry: deque[_Geometry] = deque()
+        self._pending: list[Action] = []
+        self._start_mm_s = 0.0
+        self._feed_override = self._rapid_override = 1.0
+        self._last_unit: Position | None = None  # None: the next block must start from rest
+        self._last_accel = 0.0
+        self._dirty = self._head_dirty = False
+        self._time_planned_s = self._time_estimate_s = 0.0
+        self.position_mm: Position = self._zero
+        self._chain_mm: Position = self._zero
+        self.set_position(position_mm)
+
+    # ------------------------------------------------------------------ appending
+
+    def append(self, move: Move) -> None:
+        """Queue a straight move from the end of the last one to ``move.target_mm``.
+
+        A move shorter than :data:`MIN_LENGTH_MM` is dropped; its actions ride on the next block.
+        """
+        start, target = self._chain_mm, tuple(move.target_mm)
+        delta = [end - begin for end, begin in zip(target, start, strict=True)]
+        length = math.hypot(*delta)
+        self.position_mm = target
+        if length < MIN_LENGTH_MM:
+            self._pending.extend(move.actions)
+            return
+        self._chain_mm = target
+        inverse = 1.0 / length
+        unit = tuple([x * inverse for x in delta])
+        rate, accel = self._limits(unit)
+        kind, feed = _kind_and_feed(move)
+        nominal = self._nominal(feed, rate, kind)
+        junction = self._junction_sq(unit, accel)
+        self._push_back((length, accel, feed, rate, kind, nominal, junction, 0.0))
+        self._geometry.append((move, self._take_pending(move.actions), start, target, unit))
+        self._last_unit, self._last_accel = unit, accel
+        self._time_estimate_s += length / nominal
+
+    def append_action(self, action: Action) -> None:
+        """Queue a non-motion action in order with motion.
+
+        A follow action rides on the next block; a lead action (``lead_s > 0`` or
+        ``stops_motion``) becomes a zero-length block where motion stops, carrying any pending
+        follow actions before it.
+        """
+        if action.lead_s <= 0.0 and not action.stops_motion:
+            self._pending.append(action)
+            return
+        lead_s = max(action.lead_s, 0.0)
+        self._push_back((0.0, 1.0, math.inf, math.inf, _NO_OVERRIDE, math.inf, 0.0, lead_s))
+        here = self._chain_mm
+        self._geometry.append((None, self._take_pending([action]), here, here, self._zero))
+        self._last_unit = None
+        self._time_estimate_s += lead_s
+
+    # ------------------------------------------------------------------ window state
+
+    def __len__(self) -> int:
+        """Blocks waiting, counting pending follow actions as one action-only block."""
+        return self._tail - self._head + (1 if self._pending else 0)
+
+    def is_full(self) -> bool:
+        """True when the window holds ``max_blocks`` blocks or ``max_planned_s`` of motion.
+
+        Never full with fewer than two blocks, so a single very long move can always queue.
+        """
+        count = self._tail - self._head
+        if count < 2:
+            return False
+        return (
+            count >= self.settings.max_blocks
+            or self.planned_time_s() >= self.settings.max_planned_s
+        )
+
+    def planned_time_s(self) -> float:
+        """Seconds of queued motion: planned durations, plus ``length/nominal`` (a lower bound)
+        for blocks appended since the last plan."""
+        return self._time_planned_s + self._time_estimate_s
+
+    # ------------------------------------------------------------------ planning and popping
+
+    def plan(self) -> None:
+        """Re-plan the whole waiting window if anything changed since the last plan."""
+        if not self._dirty:
+            return
+        self._dirty = self._head_dirty = False
+        head, tail, data = self._head, self._tail, self._data
+        if head == tail:
+            return
+        plan_window(
+            data[LENGTH, head:tail],
+            data[ACCEL, head:tail],
+            data[NOMINAL, head:tail],
+            data[JUNCTION, head:tail],
+            data[LEAD, head:tail],
+            self._start_mm_s,
+            data[ENTRY:, head:tail],
+        )
+        self._planned_to = tail
+        self._time_planned_s = float(data[DURATION, head:tail].sum())
+        self._time_estimate_s = 0.0
+
+    def pop(self) -> Block | None:
+        """Commit and remove the head block; its entry and exit speeds are final.
+
+        Plans first when the head was never planned or the start speed, overrides or head changed
+        since the last plan. With no block waiting, returns an action-only block carrying the
+        pending follow actions, or None. The popped block's exit becomes the start speed.
+        """
+        head = self._head
+        if head == self._tail:
+            return self._pop_pending()
+        if self._head_dirty or head >= self._planned_to:
+            self._dirty = True
+            self.plan()
+        (length, accel, _, _, _, nominal, _, lead, entry, cruise, exit_, ramp1, flat, ramp2,
+         duration) = self._data[:, head].tolist()  # fmt: skip
+        move, actions, start, end, unit = self._geometry.popleft()
+        self._head = head + 1
+        self._start_mm_s = exit_
+        self._time_planned_s -= duration
+        if self._head == self._tail:
+            self._clear_window()
+        if move is None:
+            nominal = accel = 0.0
+        return Block(move, actions, start, end, unit, length, nominal, accel,
+                     entry, cruise, exit_, ramp1, flat, ramp2, lead, duration)  # fmt: skip
+
+    def flush(self) -> list[Action]:
+        """Drop every waiting block and pending action (halt); return the dropped actions.
+
+        ``position_mm`` is stale afterwards: call :meth:`set_position` with where motion stopped.
+        """
+        dropped = [action for _, actions, _, _, _ in self._geometry for action in actions]
+        dropped += self._pending
+        self._geometry.clear()
+        self._pending = []
+        self._clear_window()
+        self._start_mm_s = 0.0
+        self._last_unit = None
+        return dropped
+
+    def set_position(self, position_mm: Position) -> None:
+        """Set where the next move starts (machine mm); only with no block waiting."""
+        if self._head != self._tail:
+            raise RuntimeError("set_position while blocks are waiting; flush first")
+        if len(position_mm) != len(self._zero):
+            raise ValueError(f"expected {len(self._zero)} coordinates, got {len(position_mm)}")
+        self.position_mm = self._chain_mm = tuple(float(x) for x in position_mm)
+        self._last_unit = None
+
+    def set_start_speed(self, speed_mm_s: float) -> None:
+        """Entry speed (mm/s) of the next popped block: the speed the executing block ends with.
+
+        ``pop()`` sets it to the popped block's exit speed; call this only to change that.
+        """
+        speed_mm_s = max(float(speed_mm_s), 0.0)
+        if speed_mm_s != self._start_mm_s:
+            self._start_mm_s = speed_mm_s
+            self._dirty = self._head_dirty = True
+
+    def set_overrides(self, feed: float = 1.0, rapid: float = 1.0) -> None:
+        """Scale nominal speeds: feed moves by ``feed`` (0.1-2.0, still capped by the axes'
+        max rates), rapids by ``rapid`` (0.25-1.0). Values are clamped to those ranges. Applies
+        to waiting and future blocks; jog and homing moves are not scaled."""
+        feed = min(max(feed, FEED_OVERRIDE_RANGE[0]), FEED_OVERRIDE_RANGE[1])
+        rapid = min(max(rapid, RAPID_OVERRIDE_RANGE[0]), RAPID_OVERRIDE_RANGE[1])
+        if (feed, rapid) == (self._feed_override, self._rapid_override):
+            return
+        self._feed_override, self._rapid_override = feed, rapid
+        head, tail, data = self._head, self._tail, self._data
+        kind = data[KIND, head:tail]
+        scaled_feed = data[FEED, head:tail] * np.where(kind == _FEED_OVERRIDE, feed, 1.0)
+        scaled_rate = data[RATE, head:tail] * np.where(kind == _RAPID_OVERRIDE, rapid, 1.0)
+        nominal = np.minimum(scaled_feed, scaled_rate)
+        np.maximum(nominal, self.settings.min_feed_mm_s, out=data[NOMINAL, head:tail])
+        self._dirty = self._head_dirty = True
+
+    # ------------------------------------------------------------------ feed-hold remainders
+
+    def make_block(
+        self, start_mm: Position, end_mm: Position, move: Move | None, actions: list[Action]
+    ) -> Block:
+        """Build an unplanned block from ``start_mm`` to ``end_mm`` (speeds and times zero)."""
+        start, end = tuple(start_mm), tuple(end_mm)
+        delta = [e - s for e, s in zip(end, start, strict=True)]
+        length = math.hypot(*delta)
+        if length < MIN_LENGTH_MM or move is None:
+            return _unplanned(move, actions, start, end, self._zero)
+        unit = tuple([x / length for x in delta])
+        rate, accel = self._limits(unit)
+        kind, feed = _kind_and_feed(move)
+        nominal = self._nominal(feed, rate, kind)
+        return _unplanned(move, actions, start, end, unit, length, nominal, accel)
+
+    def insert_front(self, block: Block) -> None:
+        """Put a block (a remainder after a feed hold) back at the head; it starts from rest.
+
+        A zero-length block keeps its ``lead_s``; motion stays at rest through it.
+        """
+        head = self._reserve_front()
+        if block.move is None or block.length_mm < MIN_LENGTH_MM:
+            row = (0.0, 1.0, math.inf, math.inf, _NO_OVERRIDE, math.inf, 0.0, block.lead_s)
+            if head + 1 < self._tail:
+                self._data[JUNCTION, head + 1] = 0.0
+            estimate_s = block.lead_s
+        else:
+            rate, accel = self._limits(block.unit)
+            kind, feed = _kind_and_feed(block.move)
+            nominal = self._nominal(feed, rate, kind)
+            row = (block.length_mm, accel, feed, rate, kind, nominal, 0.0, 0.0)
+            estimate_s = block.length_mm / nominal
+        self._data[: LEAD + 1, head] = row
+        self._geometry.appendleft(
+            (block.move, block.actions, block.start_mm, block.end_mm, block.unit)
+        )
+        self._start_mm_s = 0.0
+        self._dirty = self._head_dirty = True
+        self._time_estimate_s += estimate_s
+
+    # ------------------------------------------------------------------ internals
+
+    def _limits(self, unit: Position) -> tuple[float, float]:
+        """Speed (mm/s) and acceleration (mm/s²) limits along ``unit`` from the per-axis limits."""
+        size = [abs(x) for x in unit]
+        rate = 1.0 / max(map(mul, size, self._inv_rate))
+        accel = 1.0 / max(map(mul, size, self._inv_accel))
+        return rate, accel
+
+    def _nominal(self, feed_mm_s: float, rate_mm_s: float, kind: float) -> float:
+        if kind == _FEED_OVERRIDE:
+            feed_mm_s *= self._feed_override
+        elif kind == _RAPID_OVERRIDE:
+            rate_mm_s *= self._rapid_override
+        return max(min(feed_mm_s, rate_mm_s), self.settings.min_feed_mm_s)
+
+    def _junction_sq(self, unit: Position, accel_mm_s2: float) -> float:
+        if self._last_unit is None:
+            return 0.0
+        accel = min(accel_mm_s2, self._last_accel)
+        return junction_speed_sq(self._last_unit, unit, accel, self.settings.junction_deviation_mm)
+
+    def _take_pending(self, more: list[Action]) -> list[Action]:
+        if not self._pending:
+            return list(more)
+        actions = self._pending
+        actions.extend(more)
+        self._pending = []
+        return actions
+
+    def _pop_pending(self) -> Block | None:
+        if not self._pending:
+            return None
+        here = self._chain_mm
+        actions, self._pending = self._pending, []
+        return _unplanned(None, actions, here, here, self._zero)
+
+    def _push_back(self, row: tuple[float, ...]) -> None:
+        tail = self._tail
+        if tail == self._data.shape[1]:
+            self._make_room(1, front=False)
+            tail = self._tail
+        self._data[: LEAD + 1, tail] = row
+        self._tail = tail + 1
+        self._dirty = True
+
+    def _reserve_front(self) -> int:
+        if self._head == 0:
+            self._make_room(1, front=True)
+        self._head -= 1
+        return self._head
+
+    def _make_room(self, extra: int, front: bool) -> None:
+        """Compact or grow the column array so ``extra`` more columns fit (before or after)."""
+        head, tail = self._head, self._tail
+        count, capacity = tail - head, self._data.shape[1]
+        data = self._data
+        if count + extra > capacity // 2:
+            data = np.zeros((_ROWS, 2 * capacity))
+        offset = extra if front else 0
+        data[:, offset : offset + count] = self._data[:, head:tail].copy()
+        self._data = data
+        self._head, self._tail = offset, offset + count
+        self._planned_to += offset - head
+
+    def _clear_window(self) -> None:
+        self._head = self._tail = self._planned_to = 0
+        self._dirty = self._head_dirty = False
+        self._time_planned_s = self._time_estimate_s = 0.0
+
+
+def _kind_and_feed(move: Move) -> tuple[float, float]:
+    """The override code of a move and its requested feed (mm/s; inf for rapids)."""
+    if move.kind is MoveKind.RAPID:
+        return _RAPID_OVERRIDE, math.inf
+    feed = move.feed_mm_s if move.feed_mm_s > 0.0 else 0.0
+    return (_NO_OVERRIDE if move.kind in _UNSCALED_KINDS else _FEED_OVERRIDE), feed
+
+
+def _unplanned(
+    move: Move | None,
+    actions: list[Action],
+    start_mm: Position,
+    end_mm: Position,
+    unit: Position,
+    length_mm: float = 0.0,
+    nominal_mm_s: float = 0.0,
+    accel_mm_s2: float = 0.0,
+) -> Block:
+    """A block with its geometry and limits but no speeds or times yet."""
+    zero = 0.0
+    return Block(move, actions, start_mm, end_mm, unit, length_mm, nominal_mm_s, accel_mm_s2,
+                 zero, zero, zero, zero, zero, zero, zero, zero)  # fmt: skip

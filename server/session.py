@@ -1,0 +1,224 @@
+"""One client connection, whatever the transport: protocol in, dispatcher, replies out.
+
+A transport creates a :class:`Session`, feeds it bytes (or WebSocket text) and drains its
+:class:`Outbox`. The session:
+
+* acts on realtime bytes at once (status, hold, resume, reset, overrides, jog cancel), even
+  while lines wait for planner room, and on ``M112`` the moment its line arrives;
+* queues complete lines (bounded) and executes them one at a time through the dispatcher,
+  answering each with exactly one ``ok`` or ``error:N`` in order;
+* bounds what it sends: a client that stops reading overflows its outbox and is disconnected,
+  never slowing motion or other clients.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import re
+from collections import deque
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+from server.errors import CommandError
+from server.protocol import (
+    LineProtocol,
+    LineReceived,
+    LineRejected,
+    Realtime,
+    RealtimeReceived,
+)
+from server.reports import StatusScheduler
+from server.status import snapshot
+
+if TYPE_CHECKING:
+    from server.kernel import Kernel
+
+log = logging.getLogger("motiond.session")
+_M112 = re.compile(r"^\s*(?:N\d+\s*)?M\s*0*112(?:\D|$)", re.I)
+INBOUND_LINES = 64
+
+
+class Outbox:
+    """A bounded byte queue drained by the transport's writer task."""
+
+    def __init__(self, limit_bytes: int) -> None:
+        self.limit_bytes = limit_bytes
+        self.on_overflow: Callable[[], None] = lambda: None
+        self._chunks: deque[bytes] = deque()
+        self._size = 0
+        self._ready = asyncio.Event()
+        self.overflowed = False
+        self.closed = False
+
+    def put(self, data: bytes) -> bool:
+        """Queue data; returns False (and marks overflow) when the client is not keeping up."""
+        if self.closed:
+            return False
+        if self._size + len(data) > self.limit_bytes:
+            self.overflowed = True
+            self.close()
+            self.on_overflow()
+            return False
+        self._chunks.append(data)
+        self._size += len(data)
+        self._ready.set()
+        return True
+
+    async def get(self) -> bytes | None:
+        """Everything queued so far as one chunk, or None once closed and empty."""
+        while not self._chunks:
+            if self.closed:
+                return None
+            self._ready.clear()
+            await self._ready.wait()
+        data = b"".join(self._chunks)
+        self._chunks.clear()
+        self._size = 0
+        return data
+
+    def close(self) -> None:
+        self.closed = True
+        self._ready.set()
+
+
+class Session:
+    """See the module docstring. Owns one task: the line executor."""
+
+    def __init__(self, kernel: Kernel, name: str, *, websocket: bool = False,
+                 can_control: bool = True) -> None:
+        core = kernel.config.core
+        self.kernel = kernel
+        self.name = name
+        self.can_control = can_control
+        self.protocol = LineProtocol(line_limit=core.protocol.line_limit,
+                                     dialect=core.protocol.dialect, websocket=websocket)
+        self.outbox = Outbox(core.protocol.outgoing_limit_bytes)
+        self._lines: deque[tuple[int, LineReceived | LineRejected]] = deque()
+        self._lines_ready = asyncio.Event()
+        self._room = asyncio.Event()
+        self._room.set()
+        self._epoch = 0
+        self._queued_bytes = 0
+        self._scheduler = StatusScheduler()
+        self._unsubscribe = kernel.events.subscribe("push", self.push)
+        self._task: asyncio.Task[None] | None = None
+        self._closing = False
+
+    # -- lifecycle --------------------------------------------------------------------------
+    def start(self) -> None:
+        """Send the banner and start executing lines."""
+        self.outbox.put(self.protocol.banner())
+        self._task = asyncio.get_running_loop().create_task(self._executor(), name=self.name)
+
+    async def close(self) -> None:
+        """Stop taking lines. A line already executing completes (a line is all or nothing:
+        an arc is never half queued); lines not yet started were never acknowledged and are
+        dropped. Motion already accepted keeps running (or holds, with hold_on_disconnect)."""
+        self._unsubscribe()
+        self.outbox.close()
+        self._closing = True
+        self._lines.clear()
+        self._lines_ready.set()
+        if self._task is not None:
+            await self._task
+            self._task = None
+        if self.kernel.config.core.machine.hold_on_disconnect and self.can_control:
+            self.kernel.machine.feed_hold()
+
+    @property
+    def closed(self) -> bool:
+        return self.outbox.closed
+
+    # -- input ------------------------------------------------------------------------------
+    def receive_data(self, data: bytes) -> None:
+        """Bytes from the client (TCP, serial)."""
+        self._handle(self.protocol.receive_data(data))
+
+    def receive_text(self, text: str) -> None:
+        """A WebSocket text frame."""
+        self._handle(self.protocol.receive_text(text))
+
+    async def wait_room(self) -> None:
+        """Wait while too many lines are queued (the transport stops reading meanwhile)."""
+        await self._room.wait()
+
+    def _handle(self, events: list[LineReceived | LineRejected | RealtimeReceived]) -> None:
+        for event in events:
+            if isinstance(event, RealtimeReceived):
+                self._realtime(event.command)
+                continue
+            if isinstance(event, LineReceived) and _M112.match(event.text) and self.can_control:
+                self.kernel.machine.emergency_stop()
+            self._lines.append((self._epoch, event))
+            self._queued_bytes += _size(event)
+            if len(self._lines) >= INBOUND_LINES:
+                self._room.clear()
+        self._lines_ready.set()
+
+    def _realtime(self, command: Realtime) -> None:
+        if command is Realtime.STATUS:
+            self.outbox.put(self.protocol.push(self._status()))
+            return
+        if not self.can_control:
+            return
+        if command is Realtime.RESET:
+            self._epoch += 1
+            self._lines.clear()
+            self._queued_bytes = 0
+            self._room.set()
+            self.protocol.reset()
+            self._scheduler.refresh()
+            self.kernel.machine.soft_reset()
+            self.outbox.put(self.protocol.banner())
+            return
+        self.kernel.machine.realtime(command)
+
+    def _status(self) -> str:
+        core = self.kernel.config.core
+        free = max(0, core.protocol.rx_buffer_bytes - self._queued_bytes)
+        return self._scheduler.report(snapshot(self.kernel, free),
+                                      report_mask=core.machine.status_report_mask,
+                                      inches=core.machine.report_inches)
+
+    # -- output -----------------------------------------------------------------------------
+    def push(self, message: str) -> None:
+        """An unsolicited line for this client (kernel ``push`` event)."""
+        try:
+            self.outbox.put(self.protocol.push(message))
+        except ValueError:
+            log.warning("dropped a push message that is not safe for senders: %r", message)
+
+    async def _executor(self) -> None:
+        while not self._closing:
+            if not self._lines:
+                self._lines_ready.clear()
+                await self._lines_ready.wait()
+                continue
+            epoch, event = self._lines.popleft()
+            reply = await self._execute(event)
+            if len(self._lines) < INBOUND_LINES // 2:
+                self._room.set()
+            if epoch == self._epoch:
+                self._queued_bytes = max(0, self._queued_bytes - _size(event))
+                self.outbox.put(reply)
+
+    async def _execute(self, event: LineReceived | LineRejected) -> bytes:
+        if isinstance(event, LineRejected):
+            return self.protocol.reply_error(event.error)
+        if event.framed is not None and event.framed.m110:
+            return self.protocol.reply_ok()
+        try:
+            messages = await self.kernel.dispatcher.submit(event.text, self)
+        except CommandError as exc:
+            return self.protocol.reply_error(exc)
+        except Exception as exc:  # noqa: BLE001 - unexpected: alarm, answer, keep serving
+            log.exception("line %r failed", event.text)
+            self.kernel.alarm(11, f"internal error on {event.text!r}: {exc!r}")
+            return self.protocol.reply_error(CommandError(20, "internal error"))
+        return self.protocol.reply_ok(messages)
+
+
+def _size(event: LineReceived | LineRejected) -> int:
+    """Bytes a line took in the client's view of our input buffer (newline included)."""
+    return len(event.text) + 1 if isinstance(event, LineReceived) else 1

@@ -1,0 +1,194 @@
+"""Grbl's numbered settings (``$$``, ``$x=value``), mapped onto the live machine.
+
+Each number reads and writes one value of the running configuration; a write is validated by
+the same pydantic model as the config file, applied at once where that is safe (junction
+deviation, arc tolerance, rates, accelerations, soft limits, report units) and persisted to
+a small TOML settings file next to the config, which is read again at start-up. Settings that
+change the machine's geometry (steps/mm, travel) are refused while motion is queued (error 8).
+"""
+
+from __future__ import annotations
+
+import logging
+import tomllib
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from pydantic import ValidationError
+
+from server.errors import CommandError
+
+if TYPE_CHECKING:
+    from server.config import CoreConfig
+    from server.machine import Machine
+
+log = logging.getLogger("motiond.settings")
+NOT_IDLE = 8
+SETTING_DISABLED = 5
+INVALID_STATEMENT = 3
+NEGATIVE_VALUE = 4
+MM_PER_MIN = 60.0
+
+
+@dataclass(frozen=True, slots=True)
+class Setting:
+    """One numbered setting: how to read it from and write it to the config."""
+
+    number: int
+    description: str
+    read: Callable[[CoreConfig], float]
+    write: Callable[[CoreConfig, float], None] | None = None
+    geometry: bool = False  # changes steps or travel: only while idle
+
+
+def _fixed(value: float, description: str) -> Callable[[int], Setting]:
+    return lambda number: Setting(number, description, lambda core: value)
+
+
+def _attr(section: str, key: str, scale: float = 1.0) -> tuple[Callable[..., float], Callable[..., None]]:
+    def read(core: CoreConfig) -> float:
+        return float(getattr(getattr(core, section), key)) * scale
+
+    def write(core: CoreConfig, value: float) -> None:
+        setattr(getattr(core, section), key, value / scale)
+
+    return read, write
+
+
+def _axis(index: int, key: str, scale: float = 1.0) -> tuple[Callable[..., float], Callable[..., None]]:
+    def read(core: CoreConfig) -> float:
+        return float(getattr(list(core.axes.values())[index], key)) * scale
+
+    def write(core: CoreConfig, value: float) -> None:
+        setattr(list(core.axes.values())[index], key, value / scale)
+
+    return read, write
+
+
+def setting_table(core: CoreConfig) -> dict[int, Setting]:
+    """Every setting this machine has, by number."""
+    table: dict[int, Setting] = {}
+    for number, value, text in ((0, 10, "step pulse, µs"), (1, 25, "step idle delay, ms"),
+                                (2, 0, "step pulse invert"), (3, 0, "direction invert"),
+                                (4, 0, "step enable invert"), (5, 0, "limit pins invert"),
+                                (6, 0, "probe pin invert"), (21, 0, "hard limits"),
+                                (22, 0, "homing cycle"), (30, 1000, "max spindle/laser S"),
+                                (31, 0, "min spindle/laser S")):
+        table[number] = _fixed(value, text)(number)
+    table[10] = Setting(10, "status report mask", *_attr("machine", "status_report_mask"))
+    table[11] = Setting(11, "junction deviation, mm", *_attr("planner", "junction_deviation_mm"))
+    table[12] = Setting(12, "arc tolerance, mm", *_attr("planner", "arc_tolerance_mm"))
+    table[13] = Setting(13, "report inches", *_bool("machine", "report_inches"))
+    table[20] = Setting(20, "soft limits", *_bool("machine", "soft_limits"))
+    table[32] = Setting(32, "laser mode", *_bool("machine", "laser_mode"))
+    for index, _ in enumerate(core.axes):
+        table[100 + index] = Setting(100 + index, "steps/mm", *_axis(index, "steps_per_mm"),
+                                     geometry=True)
+        table[110 + index] = Setting(110 + index, "max rate, mm/min",
+                                     *_axis(index, "max_rate_mm_s", MM_PER_MIN))
+        table[120 + index] = Setting(120 + index, "acceleration, mm/s^2",
+                                     *_axis(index, "accel_mm_s2"))
+        table[130 + index] = Setting(130 + index, "max travel, mm", *_travel(index), geometry=True)
+    return table
+
+
+def _bool(section: str, key: str) -> tuple[Callable[..., float], Callable[..., None]]:
+    def read(core: CoreConfig) -> float:
+        return float(bool(getattr(getattr(core, section), key)))
+
+    def write(core: CoreConfig, value: float) -> None:
+        setattr(getattr(core, section), key, bool(value))
+
+    return read, write
+
+
+def _travel(index: int) -> tuple[Callable[..., float], Callable[..., None]]:
+    def read(core: CoreConfig) -> float:
+        axis = list(core.axes.values())[index]
+        return axis.max_mm - axis.min_mm
+
+    def write(core: CoreConfig, value: float) -> None:
+        axis = list(core.axes.values())[index]
+        if axis.min_mm < 0 and axis.max_mm <= 0:  # negative machine space (Grbl style)
+            axis.min_mm = axis.max_mm - value
+        else:
+            axis.max_mm = axis.min_mm + value
+
+    return read, write
+
+
+class Settings:
+    """The numbered settings of one machine, with persistence."""
+
+    def __init__(self, machine: Machine, path: Path | None) -> None:
+        self.machine = machine
+        self.core = machine.core
+        self.table = setting_table(self.core)
+        self.path = path
+        if path is not None and path.exists():
+            self._load(path)
+
+    def values(self) -> dict[int, float]:
+        return {number: setting.read(self.core) for number, setting in sorted(self.table.items())}
+
+    def write(self, statement: str) -> None:
+        """Apply ``N=value`` (the text after ``$``); raise CommandError with Grbl's codes."""
+        number_text, _, value_text = statement.partition("=")
+        try:
+            number, value = int(number_text.strip()), float(value_text.strip())
+        except ValueError as exc:
+            raise CommandError(INVALID_STATEMENT, f"invalid setting statement ${statement}") from exc
+        self.set(number, value)
+        self._save()
+
+    def set(self, number: int, value: float) -> None:
+        setting = self.table.get(number)
+        if setting is None:
+            raise CommandError(INVALID_STATEMENT, f"no setting ${number}")
+        if setting.write is None:
+            if value != setting.read(self.core):
+                raise CommandError(SETTING_DISABLED, f"${number} ({setting.description}) is fixed")
+            return
+        if value < 0 and number >= 100:
+            raise CommandError(NEGATIVE_VALUE, f"${number} must not be negative")
+        if setting.geometry and not self.machine.stepgen.idle:
+            raise CommandError(NOT_IDLE, f"${number} can only change while idle")
+        try:
+            setting.write(self.core, int(value) if number == 10 else value)
+        except ValidationError as exc:
+            message = exc.errors()[0]["msg"]
+            raise CommandError(INVALID_STATEMENT, f"${number}: {message}") from exc
+        self.machine.apply_settings()
+
+    def restore_defaults(self, defaults: CoreConfig) -> None:
+        """``$RST=$``: every writable setting back to the config file's value."""
+        for number, setting in self.table.items():
+            if setting.write is not None:
+                setting.write(self.core, setting.read(defaults))
+        self.machine.apply_settings()
+        if self.path is not None and self.path.exists():
+            self.path.unlink()
+
+    def _load(self, path: Path) -> None:
+        try:
+            data: dict[str, Any] = tomllib.loads(path.read_text())
+            for key, value in data.get("settings", {}).items():
+                self.set(int(key), float(value))
+        except (OSError, ValueError, tomllib.TOMLDecodeError, CommandError) as exc:
+            log.warning("%s: ignored saved settings: %s", path, exc)
+
+    def _save(self) -> None:
+        if self.path is None:
+            return
+        lines = ["# Written by motiond for $x=value; delete to go back to the config file.",
+                 "[settings]"]
+        for number, setting in sorted(self.table.items()):
+            if setting.write is not None:
+                lines.append(f'"{number}" = {setting.read(self.core)!r}')
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self.path.write_text("\n".join(lines) + "\n")
+        except OSError as exc:
+            log.warning("could not save settings to %s: %s", self.path, exc)

@@ -1,0 +1,172 @@
+"""Serial transports: a real device (pyserial-asyncio) and a pseudo-terminal motiond creates.
+
+``--pty PATH`` creates a pseudo-terminal in raw mode and links its device at PATH (as Klipper
+does with /tmp/printer), so serial-only senders connect to it like a USB port. While no client
+has the terminal open, the master side reads EIO; the transport then polls until a client opens
+it, greets it with the banner, serves it, and goes back to waiting when it closes — so the same
+PATH can be opened again and again.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import errno
+import logging
+import os
+import termios
+import tty
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from server.session import Session
+
+if TYPE_CHECKING:
+    from server.kernel import Kernel
+
+log = logging.getLogger("motiond.serial")
+POLL_S = 0.05
+READ_CHUNK = 4096
+
+
+class SerialTransport:
+    """Serves ``[serial] device`` and/or ``[serial] pty``."""
+
+    name = "serial"
+
+    def __init__(self, kernel: Kernel) -> None:
+        self.kernel = kernel
+        self.config = kernel.config.core.serial
+        self._tasks: set[asyncio.Task[None]] = set()
+        self.pty: PtyPort | None = None
+
+    async def start(self) -> None:
+        if self.config.pty:
+            self.pty = PtyPort(self.kernel, Path(self.config.pty))
+            self._spawn(self.pty.serve())
+        if self.config.device:
+            self._spawn(self._serve_device(self.config.device))
+
+    def _spawn(self, coro: object) -> None:
+        task = asyncio.get_running_loop().create_task(coro)  # type: ignore[arg-type]
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def close(self) -> None:
+        for task in list(self._tasks):
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        if self.pty is not None:
+            self.pty.close()
+
+    async def _serve_device(self, device: str) -> None:
+        import serial_asyncio  # pyserial-asyncio
+
+        from server.transports.tcp import serve_stream
+
+        while True:
+            try:
+                reader, writer = await serial_asyncio.open_serial_connection(
+                    url=device, baudrate=self.config.baud)
+            except (OSError, ValueError) as exc:
+                log.warning("cannot open %s (%s); retrying", device, exc)
+                await asyncio.sleep(1.0)
+                continue
+            log.info("serving serial device %s at %d baud", device, self.config.baud)
+            await serve_stream(Session(self.kernel, f"serial:{device}"), reader, writer)
+            await asyncio.sleep(0.2)
+
+
+class PtyPort:
+    """A pseudo-terminal linked at ``link``; see the module docstring."""
+
+    def __init__(self, kernel: Kernel, link: Path) -> None:
+        self.kernel = kernel
+        self.link = link
+        self.master, slave = os.openpty()
+        tty.setraw(slave)
+        self.device = os.ttyname(slave)
+        os.close(slave)
+        os.set_blocking(self.master, False)
+        with contextlib.suppress(FileNotFoundError):
+            self.link.unlink()
+        self.link.symlink_to(self.device)
+        self.sessions = 0
+        log.info("pseudo-terminal %s linked at %s", self.device, self.link)
+
+    async def serve(self) -> None:
+        """Wait for a client, serve it until it closes the terminal, repeat."""
+        while True:
+            first = await self._wait_for_client()
+            self.sessions += 1
+            session = Session(self.kernel, f"pty-{self.sessions}")
+            await self._serve(session, first)
+
+    async def _wait_for_client(self) -> bytes:
+        while True:
+            try:
+                return os.read(self.master, READ_CHUNK)
+            except BlockingIOError:
+                return b""
+            except OSError as exc:
+                if exc.errno != errno.EIO:
+                    raise
+            await asyncio.sleep(POLL_S)
+
+    async def _serve(self, session: Session, first: bytes) -> None:
+        loop = asyncio.get_running_loop()
+        readable = asyncio.Event()
+        session.start()
+        writer = loop.create_task(self._write_loop(session))
+        loop.add_reader(self.master, readable.set)
+        try:
+            if first:
+                session.receive_data(first)
+            while not session.closed:
+                await readable.wait()
+                readable.clear()
+                data = self._read()
+                if data is None:
+                    break
+                session.receive_data(data)
+                await session.wait_room()
+        finally:
+            loop.remove_reader(self.master)
+            with contextlib.suppress(termios.error):
+                termios.tcflush(self.master, termios.TCIOFLUSH)  # nothing stale for the next client
+            await session.close()
+            writer.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await writer
+
+    def _read(self) -> bytes | None:
+        try:
+            return os.read(self.master, READ_CHUNK)
+        except BlockingIOError:
+            return b""
+        except OSError:  # EIO: the client closed the terminal
+            return None
+
+    async def _write_loop(self, session: Session) -> None:
+        while True:
+            data = await session.outbox.get()
+            if data is None:
+                return
+            while data:
+                try:
+                    written = os.write(self.master, data)
+                except BlockingIOError:
+                    if session.outbox.closed:
+                        return
+                    await asyncio.sleep(0.005)
+                    continue
+                except OSError:
+                    return
+                data = data[written:]
+
+    def close(self) -> None:
+        with contextlib.suppress(OSError):
+            if self.link.is_symlink():
+                self.link.unlink()
+        with contextlib.suppress(OSError):
+            os.close(self.master)
