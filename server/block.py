@@ -15,8 +15,14 @@ has, the first ramp decelerates instead (at the same rate ``accel_mm_s2``). A ze
 from __future__ import annotations
 
 from dataclasses import dataclass
+from itertools import chain
+
+import numpy as np
+import numpy.typing as npt
 
 from server.moves import Action, Move, Position
+
+FloatArray = npt.NDArray[np.float64]
 
 
 @dataclass(slots=True)
@@ -107,3 +113,82 @@ class Block:
         if distance >= self.length_mm:
             return self.end_mm
         return tuple(s + u * distance for s, u in zip(self.start_mm, self.unit, strict=True))
+
+
+class BlockColumns:
+    """The per-block numbers of a window of blocks, one column per block, rows by quantity.
+
+    Rows ``0 .. inputs-1`` are written when a block is pushed; the remaining rows (the plan) are
+    written by whoever plans the window. Pushing only stages the row in a list (O(1), no numpy
+    call); :meth:`sync` copies staged rows into the array in one operation. Columns
+    ``head .. tail-1`` are the window; the array grows by doubling and is compacted when the
+    window has drifted to its end.
+    """
+
+    def __init__(self, rows: int, inputs: int, capacity: int = 256) -> None:
+        self.data: FloatArray = np.zeros((rows, capacity))
+        self.inputs = inputs
+        self.head = 0
+        self.tail = 0  # including staged columns
+        self._synced = 0
+        self._staged: list[tuple[float, ...]] = []
+
+    def __len__(self) -> int:
+        return self.tail - self.head
+
+    def push(self, row: tuple[float, ...]) -> None:
+        """Stage a column with the ``inputs`` input values."""
+        self._staged.append(row)
+        self.tail += 1
+
+    def push_front(self, row: tuple[float, ...]) -> None:
+        """Put a column with the ``inputs`` input values before the head."""
+        self.sync()
+        if self.head == 0:
+            self._relocate(front=1)
+        self.head -= 1
+        self.data[: self.inputs, self.head] = row
+
+    def sync(self) -> None:
+        """Copy staged columns into the array; afterwards ``data[:, head:tail]`` is the window."""
+        staged = self._staged
+        if not staged:
+            return
+        if self.tail > self.data.shape[1]:
+            self._relocate(front=0)
+        count, inputs = len(staged), self.inputs
+        values = np.fromiter(chain.from_iterable(staged), np.float64, count * inputs)
+        self.data[:inputs, self._synced : self.tail] = values.reshape(count, inputs).T
+        self._synced = self.tail
+        self._staged = []
+
+    def window(self) -> FloatArray:
+        """The window as a view of shape (rows, blocks); call :meth:`sync` first."""
+        return self.data[:, self.head : self.tail]
+
+    def pop_front(self) -> list[float]:
+        """Remove the head column (already synced) and return its values."""
+        values: list[float] = self.data[:, self.head].tolist()
+        self.head += 1
+        if self.head == self.tail:
+            self.clear()
+        return values
+
+    def clear(self) -> None:
+        """Empty the window."""
+        self.head = self.tail = self._synced = 0
+        self._staged = []
+
+    def _relocate(self, front: int) -> None:
+        """Move the synced columns to start at ``front``, growing the array when over half full."""
+        head, synced, capacity = self.head, self._synced, self.data.shape[1]
+        data = self.data
+        needed = self.tail - head + front
+        while needed > capacity // 2:
+            capacity *= 2
+        if capacity != data.shape[1]:
+            data = np.zeros((data.shape[0], capacity))
+        data[:, front : front + synced - head] = self.data[:, head:synced].copy()
+        self.data = data
+        shift = front - head
+        self.head, self.tail, self._synced = head + shift, self.tail + shift, synced + shift

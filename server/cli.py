@@ -47,6 +47,8 @@ def build_parser() -> argparse.ArgumentParser:
         sub = commands.add_parser(name, help=help_text)
         sub.add_argument("file", type=Path, help="a G-code file")
         sub.add_argument("--config", type=Path, help="machine config (default: embedded)")
+        sub.add_argument("--no-limits", action="store_true",
+                         help="ignore the machine's travel (preview a job for another machine)")
         if name == "estimate":
             sub.add_argument("--json", action="store_true", help="print JSON")
             sub.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -81,6 +83,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command == "check-config":
             return check_config(args.file)
         config = load_config(args.config)
+        if getattr(args, "no_limits", False):
+            config.core.machine.soft_limits = False
         if args.command == "estimate":
             from server.offline import estimate_command
 

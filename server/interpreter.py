@@ -124,9 +124,9 @@ class Interpreter:
             elif letter == "G" and not explicit and (value == 0.0 or value == 1.0):
                 motion, explicit = (G0 if value == 0.0 else G1), True
             elif letter == "F" and value >= 0.0:
-                feed = value * MM_PER_INCH if modal.inches else value
+                feed = value * MM_PER_INCH + 0.0 if modal.inches else value + 0.0
             elif letter == "S" and value >= 0.0:
-                s = value
+                s = value + 0.0
             else:
                 return None
         if (motion != G0 and motion != G1) or modal.inverse_time:

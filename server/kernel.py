@@ -20,18 +20,12 @@ from server.dispatcher import Dispatcher, Handler
 from server.events import EventBus, MachineState
 from server.machine import Machine
 from server.module import Module
+from server.reports import ALARM_MODULE_FAILED
 from server.moves import Action
 from server.stepgen import MotionState
 
 log = logging.getLogger("motiond.kernel")
 
-# Alarm codes: Grbl's 1-9, plus motiond's own (Grbl leaves the numbers above 9 free).
-ALARM_HARD_LIMIT = 1
-ALARM_SOFT_LIMIT = 2
-ALARM_RESET_WHILE_MOVING = 3
-ALARM_EMERGENCY_STOP = 10
-ALARM_MODULE_FAILED = 11
-ALARM_BACKEND_FAILED = 12
 
 
 class _Context:

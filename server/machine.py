@@ -27,6 +27,7 @@ from server.moves import Action, Move, MoveKind, Sync, ToolMode
 from server.planner import Planner, PlannerSettings
 from server.settings import Settings
 from server.protocol import Realtime
+from server.reports import ALARM_ABORT_CYCLE, ALARM_HALT, ALARM_SOFT_LIMIT
 from server.stepgen import HoldState, StepGenerator
 
 if TYPE_CHECKING:
@@ -108,7 +109,7 @@ class Machine:
         try:
             outputs = self.interpreter.execute(command.line)
         except SoftLimitError as exc:
-            self.kernel.alarm(2, f"soft limit: {exc.message}")
+            self.kernel.alarm(ALARM_SOFT_LIMIT, f"soft limit: {exc.message}")
             raise
         messages: list[str] = []
         for output in outputs:
@@ -241,7 +242,7 @@ class Machine:
     def emergency_stop(self) -> None:
         """M112: halt at once, before the lines queued ahead of it run."""
         if self.kernel.state is not MachineState.ALARM:
-            self.kernel.alarm(10, "emergency stop (M112): $X or M999 to unlock")
+            self.kernel.alarm(ALARM_HALT, "emergency stop (M112): $X or M999 to unlock")
 
     def feed_hold(self) -> None:
         if self.kernel.state in (MachineState.RUN, MachineState.JOG) or not self.stepgen.idle:
@@ -268,7 +269,7 @@ class Machine:
         self.stop_now()
         self.interpreter.reset()
         if moving:
-            self.kernel.alarm(3, "reset while in motion: position may be lost, re-home")
+            self.kernel.alarm(ALARM_ABORT_CYCLE, "reset while in motion: position may be lost, re-home")
         elif self.kernel.state not in (MachineState.ALARM,):
             self.kernel.set_state(MachineState.IDLE)
 

@@ -221,7 +221,7 @@ def _add_value(block: Words, letter: str, value: float) -> None:
         raise CommandError(INTEGER_REQUIRED, f"{letter}{value:g}: an integer is required")
     if letter == "T" and value > MAX_TOOL_NUMBER:
         raise CommandError(TOOL_NUMBER, f"T{value:g}: tool numbers go up to {MAX_TOOL_NUMBER}")
-    block.values[letter] = value
+    block.values[letter] = value + 0.0  # -0.0 -> 0.0
 
 
 @dataclass(frozen=True, slots=True)

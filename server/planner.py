@@ -179,6 +179,14 @@ class Planner:
             or self.planned_time_s() >= self.settings.max_planned_s
         )
 
+    def planned_ahead_s(self) -> float:
+        """Seconds of waiting motion covered by the last plan (blocks appended since excluded).
+
+        While this exceeds the longest time any block needs to stop, the last plan's forced
+        stop at the end of its window cannot have shaped the head block's speeds.
+        """
+        return self._time_planned_s
+
     def planned_time_s(self) -> float:
         """Seconds of queued motion: planned durations, plus ``length/nominal`` (a lower bound)
         for blocks appended since the last plan."""

@@ -1,45 +1,32 @@
 """Sans-I/O Grbl 1.1 / RepRap line protocol: one :class:`LineProtocol` per connection.
 
-Bytes go in (:meth:`LineProtocol.receive_data`, or :meth:`LineProtocol.receive_text` for
-WebSocket text frames) and events come out, in stream order: :class:`RealtimeReceived` for a
-realtime byte, :class:`LineReceived` for a line to execute, :class:`LineRejected` for a line
-that must be answered with an error without executing. The ``reply_*``, :meth:`~LineProtocol.
-banner` and :meth:`~LineProtocol.push` methods build the bytes to send back. No sockets, no
-asyncio, no clock: the transport moves bytes, the dispatcher answers every line exactly once.
+Bytes go in (``receive_data``; ``receive_text`` for WebSocket text frames), events come out in
+stream order: :class:`RealtimeReceived`, :class:`LineReceived` (a line to execute) or
+:class:`LineRejected` (answer ``reply_error`` without executing). ``reply_ok``, ``reply_error``,
+``banner`` and ``push`` build the bytes to send. No sockets, no asyncio, no clock.
 
 Input rules:
 
-* ``\\n``, ``\\r`` and ``\\r\\n`` each end one line, also when ``\\r\\n`` is split between
-  chunks. Every line, empty ones included, yields exactly one LineReceived or LineRejected.
-* Realtime bytes are taken out wherever they appear and never count as line characters:
-  ``0x18`` and ``0x84``..``0xA1`` always, ``?`` ``!`` ``~`` in the GRBL dialect only (in the
-  REPRAP dialect they are ordinary characters: ``M117 Done!`` must neither hold the machine nor
-  break the line's checksum). A realtime byte may come UTF-8 encoded (``C2 91``). A byte
-  ``0x80``..``0xBF`` that does not continue a UTF-8 character and is no known command is
-  dropped, as Grbl drops unknown extended-ASCII bytes; other bytes belong to the line, which
-  is rejected with ``error:1`` when it is not valid UTF-8 or holds control characters.
-* A line longer than ``line_limit`` bytes is dropped whole and answered ``error:11``; at most
-  ``line_limit`` bytes are ever buffered.
-* Ctrl-X (``0x18``) drops the partial line at once, in stream order.
+* ``\\n``, ``\\r`` and ``\\r\\n`` end one line, also with ``\\r\\n`` split between chunks.
+  Every line, empty ones included, yields exactly one LineReceived or LineRejected.
+* Realtime bytes are taken out wherever they appear and never count toward the line length:
+  ``0x18`` and ``0x84``..``0xA1`` always, ``?`` ``!`` ``~`` in the GRBL dialect only (for a
+  RepRap host they are text: ``M117 Done!`` must neither hold the machine nor break the
+  checksum). ``C2 91`` (UTF-8 encoded) counts as ``0x91``. A byte ``0x80``..``0xBF`` that
+  continues no UTF-8 character and is no known command is dropped, like Grbl does; a line that
+  is not valid UTF-8 or holds control characters (tab aside) is rejected with ``error:1``.
+* A line longer than ``line_limit`` bytes is dropped whole (``error:11``); at most
+  ``line_limit`` bytes are buffered. Ctrl-X drops the partial line at its place in the stream.
 
-RepRap framing ``N123 G1 X5*101`` (XOR checksum of every byte before the last ``*``) is
-checked here, in both dialects: a bad checksum gives :class:`ResendError` code 41, a line
-number other than the last one + 1 gives code 42; the first framed line sets the sequence.
-``M110`` (framed or not) sets the last line number (``M110 N<k>``, else the frame's ``N``) and
-comes out as ``LineReceived(handled=True)``: the dispatcher only answers ``ok``.
+RepRap framing ``N123 G1 X5*101`` (XOR of the bytes before the last ``*``) is checked here in
+both dialects: a bad checksum is :class:`ResendError` 41, a line number other than last + 1 is
+42 (the first framed line starts the sequence). ``M110`` (framed or not) sets the last line
+number (``M110 N<k>``, else the frame's ``N``) and comes out with ``handled=True``: answer ``ok``.
 
-Dialects: GRBL until the first non-empty line (``dialect="auto"``) is framed or starts with
-``M105``, ``M110`` or ``M115`` (what printrun and OctoPrint send first); then REPRAP for good.
-REPRAP replies are Marlin-style, which printrun and OctoPrint both understand:
-
-* ``ok`` may carry text (``ok T:0.0 /0.0``); the banner is ``start``;
-* checksum / line-number errors: ``Error:checksum mismatch, Last Line: 4``, ``Resend: 5``, ``ok``
-  (``Error:Line Number is not Last Line Number+1, Last Line: 4`` for code 42) -- OctoPrint
-  treats these as recoverable and resends, printrun resends;
-* errors that leave the machine unable to go on (9 locked by an alarm, 40 soft limit, 46 not
-  allowed): ``Error:<text> (code N)`` then ``ok`` -- OctoPrint stops the job on ``Error:``;
-* any other error: ``echo:Unknown command: "<message>"`` (codes 20, 43, as Marlin) or
-  ``echo:<text> (code N)``, then ``ok`` -- never ``error:N``, on which OctoPrint disconnects.
+Dialect ``"auto"``: GRBL until the first non-empty line is framed or is ``M105``/``M110``/
+``M115`` (what printrun and OctoPrint send first), then REPRAP for good. REPRAP replies follow
+Marlin (banner ``start``, ``ok T:..``, ``Error:``/``Resend:``/``echo:`` wording; see
+:func:`server.reports.format_reprap_error`), never ``error:N``, on which OctoPrint disconnects.
 """
 
 from __future__ import annotations
@@ -52,15 +39,11 @@ from functools import reduce
 from operator import xor
 from typing import TypeAlias
 
-from server.errors import CHECKSUM, LINE_NUMBER_SEQUENCE, UNKNOWN_COMMAND, CommandError
-from server.reports import ERROR_MESSAGES, GRBL_VERSION
+from server.errors import CHECKSUM, LINE_NUMBER_SEQUENCE, CommandError
+from server.gcode import EXPECTED_COMMAND_LETTER
+from server.reports import GRBL_VERSION, format_reprap_error
 
-EXPECTED_COMMAND_LETTER = 1
 LINE_OVERFLOW = 11
-UNSUPPORTED_COMMAND = 20
-GCODE_LOCKED = 9
-SOFT_LIMIT = 40
-AUTH_REQUIRED = 46
 
 GRBL_BANNER = f"Grbl {GRBL_VERSION} ['$' for help]"
 
@@ -105,6 +88,11 @@ class FramedLine:
 
     line_number: int
     text_without_framing: str
+
+    @property
+    def m110(self) -> bool:
+        """The line is ``M110``, already acted on (same as ``LineReceived.handled``)."""
+        return _M110.match(self.text_without_framing) is not None
 
 
 @dataclass(frozen=True, slots=True)
@@ -153,19 +141,13 @@ _SPECIAL_GRBL = re.compile(rb"[\r\n?!~\x18\x80-\xff]")
 _SPECIAL_REPRAP = re.compile(rb"[\r\n\x18\x80-\xff]")
 _TEXT_REALTIME = re.compile("([" + "".join(chr(v) for v in Realtime if v >= 0x80) + "])")
 _CONTROL = re.compile(r"[\x00-\x08\x0a-\x1f\x7f-\x9f]")
-_FRAME_NUMBER = re.compile(r"[Nn]\s*(-?\d+)")
+_N_WORD = re.compile(r"[Nn]\s*(-?\d+)")
 _CHECKSUM_FIELD = re.compile(r"\s*(\d+)\s*")
 _M110 = re.compile(r"\s*[Mm]0*110(?![\d.])")
-_M110_NUMBER = re.compile(r"[Nn]\s*(-?\d+)")
 _REPRAP_GREETING = re.compile(r"[Mm]0*(?:105|110|115)(?![\d.])")
 _COMMENT = re.compile(r"\([^)]*\)|;.*")
 _MSG_FIELD = re.compile(r"\[MSG:[^\]]*\]")
 _REPLY_ONLY = ("[VER:", "[OPT:", "[HLP:")
-_FATAL_IN_REPRAP = frozenset({GCODE_LOCKED, SOFT_LIMIT, AUTH_REQUIRED})
-_RESEND_TEXT = {
-    CHECKSUM: "checksum mismatch",
-    LINE_NUMBER_SEQUENCE: "Line Number is not Last Line Number+1",
-}
 
 
 class LineProtocol:
@@ -177,7 +159,9 @@ class LineProtocol:
         websocket: every ``receive_data`` call is a whole message: its end also ends a line.
     """
 
-    def __init__(self, *, line_limit: int = 256, dialect: str = "auto", websocket: bool = False):
+    def __init__(
+        self, *, line_limit: int = 256, dialect: str = "auto", websocket: bool = False
+    ) -> None:
         if dialect not in ("auto", "grbl", "reprap"):
             raise ValueError(f"unknown dialect {dialect!r}: expected auto, grbl or reprap")
         self.dialect = Dialect.REPRAP if dialect == "reprap" else Dialect.GRBL
@@ -251,15 +235,8 @@ class LineProtocol:
         """The answer to a refused line: ``error:N`` (GRBL) or Marlin-style lines (REPRAP)."""
         if self.dialect is Dialect.GRBL:
             return f"error:{error.code}\r\n".encode()
-        if error.code in _RESEND_TEXT:
-            last = error.last_line if isinstance(error, ResendError) else self._last_line
-            text = _RESEND_TEXT[error.code]
-            return _encode([f"Error:{text}, Last Line: {last}", f"Resend: {last + 1}", "ok"])
-        if error.code in _FATAL_IN_REPRAP:
-            return _encode([f"Error:{_describe(error)}", "ok"])
-        if error.code in (UNSUPPORTED_COMMAND, UNKNOWN_COMMAND) and error.message:
-            return _encode([f'echo:Unknown command: "{_one_line(error.message)}"', "ok"])
-        return _encode([f"echo:{_describe(error)}", "ok"])
+        last = error.last_line if isinstance(error, ResendError) else self._last_line
+        return _encode(format_reprap_error(error.code, error.message, last))
 
     def push(self, message: str) -> bytes:
         """An unsolicited line (status report, ``[MSG:...]``, ``ALARM:N``) with its line ending.
@@ -293,17 +270,14 @@ class LineProtocol:
         return _SPECIAL_GRBL if self.dialect is Dialect.GRBL else _SPECIAL_REPRAP
 
     def _take_text(self, chunk: bytes) -> None:
-        """Plain ASCII: it also ends any unfinished UTF-8 character."""
-        self._release_c2()
-        self._utf8_needed = 0
+        self._end_utf8_character()
         self._append(chunk)
 
     def _take_special(self, byte: int, events: list[Event]) -> None:
         if byte >= 0x80:
             self._take_high(byte, events)
             return
-        self._release_c2()
-        self._utf8_needed = 0
+        self._end_utf8_character()
         if byte in b"\r\n":
             self._line_end(byte, events)
         else:
@@ -340,7 +314,9 @@ class LineProtocol:
         if 0xC3 <= byte <= 0xF4:
             self._utf8_needed = 1 if byte < 0xE0 else 2 if byte < 0xF0 else 3
 
-    def _release_c2(self) -> None:
+    def _end_utf8_character(self) -> None:
+        """An ASCII byte: an unfinished UTF-8 character stays unfinished (invalid)."""
+        self._utf8_needed = 0
         if self._c2_held:
             self._c2_held = False
             self._append(b"\xc2")
@@ -369,23 +345,19 @@ class LineProtocol:
         self._skip_lf = byte == 0x0D
 
     def _end_message(self, events: list[Event]) -> None:
-        self._release_c2()
+        self._end_utf8_character()
         if self._buffer or self._overflow:
             self._complete_line(events)
         self._skip_lf = False
-        self._utf8_needed = 0
 
     def _complete_line(self, events: list[Event]) -> None:
-        raw = bytes(self._buffer)
-        overflow = self._overflow
-        self._buffer.clear()
-        self._overflow = False
-        self._utf8_needed = 0
+        raw, overflow = bytes(self._buffer), self._overflow
+        self.reset()
         if overflow:
             message = f"line longer than {self._line_limit} bytes"
             events.append(LineRejected(CommandError(LINE_OVERFLOW, message)))
-            return
-        events.append(self._line_event(raw))
+        else:
+            events.append(self._line_event(raw))
 
     # -- lines -------------------------------------------------------------------------------
 
@@ -444,7 +416,7 @@ class LineProtocol:
         return LineRejected(ResendError(code, message, self._last_line))
 
     def _set_last_line(self, m110_text: str, frame_number: int | None) -> None:
-        argument = _M110_NUMBER.search(_COMMENT.sub("", m110_text))
+        argument = _N_WORD.search(_COMMENT.sub("", m110_text))
         if argument is not None:
             self._last_line = int(argument.group(1))
         elif frame_number is not None:
@@ -460,19 +432,10 @@ def _split_frame(text: str) -> tuple[str, str, str, str] | None:
     if head[:1] not in ("N", "n") or "*" not in head:
         return None
     head, _, checksum_text = head.rpartition("*")
-    number = _FRAME_NUMBER.match(head)
+    number = _N_WORD.match(head)
     if number is None:
         return None
     return number.group(1), head[number.end() :].strip(), checksum_text, head
-
-
-def _describe(error: CommandError) -> str:
-    text = error.message or ERROR_MESSAGES.get(error.code, "Command refused")
-    return f"{_one_line(text)} (code {error.code})"
-
-
-def _one_line(text: str) -> str:
-    return " ".join(text.split())
 
 
 def _checked_line(line: str) -> str:

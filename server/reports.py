@@ -9,7 +9,8 @@ Grbl sender expects, without the line ending (:meth:`server.protocol.LineProtoco
   in/min with one; spindle speed with no decimals;
 * ``A:`` (accessories) only ever rides along with ``Ov:``, like in Grbl;
 * ``$$`` settings as ``$n=value``, ``$I`` as ``[VER:1.1h.<build>:<info>]`` + ``[OPT:<letters>,
-  <blocks>,<bytes>]``, ``$`` help as one ``[HLP:...]`` line, alarms as ``ALARM:n``.
+  <blocks>,<bytes>]``, ``$`` help as one ``[HLP:...]`` line, alarms as ``ALARM:n``;
+* for RepRap hosts, errors worded like Marlin (:func:`format_reprap_error`).
 
 :class:`StatusScheduler` decides, per connection, when a report carries ``WCO:`` and ``Ov:``.
 """
@@ -19,7 +20,14 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
-from server.errors import MOTIOND_ERRORS
+from server.errors import (
+    AUTH_REQUIRED,
+    CHECKSUM,
+    LINE_NUMBER_SEQUENCE,
+    MOTIOND_ERRORS,
+    SOFT_LIMIT,
+    UNKNOWN_COMMAND,
+)
 
 GRBL_VERSION = "1.1h"
 MM_PER_INCH = 25.4
@@ -40,6 +48,7 @@ ALARM_SOFT_LIMIT = 2
 ALARM_ABORT_CYCLE = 3
 ALARM_HALT = 40
 ALARM_MODULE_FAILED = 41
+ALARM_BACKEND_FAILED = 42
 
 ALARM_MESSAGES: dict[int, str] = {
     1: "Hard limit triggered; position may be lost, home again",
@@ -55,6 +64,7 @@ ALARM_MESSAGES: dict[int, str] = {
     # motiond's own alarm numbers (above 38, like its error numbers).
     ALARM_HALT: "Halt (M112 or emergency stop): motion stopped, tools off",
     ALARM_MODULE_FAILED: "A module failed: motion stopped, tools off",
+    ALARM_BACKEND_FAILED: "The machine backend failed: motion stopped, tools off",
 }
 
 ERROR_MESSAGES: dict[int, str] = {
@@ -90,6 +100,15 @@ ERROR_MESSAGES: dict[int, str] = {
     38: "Tool number too large",
     **MOTIOND_ERRORS,
 }
+
+# Marlin's wording of communication errors: OctoPrint recognises these and resends.
+REPRAP_RESEND_TEXT: dict[int, str] = {
+    CHECKSUM: "checksum mismatch",
+    LINE_NUMBER_SEQUENCE: "Line Number is not Last Line Number+1",
+}
+# Errors after which a job cannot go on: OctoPrint stops the job on an ``Error:`` line.
+REPRAP_FATAL_ERRORS = frozenset({9, SOFT_LIMIT, AUTH_REQUIRED})
+REPRAP_UNKNOWN_COMMAND_ERRORS = frozenset({20, UNKNOWN_COMMAND})
 
 
 @dataclass(frozen=True, slots=True)
@@ -239,20 +258,46 @@ def format_build_info(
     build_info: str = "",
     options: str = "VL",
 ) -> list[str]:
-    """The ``$I`` lines: ``[VER:1.1h.<version>:<build_info>]`` and ``[OPT:<options>,<blocks>,
+    """The ``$I`` lines: ``[VER:<version>:<build_info>]`` and ``[OPT:<options>,<blocks>,
     <bytes>]``.
 
     Args:
-        version: the build identifier Grbl puts after its version (there a date).
+        version: e.g. ``1.1h.motiond-0.1.0``; senders read the Grbl version from its start, so
+            ``1.1h.`` is put in front of a version that does not start with it.
         planner_blocks: planner blocks a sender may fill (Grbl reports its buffer size - 1).
         rx_bytes: the input buffer size character-counting senders must stay under.
         build_info: the user text Grbl stores with ``$I=``.
         options: Grbl build option letters (``V`` variable spindle, ``L`` no lock at power-up...).
     """
+    if not version.startswith(GRBL_VERSION):
+        version = f"{GRBL_VERSION}.{version}"
     return [
-        f"[VER:{GRBL_VERSION}.{version}:{build_info}]",
+        f"[VER:{version}:{build_info}]",
         f"[OPT:{options},{planner_blocks},{rx_bytes}]",
     ]
+
+
+def format_reprap_error(code: int, message: str, last_line: int) -> list[str]:
+    """The Marlin-style answer to a refused line for RepRap hosts (printrun, OctoPrint).
+
+    Always ends with ``ok`` (one reply per line) and never starts with ``error:``, which makes
+    OctoPrint disconnect:
+
+    * 41/42: ``Error:checksum mismatch, Last Line: <last_line>`` (or ``Error:Line Number is not
+      Last Line Number+1, Last Line: ..``), ``Resend: <last_line + 1>``, ``ok`` -- Marlin's
+      exact lines; OctoPrint treats them as recoverable, printrun resends.
+    * 9 (alarm lock), 40 (soft limit), 46 (not allowed): ``Error:<text> (code N)``, ``ok``.
+    * 20, 43 with a message: ``echo:Unknown command: "<message>"``, ``ok``, as Marlin.
+    * anything else: ``echo:<text> (code N)``, ``ok``.
+    """
+    if code in REPRAP_RESEND_TEXT:
+        error = f"Error:{REPRAP_RESEND_TEXT[code]}, Last Line: {last_line}"
+        return [error, f"Resend: {last_line + 1}", "ok"]
+    if code in REPRAP_FATAL_ERRORS:
+        return [f"Error:{_describe(code, message)}", "ok"]
+    if code in REPRAP_UNKNOWN_COMMAND_ERRORS and message:
+        return [f'echo:Unknown command: "{_one_line(message)}"', "ok"]
+    return [f"echo:{_describe(code, message)}", "ok"]
 
 
 def format_alarm(code: int) -> str:
@@ -299,6 +344,14 @@ def _setting_value(value: float | int) -> str:
     if isinstance(value, int):  # bool included: True -> 1
         return str(int(value))
     return _fixed(value, 3)
+
+
+def _describe(code: int, message: str) -> str:
+    return f"{_one_line(message or ERROR_MESSAGES.get(code, 'Command refused'))} (code {code})"
+
+
+def _one_line(text: str) -> str:
+    return " ".join(text.split())
 
 
 def _fixed(value: float, decimals: int) -> str:

@@ -28,7 +28,7 @@ from server.protocol import (
     Realtime,
     RealtimeReceived,
 )
-from server.reports import StatusScheduler
+from server.reports import ALARM_MODULE_FAILED, StatusScheduler
 from server.status import snapshot
 
 if TYPE_CHECKING:
@@ -206,7 +206,7 @@ class Session:
     async def _execute(self, event: LineReceived | LineRejected) -> bytes:
         if isinstance(event, LineRejected):
             return self.protocol.reply_error(event.error)
-        if event.framed is not None and event.framed.m110:
+        if event.handled:  # M110: the protocol already set the line number
             return self.protocol.reply_ok()
         try:
             messages = await self.kernel.dispatcher.submit(event.text, self)
@@ -214,7 +214,7 @@ class Session:
             return self.protocol.reply_error(exc)
         except Exception as exc:  # noqa: BLE001 - unexpected: alarm, answer, keep serving
             log.exception("line %r failed", event.text)
-            self.kernel.alarm(11, f"internal error on {event.text!r}: {exc!r}")
+            self.kernel.alarm(ALARM_MODULE_FAILED, f"internal error on {event.text!r}: {exc!r}")
             return self.protocol.reply_error(CommandError(20, "internal error"))
         return self.protocol.reply_ok(messages)
 

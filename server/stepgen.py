@@ -97,7 +97,12 @@ class StepGenerator:
         self.listener = listener
         self.tick_s = 1.0 / tick_hz
         self.start_delay_s = start_delay_s
+        settings = planner.settings
+        self.replan_horizon_s = 1.5 * max(
+            rate / accel for rate, accel in zip(settings.max_rate_mm_s, settings.accel_mm_s2,
+                                                strict=True)) + 0.01
         self.last_input_s = -math.inf
+        self.before_pop: Callable[[], None] | None = None  # offline feeders refill here
         self.flush_requested = False
         self.state = MotionState(position_mm=planner.position_mm)
         self._cursor = _Cursor(steps=[round(p * s) for p, s in
@@ -221,7 +226,7 @@ class StepGenerator:
             if not ready:
                 return None
             self._running = True
-        block = planner.pop()
+        block = self.pop_block()
         if block is None:
             self._running = False
             self.flush_requested = False
@@ -232,10 +237,24 @@ class StepGenerator:
             self.listener.on_action(action)
         return block
 
+    def pop_block(self) -> Block | None:
+        """The next block, re-planned first when the last plan's look-ahead ran short.
+
+        Only the popped block's speeds are ever used, so planning at pop time is enough; doing
+        it only when the planned look-ahead behind the head is shorter than the longest stop
+        batches re-planning (about once per half window) and keeps it a function of the block
+        sequence alone, identical for live execution and the offline estimate.
+        """
+        planner = self.planner
+        if self.before_pop is not None:
+            self.before_pop()
+        if planner.planned_ahead_s() < self.replan_horizon_s:
+            planner.plan()
+        return planner.pop()
+
     def _finish(self, block: Block) -> None:
         self.state.position_mm = block.end_mm
         self.state.blocks_done += 1
-        self.planner.set_start_speed(block.exit_mm_s)
 
     def _decelerate(self, dt: float) -> None:
         cursor = self._cursor
@@ -247,7 +266,7 @@ class StepGenerator:
         while block is not None and cursor.distance_mm > block.length_mm:
             overflow = cursor.distance_mm - block.length_mm
             self._finish(block)
-            block = self.planner.pop()
+            block = self.pop_block()
             cursor.block, cursor.distance_mm = block, overflow
             if block is None:
                 cursor.hold_speed_mm_s = 0.0

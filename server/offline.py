@@ -1,0 +1,266 @@
+"""Offline runs of the real pipeline: ``motiond estimate`` and the full virtual execution.
+
+Both feed a job through the same parser, interpreter, planner and block-popping policy as the
+server (:meth:`StepGenerator.pop_block`), refilling the planner to full before every pop, as a
+sender that keeps up would. :func:`iterate_blocks` yields the planned blocks in execution
+order and sums their durations; :func:`execute` runs the actual step generator tick by tick on
+virtual time with a backend. The two agree to within a tick: the estimate is the execution.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from server.backends.base import Backend
+from server.backends.null import NullBackend
+from server.config import Config, CoreConfig
+from server.errors import CommandError
+from server.gcode import parse_line
+from server.interpreter import Interpreter
+from server.machine import interpreter_settings
+from server.moves import Action, Move, MoveKind, Output
+from server.planner import Block, Planner, PlannerSettings
+from server.stepgen import StepGenerator
+
+CUTTING = (MoveKind.FEED, MoveKind.ARC, MoveKind.PROBE)
+
+
+@dataclass(slots=True)
+class JobStats:
+    """What a job does. Times in seconds, distances in mm, speeds in mm/s."""
+
+    duration_s: float = 0.0
+    cut_mm: float = 0.0
+    rapid_mm: float = 0.0
+    moves: int = 0
+    blocks: int = 0
+    lines: int = 0
+    max_speed_mm_s: float = 0.0
+    bbox_min_mm: list[float] = field(default_factory=list)
+    bbox_max_mm: list[float] = field(default_factory=list)
+    error: str | None = None
+    error_line: int | None = None
+
+    def add(self, block: Block) -> None:
+        self.duration_s += block.duration_s
+        self.blocks += 1
+        if block.move is None:
+            return
+        if block.move.kind in CUTTING:
+            self.cut_mm += block.length_mm
+        else:
+            self.rapid_mm += block.length_mm
+        self.max_speed_mm_s = max(self.max_speed_mm_s, block.cruise_mm_s)
+        if not self.bbox_min_mm:
+            self.bbox_min_mm, self.bbox_max_mm = list(block.start_mm), list(block.start_mm)
+        for axis, value in enumerate(block.end_mm):
+            self.bbox_min_mm[axis] = min(self.bbox_min_mm[axis], value)
+            self.bbox_max_mm[axis] = max(self.bbox_max_mm[axis], value)
+
+
+class _Listener:
+    def on_action(self, action: Action) -> None:
+        pass
+
+    def on_idle(self) -> None:
+        pass
+
+    def on_hold_stopped(self) -> None:
+        pass
+
+
+class _Feeder:
+    """Pulls outputs from the job until the planner is full; records the first error."""
+
+    def __init__(self, lines: Iterable[str], core: CoreConfig, stats: JobStats,
+                 on_line: Callable[[int], None] | None) -> None:
+        self.interpreter = Interpreter(interpreter_settings(core))
+        origin = tuple(0.0 for _ in core.axis_names)
+        self.interpreter.set_position(origin)
+        self.planner = Planner(PlannerSettings.from_config(core), origin)
+        self.stats = stats
+        self._outputs = self._generate(lines, on_line)
+        self.done = False
+
+    def _generate(self, lines: Iterable[str],
+                  on_line: Callable[[int], None] | None) -> Iterator[Output]:
+        for number, text in enumerate(lines, 1):
+            self.stats.lines = number
+            if on_line is not None:
+                on_line(number)
+            try:
+                outputs = self.interpreter.execute(parse_line(text))
+            except CommandError as exc:
+                self.stats.error, self.stats.error_line = f"error:{exc.code} {exc.message}", number
+                return
+            yield from outputs
+
+    def refill(self) -> None:
+        planner = self.planner
+        while not self.done and not planner.is_full():
+            output = next(self._outputs, None)
+            if output is None:
+                self.done = True
+            elif isinstance(output, Move):
+                planner.append(output)
+                self.stats.moves += 1
+            elif isinstance(output, Action):
+                planner.append_action(output)
+
+
+def _pipeline(lines: Iterable[str], core: CoreConfig, backend: Backend, stats: JobStats,
+              on_line: Callable[[int], None] | None) -> tuple[_Feeder, StepGenerator]:
+    feeder = _Feeder(lines, core, stats, on_line)
+    steps_per_mm = tuple(axis.steps_per_mm for axis in core.axes.values())
+    stepgen = StepGenerator(feeder.planner, backend, steps_per_mm, _Listener(),
+                            tick_hz=core.stepgen.tick_hz)
+    stepgen.before_pop = feeder.refill
+    return feeder, stepgen
+
+
+def iterate_blocks(lines: Iterable[str], core: CoreConfig, stats: JobStats,
+                   on_line: Callable[[int], None] | None = None) -> Iterator[Block]:
+    """Every block of the job in execution order, planned exactly as the server plans them."""
+    feeder, stepgen = _pipeline(lines, core, NullBackend(), stats, on_line)
+    while True:
+        block = stepgen.pop_block()
+        if block is None:
+            if feeder.done:
+                return
+            continue
+        stats.add(block)
+        yield block
+
+
+def estimate(lines: Iterable[str], core: CoreConfig,
+             on_line: Callable[[int], None] | None = None) -> JobStats:
+    """Job time and extent without ticking (fast)."""
+    stats = JobStats()
+    for _ in iterate_blocks(lines, core, stats, on_line):
+        pass
+    return stats
+
+
+def execute(lines: Iterable[str], core: CoreConfig, backend: Backend | None = None) -> JobStats:
+    """Run the job through the step generator tick by tick on virtual time."""
+    stats = JobStats()
+    feeder, stepgen = _pipeline(lines, core, backend or NullBackend(), stats, None)
+    tick_s = stepgen.tick_s
+    ticks = 0
+    stepgen.tick(0.0)
+    started_tick: int | None = None
+    while True:
+        feeder.refill()
+        if feeder.done:
+            stepgen.request_start()
+        ticks += 1
+        stepgen.tick(ticks * tick_s)
+        if started_tick is None and stepgen.state.moving:
+            started_tick = ticks - 1
+        if feeder.done and stepgen.idle:
+            break
+    stats.duration_s = (ticks - (started_tick or 0)) * tick_s if started_tick is not None else 0.0
+    stats.blocks = stepgen.state.blocks_done
+    return stats
+
+
+def format_duration(seconds: float) -> str:
+    """``1h 02m 03.4s`` style."""
+    if not math.isfinite(seconds):
+        return "∞"
+    hours, rest = divmod(seconds, 3600)
+    minutes, secs = divmod(rest, 60)
+    if hours:
+        return f"{int(hours)}h {int(minutes):02d}m {secs:04.1f}s"
+    if minutes:
+        return f"{int(minutes)}m {secs:04.1f}s"
+    return f"{secs:.2f}s"
+
+
+# -- the CLI commands -----------------------------------------------------------------------
+def _read_lines(path: Path) -> list[str]:
+    return path.read_text(errors="replace").splitlines()
+
+
+def _progress(total: int, label: str, enabled: bool) -> tuple[Callable[[int], None], Any]:
+    from tqdm import tqdm
+
+    bar = tqdm(total=total, unit="line", desc=label, disable=not enabled, leave=False,
+               mininterval=0.2)
+    last = [0]
+
+    def update(number: int) -> None:
+        if number - last[0] >= 2000 or number == total:
+            bar.update(number - last[0])
+            last[0] = number
+
+    return update, bar
+
+
+def estimate_command(args: Any, config: Config) -> int:
+    """``motiond estimate FILE``."""
+    path: Path = args.file
+    try:
+        lines = _read_lines(path)
+    except OSError as exc:
+        print(f"motiond: cannot read {path}: {exc.strerror}", file=sys.stderr)
+        return 1
+    show = not args.no_progress and not args.json and sys.stderr.isatty() and len(lines) > 5000
+    update, bar = _progress(len(lines), path.name, show)
+    stats = estimate(lines, config.core, update)
+    bar.close()
+    if args.json:
+        print(json.dumps({"file": str(path), **asdict(stats)}, indent=2))
+    else:
+        print(describe(path, stats, config.core.axis_names))
+    return 1 if stats.error else 0
+
+
+def describe(path: Path, stats: JobStats, axis_names: tuple[str, ...]) -> str:
+    rows = [
+        f"{path}",
+        f"  time        {format_duration(stats.duration_s)}",
+        f"  cutting     {stats.cut_mm:,.1f} mm",
+        f"  rapids      {stats.rapid_mm:,.1f} mm",
+        f"  moves       {stats.moves:,} ({stats.blocks:,} planned blocks, {stats.lines:,} lines)",
+        f"  max speed   {stats.max_speed_mm_s * 60:,.0f} mm/min",
+    ]
+    if stats.bbox_min_mm:
+        extent = "  ".join(f"{name} {low:.3f}..{high:.3f}" for name, low, high in
+                           zip(axis_names, stats.bbox_min_mm, stats.bbox_max_mm, strict=True))
+        rows.append(f"  extent      {extent}")
+    if stats.error:
+        rows.append(f"  STOPPED at line {stats.error_line}: {stats.error}")
+    return "\n".join(rows)
+
+
+def render_command(args: Any, config: Config) -> int:
+    """``motiond render FILE -o OUT``."""
+    from server.render import collect, draw
+
+    path: Path = args.file
+    output: Path = args.output
+    if output.suffix.lower() not in (".svg", ".png"):
+        print("motiond: the output must end in .svg or .png", file=sys.stderr)
+        return 2
+    try:
+        lines = _read_lines(path)
+    except OSError as exc:
+        print(f"motiond: cannot read {path}: {exc.strerror}", file=sys.stderr)
+        return 1
+    stats = JobStats()
+    toolpath = collect(iterate_blocks(lines, config.core, stats), config.core.machine.laser_mode)
+    title = f"{path.name} — {format_duration(stats.duration_s)}, {stats.cut_mm:,.0f} mm cut"
+    if stats.error:
+        title += f" (stopped at line {stats.error_line})"
+    draw(toolpath, output, title)
+    print(f"wrote {output} ({len(toolpath.feed):,} feed and {len(toolpath.rapid):,} rapid segments)")
+    if stats.error:
+        print(f"  stopped at line {stats.error_line}: {stats.error}", file=sys.stderr)
+    return 1 if stats.error else 0
