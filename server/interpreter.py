@@ -171,17 +171,16 @@ class Interpreter:
         if line.error is not None:
             raise line.error
         modes, axes, feed = self._jog_words(line)
-        inches = modes.get("units", 210 if not self._modal.inches else 200) == 200
-        scale = self._geo.inch_scale if inches else (1.0,) * len(self.position)
+        inches = modes["units"] == 200 if "units" in modes else self._modal.inches
+        incremental = (modes["distance"] == 910 if "distance" in modes
+                       else self._modal.incremental)
         target = list(self.position)
         for i, value in axes.items():
-            mm = value * scale[i]
+            mm = value * self._geo.inch_scale[i] if inches else value
             if "machine" in modes:
                 target[i] = mm
-            elif modes.get("distance", 910 if self._modal.incremental else 900) == 910:
-                target[i] += mm
             else:
-                target[i] = mm + self._wco[i]
+                target[i] = target[i] + mm if incremental else mm + self._wco[i]
         why = self._geo.outside(tuple(target))
         if why is not None:
             raise CommandError(JOG_TRAVEL_EXCEEDED, f"jog target exceeds the travel: {why}")
@@ -203,11 +202,12 @@ class Interpreter:
                 if value < 0:
                     raise CommandError(4, "negative F value")
                 feed = value
-            elif letter == "G" and round(value * 10) in JOG_G_CODES and value * 10 % 1 == 0:
-                group = JOG_G_CODES[round(value * 10)]
+            elif letter == "G" and (code := round(value * 10)) in JOG_G_CODES \
+                    and code == value * 10:
+                group = JOG_G_CODES[code]
                 if group in modes:
                     raise CommandError(21, f"two {group} commands in a jog")
-                modes[group] = round(value * 10)
+                modes[group] = code
             else:
                 raise CommandError(INVALID_JOG, f"{letter}{value:g} is not allowed in a jog")
         if not axes or not feed:

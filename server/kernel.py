@@ -18,6 +18,7 @@ from server.commands import CoreCommands
 from server.config import Config, ModuleSpec
 from server.dispatcher import Dispatcher, Handler
 from server.events import EventBus, MachineState
+from server.jobs import Jobs
 from server.machine import Machine
 from server.module import Module
 from server.reports import ALARM_MODULE_FAILED
@@ -75,6 +76,7 @@ class Kernel:
         self.alarm_message = ""
         self.dispatcher = Dispatcher(is_locked=lambda: self.state is MachineState.ALARM)
         self.machine = Machine(self)
+        self.jobs = Jobs(self)
         self.modules: dict[str, Module] = {}
         self._specs: dict[str, ModuleSpec] = {}
         for spec in config.modules:
@@ -124,6 +126,7 @@ class Kernel:
             self.started.set()
             await self._stop.wait()
             self.machine.stop_now()
+            await self.jobs.close()
             for task in tasks:
                 task.cancel()
         self.stopped = True

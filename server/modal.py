@@ -179,6 +179,8 @@ def _unknown_letter(letter: str) -> str:
         return f"axis {letter} is not configured on this machine"
     if letter == "E":
         return "E (extruder) words are not supported: this is not a 3D printer"
+    if letter == "O":
+        return "O-codes (subroutines and flow control) are not supported"
     if letter in "DH":
         return f"{letter} words (tool offset tables) are not supported"
     return f"unsupported word {letter}"

@@ -19,12 +19,12 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
-from operator import mul
+from operator import mul, sub
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from server.block import Block
+from server.block import Block, BlockColumns
 from server.moves import Action, Move, MoveKind, Position
 from server.trapezoid import PROFILE_ROWS, junction_speed_sq, plan_window
 
@@ -89,6 +89,7 @@ class PlannerSettings:
         )
 
 
+_RAPID = MoveKind.RAPID
 _Geometry = tuple[Move | None, list[Action], Position, Position, Position]
 
 
@@ -99,12 +100,10 @@ class Planner:
     """
 
     def __init__(self, settings: PlannerSettings, position_mm: Position) -> None:
-        self.settings = settings
         self._zero: Position = (0.0,) * len(settings.max_rate_mm_s)
-        self._inv_rate = tuple(1.0 / rate for rate in settings.max_rate_mm_s)
-        self._inv_accel = tuple(1.0 / accel for accel in settings.accel_mm_s2)
-        self._data = np.zeros((_ROWS, 256))
-        self._head = self._tail = self._planned_to = 0
+        self.settings = settings
+        self._columns = BlockColumns(_ROWS, LEAD + 1)
+        self._planned = 0  # blocks from the head covered by the last plan
         self._geometry: deque[_Geometry] = deque()
         self._pending: list[Action] = []
         self._start_mm_s = 0.0
@@ -117,15 +116,31 @@ class Planner:
         self._chain_mm: Position = self._zero
         self.set_position(position_mm)
 
+    @property
+    def settings(self) -> PlannerSettings:
+        """The machine limits; assigning new ones applies to blocks appended from then on."""
+        return self._settings
+
+    @settings.setter
+    def settings(self, settings: PlannerSettings) -> None:
+        if len(settings.max_rate_mm_s) != len(self._zero):
+            raise ValueError("new planner settings must keep the number of axes")
+        self._settings = settings
+        self._inv_rate = tuple(1.0 / rate for rate in settings.max_rate_mm_s)
+        self._inv_accel = tuple(1.0 / accel for accel in settings.accel_mm_s2)
+
     # ------------------------------------------------------------------ appending
 
     def append(self, move: Move) -> None:
         """Queue a straight move from the end of the last one to ``move.target_mm``.
 
         A move shorter than :data:`MIN_LENGTH_MM` is dropped; its actions ride on the next block.
+        O(1): the numbers are staged for the next :meth:`plan`.
         """
         start, target = self._chain_mm, tuple(move.target_mm)
-        delta = [end - begin for end, begin in zip(target, start, strict=True)]
+        if len(target) != len(start):
+            raise ValueError(f"expected {len(start)} coordinates, got {len(target)}")
+        delta = list(map(sub, target, start))
         length = math.hypot(*delta)
         self.position_mm = target
         if length < MIN_LENGTH_MM:
@@ -134,14 +149,21 @@ class Planner:
         self._chain_mm = target
         inverse = 1.0 / length
         unit = tuple([x * inverse for x in delta])
-        rate, accel = self._limits(unit)
+        size = list(map(abs, unit))
+        rate = 1.0 / max(map(mul, size, self._inv_rate))
+        accel = 1.0 / max(map(mul, size, self._inv_accel))
         kind, feed = _kind_and_feed(move)
         nominal = self._nominal(feed, rate, kind)
-        junction = self._junction_sq(unit, accel)
-        self._push_back((length, accel, feed, rate, kind, nominal, junction, 0.0))
+        last = self._last_unit
+        junction = 0.0
+        if last is not None:
+            deviation_mm = self._settings.junction_deviation_mm
+            junction = junction_speed_sq(last, unit, min(accel, self._last_accel), deviation_mm)
+        self._columns.push((length, accel, feed, rate, kind, nominal, junction, 0.0))
         self._geometry.append((move, self._take_pending(move.actions), start, target, unit))
         self._last_unit, self._last_accel = unit, accel
         self._time_estimate_s += length / nominal
+        self._dirty = True
 
     def append_action(self, action: Action) -> None:
         """Queue a non-motion action in order with motion.
@@ -154,43 +176,45 @@ class Planner:
             self._pending.append(action)
             return
         lead_s = max(action.lead_s, 0.0)
-        self._push_back((0.0, 1.0, math.inf, math.inf, _NO_OVERRIDE, math.inf, 0.0, lead_s))
+        self._columns.push(_still_row(lead_s))
         here = self._chain_mm
         self._geometry.append((None, self._take_pending([action]), here, here, self._zero))
         self._last_unit = None
         self._time_estimate_s += lead_s
+        self._dirty = True
 
     # ------------------------------------------------------------------ window state
 
     def __len__(self) -> int:
         """Blocks waiting, counting pending follow actions as one action-only block."""
-        return self._tail - self._head + (1 if self._pending else 0)
+        return len(self._columns) + (1 if self._pending else 0)
 
     def is_full(self) -> bool:
         """True when the window holds ``max_blocks`` blocks or ``max_planned_s`` of motion.
 
         Never full with fewer than two blocks, so a single very long move can always queue.
         """
-        count = self._tail - self._head
+        count = len(self._columns)
         if count < 2:
             return False
-        return (
-            count >= self.settings.max_blocks
-            or self.planned_time_s() >= self.settings.max_planned_s
-        )
-
-    def planned_ahead_s(self) -> float:
-        """Seconds of waiting motion covered by the last plan (blocks appended since excluded).
-
-        While this exceeds the longest time any block needs to stop, the last plan's forced
-        stop at the end of its window cannot have shaped the head block's speeds.
-        """
-        return self._time_planned_s
+        limits = self.settings
+        return count >= limits.max_blocks or self.planned_time_s() >= limits.max_planned_s
 
     def planned_time_s(self) -> float:
         """Seconds of queued motion: planned durations, plus ``length/nominal`` (a lower bound)
         for blocks appended since the last plan."""
         return self._time_planned_s + self._time_estimate_s
+
+    def planned_ahead_s(self) -> float:
+        """Seconds of motion the last plan still covers from the head (head included).
+
+        The last plan brings motion to a stop at its end, so when this is shorter than the
+        longest stop the head would slow down needlessly: time to :meth:`plan` again. Zero when
+        the head was never planned or the start speed, overrides or head changed since.
+        """
+        if self._head_dirty or self._planned <= 0:
+            return 0.0
+        return self._time_planned_s
 
     # ------------------------------------------------------------------ planning and popping
 
@@ -199,42 +223,39 @@ class Planner:
         if not self._dirty:
             return
         self._dirty = self._head_dirty = False
-        head, tail, data = self._head, self._tail, self._data
-        if head == tail:
+        columns = self._columns
+        columns.sync()
+        window = columns.window()
+        self._planned = window.shape[1]
+        if not self._planned:
             return
-        plan_window(
-            data[LENGTH, head:tail],
-            data[ACCEL, head:tail],
-            data[NOMINAL, head:tail],
-            data[JUNCTION, head:tail],
-            data[LEAD, head:tail],
-            self._start_mm_s,
-            data[ENTRY:, head:tail],
-        )
-        self._planned_to = tail
-        self._time_planned_s = float(data[DURATION, head:tail].sum())
+        rows = window[LENGTH], window[ACCEL], window[NOMINAL], window[JUNCTION], window[LEAD]
+        plan_window(*rows, self._start_mm_s, window[ENTRY:])
+        self._time_planned_s = float(window[DURATION].sum())
         self._time_estimate_s = 0.0
 
     def pop(self) -> Block | None:
         """Commit and remove the head block; its entry and exit speeds are final.
 
-        Plans first when the head was never planned or the start speed, overrides or head changed
-        since the last plan. With no block waiting, returns an action-only block carrying the
-        pending follow actions, or None. The popped block's exit becomes the start speed.
+        Plans first only when the head was never planned or the start speed, the overrides or
+        the head changed since the last plan; otherwise the last plan stands (it stays feasible,
+        see the module docstring; call :meth:`plan` when :meth:`planned_ahead_s` runs short to
+        keep full look-ahead). With no block waiting, returns an action-only block carrying the
+        pending follow actions, or None. The popped block's exit speed becomes the start speed.
         """
-        head = self._head
-        if head == self._tail:
+        columns = self._columns
+        if not len(columns):
             return self._pop_pending()
-        if self._head_dirty or head >= self._planned_to:
+        if self._head_dirty or self._planned <= 0:
             self._dirty = True
             self.plan()
         (length, accel, _, _, _, nominal, _, lead, entry, cruise, exit_, ramp1, flat, ramp2,
-         duration) = self._data[:, head].tolist()  # fmt: skip
+         duration) = columns.pop_front()  # fmt: skip
         move, actions, start, end, unit = self._geometry.popleft()
-        self._head = head + 1
+        self._planned -= 1
         self._start_mm_s = exit_
         self._time_planned_s -= duration
-        if self._head == self._tail:
+        if not len(columns):
             self._clear_window()
         if move is None:
             nominal = accel = 0.0
@@ -257,7 +278,7 @@ class Planner:
 
     def set_position(self, position_mm: Position) -> None:
         """Set where the next move starts (machine mm); only with no block waiting."""
-        if self._head != self._tail:
+        if len(self._columns):
             raise RuntimeError("set_position while blocks are waiting; flush first")
         if len(position_mm) != len(self._zero):
             raise ValueError(f"expected {len(self._zero)} coordinates, got {len(position_mm)}")
@@ -283,12 +304,13 @@ class Planner:
         if (feed, rapid) == (self._feed_override, self._rapid_override):
             return
         self._feed_override, self._rapid_override = feed, rapid
-        head, tail, data = self._head, self._tail, self._data
-        kind = data[KIND, head:tail]
-        scaled_feed = data[FEED, head:tail] * np.where(kind == _FEED_OVERRIDE, feed, 1.0)
-        scaled_rate = data[RATE, head:tail] * np.where(kind == _RAPID_OVERRIDE, rapid, 1.0)
+        self._columns.sync()
+        window = self._columns.window()
+        kind = window[KIND]
+        scaled_feed = window[FEED] * np.where(kind == _FEED_OVERRIDE, feed, 1.0)
+        scaled_rate = window[RATE] * np.where(kind == _RAPID_OVERRIDE, rapid, 1.0)
         nominal = np.minimum(scaled_feed, scaled_rate)
-        np.maximum(nominal, self.settings.min_feed_mm_s, out=data[NOMINAL, head:tail])
+        np.maximum(nominal, self.settings.min_feed_mm_s, out=window[NOMINAL])
         self._dirty = self._head_dirty = True
 
     # ------------------------------------------------------------------ feed-hold remainders
@@ -313,11 +335,8 @@ class Planner:
 
         A zero-length block keeps its ``lead_s``; motion stays at rest through it.
         """
-        head = self._reserve_front()
         if block.move is None or block.length_mm < MIN_LENGTH_MM:
-            row = (0.0, 1.0, math.inf, math.inf, _NO_OVERRIDE, math.inf, 0.0, block.lead_s)
-            if head + 1 < self._tail:
-                self._data[JUNCTION, head + 1] = 0.0
+            row = _still_row(block.lead_s)
             estimate_s = block.lead_s
         else:
             rate, accel = self._limits(block.unit)
@@ -325,10 +344,9 @@ class Planner:
             nominal = self._nominal(feed, rate, kind)
             row = (block.length_mm, accel, feed, rate, kind, nominal, 0.0, 0.0)
             estimate_s = block.length_mm / nominal
-        self._data[: LEAD + 1, head] = row
-        self._geometry.appendleft(
-            (block.move, block.actions, block.start_mm, block.end_mm, block.unit)
-        )
+        self._columns.push_front(row)
+        geometry = (block.move, block.actions, block.start_mm, block.end_mm, block.unit)
+        self._geometry.appendleft(geometry)
         self._start_mm_s = 0.0
         self._dirty = self._head_dirty = True
         self._time_estimate_s += estimate_s
@@ -347,13 +365,9 @@ class Planner:
             feed_mm_s *= self._feed_override
         elif kind == _RAPID_OVERRIDE:
             rate_mm_s *= self._rapid_override
-        return max(min(feed_mm_s, rate_mm_s), self.settings.min_feed_mm_s)
-
-    def _junction_sq(self, unit: Position, accel_mm_s2: float) -> float:
-        if self._last_unit is None:
-            return 0.0
-        accel = min(accel_mm_s2, self._last_accel)
-        return junction_speed_sq(self._last_unit, unit, accel, self.settings.junction_deviation_mm)
+        nominal = feed_mm_s if feed_mm_s < rate_mm_s else rate_mm_s
+        floor = self._settings.min_feed_mm_s
+        return nominal if nominal > floor else floor
 
     def _take_pending(self, more: list[Action]) -> list[Action]:
         if not self._pending:
@@ -370,43 +384,21 @@ class Planner:
         actions, self._pending = self._pending, []
         return _unplanned(None, actions, here, here, self._zero)
 
-    def _push_back(self, row: tuple[float, ...]) -> None:
-        tail = self._tail
-        if tail == self._data.shape[1]:
-            self._make_room(1, front=False)
-            tail = self._tail
-        self._data[: LEAD + 1, tail] = row
-        self._tail = tail + 1
-        self._dirty = True
-
-    def _reserve_front(self) -> int:
-        if self._head == 0:
-            self._make_room(1, front=True)
-        self._head -= 1
-        return self._head
-
-    def _make_room(self, extra: int, front: bool) -> None:
-        """Compact or grow the column array so ``extra`` more columns fit (before or after)."""
-        head, tail = self._head, self._tail
-        count, capacity = tail - head, self._data.shape[1]
-        data = self._data
-        if count + extra > capacity // 2:
-            data = np.zeros((_ROWS, 2 * capacity))
-        offset = extra if front else 0
-        data[:, offset : offset + count] = self._data[:, head:tail].copy()
-        self._data = data
-        self._head, self._tail = offset, offset + count
-        self._planned_to += offset - head
-
     def _clear_window(self) -> None:
-        self._head = self._tail = self._planned_to = 0
+        self._columns.clear()
+        self._planned = 0
         self._dirty = self._head_dirty = False
         self._time_planned_s = self._time_estimate_s = 0.0
 
 
+def _still_row(lead_s: float) -> tuple[float, ...]:
+    """Input values of a zero-length block standing still for ``lead_s`` seconds."""
+    return (0.0, 1.0, math.inf, math.inf, _NO_OVERRIDE, math.inf, 0.0, lead_s)
+
+
 def _kind_and_feed(move: Move) -> tuple[float, float]:
     """The override code of a move and its requested feed (mm/s; inf for rapids)."""
-    if move.kind is MoveKind.RAPID:
+    if move.kind is _RAPID:
         return _RAPID_OVERRIDE, math.inf
     feed = move.feed_mm_s if move.feed_mm_s > 0.0 else 0.0
     return (_NO_OVERRIDE if move.kind in _UNSCALED_KINDS else _FEED_OVERRIDE), feed

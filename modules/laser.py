@@ -1,0 +1,220 @@
+"""``[laser]``: a laser whose power follows the tool's speed (Grbl laser mode, Smoothie's laser).
+
+A task samples the step generator's motion state on its own fixed-rate timer (``sample_hz``,
+capped by ``pwm_frequency_hz``) and sets the PWM duty of ``pin`` on the backend. S and M3/M4/M5
+come from the block being executed (``MotionState.s_value``/``tool_mode``), so S changes between
+segments ride inside the blocks and never stop motion.
+
+Power while a G1/G2/G3 block executes (``r = S / maximum_s_value * scale``):
+
+* dynamic (M4, and M3 with ``proportional_power``, as Smoothieware):
+  ``min + (max - min) * r * speed / nominal``, so accelerations and decelerations are scaled;
+* constant (M3, Grbl's ``$32`` laser mode): ``min + (max - min) * r``;
+
+clamped to ``[0, maximum_power]``. Rapids, jogs and homing moves never fire; M5, S0 and a
+machine at rest turn it off. ``scale`` is M221's percentage times the spindle override %.
+
+``M221 S<percent>`` is an *ordered* action: it takes effect when motion reaches it, like S.
+Halt, alarm, feed hold, sleep and shutdown turn the laser off at once, inside the event
+callback; after a resume it comes back with the motion at the next sample. The sampled power
+lags the motion state by at most one sample period (a real controller's PWM update lag).
+
+Smoothie's ``fire <percent> [seconds]`` fires while idle (focusing); ``fire off`` stops it. It
+is refused with ``error:45`` unless the machine is Idle and still, and ends by itself after
+``fire_max_duration_s`` or when the machine leaves Idle.
+
+    [laser]
+    pin = "laser"
+    maximum_s_value = 1000      # LightBurn/Grbl files; Smoothie uses 1.0
+    maximum_power = 0.8
+    proportional_power = false  # M3 constant, M4 dynamic
+    ttl_pin = "laser_enable"    # optional: 1 while firing
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pydantic import Field, model_validator
+
+from server.dispatcher import Command
+from server.errors import BUSY, CommandError
+from server.events import MachineState
+from server.module import Module, ModuleConfig, ModuleContext
+from server.moves import Action, MoveKind, ToolMode
+from server.stepgen import HoldState, MotionState
+
+PIN_PATTERN = r"^[A-Za-z0-9_.\-]+$"
+CUTTING_KINDS = frozenset({MoveKind.FEED, MoveKind.ARC})
+OFF_STATES = frozenset({MachineState.ALARM, MachineState.HOLD, MachineState.SLEEP,
+                        MachineState.DOOR})
+BAD_NUMBER = 2
+BAD_STATEMENT = 3
+
+
+class LaserConfig(ModuleConfig):
+    pin: str = Field("laser", pattern=PIN_PATTERN, description="PWM output name")
+    ttl_pin: str | None = Field(None, pattern=PIN_PATTERN,
+                                description="optional enable output, 1 while firing")
+    pwm_frequency_hz: float = Field(5000.0, gt=0, le=1_000_000)
+    sample_hz: float = Field(1000.0, ge=10, le=100_000,
+                             description="power updates per second (capped by the PWM frequency)")
+    maximum_power: float = Field(1.0, gt=0, le=1, description="duty at full power")
+    minimum_power: float = Field(0.0, ge=0, le=1, description="duty at the lowest power")
+    maximum_s_value: float = Field(1000.0, gt=0, description="S for full power (Grbl $30)")
+    proportional_power: bool = Field(False, description="M3 scales with speed too (Smoothie)")
+    fire_max_duration_s: float = Field(10.0, gt=0, le=3600)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> LaserConfig:
+        if self.minimum_power > self.maximum_power:
+            raise ValueError("minimum_power must not exceed maximum_power")
+        if self.ttl_pin == self.pin:
+            raise ValueError("ttl_pin must differ from pin")
+        return self
+
+    @property
+    def period_s(self) -> float:
+        """Seconds between two power updates."""
+        return 1.0 / min(self.sample_hz, self.pwm_frequency_hz)
+
+
+def laser_power(config: LaserConfig, motion: MotionState, scale: float) -> float:
+    """The duty cycle in [0, maximum_power] for the motion state (see the module docstring)."""
+    if not motion.moving or motion.hold is not HoldState.NONE:
+        return 0.0
+    if motion.kind not in CUTTING_KINDS or motion.tool_mode is ToolMode.OFF:
+        return 0.0
+    if motion.s_value <= 0.0:
+        return 0.0
+    ratio = motion.s_value / config.maximum_s_value * scale
+    if motion.tool_mode is ToolMode.CCW or config.proportional_power:
+        nominal = motion.nominal_mm_s
+        ratio *= motion.speed_mm_s / nominal if nominal > 0.0 else 0.0
+    low, high = config.minimum_power, config.maximum_power
+    return min(high, max(0.0, low + (high - low) * ratio))
+
+
+class Laser(Module):
+    """Drives the laser PWM from the motion state; see the module docstring."""
+
+    name = "laser"
+    Config = LaserConfig
+
+    def __init__(self, ctx: ModuleContext, config: LaserConfig) -> None:
+        super().__init__(ctx, config)
+        self.config: LaserConfig = config
+        self.power = 0.0
+        self.m221_percent = 100.0
+        self.override_percent = 100.0
+        self._state = MachineState.IDLE
+        self._fire_until_s: float | None = None
+        ctx.register_command("fire", self._fire)
+        ctx.register_command("M221", self._m221)
+        for event in ("halt", "hold", "shutdown"):
+            ctx.subscribe(event, self._off_now)
+        ctx.subscribe("state", self._on_state)
+        ctx.subscribe("override", self._on_override)
+        ctx.subscribe("action", self._on_action)
+
+    @property
+    def scale(self) -> float:
+        """M221 percentage times the spindle override percentage, as a factor."""
+        return self.m221_percent / 100.0 * self.override_percent / 100.0
+
+    @property
+    def firing(self) -> bool:
+        """Whether a ``fire`` command holds the laser on."""
+        return self._fire_until_s is not None
+
+    async def run(self) -> None:
+        """Sample the motion state at a fixed rate until cancelled; the laser ends off."""
+        clock = self.ctx.clock
+        period_s = self.config.period_s
+        next_s = clock.now_s()
+        try:
+            while True:
+                next_s += period_s
+                await clock.sleep_until(next_s)
+                now_s = clock.now_s()
+                if now_s - next_s > 0.25:  # the loop stalled: do not replay old samples
+                    next_s = now_s
+                self._sample(now_s)
+        finally:
+            self._off_now()
+
+    def _sample(self, now_s: float) -> None:
+        if self._fire_until_s is not None:
+            if now_s < self._fire_until_s:
+                return
+            self._fire_until_s = None
+            self.ctx.log.info("fire: stopped after its maximum duration")
+        self._apply(laser_power(self.config, self.ctx.motion(), self.scale), now_s)
+
+    def _apply(self, power: float, now_s: float) -> None:
+        if power == self.power:
+            return
+        backend = self.ctx.machine.backend  # type: ignore[attr-defined]
+        backend.set_output(self.config.pin, power, now_s)
+        if self.config.ttl_pin is not None and (power > 0.0) != (self.power > 0.0):
+            backend.set_output(self.config.ttl_pin, 1.0 if power > 0.0 else 0.0, now_s)
+        self.power = power
+
+    # -- events (synchronous: the laser is off before emit() returns) ----------------------
+    def _off_now(self, *_: Any) -> None:
+        self._fire_until_s = None
+        self._apply(0.0, self.ctx.clock.now_s())
+
+    def _on_state(self, state: MachineState) -> None:
+        self._state = state
+        if state in OFF_STATES:
+            self._off_now()
+        elif state is not MachineState.IDLE and self.firing:
+            self._off_now()  # motion started: fire ends, the sampler takes over
+
+    def _on_override(self, feed: int, rapid: int, spindle: int) -> None:
+        self.override_percent = float(spindle)
+
+    def _on_action(self, action: Action) -> None:
+        if action.name == "laser" and "scale_percent" in action.params:
+            self.m221_percent = float(action.params["scale_percent"])
+
+    # -- commands --------------------------------------------------------------------------
+    async def _m221(self, command: Command) -> list[str]:
+        """``M221 S<percent>``: power scale, applied in order with motion; bare M221 reports."""
+        percent = command.line.get("S") if command.line is not None else None
+        if percent is None:
+            return [f"[MSG:laser power scale {self.m221_percent:g}%]"]
+        if not 0.0 <= percent <= 1000.0:
+            raise CommandError(BAD_NUMBER, "M221 S must be a percentage between 0 and 1000")
+        await self.ctx.queue_action(Action("laser", {"scale_percent": percent}))
+        return []
+
+    def _fire(self, command: Command) -> list[str]:
+        """``fire <percent> [seconds]`` while idle, ``fire off`` at any time."""
+        args = command.args.split()
+        if len(args) == 1 and args[0].lower() == "off":
+            self._off_now()
+            return ["[MSG:fire off]"]
+        if not 1 <= len(args) <= 2:
+            raise CommandError(BAD_STATEMENT, "usage: fire <percent> [seconds] | fire off")
+        try:
+            percent, *rest = (float(arg) for arg in args)
+        except ValueError as exc:
+            raise CommandError(BAD_NUMBER, f"fire: not a number: {command.args!r}") from exc
+        if not 0.0 <= percent <= 100.0:
+            raise CommandError(BAD_NUMBER, "fire: the power is a percentage from 0 to 100")
+        motion = self.ctx.motion()
+        if self._state is not MachineState.IDLE or motion.moving or motion.queue_depth:
+            raise CommandError(BUSY, "fire only works while the machine is idle")
+        limit_s = self.config.fire_max_duration_s
+        duration_s = min(rest[0], limit_s) if rest and rest[0] > 0 else limit_s
+        now_s = self.ctx.clock.now_s()
+        self._fire_until_s = now_s + duration_s
+        self._apply(min(1.0, percent / 100.0) * self.config.maximum_power, now_s)
+        return [f"[MSG:fire {percent:g}% for at most {duration_s:g}s]"]
+
+    def status(self) -> dict[str, Any]:
+        motion = self.ctx.motion()
+        return {"power": self.power, "s": motion.s_value, "scale": self.scale,
+                "firing": self.firing}

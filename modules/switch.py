@@ -1,0 +1,161 @@
+"""``[switch.NAME]``: a named output (fan, air assist, coolant, light) driven by M-codes.
+
+Every switch command executes IN ORDER WITH MOTION: the handler of ``on_mcode`` (M106 S...),
+``off_mcode`` (M107) and ``M42 P<pin> S<value>`` queues an ``Action("switch")`` and the output
+changes when the kernel's ``action`` event delivers it, never when the line is received. The
+value is ``S / max_s`` (S defaults to ``max_s``: full on), or 0/1 with ``pwm = false``.
+
+M7, M8 and M9 belong to the interpreter, which turns them into ``Action("coolant")``: a switch
+with ``on_mcode = 7`` (mist) or ``8`` (flood) follows that action instead (M9 turns both off),
+and Grbl's realtime coolant toggles (0xA0 flood, 0xA1 mist) switch it at once.
+``M42 P<n>`` addresses the switch whose ``pin`` is ``n`` or ``P<n>``; a pin that no switch owns
+is refused. Switches go off on halt and shutdown unless ``off_on_halt = false``.
+
+    [switch.fan]
+    pin = "fan"
+    on_mcode = 106
+    off_mcode = 107
+
+    [switch.air]
+    pin = "air"
+    on_mcode = 8        # follows M8 / M9 (flood coolant)
+    off_mcode = 9
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+from pydantic import Field, model_validator
+
+from server.dispatcher import Command
+from server.errors import CommandError
+from server.module import Module, ModuleConfig, ModuleContext
+from server.modal import M_GROUPS
+from server.moves import Action
+
+PIN_PATTERN = r"^[A-Za-z0-9_.\-]+$"
+COOLANT_CODES = {7: "mist", 8: "flood"}
+M42_QUERY = "switch.m42_owner"  # event: (pin text, list to append owners to)
+BAD_NUMBER = 2
+VALUE_MISSING = 31
+
+
+class SwitchConfig(ModuleConfig):
+    pin: str | None = Field(None, pattern=PIN_PATTERN,
+                            description="output name (default: the switch's name)")
+    on_mcode: int | None = Field(None, ge=0, le=999, description="M-code that turns it on")
+    off_mcode: int | None = Field(None, ge=0, le=999, description="M-code that turns it off")
+    max_s: float = Field(255.0, gt=0, description="S for full on (M106 S255)")
+    pwm: bool = Field(True, description="S sets a duty cycle; false: any S > 0 is fully on")
+    off_on_halt: bool = True
+
+    @model_validator(mode="after")
+    def _codes(self) -> SwitchConfig:
+        on, off = self.on_mcode, self.off_mcode
+        if on is not None and on == off:
+            raise ValueError("on_mcode and off_mcode must differ")
+        if on in COOLANT_CODES:
+            if off not in (None, 9):
+                raise ValueError(f"a coolant switch (on_mcode = {on}) turns off with M9")
+        elif off == 9:
+            raise ValueError("off_mcode = 9 needs on_mcode = 7 (mist) or 8 (flood)")
+        for key, code in (("on_mcode", on), ("off_mcode", off)):
+            if code is not None and code in M_GROUPS and code not in (7, 8, 9):
+                raise ValueError(f"{key}: M{code} belongs to the G-code interpreter")
+        return self
+
+
+class Switch(Module):
+    """One named output; see the module docstring."""
+
+    name = "switch"
+    Config = SwitchConfig
+    named: ClassVar[bool] = True
+
+    def __init__(self, ctx: ModuleContext, config: SwitchConfig) -> None:
+        super().__init__(ctx, config)
+        self.config: SwitchConfig = config
+        self.pin = config.pin or ctx.name.split(".", 1)[-1]
+        self.value = 0.0
+        self.coolant = COOLANT_CODES.get(config.on_mcode or -1)
+        if self.coolant is None:
+            for code in (config.on_mcode, config.off_mcode):
+                if code is not None:
+                    ctx.register_command(f"M{code}", self._mcode)
+        else:
+            ctx.subscribe("toggle_coolant", self._toggle)
+        ctx.register_command("M42", self._m42)
+        ctx.subscribe(M42_QUERY, self._answer_m42_query)
+        ctx.subscribe("action", self._on_action)
+        if config.off_on_halt:
+            ctx.subscribe("halt", self._off_now)
+        ctx.subscribe("shutdown", self._off_now)
+
+    # -- commands: queue, never apply ------------------------------------------------------
+    async def _mcode(self, command: Command) -> None:
+        line = command.line
+        assert line is not None
+        codes = {int(value) for letter, value in line.words if letter == "M"}
+        if self.config.on_mcode in codes:
+            await self._queue(self._value_from_s(line.get("S")))
+        elif self.config.off_mcode in codes:
+            await self._queue(0.0)
+
+    async def _m42(self, command: Command) -> None:
+        line = command.line
+        assert line is not None
+        pin, s = line.get("P"), line.get("S")
+        if pin is None or s is None:
+            raise CommandError(VALUE_MISSING, "M42 needs P<pin> and S<value>")
+        pin_text = f"{pin:g}"
+        if self._owns(pin_text):
+            await self._queue(self._value_from_s(s))
+            return
+        owners: list[str] = []
+        self.ctx.emit(M42_QUERY, pin_text, owners)
+        if not owners:
+            raise CommandError(BAD_NUMBER, f"M42: no [switch] has pin {pin_text}")
+
+    def _owns(self, pin_text: str) -> bool:
+        return self.pin.upper() in (pin_text, f"P{pin_text}")
+
+    def _answer_m42_query(self, pin_text: str, owners: list[str]) -> None:
+        if self._owns(pin_text):
+            owners.append(self.ctx.name)
+
+    def _value_from_s(self, s: float | None) -> float:
+        if s is None:
+            return 1.0
+        if s < 0:
+            raise CommandError(BAD_NUMBER, "S must not be negative")
+        value = min(1.0, s / self.config.max_s)
+        return value if self.config.pwm else float(value > 0.0)
+
+    async def _queue(self, value: float) -> None:
+        await self.ctx.queue_action(Action("switch", {"section": self.ctx.name, "value": value}))
+
+    # -- applied when motion reaches the action ---------------------------------------------
+    def _on_action(self, action: Action) -> None:
+        params = action.params
+        if action.name == "switch" and params.get("section") == self.ctx.name:
+            self._set(float(params["value"]))
+        elif action.name == "coolant" and self.coolant is not None:
+            self._set(1.0 if params.get(self.coolant) else 0.0)
+
+    def _toggle(self, kind: str) -> None:
+        """Grbl's realtime coolant override: toggles at once."""
+        if kind == self.coolant:
+            self._set(0.0 if self.value > 0.0 else 1.0)
+
+    def _off_now(self, *_: Any) -> None:
+        self._set(0.0)
+
+    def _set(self, value: float) -> None:
+        if value != self.value:
+            backend = self.ctx.machine.backend  # type: ignore[attr-defined]
+            backend.set_output(self.pin, value, self.ctx.clock.now_s())
+            self.value = value
+
+    def status(self) -> dict[str, Any]:
+        return {"pin": self.pin, "value": self.value, "on": self.value > 0.0}
