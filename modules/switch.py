@@ -30,8 +30,8 @@ from pydantic import Field, model_validator
 
 from server.dispatcher import Command
 from server.errors import CommandError
-from server.module import Module, ModuleConfig, ModuleContext
 from server.modal import M_GROUPS
+from server.module import Module, ModuleConfig, ModuleContext
 from server.moves import Action
 
 PIN_PATTERN = r"^[A-Za-z0-9_.\-]+$"

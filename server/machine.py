@@ -95,6 +95,7 @@ class Machine:
         self.check_mode = False
         self.epoch = 0  # incremented by every halt/reset; lines waiting across one are dropped
         self.tool = ToolState()
+        self._cancelling_jog = False
         self._check_saved: Interpreter | None = None
         self._defaults = core.model_copy(deep=True)
         self.settings = Settings(self, settings_path(kernel))
@@ -223,6 +224,8 @@ class Machine:
             self.kernel.set_state(MachineState.IDLE)
 
     def on_hold_stopped(self) -> None:
+        if self._cancelling_jog:
+            self._finish_jog_cancel()
         self.kernel.events.emit("hold_stopped")
 
     # -- realtime commands ------------------------------------------------------------------
@@ -260,8 +263,18 @@ class Machine:
             self.kernel.events.emit("resume")
 
     def cancel_jog(self) -> None:
-        if self.kernel.state is MachineState.JOG:
-            self.stepgen.cancel_jog()
+        """Jog cancel: decelerate to a stop, then drop the remaining jog moves."""
+        if self.kernel.state is not MachineState.JOG:
+            return
+        self._cancelling_jog = True
+        self.stepgen.hold()
+        if self.stepgen.state.hold is not HoldState.DECELERATING:
+            self._finish_jog_cancel()
+
+    def _finish_jog_cancel(self) -> None:
+        self._cancelling_jog = False
+        self.stop_now()
+        self.kernel.set_state(MachineState.IDLE)
 
     def soft_reset(self) -> None:
         """Ctrl-X: stop at once, flush, keep the position; ALARM:3 if it was moving."""

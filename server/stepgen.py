@@ -110,7 +110,6 @@ class StepGenerator:
         self._running = False
         self._last_tick_s: float | None = None
         self._resume_when_stopped = False
-        self._flush_when_stopped = False
 
     # -- control (called by the machine) ----------------------------------------------------
     @property
@@ -157,20 +156,12 @@ class StepGenerator:
         self._running = True
         self._set_hold(HoldState.NONE)
 
-    def cancel_jog(self) -> None:
-        """Jog cancel: decelerate like a hold, then drop the remaining jog moves."""
-        if self.state.kind is MoveKind.JOG or self._cursor.block is not None:
-            self._flush_when_stopped = True
-            self.hold()
-            if self.state.hold is HoldState.STOPPED:
-                self._finish_cancel()
-
     def stop_now(self) -> list[Action]:
         """Halt: stop at once where the steps are, drop everything queued."""
         cursor = self._cursor
         cursor.block = None
         self._running = False
-        self._resume_when_stopped = self._flush_when_stopped = False
+        self._resume_when_stopped = False
         self.flush_requested = False
         dropped = self.planner.flush()
         self.planner.set_position(self.state.position_mm)
@@ -278,16 +269,9 @@ class StepGenerator:
         if cursor.hold_speed_mm_s <= 0.0:
             self._set_hold(HoldState.STOPPED)
             self.listener.on_hold_stopped()
-            if self._flush_when_stopped:
-                self._finish_cancel()
-            elif self._resume_when_stopped:
+            if self._resume_when_stopped:
                 self._resume_when_stopped = False
                 self.resume()
-
-    def _finish_cancel(self) -> None:
-        self._flush_when_stopped = False
-        self.stop_now()
-        self.listener.on_idle()
 
     # -- output -----------------------------------------------------------------------------
     def _emit(self, now_s: float) -> None:
