@@ -64,6 +64,30 @@ class _Context:
         return self._kernel.machine
 
 
+class LoopMonitor:
+    """Measures how late the event loop wakes a 1 ms sleeper: the worst stall, in seconds.
+
+    It uses the loop's own time whatever the kernel's clock, since stalls are a property of the
+    process; ``worst_stall_s`` is exposed in the API and printed by the streaming benchmark.
+    """
+
+    def __init__(self, period_s: float = 0.001) -> None:
+        self.period_s = period_s
+        self.worst_stall_s = 0.0
+
+    def reset(self) -> None:
+        self.worst_stall_s = 0.0
+
+    async def run(self) -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            before = loop.time()
+            await asyncio.sleep(self.period_s)
+            late_s = loop.time() - before - self.period_s
+            if late_s > self.worst_stall_s:
+                self.worst_stall_s = late_s
+
+
 class Kernel:
     """Owns the machine state and every core task."""
 
@@ -83,6 +107,7 @@ class Kernel:
             self.modules[spec.section] = spec.cls(_Context(self, spec.section), spec.config)
             self._specs[spec.section] = spec
         CoreCommands(self).register(self.dispatcher)
+        self.loop_monitor = LoopMonitor()
         self._stop = asyncio.Event()
         self.started = asyncio.Event()
         self.stopped = False
@@ -120,7 +145,8 @@ class Kernel:
         """Run the step generator, the second ticker and every module until :meth:`stop`."""
         async with asyncio.TaskGroup() as group:
             tasks = [group.create_task(self.machine.run(), name="stepgen"),
-                     group.create_task(self._second_ticker(), name="second")]
+                     group.create_task(self._second_ticker(), name="second"),
+                     group.create_task(self.loop_monitor.run(), name="loop-monitor")]
             for section, module in self.modules.items():
                 tasks.append(group.create_task(self._supervise(section, module), name=section))
             self.started.set()

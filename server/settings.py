@@ -119,6 +119,13 @@ def _travel(index: int) -> tuple[Callable[..., float], Callable[..., None]]:
     return read, write
 
 
+FLOAT_SETTINGS = frozenset({11, 12, 24, 25, 26, 27})
+
+
+def _typed(number: int, value: float) -> float | int:
+    return value if number >= 100 or number in FLOAT_SETTINGS else int(value)
+
+
 class Settings:
     """The numbered settings of one machine, with persistence."""
 
@@ -130,8 +137,10 @@ class Settings:
         if path is not None and path.exists():
             self._load(path)
 
-    def values(self) -> dict[int, float]:
-        return {number: setting.read(self.core) for number, setting in sorted(self.table.items())}
+    def values(self) -> dict[int, float | int]:
+        """Every setting's value; integer and on/off settings as ints (``$10=1``, not ``1.000``)."""
+        return {number: _typed(number, setting.read(self.core))
+                for number, setting in sorted(self.table.items())}
 
     def write(self, statement: str) -> None:
         """Apply ``N=value`` (the text after ``$``); raise CommandError with Grbl's codes."""

@@ -26,7 +26,7 @@ class TcpTransport:
         self.kernel = kernel
         self.config = kernel.config.core.tcp
         self._server: asyncio.Server | None = None
-        self._clients: set[asyncio.Task[None]] = set()
+        self._clients: dict[asyncio.Task[None], asyncio.StreamWriter] = {}
         self._ids = itertools.count(1)
         self.port = self.config.port
 
@@ -38,9 +38,10 @@ class TcpTransport:
     async def close(self) -> None:
         if self._server is not None:
             self._server.close()
-        for task in list(self._clients):
-            task.cancel()
-        await asyncio.gather(*self._clients, return_exceptions=True)
+        for writer in list(self._clients.values()):
+            writer.transport.abort()  # each client task then ends on its own
+        if self._clients:
+            await asyncio.wait(list(self._clients), timeout=1.0)
         if self._server is not None:
             with contextlib.suppress(Exception):
                 await self._server.wait_closed()
@@ -53,14 +54,14 @@ class TcpTransport:
             writer.write(b"error: too many connections\r\n")
             writer.close()
             return
-        self._clients.add(task)
+        self._clients[task] = writer
         peer = writer.get_extra_info("peername")
         session = Session(self.kernel, f"tcp-{next(self._ids)}")
         log.info("%s connected from %s", session.name, peer)
         try:
             await serve_stream(session, reader, writer)
         finally:
-            self._clients.discard(task)
+            self._clients.pop(task, None)
             log.info("%s disconnected", session.name)
 
 
