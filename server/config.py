@@ -159,7 +159,9 @@ def default_config_text() -> str:
     return resources.files("server").joinpath("default.toml").read_text()
 
 
-def load_config(path: Path | None = None, registry: Mapping[str, type[Module]] | None = None) -> Config:
+def load_config(
+    path: Path | None = None, registry: Mapping[str, type[Module]] | None = None
+) -> Config:
     """Load and validate a config file (the embedded default when ``path`` is None)."""
     label = str(path) if path else "<default config>"
     try:

@@ -87,7 +87,10 @@ class Dispatcher:
         self._is_locked = is_locked
 
     def register(self, name: str, handler: Handler, *, when_locked: bool = False) -> None:
-        """Add a handler for ``name`` (``M106``, ``$H``, ``fire``); ``when_locked`` lets it run in ALARM."""
+        """Add a handler for ``name`` (``M106``, ``$H``, ``fire``).
+
+        ``when_locked`` lets it run while the machine is in ALARM.
+        """
         entry = self._entries[_key(name)]
         entry.handlers.append(handler)
         entry.when_locked = entry.when_locked or when_locked

@@ -16,10 +16,9 @@ import os
 import tempfile
 import time
 from collections.abc import AsyncIterator
-from typing import BinaryIO
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, BinaryIO
 
 from server.dispatcher import Command
 from server.errors import BUSY, FILE_ERROR, CommandError
@@ -90,7 +89,7 @@ class Jobs:
             raise CommandError(FILE_ERROR, f"invalid job file name {name!r}")
         return path
 
-    def list(self) -> list[JobFile]:
+    def files(self) -> list[JobFile]:
         """Stored job files, by name."""
         if not self.data_dir.is_dir():
             return []
@@ -238,7 +237,7 @@ class Jobs:
     def _ls(self, command: Command) -> list[str]:
         sizes = "-s" in command.args
         return [f"{'./' if f.name.lower().startswith('ok') else ''}{f.name}"
-                + (f" {f.size_bytes}" if sizes else "") for f in self.list()]
+                + (f" {f.size_bytes}" if sizes else "") for f in self.files()]
 
     def _play(self, command: Command) -> list[str]:
         name = command.args.split()[0] if command.args.split() else ""

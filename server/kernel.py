@@ -21,8 +21,8 @@ from server.events import EventBus, MachineState
 from server.jobs import Jobs
 from server.machine import Machine
 from server.module import Module
-from server.reports import ALARM_MODULE_FAILED
 from server.moves import Action
+from server.reports import ALARM_MODULE_FAILED
 from server.stepgen import MotionState
 
 log = logging.getLogger("motiond.kernel")

@@ -25,9 +25,9 @@ from server.events import MachineState
 from server.interpreter import Interpreter, InterpreterSettings
 from server.moves import Action, Move, MoveKind, Sync, ToolMode
 from server.planner import Planner, PlannerSettings
-from server.settings import Settings
 from server.protocol import Realtime
 from server.reports import ALARM_ABORT_CYCLE, ALARM_HALT, ALARM_SOFT_LIMIT
+from server.settings import Settings
 from server.stepgen import HoldState, StepGenerator
 
 if TYPE_CHECKING:
@@ -282,7 +282,8 @@ class Machine:
         self.stop_now()
         self.interpreter.reset()
         if moving:
-            self.kernel.alarm(ALARM_ABORT_CYCLE, "reset while in motion: position may be lost, re-home")
+            self.kernel.alarm(ALARM_ABORT_CYCLE,
+                              "reset while in motion: position may be lost, re-home")
         elif self.kernel.state not in (MachineState.ALARM,):
             self.kernel.set_state(MachineState.IDLE)
 

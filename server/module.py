@@ -43,7 +43,7 @@ class ModuleContext(Protocol):
     log: logging.Logger
     clock: Clock
 
-    def register_command(self, name: str, handler: Handler) -> None:
+    def register_command(self, name: str, handler: Handler, *, when_locked: bool = False) -> None:
         """Handle a G/M code ("M106"), a $ command ("$H") or a named command ("fire")."""
         ...
 

@@ -260,7 +260,8 @@ def render_command(args: Any, config: Config) -> int:
     if stats.error:
         title += f" (stopped at line {stats.error_line})"
     draw(toolpath, output, title)
-    print(f"wrote {output} ({len(toolpath.feed):,} feed and {len(toolpath.rapid):,} rapid segments)")
+    print(f"wrote {output} ({len(toolpath.feed):,} feed and "
+          f"{len(toolpath.rapid):,} rapid segments)")
     if stats.error:
         print(f"  stopped at line {stats.error_line}: {stats.error}", file=sys.stderr)
     return 1 if stats.error else 0

@@ -47,7 +47,10 @@ def _fixed(value: float, description: str) -> Callable[[int], Setting]:
     return lambda number: Setting(number, description, lambda core: value)
 
 
-def _attr(section: str, key: str, scale: float = 1.0) -> tuple[Callable[..., float], Callable[..., None]]:
+Accessors = tuple[Callable[..., float], Callable[..., None]]
+
+
+def _attr(section: str, key: str, scale: float = 1.0) -> Accessors:
     def read(core: CoreConfig) -> float:
         return float(getattr(getattr(core, section), key)) * scale
 
@@ -57,7 +60,7 @@ def _attr(section: str, key: str, scale: float = 1.0) -> tuple[Callable[..., flo
     return read, write
 
 
-def _axis(index: int, key: str, scale: float = 1.0) -> tuple[Callable[..., float], Callable[..., None]]:
+def _axis(index: int, key: str, scale: float = 1.0) -> Accessors:
     def read(core: CoreConfig) -> float:
         return float(getattr(list(core.axes.values())[index], key)) * scale
 
@@ -94,7 +97,7 @@ def setting_table(core: CoreConfig) -> dict[int, Setting]:
     return table
 
 
-def _bool(section: str, key: str) -> tuple[Callable[..., float], Callable[..., None]]:
+def _bool(section: str, key: str) -> Accessors:
     def read(core: CoreConfig) -> float:
         return float(bool(getattr(getattr(core, section), key)))
 
@@ -104,7 +107,7 @@ def _bool(section: str, key: str) -> tuple[Callable[..., float], Callable[..., N
     return read, write
 
 
-def _travel(index: int) -> tuple[Callable[..., float], Callable[..., None]]:
+def _travel(index: int) -> Accessors:
     def read(core: CoreConfig) -> float:
         axis = list(core.axes.values())[index]
         return axis.max_mm - axis.min_mm
@@ -148,7 +151,7 @@ class Settings:
         try:
             number, value = int(number_text.strip()), float(value_text.strip())
         except ValueError as exc:
-            raise CommandError(INVALID_STATEMENT, f"invalid setting statement ${statement}") from exc
+            raise CommandError(INVALID_STATEMENT, f"invalid statement ${statement}") from exc
         self.set(number, value)
         self._save()
 
@@ -173,7 +176,7 @@ class Settings:
 
     def restore_defaults(self, defaults: CoreConfig) -> None:
         """``$RST=$``: every writable setting back to the config file's value."""
-        for number, setting in self.table.items():
+        for setting in self.table.values():
             if setting.write is not None:
                 setting.write(self.core, setting.read(defaults))
         self.machine.apply_settings()

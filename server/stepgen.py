@@ -265,7 +265,8 @@ class StepGenerator:
                 for action in block.actions:
                     self.listener.on_action(action)
                 block.actions = []
-                cursor.hold_accel_mm_s2 = min(cursor.hold_accel_mm_s2, block.accel_mm_s2 or math.inf)
+                cursor.hold_accel_mm_s2 = min(cursor.hold_accel_mm_s2,
+                                              block.accel_mm_s2 or math.inf)
         if cursor.hold_speed_mm_s <= 0.0:
             self._set_hold(HoldState.STOPPED)
             self.listener.on_hold_stopped()
@@ -288,7 +289,8 @@ class StepGenerator:
             else:
                 distance = min(cursor.distance_mm, block.length_mm)
                 state.speed_mm_s = cursor.hold_speed_mm_s
-            position = tuple(s + u * distance for s, u in zip(block.start_mm, block.unit, strict=True))
+            position = tuple(start + unit * distance
+                             for start, unit in zip(block.start_mm, block.unit, strict=True))
             state.position_mm = position
             state.moving = True
             move = block.move

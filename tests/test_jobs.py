@@ -30,7 +30,7 @@ async def test_upload_list_and_play_a_job_to_its_end(tmp_path: Path) -> None:
         jobs = app.kernel.jobs
         data = b"G21 G90\nG1 X10 F3000\nG1 Y10\nG1 X0\nG1 Y0\nG1 X3 Y4\n"
         await jobs.save("square.nc", data)
-        assert [(f.name, f.size_bytes) for f in jobs.list()] == [("square.nc", len(data))]
+        assert [(f.name, f.size_bytes) for f in jobs.files()] == [("square.nc", len(data))]
         assert await submit_all(app, ["ls -s", "play /sd/square.nc"]) == [
             [f"square.nc {len(data)}"], ["[MSG:Playing square.nc]"]]
         await jobs._task  # noqa: SLF001 - wait for the player to finish

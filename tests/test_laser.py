@@ -15,7 +15,7 @@ import pytest
 
 from server.app import App
 from server.config import load_config
-from server.errors import ConfigError, CommandError
+from server.errors import CommandError, ConfigError
 from server.moves import MoveKind, ToolMode
 from server.stepgen import HoldState
 from tests.conftest import make_config

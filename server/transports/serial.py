@@ -16,8 +16,9 @@ import logging
 import os
 import termios
 import tty
+from collections.abc import Coroutine
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from server.session import Session
 
@@ -47,8 +48,8 @@ class SerialTransport:
         if self.config.device:
             self._spawn(self._serve_device(self.config.device))
 
-    def _spawn(self, coro: object) -> None:
-        task = asyncio.get_running_loop().create_task(coro)  # type: ignore[arg-type]
+    def _spawn(self, coro: Coroutine[Any, Any, None]) -> None:
+        task = asyncio.get_running_loop().create_task(coro)
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
 
