@@ -21,7 +21,7 @@ lags the motion state by at most one sample period (a real controller's PWM upda
 
 Smoothie's ``fire <percent> [seconds]`` fires while idle (focusing); ``fire off`` stops it. It
 is refused with ``error:45`` unless the machine is Idle and still, and ends by itself after
-``fire_max_duration_s`` or when the machine leaves Idle.
+``fire_max_duration_s``, when the machine leaves Idle, or at the next sample after a Ctrl-X.
 
     [laser]
     pin = "laser"
@@ -109,6 +109,7 @@ class Laser(Module):
         self.override_percent = 100.0
         self._state = MachineState.IDLE
         self._fire_until_s: float | None = None
+        self._fire_epoch = 0
         ctx.register_command("fire", self._fire)
         ctx.register_command("M221", self._m221)
         for event in ("halt", "hold", "shutdown"):
@@ -145,16 +146,20 @@ class Laser(Module):
 
     def _sample(self, now_s: float) -> None:
         if self._fire_until_s is not None:
-            if now_s < self._fire_until_s:
+            if now_s < self._fire_until_s and self._machine.epoch == self._fire_epoch:
                 return
-            self._fire_until_s = None
-            self.ctx.log.info("fire: stopped after its maximum duration")
+            self._fire_until_s = None  # expired, or a soft reset (Ctrl-X) happened
+            self.ctx.log.info("fire: stopped")
         self._apply(laser_power(self.config, self.ctx.motion(), self.scale), now_s)
+
+    @property
+    def _machine(self) -> Any:
+        return self.ctx.machine  # type: ignore[attr-defined]
 
     def _apply(self, power: float, now_s: float) -> None:
         if power == self.power:
             return
-        backend = self.ctx.machine.backend  # type: ignore[attr-defined]
+        backend = self._machine.backend
         backend.set_output(self.config.pin, power, now_s)
         if self.config.ttl_pin is not None and (power > 0.0) != (self.power > 0.0):
             backend.set_output(self.config.ttl_pin, 1.0 if power > 0.0 else 0.0, now_s)
@@ -211,6 +216,7 @@ class Laser(Module):
         duration_s = min(rest[0], limit_s) if rest and rest[0] > 0 else limit_s
         now_s = self.ctx.clock.now_s()
         self._fire_until_s = now_s + duration_s
+        self._fire_epoch = self._machine.epoch
         self._apply(min(1.0, percent / 100.0) * self.config.maximum_power, now_s)
         return [f"[MSG:fire {percent:g}% for at most {duration_s:g}s]"]
 

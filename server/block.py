@@ -118,16 +118,16 @@ class Block:
 class BlockColumns:
     """The per-block numbers of a window of blocks, one column per block, rows by quantity.
 
-    Rows ``0 .. inputs-1`` are written when a block is pushed; the remaining rows (the plan) are
-    written by whoever plans the window. Pushing only stages the row in a list (O(1), no numpy
-    call); :meth:`sync` copies staged rows into the array in one operation. Columns
-    ``head .. tail-1`` are the window; the array grows by doubling and is compacted when the
-    window has drifted to its end.
+    The ``input_rows`` are given when a block is pushed; the other rows are derived and planned
+    by the owner. Pushing only stages the values in a list (O(1), no numpy call); :meth:`sync`
+    copies staged columns into the array in one operation and says which columns are new.
+    Columns ``head .. tail-1`` are the window; the array grows by doubling and is compacted when
+    the window has drifted to its end.
     """
 
-    def __init__(self, rows: int, inputs: int, capacity: int = 256) -> None:
+    def __init__(self, rows: int, input_rows: list[int], capacity: int = 256) -> None:
         self.data: FloatArray = np.zeros((rows, capacity))
-        self.inputs = inputs
+        self.input_rows = input_rows
         self.head = 0
         self.tail = 0  # including staged columns
         self._synced = 0
@@ -136,39 +136,44 @@ class BlockColumns:
     def __len__(self) -> int:
         return self.tail - self.head
 
-    def push(self, row: tuple[float, ...]) -> None:
-        """Stage a column with the ``inputs`` input values."""
-        self._staged.append(row)
+    def push(self, values: tuple[float, ...]) -> None:
+        """Stage a column given by its ``input_rows`` values."""
+        self._staged.append(values)
         self.tail += 1
 
-    def push_front(self, row: tuple[float, ...]) -> None:
-        """Put a column with the ``inputs`` input values before the head."""
+    def push_front(self, values: tuple[float, ...]) -> int:
+        """Put a column given by its ``input_rows`` values before the head; return its index."""
         self.sync()
         if self.head == 0:
             self._relocate(front=1)
         self.head -= 1
-        self.data[: self.inputs, self.head] = row
+        self.data[self.input_rows, self.head] = values
+        return self.head
 
-    def sync(self) -> None:
-        """Copy staged columns into the array; afterwards ``data[:, head:tail]`` is the window."""
+    def sync(self) -> int:
+        """Copy staged columns into the array; return the index of the first new column.
+
+        Afterwards ``data[:, head:tail]`` is the whole window.
+        """
         staged = self._staged
         if not staged:
-            return
+            return self.tail
         if self.tail > self.data.shape[1]:
             self._relocate(front=0)
-        count, inputs = len(staged), self.inputs
-        values = np.fromiter(chain.from_iterable(staged), np.float64, count * inputs)
-        self.data[:inputs, self._synced : self.tail] = values.reshape(count, inputs).T
+        first, count, width = self._synced, len(staged), len(self.input_rows)
+        values = np.fromiter(chain.from_iterable(staged), np.float64, count * width)
+        self.data[self.input_rows, first : self.tail] = values.reshape(count, width).T
         self._synced = self.tail
         self._staged = []
+        return first
 
     def window(self) -> FloatArray:
         """The window as a view of shape (rows, blocks); call :meth:`sync` first."""
         return self.data[:, self.head : self.tail]
 
-    def pop_front(self) -> list[float]:
-        """Remove the head column (already synced) and return its values."""
-        values: list[float] = self.data[:, self.head].tolist()
+    def pop_front(self, rows: int) -> list[float]:
+        """Remove the head column (already synced); return its first ``rows`` values."""
+        values: list[float] = self.data[:rows, self.head].tolist()
         self.head += 1
         if self.head == self.tail:
             self.clear()

@@ -28,7 +28,8 @@ MAX_LINE_NUMBER = 10_000_000
 
 _NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)"
 _WORD = re.compile(rf"([A-Z])({_NUMBER})")
-_WORDS = re.compile(rf"(?:[A-Z]{_NUMBER})*")
+_LETTER = re.compile(r"([A-Z])")
+_COMMENT = re.compile(r"\(([^)]*)\)|;(.*)", re.S)
 _CHECKSUM = re.compile(r"\s*(\d{1,3})\s*")
 _REPEATABLE = frozenset("GM")
 
@@ -70,7 +71,13 @@ def checksum_of(text: str) -> int:
 
 def parse_line(text: str) -> Line:
     """Parse one line of G-code. Never raises; see :class:`Line`."""
-    line = Line(text)
+    if "*" in text or "(" in text or ";" in text:
+        return _parse_framed_or_commented(text)
+    return _parse_body(Line(text, [], []), text)
+
+
+def _parse_framed_or_commented(text: str) -> Line:
+    line = Line(text, [], [])
     body = text
     if "*" in body:
         body = _split_checksum(line, body)
@@ -80,18 +87,31 @@ def parse_line(text: str) -> Line:
         body = _strip_comments(line, body)
         if line.error:
             return line
+    return _parse_body(line, body)
+
+
+def _parse_body(line: Line, body: str) -> Line:
     compact = "".join(body.split()).upper()
     if compact.startswith("/"):
         line.block_delete = True
         compact = compact[1:]
     if not compact or compact == "%":
         return line
-    if _WORDS.fullmatch(compact) is None:
+    # Fast path: split on letters and let float() check each number. float() also accepts
+    # syntax G-code does not (other scripts' digits, "_" separators; exponents cannot occur
+    # since E is a letter), so such lines go to the slow diagnosis.
+    parts = _LETTER.split(compact)
+    letters = parts[1::2]
+    try:
+        if parts[0] or not compact.isascii() or "_" in compact:
+            raise ValueError
+        words = list(zip(letters, map(float, parts[2::2]), strict=True))
+    except ValueError:
         line.error = _diagnose(compact)
         return line
-    words = [(letter, float(number)) for letter, number in _WORD.findall(compact)]
-    _take_line_number(line, words)
-    if line.error is None:
+    if "N" in compact:
+        _take_line_number(line, words)
+    if len(set(letters)) != len(letters) and line.error is None:
         line.error = _repeated_word(words)
     line.words = words
     return line
@@ -113,22 +133,20 @@ def _split_checksum(line: Line, body: str) -> str:
 def _strip_comments(line: Line, body: str) -> str:
     kept: list[str] = []
     position = 0
-    while position < len(body):
-        char = body[position]
-        if char == ";":
-            line.comments.append(body[position + 1 :].strip())
+    for match in _COMMENT.finditer(body):
+        kept.append(body[position : match.start()])
+        paren, semicolon = match.groups()
+        if paren is None:
+            line.comments.append(semicolon.strip())
+            position = len(body)
             break
-        if char == "(":
-            end = body.find(")", position)
-            if end < 0:
-                line.error = CommandError(EXPECTED_COMMAND_LETTER, "unclosed '(' comment")
-                break
-            line.comments.append(body[position + 1 : end].strip())
-            position = end + 1
-            continue
-        kept.append(char)
-        position += 1
-    return "".join(kept)
+        line.comments.append(paren.strip())
+        position = match.end()
+    kept.append(body[position:])
+    rest = "".join(kept)
+    if "(" in rest:
+        line.error = CommandError(EXPECTED_COMMAND_LETTER, "unclosed '(' comment")
+    return rest
 
 
 def _diagnose(compact: str) -> CommandError:
@@ -159,11 +177,8 @@ def _take_line_number(line: Line, words: list[tuple[str, float]]) -> None:
 
 
 def _repeated_word(words: list[tuple[str, float]]) -> CommandError | None:
-    letters = [letter for letter, _ in words]
-    if len(set(letters)) == len(letters):
-        return None
     seen: set[str] = set()
-    for letter in letters:
+    for letter, _ in words:
         if letter in seen and letter not in _REPEATABLE:
             return CommandError(REPEATED_WORD, f"repeated {letter} word")
         seen.add(letter)

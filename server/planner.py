@@ -24,9 +24,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from server.block import Block, BlockColumns
+from server.block import Block, BlockColumns, FloatArray
 from server.moves import Action, Move, MoveKind, Position
-from server.trapezoid import PROFILE_ROWS, junction_speed_sq, plan_window
+from server.trapezoid import PROFILE_ROWS, junction_speed_sq, junction_speeds_sq, plan_window
 
 if TYPE_CHECKING:
     from server.config import CoreConfig
@@ -37,15 +37,18 @@ MIN_LENGTH_MM = 1e-6
 """Moves shorter than this are dropped; the next block starts where the last one ended, so
 the skipped displacement is not lost."""
 
-# Rows of the per-block column array: inputs written at append time ...
-LENGTH, ACCEL, FEED, RATE, KIND, NOMINAL, JUNCTION, LEAD = range(8)
-# ... and the profile written by plan().
+# Rows of the per-block column array. Given at append time: ...
+LENGTH, FEED, KIND, LEAD = range(4)
+# ... derived in batches when staged blocks are synced: ...
+ACCEL, RATE, NOMINAL, JUNCTION = range(4, 8)
+# ... written by plan(): ...
 ENTRY, CRUISE, EXIT, RAMP1, FLAT, RAMP2, DURATION = range(8, 8 + PROFILE_ROWS)
-_ROWS = 8 + PROFILE_ROWS
+# ... and the direction, one row per axis, from UNIT on.
+UNIT = DURATION + 1
 
 # KIND codes: which override scales a block's nominal speed.
 _NO_OVERRIDE, _FEED_OVERRIDE, _RAPID_OVERRIDE = 0.0, 1.0, 2.0
-_UNSCALED_KINDS = frozenset({MoveKind.JOG, MoveKind.HOMING})
+_RAPID, _JOG, _HOMING = MoveKind.RAPID, MoveKind.JOG, MoveKind.HOMING
 FEED_OVERRIDE_RANGE = (0.1, 2.0)
 RAPID_OVERRIDE_RANGE = (0.25, 1.0)
 
@@ -89,8 +92,8 @@ class PlannerSettings:
         )
 
 
-_RAPID = MoveKind.RAPID
 _Geometry = tuple[Move | None, list[Action], Position, Position, Position]
+_POP_ROWS = DURATION + 1
 
 
 class Planner:
@@ -100,18 +103,20 @@ class Planner:
     """
 
     def __init__(self, settings: PlannerSettings, position_mm: Position) -> None:
-        self._zero: Position = (0.0,) * len(settings.max_rate_mm_s)
-        self.settings = settings
-        self._columns = BlockColumns(_ROWS, LEAD + 1)
+        axes = len(settings.max_rate_mm_s)
+        self._zero: Position = (0.0,) * axes
+        self._units = slice(UNIT, UNIT + axes)
+        self._columns = BlockColumns(
+            UNIT + axes, [LENGTH, FEED, KIND, LEAD, *range(UNIT, UNIT + axes)]
+        )
         self._planned = 0  # blocks from the head covered by the last plan
         self._geometry: deque[_Geometry] = deque()
         self._pending: list[Action] = []
         self._start_mm_s = 0.0
         self._feed_override = self._rapid_override = 1.0
-        self._last_unit: Position | None = None  # None: the next block must start from rest
-        self._last_accel = 0.0
         self._dirty = self._head_dirty = False
         self._time_planned_s = self._time_estimate_s = 0.0
+        self.settings = settings
         self.position_mm: Position = self._zero
         self._chain_mm: Position = self._zero
         self.set_position(position_mm)
@@ -125,9 +130,13 @@ class Planner:
     def settings(self, settings: PlannerSettings) -> None:
         if len(settings.max_rate_mm_s) != len(self._zero):
             raise ValueError("new planner settings must keep the number of axes")
+        if hasattr(self, "_settings"):
+            self._sync()  # blocks already appended keep the limits they were appended with
         self._settings = settings
         self._inv_rate = tuple(1.0 / rate for rate in settings.max_rate_mm_s)
         self._inv_accel = tuple(1.0 / accel for accel in settings.accel_mm_s2)
+        self._inv_rate_col = np.array(self._inv_rate)[:, None]
+        self._inv_accel_col = np.array(self._inv_accel)[:, None]
 
     # ------------------------------------------------------------------ appending
 
@@ -135,7 +144,7 @@ class Planner:
         """Queue a straight move from the end of the last one to ``move.target_mm``.
 
         A move shorter than :data:`MIN_LENGTH_MM` is dropped; its actions ride on the next block.
-        O(1): the numbers are staged for the next :meth:`plan`.
+        O(1): the block is staged; its limits are derived in a batch at the next :meth:`plan`.
         """
         start, target = self._chain_mm, tuple(move.target_mm)
         if len(target) != len(start):
@@ -149,20 +158,20 @@ class Planner:
         self._chain_mm = target
         inverse = 1.0 / length
         unit = tuple([x * inverse for x in delta])
-        size = list(map(abs, unit))
-        rate = 1.0 / max(map(mul, size, self._inv_rate))
-        accel = 1.0 / max(map(mul, size, self._inv_accel))
-        kind, feed = _kind_and_feed(move)
-        nominal = self._nominal(feed, rate, kind)
-        last = self._last_unit
-        junction = 0.0
-        if last is not None:
-            deviation_mm = self._settings.junction_deviation_mm
-            junction = junction_speed_sq(last, unit, min(accel, self._last_accel), deviation_mm)
-        self._columns.push((length, accel, feed, rate, kind, nominal, junction, 0.0))
-        self._geometry.append((move, self._take_pending(move.actions), start, target, unit))
-        self._last_unit, self._last_accel = unit, accel
-        self._time_estimate_s += length / nominal
+        kind = move.kind
+        if kind is _RAPID:
+            code, feed = _RAPID_OVERRIDE, math.inf
+            axis_s = max(map(mul, map(abs, delta), self._inv_rate))
+            self._time_estimate_s += axis_s / self._rapid_override
+        else:
+            feed = move.feed_mm_s if move.feed_mm_s > 0.0 else 0.0
+            code, scaled = _FEED_OVERRIDE, feed * self._feed_override
+            if kind is _JOG or kind is _HOMING:
+                code, scaled = _NO_OVERRIDE, feed
+            self._time_estimate_s += length / max(scaled, self._settings.min_feed_mm_s)
+        self._columns.push((length, feed, code, 0.0, *unit))
+        actions = self._take_pending(move.actions) if self._pending or move.actions else []
+        self._geometry.append((move, actions, start, target, unit))
         self._dirty = True
 
     def append_action(self, action: Action) -> None:
@@ -176,10 +185,9 @@ class Planner:
             self._pending.append(action)
             return
         lead_s = max(action.lead_s, 0.0)
-        self._columns.push(_still_row(lead_s))
+        self._columns.push((0.0, math.inf, _NO_OVERRIDE, lead_s, *self._zero))
         here = self._chain_mm
         self._geometry.append((None, self._take_pending([action]), here, here, self._zero))
-        self._last_unit = None
         self._time_estimate_s += lead_s
         self._dirty = True
 
@@ -197,12 +205,13 @@ class Planner:
         count = len(self._columns)
         if count < 2:
             return False
-        limits = self.settings
+        limits = self._settings
         return count >= limits.max_blocks or self.planned_time_s() >= limits.max_planned_s
 
     def planned_time_s(self) -> float:
-        """Seconds of queued motion: planned durations, plus ``length/nominal`` (a lower bound)
-        for blocks appended since the last plan."""
+        """Seconds of queued motion: planned durations, plus a lower bound (the time at the
+        requested feed, or at the axes' rates for rapids) for blocks appended since the last
+        plan."""
         return self._time_planned_s + self._time_estimate_s
 
     def planned_ahead_s(self) -> float:
@@ -223,14 +232,13 @@ class Planner:
         if not self._dirty:
             return
         self._dirty = self._head_dirty = False
-        columns = self._columns
-        columns.sync()
-        window = columns.window()
+        self._sync()
+        window = self._columns.window()
         self._planned = window.shape[1]
         if not self._planned:
             return
         rows = window[LENGTH], window[ACCEL], window[NOMINAL], window[JUNCTION], window[LEAD]
-        plan_window(*rows, self._start_mm_s, window[ENTRY:])
+        plan_window(*rows, self._start_mm_s, window[ENTRY : DURATION + 1])
         self._time_planned_s = float(window[DURATION].sum())
         self._time_estimate_s = 0.0
 
@@ -249,8 +257,8 @@ class Planner:
         if self._head_dirty or self._planned <= 0:
             self._dirty = True
             self.plan()
-        (length, accel, _, _, _, nominal, _, lead, entry, cruise, exit_, ramp1, flat, ramp2,
-         duration) = columns.pop_front()  # fmt: skip
+        (length, _, _, lead, accel, _, nominal, _, entry, cruise, exit_, ramp1, flat, ramp2,
+         duration) = columns.pop_front(_POP_ROWS)  # fmt: skip
         move, actions, start, end, unit = self._geometry.popleft()
         self._planned -= 1
         self._start_mm_s = exit_
@@ -273,7 +281,6 @@ class Planner:
         self._pending = []
         self._clear_window()
         self._start_mm_s = 0.0
-        self._last_unit = None
         return dropped
 
     def set_position(self, position_mm: Position) -> None:
@@ -283,7 +290,6 @@ class Planner:
         if len(position_mm) != len(self._zero):
             raise ValueError(f"expected {len(self._zero)} coordinates, got {len(position_mm)}")
         self.position_mm = self._chain_mm = tuple(float(x) for x in position_mm)
-        self._last_unit = None
 
     def set_start_speed(self, speed_mm_s: float) -> None:
         """Entry speed (mm/s) of the next popped block: the speed the executing block ends with.
@@ -303,14 +309,10 @@ class Planner:
         rapid = min(max(rapid, RAPID_OVERRIDE_RANGE[0]), RAPID_OVERRIDE_RANGE[1])
         if (feed, rapid) == (self._feed_override, self._rapid_override):
             return
+        self._sync()
         self._feed_override, self._rapid_override = feed, rapid
-        self._columns.sync()
         window = self._columns.window()
-        kind = window[KIND]
-        scaled_feed = window[FEED] * np.where(kind == _FEED_OVERRIDE, feed, 1.0)
-        scaled_rate = window[RATE] * np.where(kind == _RAPID_OVERRIDE, rapid, 1.0)
-        nominal = np.minimum(scaled_feed, scaled_rate)
-        np.maximum(nominal, self.settings.min_feed_mm_s, out=window[NOMINAL])
+        window[NOMINAL] = self._nominals(window[FEED], window[RATE], window[KIND])
         self._dirty = self._head_dirty = True
 
     # ------------------------------------------------------------------ feed-hold remainders
@@ -336,15 +338,21 @@ class Planner:
         A zero-length block keeps its ``lead_s``; motion stays at rest through it.
         """
         if block.move is None or block.length_mm < MIN_LENGTH_MM:
-            row = _still_row(block.lead_s)
+            inputs = (0.0, math.inf, _NO_OVERRIDE, block.lead_s, *self._zero)
+            derived = (1.0, math.inf, math.inf, 0.0)
             estimate_s = block.lead_s
         else:
             rate, accel = self._limits(block.unit)
             kind, feed = _kind_and_feed(block.move)
             nominal = self._nominal(feed, rate, kind)
-            row = (block.length_mm, accel, feed, rate, kind, nominal, 0.0, 0.0)
+            inputs = (block.length_mm, feed, kind, 0.0, *block.unit)
+            derived = (accel, rate, nominal, 0.0)
             estimate_s = block.length_mm / nominal
-        self._columns.push_front(row)
+        head = self._columns.push_front(inputs)
+        data = self._columns.data
+        data[ACCEL : JUNCTION + 1, head] = derived
+        if head + 1 < self._columns.tail:
+            data[JUNCTION, head + 1] = self._junction_after(head)
         geometry = (block.move, block.actions, block.start_mm, block.end_mm, block.unit)
         self._geometry.appendleft(geometry)
         self._start_mm_s = 0.0
@@ -352,6 +360,55 @@ class Planner:
         self._time_estimate_s += estimate_s
 
     # ------------------------------------------------------------------ internals
+
+    def _sync(self) -> None:
+        """Copy staged blocks into the columns and derive their limits, all at once."""
+        columns = self._columns
+        first = columns.sync()
+        if first == columns.tail:
+            return
+        data, new = columns.data, slice(first, columns.tail)
+        size = np.abs(data[self._units, new])
+        rate_inv = (size * self._inv_rate_col).max(axis=0)
+        accel_inv = (size * self._inv_accel_col).max(axis=0)
+        rate = np.divide(1.0, rate_inv, out=np.full(rate_inv.shape, np.inf), where=rate_inv > 0)
+        data[RATE, new] = rate
+        np.divide(1.0, accel_inv, out=data[ACCEL, new], where=accel_inv > 0)
+        data[ACCEL, new][accel_inv <= 0] = 1.0  # zero-length blocks: any positive value
+        data[NOMINAL, new] = self._nominals(data[FEED, new], rate, data[KIND, new])
+        self._derive_junctions(first, columns.tail)
+
+    def _derive_junctions(self, first: int, tail: int) -> None:
+        """Junction limits of blocks ``first .. tail-1`` against the block before each.
+
+        The head's own junction never counts (its entry is the start speed).
+        """
+        data, begin = self._columns.data, max(first, self._columns.head + 1)
+        data[JUNCTION, first:begin] = 0.0
+        if begin >= tail:
+            return
+        before, after = slice(begin - 1, tail - 1), slice(begin, tail)
+        accel = np.minimum(data[ACCEL, before], data[ACCEL, after])
+        deviation_mm = self._settings.junction_deviation_mm
+        units = self._units
+        limit = junction_speeds_sq(data[units, before], data[units, after], accel, deviation_mm)
+        limit[(data[LENGTH, before] == 0.0) | (data[LENGTH, after] == 0.0)] = 0.0
+        data[JUNCTION, after] = limit
+
+    def _junction_after(self, index: int) -> float:
+        """The junction limit between columns ``index`` and ``index + 1`` (synced)."""
+        data = self._columns.data
+        if data[LENGTH, index] == 0.0 or data[LENGTH, index + 1] == 0.0:
+            return 0.0
+        accel = min(data[ACCEL, index], data[ACCEL, index + 1])
+        before, after = data[self._units, index].tolist(), data[self._units, index + 1].tolist()
+        return junction_speed_sq(before, after, accel, self._settings.junction_deviation_mm)
+
+    def _nominals(self, feed: FloatArray, rate: FloatArray, kind: FloatArray) -> FloatArray:
+        """Nominal speeds (mm/s) with the overrides applied; see :meth:`_nominal`."""
+        feed = feed * np.where(kind == _FEED_OVERRIDE, self._feed_override, 1.0)
+        rate = rate * np.where(kind == _RAPID_OVERRIDE, self._rapid_override, 1.0)
+        return np.maximum(np.minimum(feed, rate), self._settings.min_feed_mm_s)
 
     def _limits(self, unit: Position) -> tuple[float, float]:
         """Speed (mm/s) and acceleration (mm/s²) limits along ``unit`` from the per-axis limits."""
@@ -361,13 +418,12 @@ class Planner:
         return rate, accel
 
     def _nominal(self, feed_mm_s: float, rate_mm_s: float, kind: float) -> float:
+        """The feed scaled by its override, capped by the (rapid-overridden) axis rate limit."""
         if kind == _FEED_OVERRIDE:
             feed_mm_s *= self._feed_override
         elif kind == _RAPID_OVERRIDE:
             rate_mm_s *= self._rapid_override
-        nominal = feed_mm_s if feed_mm_s < rate_mm_s else rate_mm_s
-        floor = self._settings.min_feed_mm_s
-        return nominal if nominal > floor else floor
+        return max(min(feed_mm_s, rate_mm_s), self._settings.min_feed_mm_s)
 
     def _take_pending(self, more: list[Action]) -> list[Action]:
         if not self._pending:
@@ -391,17 +447,12 @@ class Planner:
         self._time_planned_s = self._time_estimate_s = 0.0
 
 
-def _still_row(lead_s: float) -> tuple[float, ...]:
-    """Input values of a zero-length block standing still for ``lead_s`` seconds."""
-    return (0.0, 1.0, math.inf, math.inf, _NO_OVERRIDE, math.inf, 0.0, lead_s)
-
-
 def _kind_and_feed(move: Move) -> tuple[float, float]:
     """The override code of a move and its requested feed (mm/s; inf for rapids)."""
     if move.kind is _RAPID:
         return _RAPID_OVERRIDE, math.inf
     feed = move.feed_mm_s if move.feed_mm_s > 0.0 else 0.0
-    return (_NO_OVERRIDE if move.kind in _UNSCALED_KINDS else _FEED_OVERRIDE), feed
+    return (_NO_OVERRIDE if move.kind in (_JOG, _HOMING) else _FEED_OVERRIDE), feed
 
 
 def _unplanned(

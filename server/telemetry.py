@@ -140,7 +140,8 @@ class Publisher:
     async def run(self) -> None:
         """Publish until cancelled."""
         events = self.kernel.events
-        self._unsubscribe = [events.subscribe(name, lambda *_: self.wake()) for name in _WAKE_EVENTS]
+        self._unsubscribe = [events.subscribe(name, lambda *_: self.wake())
+                             for name in _WAKE_EVENTS]
         self._unsubscribe.append(events.subscribe("push", self._on_push))
         self._unsubscribe.append(events.subscribe("job", self._on_job))
         loop = asyncio.get_running_loop()
@@ -183,7 +184,7 @@ class Publisher:
         self.wake()
 
     def _on_job(self, progress: Any) -> None:
-        job = None if progress is None else _job_dict(progress)
+        job = None if progress is None else job_dict(progress)
         self.broadcast("job", "notify_job_update", {"job": job})
 
 
@@ -215,7 +216,7 @@ def build_status(kernel: Kernel) -> dict[str, Any]:
         "overrides": {"feed": machine.feed_override, "rapid": machine.rapid_override,
                       "spindle": machine.spindle_override},
         "modal": interpreter.modal_snapshot(),
-        "job": None if progress is None else _job_dict(progress),
+        "job": None if progress is None else job_dict(progress),
         "modules": {name: module.status() for name, module in kernel.modules.items()},
     }
 
@@ -246,7 +247,7 @@ def laser_power_pct(kernel: Kernel) -> float:
     return 100.0 * ratio
 
 
-def _job_dict(progress: Any) -> dict[str, Any]:
+def job_dict(progress: Any) -> dict[str, Any]:
     data = dataclasses.asdict(progress)
     for key in ("percent", "elapsed_s", "remaining_s", "estimate_s", "started_s"):
         if isinstance(data.get(key), float):

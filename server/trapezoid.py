@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from operator import mul
 
 import numpy as np
 import numpy.typing as npt
@@ -54,13 +55,28 @@ def junction_speed_sq(
     ``v² = a·δ·sin(θ/2)/(1 − sin(θ/2))`` where θ is the angle between the reversed previous
     direction and the new one: straight on (θ = π) is unlimited, a reversal (θ = 0) is 0.
     """
-    cos_theta = -sum(p * u for p, u in zip(prev_unit, unit, strict=True))
+    cos_theta = -sum(map(mul, prev_unit, unit))
     if cos_theta > 0.999999:
         return 0.0
     if cos_theta < -0.999999:
         return math.inf
     sin_half = math.sqrt(0.5 * (1.0 - cos_theta))
     return accel_mm_s2 * deviation_mm * sin_half / (1.0 - sin_half)
+
+
+def junction_speeds_sq(
+    prev_unit: FloatArray,
+    unit: FloatArray,
+    accel_mm_s2: FloatArray,
+    deviation_mm: float,
+) -> FloatArray:
+    """:func:`junction_speed_sq` for many junctions at once; units are (axes, junctions)."""
+    cos_theta = -np.einsum("ij,ij->j", prev_unit, unit)
+    sin_half = np.sqrt(np.maximum(0.5 * (1.0 - cos_theta), 0.0))
+    limit = accel_mm_s2 * deviation_mm * sin_half / np.maximum(1.0 - sin_half, 1e-300)
+    limit[cos_theta > 0.999999] = 0.0
+    limit[cos_theta < -0.999999] = np.inf
+    return limit
 
 
 def plan_window(

@@ -13,6 +13,7 @@ from typing import Any
 
 import pytest
 
+from modules.laser import LaserConfig
 from server.app import App
 from server.config import load_config
 from server.errors import CommandError, ConfigError
@@ -29,7 +30,7 @@ POWER = -1  # history rows: (time_s, x, y, z, speed_mm_s, power)
 def record_motion(app: App) -> list[tuple[Any, ...]]:
     """From now on, one motion snapshot per tick, aligned with ``backend.history``."""
     machine = app.kernel.machine
-    backend, state = machine.backend, machine.stepgen.state
+    backend, state = sim(app), machine.stepgen.state
     snapshots: list[tuple[Any, ...]] = []
     original = backend.sample
 
@@ -56,7 +57,7 @@ def expected_power(snapshot: tuple[Any, ...], low: float = 0.1, high: float = 0.
 
 
 def laser_trace(app: App) -> list[tuple[float, float]]:
-    return [(t, v) for t, name, v in app.kernel.machine.backend.output_trace if name == "laser"]
+    return [(t, v) for t, name, v in sim(app).output_trace if name == "laser"]
 
 
 def raster_lines() -> list[str]:
@@ -72,7 +73,7 @@ async def test_raster_power_follows_speed_and_s_at_every_sample() -> None:
         snapshots = record_motion(app)
         await submit_all(app, raster_lines())
         await app.kernel.machine.wait_idle()
-        history = list(app.kernel.machine.backend.history)
+        history = list(sim(app).history)
     assert len(history) == len(snapshots) > 200
     for row, before in zip(history[1:], snapshots, strict=False):
         expected = expected_power(before)
@@ -93,7 +94,7 @@ async def test_motion_never_stops_between_raster_segments_with_different_s() -> 
         record_motion(app)
         await submit_all(app, raster_lines())
         await app.kernel.machine.wait_idle()
-        history = list(app.kernel.machine.backend.history)
+        history = list(sim(app).history)
     cut = [row for row in history if row[2] == 5.0 and 5.0 < row[1] < 15.0]
     assert all(row[4] > 0.0 for row in cut)
     for k in range(1, 20):
@@ -110,7 +111,7 @@ async def test_constant_power_in_m3_ignores_speed_unless_proportional() -> None:
             snapshots = record_motion(app)
             await submit_all(app, ["M3 S500", "G1 X2 F3000", "M5"])
             await app.kernel.machine.wait_idle()
-            history = list(app.kernel.machine.backend.history)
+            history = list(sim(app).history)
         powers = {round(row[POWER], 9) for row, before in zip(history[1:], snapshots,
                                                               strict=False) if before[6]}
         assert (len(powers - {0.0}) > 1) is expect_ramp
@@ -118,12 +119,14 @@ async def test_constant_power_in_m3_ignores_speed_unless_proportional() -> None:
 
 
 async def test_m5_after_g1_turns_laser_off_only_when_the_move_ends() -> None:
-    async with running(make_config(laser={})) as app:
+    async with running(make_config(laser={"ttl_pin": "laser_enable"})) as app:
         snapshots = record_motion(app)
         await submit_all(app, ["M3", "G1 X10 S500 F600", "M5", "G0 X0"])
         await app.kernel.machine.wait_idle()
-        history = list(app.kernel.machine.backend.history)
+        history = list(sim(app).history)
         trace = laser_trace(app)
+        ttl = [(t, v) for t, name, v in sim(app).output_trace
+               if name == "laser_enable"]
     feed = [i for i, snap in enumerate(snapshots) if snap[5] is MoveKind.FEED and snap[6]]
     first, last = feed[0], feed[-1]
     assert feed == list(range(first, last + 1))
@@ -133,6 +136,7 @@ async def test_m5_after_g1_turns_laser_off_only_when_the_move_ends() -> None:
     assert (on, off) == (0.5, 0.0)
     assert end_s[0] < off_s <= end_s[1] + PERIOD_S + 1e-9, "off within one sample of the end"
     assert all(row[POWER] == 0.0 for row in history[last + 2 :]), "off during the G0"
+    assert ttl == [(on_s, 1.0), (off_s, 0.0)], "the TTL enable follows the firing"
 
 
 async def test_feed_hold_turns_the_laser_off_at_once_and_resume_brings_it_back() -> None:
@@ -140,20 +144,20 @@ async def test_feed_hold_turns_the_laser_off_at_once_and_resume_brings_it_back()
         machine, clock = app.kernel.machine, app.clock
         await submit_all(app, ["M4 S800", "G1 X30 F600"])
         await clock.sleep(1.0)  # type: ignore[attr-defined]
-        assert machine.backend.output("laser") == pytest.approx(0.8)
+        assert sim(app).output("laser") == pytest.approx(0.8)
         hold_s = clock.now_s()
         machine.feed_hold()
-        assert machine.backend.output("laser") == 0.0
+        assert sim(app).output("laser") == 0.0
         assert laser_trace(app)[-1] == (hold_s, 0.0), "off at the same virtual time as the hold"
         await clock.sleep(0.5)  # type: ignore[attr-defined]
-        held = [row for row in machine.backend.history if row[0] > hold_s]
+        held = [row for row in sim(app).history if row[0] > hold_s]
         assert held[-1][4] == 0.0, "motion stopped"
         assert all(row[POWER] == 0.0 for row in held), "off while decelerating and stopped"
         machine.cycle_start()
         await clock.sleep(0.1)  # type: ignore[attr-defined]
-        assert machine.backend.output("laser") == pytest.approx(0.8), "back with the motion"
+        assert sim(app).output("laser") == pytest.approx(0.8), "back with the motion"
         await machine.wait_idle()
-        assert machine.backend.output("laser") == 0.0
+        assert sim(app).output("laser") == 0.0
 
 
 @pytest.mark.xfail(reason="core bug: StepGenerator.resume() keeps the held block's stale "
@@ -168,7 +172,7 @@ async def test_after_resume_dynamic_power_ramps_up_from_standstill() -> None:
         resume_s = clock.now_s()
         machine.cycle_start()
         await clock.sleep(0.01)  # type: ignore[attr-defined]
-        after = [row for row in machine.backend.history if row[0] > resume_s]
+        after = [row for row in sim(app).history if row[0] > resume_s]
         assert 0.0 < after[1][POWER] < 0.9, "the power ramps up with the speed"
 
 
@@ -178,19 +182,19 @@ async def test_a_halt_mid_job_turns_the_laser_off_at_once_and_locks_gcode(how: s
         kernel, clock = app.kernel, app.clock
         await submit_all(app, ["M3 S600", "G1 X30 F600"])
         await clock.sleep(0.5)  # type: ignore[attr-defined]
-        assert kernel.machine.backend.output("laser") == pytest.approx(0.6)
+        assert sim(app).output("laser") == pytest.approx(0.6)
         halt_s = clock.now_s()
         if how == "M112":
             await kernel.dispatcher.submit("M112", SOURCE)
         else:
             kernel.alarm(1, "hard limit")
-        assert kernel.machine.backend.output("laser") == 0.0
+        assert sim(app).output("laser") == 0.0
         assert laser_trace(app)[-1] == (halt_s, 0.0)
         with pytest.raises(CommandError) as info:
             await kernel.dispatcher.submit("G1 X5", SOURCE)
         assert info.value.code == 9
         await clock.sleep(0.2)  # type: ignore[attr-defined]
-        assert kernel.machine.backend.output("laser") == 0.0
+        assert sim(app).output("laser") == 0.0
         assert await submit_all(app, ["$X", "G1 X5 F600"]) == [[], []]
 
 
@@ -199,10 +203,10 @@ async def test_spindle_override_and_m221_scale_the_power() -> None:
         machine, clock = app.kernel.machine, app.clock
         await submit_all(app, ["M221 S50", "M3 S800", "G1 X30 F600"])
         await clock.sleep(0.5)  # type: ignore[attr-defined]
-        assert machine.backend.output("laser") == pytest.approx(0.4)
+        assert sim(app).output("laser") == pytest.approx(0.4)
         machine.set_overrides(spindle=150)
         await clock.sleep(0.01)  # type: ignore[attr-defined]
-        assert machine.backend.output("laser") == pytest.approx(0.6)
+        assert sim(app).output("laser") == pytest.approx(0.6)
         assert app.kernel.modules["laser"].status()["scale"] == pytest.approx(0.75)
         assert await submit_all(app, ["M221"]) == [["[MSG:laser power scale 50%]"]]
 
@@ -212,12 +216,16 @@ async def test_fire_works_while_idle_only_and_stops_by_itself() -> None:
         machine, clock = app.kernel.machine, app.clock
         assert await submit_all(app, ["fire 50"]) == [["[MSG:fire 50% for at most 2s]"]]
         await clock.sleep(1.0)  # type: ignore[attr-defined]
-        assert machine.backend.output("laser") == 0.5, "fires while idle, not moving"
+        assert sim(app).output("laser") == 0.5, "fires while idle, not moving"
         assert await submit_all(app, ["fire off"]) == [["[MSG:fire off]"]]
-        assert machine.backend.output("laser") == 0.0
+        assert sim(app).output("laser") == 0.0
         await submit_all(app, ["fire 20"])
         await clock.sleep(2.5)  # type: ignore[attr-defined]
-        assert machine.backend.output("laser") == 0.0, "capped by fire_max_duration_s"
+        assert sim(app).output("laser") == 0.0, "capped by fire_max_duration_s"
+        await submit_all(app, ["fire 20"])
+        machine.soft_reset()
+        await clock.sleep(0.002)  # type: ignore[attr-defined]
+        assert sim(app).output("laser") == 0.0, "Ctrl-X stops it"
         await submit_all(app, ["G1 X30 F600"])
         with pytest.raises(CommandError) as info:
             await submit_all(app, ["fire 10"])
@@ -238,6 +246,11 @@ def test_bad_laser_config_names_the_section_and_key(laser: dict[str, Any], expec
         make_config(laser=laser)
     assert any(problem.startswith(f"test.toml: {expected}") for problem in info.value.problems), \
         info.value.problems
+
+
+def test_the_sample_rate_is_capped_by_the_pwm_frequency() -> None:
+    assert LaserConfig().period_s == pytest.approx(0.001)
+    assert LaserConfig(pwm_frequency_hz=200).period_s == pytest.approx(0.005)
 
 
 def test_a_section_configured_twice_is_a_clear_error(tmp_path: Path) -> None:

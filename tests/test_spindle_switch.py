@@ -20,13 +20,13 @@ SPINDLE = {"min_rpm": 100, "max_rpm": 1000, "min_pwm": 0.1, "max_pwm": 1.0}
 
 
 def trace(app: App, pin: str) -> list[tuple[float, float]]:
-    return [(t, v) for t, name, v in app.kernel.machine.backend.output_trace if name == pin]
+    return [(t, v) for t, name, v in sim(app).output_trace if name == pin]
 
 
 def record_block_ends(app: App) -> list[float]:
     """From now on, the time of every tick during which a block ended (the move end times)."""
     machine = app.kernel.machine
-    backend, state = machine.backend, machine.stepgen.state
+    backend, state = sim(app), machine.stepgen.state
     ends: list[float] = []
     done = [state.blocks_done]
     original = backend.sample
@@ -59,7 +59,7 @@ async def test_spindle_starts_exactly_when_motion_reaches_m3() -> None:
     async with running(make_config(spindle=SPINDLE)) as app:
         ends = record_block_ends(app)
         await submit_all(app, ["G1 X10 F600", "M3 S550", "G1 X20"])
-        assert app.kernel.machine.backend.output("spindle") == 0.0, "not when received"
+        assert sim(app).output("spindle") == 0.0, "not when received"
         await app.kernel.machine.wait_idle()
         assert trace(app, "spindle") == [(ends[0], pytest.approx(0.55))]
         assert app.kernel.modules["spindle"].status()["rpm"] == 550
@@ -69,11 +69,11 @@ async def test_spindle_override_scales_the_rpm_and_m5_stops_it() -> None:
     async with running(make_config(spindle=SPINDLE)) as app:
         machine = app.kernel.machine
         await run_job(app, ["M4 S500"])
-        assert machine.backend.output("spindle") == pytest.approx(0.1 + 0.9 * 400 / 900)
+        assert sim(app).output("spindle") == pytest.approx(0.1 + 0.9 * 400 / 900)
         machine.set_overrides(spindle=200)
-        assert machine.backend.output("spindle") == 1.0
+        assert sim(app).output("spindle") == 1.0
         await run_job(app, ["M5"])
-        assert machine.backend.output("spindle") == 0.0
+        assert sim(app).output("spindle") == 0.0
 
 
 async def test_spindle_keeps_turning_in_feed_hold_unless_spindle_stop_is_sent() -> None:
@@ -83,13 +83,13 @@ async def test_spindle_keeps_turning_in_feed_hold_unless_spindle_stop_is_sent() 
         await clock.sleep(0.5)  # type: ignore[attr-defined]
         machine.feed_hold()
         await clock.sleep(0.2)  # type: ignore[attr-defined]
-        assert machine.backend.output("spindle") == 1.0, "Grbl keeps the spindle on in hold"
+        assert sim(app).output("spindle") == 1.0, "Grbl keeps the spindle on in hold"
         machine.realtime(Realtime.SPINDLE_STOP)
-        assert machine.backend.output("spindle") == 0.0
+        assert sim(app).output("spindle") == 0.0
         machine.cycle_start()
-        assert machine.backend.output("spindle") == 1.0, "restored on resume"
+        assert sim(app).output("spindle") == 1.0, "restored on resume"
         app.kernel.alarm(10, "stop")
-        assert machine.backend.output("spindle") == 0.0, "off at once on halt"
+        assert sim(app).output("spindle") == 0.0, "off at once on halt"
 
 
 async def test_spin_up_delay_makes_motion_wait_for_the_spindle() -> None:
@@ -98,7 +98,7 @@ async def test_spin_up_delay_makes_motion_wait_for_the_spindle() -> None:
         ends = record_block_ends(app)
         await run_job(app, ["M3 S1000", "G1 X10 F600", "M3 S800", "G1 X20", "M5", "M3",
                             "G1 X30"])
-        history = list(app.kernel.machine.backend.history)
+        history = list(sim(app).history)
         ((on_s, _), (change_s, _), (off_s, _), (again_s, _)) = trace(app, "spindle")
     first_move_s = next(row[0] for row in history if row[1] > 0.0)
     assert first_move_s >= on_s + 0.5 - TICK_S, "the dwell starts with the spindle"
@@ -112,7 +112,7 @@ async def test_fan_comes_on_exactly_when_the_first_move_ends() -> None:
     async with running(make_config(switch=FAN)) as app:
         ends = record_block_ends(app)
         await submit_all(app, ["G1 X10 F600", "M106 S255"])
-        assert app.kernel.machine.backend.output("fan") == 0.0, "not when the line arrives"
+        assert sim(app).output("fan") == 0.0, "not when the line arrives"
         await submit_all(app, ["G1 X20", "M106 S128", "G1 X30", "M107", "G1 X40"])
         await app.kernel.machine.wait_idle()
         assert trace(app, "fan") == [(ends[0], 1.0), (ends[1], pytest.approx(128 / 255)),
@@ -129,16 +129,16 @@ async def test_a_coolant_switch_follows_m8_and_m9_in_order_and_the_realtime_togg
         await run_job(app, ["G1 X10 F600", "M8", "G1 X20", "M9", "G1 X30"])
         assert trace(app, "air") == [(ends[0], 1.0), (ends[1], 0.0)]
         machine.realtime(Realtime.FLOOD)
-        assert machine.backend.output("air") == 1.0, "0xA0 toggles flood at once"
+        assert sim(app).output("air") == 1.0, "0xA0 toggles flood at once"
         machine.realtime(Realtime.MIST)
-        assert machine.backend.output("air") == 1.0, "mist is another switch"
+        assert sim(app).output("air") == 1.0, "mist is another switch"
 
 
 async def test_m42_drives_the_switch_whose_pin_matches() -> None:
     config = make_config(switch={"light": {"pin": "P7"}, **FAN})
     async with running(config) as app:
         await run_job(app, ["M42 P7 S255"])
-        assert app.kernel.machine.backend.output("P7") == 1.0
+        assert sim(app).output("P7") == 1.0
         with pytest.raises(CommandError) as info:
             await submit_all(app, ["M42 P3 S255"])
         assert "no [switch] has pin 3" in info.value.message
@@ -147,12 +147,22 @@ async def test_m42_drives_the_switch_whose_pin_matches() -> None:
 async def test_switches_go_off_at_once_on_halt_and_refuse_commands_until_unlocked() -> None:
     async with running(make_config(switch=FAN)) as app:
         await run_job(app, ["M106"])
-        assert app.kernel.machine.backend.output("fan") == 1.0
+        assert sim(app).output("fan") == 1.0
         app.kernel.alarm(10, "stop")
-        assert app.kernel.machine.backend.output("fan") == 0.0
+        assert sim(app).output("fan") == 0.0
         with pytest.raises(CommandError) as info:
             await submit_all(app, ["M106"])
         assert info.value.code == 9
+
+
+async def test_a_soft_reset_while_idle_stops_the_spindle_and_the_switches() -> None:
+    async with running(make_config(spindle=SPINDLE, switch=FAN)) as app:
+        machine = app.kernel.machine
+        await run_job(app, ["M3 S1000", "M106"])
+        assert (sim(app).output("spindle"), sim(app).output("fan")) == (1.0, 1.0)
+        machine.soft_reset()  # Ctrl-X: no motion, so no alarm and no halt event
+        await app.clock.sleep(0.02)  # type: ignore[attr-defined]
+        assert (sim(app).output("spindle"), sim(app).output("fan")) == (0.0, 0.0)
 
 
 @pytest.mark.parametrize(("sections", "expected"), [

@@ -33,6 +33,7 @@ class SimBackend:
         self.axis_names = tuple(axis_names)
         self.steps_per_mm = tuple(steps_per_mm)
         self.steps = [0] * len(self.axis_names)
+        self.steps_travelled = 0  # every step emitted, whatever its direction
         self.history: deque[tuple[float, ...]] = deque(maxlen=history_samples or None)
         self.output_trace: list[tuple[float, str, float]] = []
         self.events: list[str] = []  # coarse log of notable calls (tests check shutdown order)
@@ -47,6 +48,7 @@ class SimBackend:
         steps = self.steps
         for axis, delta in enumerate(delta_steps):
             steps[axis] += delta
+            self.steps_travelled += abs(delta)
 
     def sample(self, time_s: float, position_mm: Sequence[float], speed_mm_s: float) -> None:
         power = max((self._outputs.get(name, 0.0) for name in TOOL_OUTPUTS), default=0.0)

@@ -8,6 +8,7 @@ from server.config import Config
 
 def default_transports(config: Config) -> list[TransportFactory]:
     """The transports the config enables, in start order."""
+    import server.api  # noqa: F401 - registers the JSON API's routes on HttpTransport
     from server.transports.serial import SerialTransport
     from server.transports.tcp import TcpTransport
     from server.transports.websocket import HttpTransport

@@ -1,0 +1,55 @@
+"""Offline pipeline throughput on every corpus file.
+
+* estimate: blocks/s and real-time factor (job seconds per wall second);
+* full virtual execution by the step generator at 1 kHz: real-time factor and steps/s;
+* baseline, side by side: parsing alone, so the ratio shows what planning costs on top.
+
+Run: ``python benchmarks/bench_offline.py [--quick]`` (quick: skip the full execution of the
+big raster file).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+from benchmarks.common import corpus_files
+from server.backends.sim import SimBackend
+from server.config import load_config
+from server.gcode import parse_line
+from server.offline import estimate, execute
+
+
+def main() -> int:
+    quick = "--quick" in sys.argv
+    core = load_config().core
+    core.machine.soft_limits = False  # the corpus comes from other machines
+    print(f"{'file':30} {'blocks':>7} {'parse lines/s':>14} {'estimate blocks/s':>18} "
+          f"{'est. RTF':>9} {'execute RTF':>12} {'steps/s':>11}")
+    for path in corpus_files():
+        lines = path.read_text(errors="replace").splitlines()
+        started = time.perf_counter()
+        for text in lines:
+            parse_line(text)
+        parse_s = time.perf_counter() - started
+        started = time.perf_counter()
+        stats = estimate(lines, core)
+        estimate_s = time.perf_counter() - started
+        row = (f"{path.name:30} {stats.blocks:7,} {len(lines) / parse_s:14,.0f} "
+               f"{stats.blocks / estimate_s:18,.0f} {stats.duration_s / estimate_s:8,.0f}x")
+        if quick and stats.blocks > 20_000:
+            print(row + f" {'(skipped)':>12}")
+            continue
+        backend = SimBackend(core.axis_names, [a.steps_per_mm for a in core.axes.values()],
+                             history_samples=0)
+        started = time.perf_counter()
+        full = execute(lines, core, backend)
+        execute_s = time.perf_counter() - started
+        print(row + f" {full.duration_s / execute_s:11,.0f}x "
+              f"{backend.steps_travelled / execute_s:11,.0f}"
+              + ("" if not stats.error else f"  (stops at line {stats.error_line})"))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,455 @@
+"""The JSON API's methods: one table, typed parameters, documented in ``docs/API.md``.
+
+Each method is an ``async`` (or plain) function ``(methods, connection, params)`` registered
+with :func:`method` under its JSON-RPC name, with a pydantic model for its named parameters.
+Methods marked ``control`` need a connection that may control the machine. Everything that
+acts on the machine goes through the same paths a sender uses: lines through the dispatcher
+(``$J=``, ``$X``, ``$H``, ``$110=500``, ``fire``), realtime commands straight to the machine.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import binascii
+import inspect
+import re
+from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from server import __version__
+from server.errors import AUTH_REQUIRED, FILE_ERROR, CommandError
+from server.reports import ERROR_MESSAGES, StatusScheduler
+from server.status import snapshot, state_text
+from server.telemetry import TOPICS, build_status, job_dict
+from server.toolpath import plan_toolpath
+
+if TYPE_CHECKING:
+    from server.api import Connection, JsonApi
+
+_M112 = re.compile(r"^\s*(?:N\d+\s*)?M\s*0*112(?:\D|$)", re.I)
+INVALID_PARAMS, METHOD_NOT_FOUND = -32602, -32601
+MAX_LINES = 10_000
+TOOLPATH_CACHE = 4
+
+
+class RpcError(Exception):
+    """A JSON-RPC level error (unknown method, bad parameters)."""
+
+    def __init__(self, code: int, message: str, data: Any = None) -> None:
+        super().__init__(message)
+        self.code, self.message, self.data = code, message, data
+
+
+def command_error(exc: CommandError) -> tuple[int, str, dict[str, Any]]:
+    """A refused command as a JSON-RPC error: the code is Grbl's (or motiond's) number."""
+    meaning = ERROR_MESSAGES.get(exc.code, "")
+    return exc.code, f"error:{exc.code} {exc.message or meaning}".strip(), {
+        "grbl_error": exc.code, "meaning": meaning}
+
+
+class Params(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+Handler = Callable[["Methods", "Connection", Any], Any]
+
+
+@dataclass(frozen=True, slots=True)
+class MethodSpec:
+    name: str
+    handler: Handler
+    params: type[Params]
+    control: bool
+
+
+METHODS: dict[str, MethodSpec] = {}
+
+
+def method(name: str, params: type[Params] = Params,
+           control: bool = False) -> Callable[[Handler], Handler]:
+    """Register a handler under a JSON-RPC method name."""
+    def register(handler: Handler) -> Handler:
+        METHODS[name] = MethodSpec(name, handler, params, control)
+        return handler
+    return register
+
+
+class Methods:
+    """The API's view of one kernel; holds the toolpath cache."""
+
+    def __init__(self, api: JsonApi) -> None:
+        self.api = api
+        self.kernel = api.kernel
+        self.machine = api.kernel.machine
+        self.toolpaths: OrderedDict[tuple[Any, ...], dict[str, Any]] = OrderedDict()
+        self.toolpath_lock = asyncio.Lock()
+
+    async def call(self, connection: Connection, name: str, params: Any) -> Any:
+        spec = METHODS.get(name)
+        if spec is None:
+            raise RpcError(METHOD_NOT_FOUND, f"method not found: {name}")
+        if spec.control and not connection.can_control:
+            raise CommandError(AUTH_REQUIRED, "this connection may not control the machine")
+        if params is None:
+            params = {}
+        if not isinstance(params, dict):
+            raise RpcError(INVALID_PARAMS, "params must be an object (named parameters)")
+        try:
+            parsed = spec.params.model_validate(params)
+        except ValidationError as exc:
+            problems = [f"{'.'.join(map(str, e['loc'])) or 'params'}: {e['msg']}"
+                        for e in exc.errors()]
+            raise RpcError(INVALID_PARAMS, "invalid params: " + "; ".join(problems)) from exc
+        result = spec.handler(self, connection, parsed)
+        if inspect.isawaitable(result):
+            result = await result
+        return result
+
+    async def submit(self, connection: Connection, line: str) -> list[str]:
+        """One line through the dispatcher, in order with this connection's other lines."""
+        async with connection.gcode_lock:
+            return await self.kernel.dispatcher.submit(line, connection)
+
+    def state(self) -> dict[str, Any]:
+        return {"state": state_text(self.kernel)}
+
+    def file_changed(self, action: str, name: str) -> None:
+        self.api.publisher.broadcast("job", "notify_filelist_changed",
+                                     {"action": action, "file": {"name": name}})
+
+
+# -- server -----------------------------------------------------------------------------------
+@method("server.info")
+def server_info(m: Methods, connection: Connection, params: Params) -> dict[str, Any]:
+    core = m.kernel.config.core
+    return {
+        "name": "motiond", "version": __version__, "machine": core.machine.name,
+        "axes": [{"name": name.upper(), "min_mm": axis.min_mm, "max_mm": axis.max_mm,
+                  "max_rate_mm_min": axis.max_rate_mm_s * 60.0}
+                 for name, axis in core.axes.items()],
+        "laser_mode": core.machine.laser_mode, "has_laser": "laser" in m.kernel.modules,
+        "max_s": m.machine.settings.values().get(30, 1000.0),
+        "modules": sorted(m.kernel.modules), "commands": m.kernel.dispatcher.names(),
+        "can_control": connection.can_control, "auth_required": m.api.http.token is not None,
+        "status_rate_hz": round(1.0 / m.api.publisher.period_s, 3),
+        "upload": {"url": "/upload", "max_bytes": core.jobs.max_upload_bytes},
+        "methods": sorted(METHODS), "topics": sorted(TOPICS),
+    }
+
+
+class AuthParams(Params):
+    token: str
+
+
+@method("server.auth", AuthParams)
+def server_auth(m: Methods, connection: Connection, params: AuthParams) -> dict[str, Any]:
+    if not m.api.token_ok(params.token):
+        raise CommandError(AUTH_REQUIRED, "wrong token")
+    connection.can_control = True
+    return {"can_control": True}
+
+
+# -- status -----------------------------------------------------------------------------------
+@method("machine.status")
+def machine_status(m: Methods, connection: Connection, params: Params) -> dict[str, Any]:
+    return build_status(m.kernel)
+
+
+Topic = Literal["status", "telemetry", "console", "job"]
+ALL_TOPICS: list[Topic] = ["console", "job", "status", "telemetry"]
+
+
+class TopicParams(Params):
+    topics: list[Topic] = Field(default_factory=lambda: list(ALL_TOPICS))
+
+
+@method("machine.subscribe", TopicParams)
+def machine_subscribe(m: Methods, connection: Connection, params: TopicParams) -> dict[str, Any]:
+    m.api.publisher.subscribe(connection.channel, set(params.topics))
+    return {"topics": sorted(connection.channel.topics), "status": build_status(m.kernel)}
+
+
+@method("machine.unsubscribe", TopicParams)
+def machine_unsubscribe(m: Methods, connection: Connection, params: TopicParams) -> dict[str, Any]:
+    m.api.publisher.unsubscribe(connection.channel, set(params.topics))
+    return {"topics": sorted(connection.channel.topics)}
+
+
+# -- G-code -----------------------------------------------------------------------------------
+class GcodeParams(Params):
+    lines: str | list[str]
+    stop_on_error: bool = True
+
+
+@method("gcode.send", GcodeParams)
+async def gcode_send(m: Methods, connection: Connection, params: GcodeParams) -> dict[str, Any]:
+    lines = params.lines.splitlines() if isinstance(params.lines, str) else params.lines
+    if len(lines) > MAX_LINES:
+        raise RpcError(INVALID_PARAMS, f"at most {MAX_LINES} lines per call; upload a job instead")
+    results: list[dict[str, Any]] = []
+    for line in lines:
+        if connection.closing:
+            break
+        result = await _one_line(m, connection, line)
+        results.append(result)
+        if "error" in result and params.stop_on_error:
+            break
+    return {"results": results, "skipped": len(lines) - len(results)}
+
+
+_REALTIME = {"!": "hold", "~": "resume", "\x18": "reset", "\x85": "jog_cancel"}
+
+
+async def _one_line(m: Methods, connection: Connection, line: str) -> dict[str, Any]:
+    text = line.strip()
+    if text == "?":
+        report = StatusScheduler().report(snapshot(m.kernel, m.kernel.config.core.protocol
+                                                   .rx_buffer_bytes))
+        return {"line": line, "reply": "ok", "messages": [report]}
+    try:
+        if text in _REALTIME:
+            if not connection.can_control:
+                raise CommandError(AUTH_REQUIRED, "this connection may not control the machine")
+            REALTIME_ACTIONS[_REALTIME[text]](m)
+            messages: list[str] = []
+        else:
+            if _M112.match(text) and connection.can_control:
+                m.machine.emergency_stop()
+            messages = await m.submit(connection, line)
+    except CommandError as exc:
+        code, message, data = command_error(exc)
+        return {"line": line, "reply": f"error:{code}", "messages": [],
+                "error": {"code": code, "message": message, "meaning": data["meaning"]}}
+    return {"line": line, "reply": "ok", "messages": messages}
+
+
+# -- realtime control -------------------------------------------------------------------------
+def _hold(m: Methods) -> None:
+    progress = m.kernel.jobs.progress()
+    if m.kernel.jobs.running and progress is not None and progress.state == "running":
+        m.kernel.jobs.suspend()
+    else:
+        m.machine.feed_hold()
+
+
+def _resume(m: Methods) -> None:
+    progress = m.kernel.jobs.progress()
+    if progress is not None and progress.state == "paused":
+        m.kernel.jobs.resume()
+    else:
+        m.machine.cycle_start()
+
+
+def _reset(m: Methods) -> None:
+    m.machine.soft_reset()
+    if m.kernel.jobs.running:
+        m.kernel.jobs.abort()
+
+
+REALTIME_ACTIONS: dict[str, Callable[[Methods], None]] = {
+    "hold": _hold, "resume": _resume, "reset": _reset,
+    "jog_cancel": lambda m: m.machine.cancel_jog(),
+    "estop": lambda m: m.machine.emergency_stop(),
+}
+
+
+def _realtime_method(name: str, action: Callable[[Methods], None]) -> None:
+    def handler(m: Methods, connection: Connection, params: Params) -> dict[str, Any]:
+        action(m)
+        return m.state()
+
+    method(f"machine.{name}", control=True)(handler)
+
+
+for _name, _realtime_action in REALTIME_ACTIONS.items():
+    _realtime_method(_name, _realtime_action)
+
+
+@method("machine.unlock", control=True)
+async def machine_unlock(m: Methods, connection: Connection, params: Params) -> dict[str, Any]:
+    await m.submit(connection, "$X")
+    return m.state()
+
+
+class HomeParams(Params):
+    axes: str = Field("", pattern=r"^[XYZABCxyzabc]*$")
+
+
+@method("machine.home", HomeParams, control=True)
+async def machine_home(m: Methods, connection: Connection, params: HomeParams) -> dict[str, Any]:
+    messages = await m.submit(connection, f"$H{params.axes.upper()}")
+    return {**m.state(), "messages": messages}
+
+
+class JogParams(Params):
+    x: float | None = None
+    y: float | None = None
+    z: float | None = None
+    a: float | None = None
+    b: float | None = None
+    c: float | None = None
+    feed_mm_min: float = Field(gt=0)
+    relative: bool = True
+
+
+@method("machine.jog", JogParams, control=True)
+async def machine_jog(m: Methods, connection: Connection, params: JogParams) -> dict[str, Any]:
+    words = [f"{axis.upper()}{value:.4f}" for axis, value in
+             params.model_dump(include=set("xyzabc")).items() if value is not None]
+    if not words:
+        raise RpcError(INVALID_PARAMS, "invalid params: give at least one axis distance")
+    mode = "G91" if params.relative else "G90"
+    await m.submit(connection, f"$J=G21 {mode} {' '.join(words)} F{params.feed_mm_min:g}")
+    return m.state()
+
+
+class OverrideParams(Params):
+    feed: int | None = Field(None, ge=10, le=200)
+    rapid: Literal[25, 50, 100] | None = None
+    spindle: int | None = Field(None, ge=10, le=200)
+
+
+@method("machine.override", OverrideParams, control=True)
+def machine_override(m: Methods, connection: Connection, params: OverrideParams) -> dict[str, Any]:
+    m.machine.set_overrides(feed=params.feed, rapid=params.rapid, spindle=params.spindle)
+    return {"feed": m.machine.feed_override, "rapid": m.machine.rapid_override,
+            "spindle": m.machine.spindle_override}
+
+
+class FireParams(Params):
+    percent: float = Field(ge=0, le=100)
+    duration_s: float | None = Field(None, gt=0)
+
+
+@method("laser.fire", FireParams, control=True)
+async def laser_fire(m: Methods, connection: Connection, params: FireParams) -> dict[str, Any]:
+    duration = "" if params.duration_s is None else f" {params.duration_s:g}"
+    return {"messages": await m.submit(connection, f"fire {params.percent:g}{duration}")}
+
+
+@method("laser.off", control=True)
+async def laser_off(m: Methods, connection: Connection, params: Params) -> dict[str, Any]:
+    return {"messages": await m.submit(connection, "fire off")}
+
+
+# -- settings ---------------------------------------------------------------------------------
+@method("settings.list")
+def settings_list(m: Methods, connection: Connection, params: Params) -> list[dict[str, Any]]:
+    settings = m.machine.settings
+    values = settings.values()
+    return [{"number": number, "value": values[number], "description": setting.description,
+             "writable": setting.write is not None}
+            for number, setting in sorted(settings.table.items())]
+
+
+class SettingParams(Params):
+    number: int = Field(ge=0)
+    value: float
+
+
+@method("settings.set", SettingParams, control=True)
+async def settings_set(m: Methods, connection: Connection, params: SettingParams) -> dict[str, Any]:
+    await m.submit(connection, f"${params.number}={params.value:g}")
+    return {"number": params.number, "value": m.machine.settings.values()[params.number]}
+
+
+# -- jobs -------------------------------------------------------------------------------------
+class NameParams(Params):
+    name: str = Field(min_length=1, max_length=255)
+
+
+class UploadParams(NameParams):
+    text: str | None = None
+    base64: str | None = None
+
+
+class ToolpathParams(NameParams):
+    max_segments: int = Field(50_000, ge=100, le=200_000)
+
+
+@method("job.list")
+def job_list(m: Methods, connection: Connection, params: Params) -> list[dict[str, Any]]:
+    return [asdict(file) for file in m.kernel.jobs.files()]
+
+
+@method("job.upload", UploadParams, control=True)
+async def job_upload(m: Methods, connection: Connection, params: UploadParams) -> dict[str, Any]:
+    if (params.text is None) == (params.base64 is None):
+        raise RpcError(INVALID_PARAMS, "invalid params: give exactly one of text and base64")
+    try:
+        data = params.text.encode() if params.text is not None else \
+            base64.b64decode(params.base64 or "", validate=True)
+    except binascii.Error as exc:
+        raise RpcError(INVALID_PARAMS, "invalid params: base64: not valid base64") from exc
+    stored = await m.kernel.jobs.save(params.name, data)
+    m.file_changed("upload", stored.name)
+    return asdict(stored)
+
+
+@method("job.delete", NameParams, control=True)
+async def job_delete(m: Methods, connection: Connection, params: NameParams) -> dict[str, Any]:
+    await m.kernel.jobs.delete(params.name)
+    m.file_changed("delete", params.name)
+    return {"deleted": params.name}
+
+
+def _progress(m: Methods) -> dict[str, Any] | None:
+    progress = m.kernel.jobs.progress()
+    return None if progress is None else job_dict(progress)
+
+
+@method("job.start", NameParams, control=True)
+def job_start(m: Methods, connection: Connection, params: NameParams) -> dict[str, Any] | None:
+    m.kernel.jobs.play(params.name)
+    return _progress(m)
+
+
+def _job_method(name: str, action: str) -> None:
+    def handler(m: Methods, connection: Connection, params: Params) -> dict[str, Any] | None:
+        getattr(m.kernel.jobs, action)()
+        return _progress(m)
+
+    method(f"job.{name}", control=True)(handler)
+
+
+for _name, _job_action in (("pause", "suspend"), ("resume", "resume"), ("abort", "abort")):
+    _job_method(_name, _job_action)
+
+
+@method("job.progress")
+def job_progress(m: Methods, connection: Connection, params: Params) -> dict[str, Any] | None:
+    return _progress(m)
+
+
+@method("job.toolpath", ToolpathParams)
+async def job_toolpath(m: Methods, connection: Connection,
+                       params: ToolpathParams) -> dict[str, Any]:
+    path = m.kernel.jobs.path(params.name)
+    try:
+        info = await asyncio.to_thread(path.stat)
+    except OSError as exc:
+        raise CommandError(FILE_ERROR, f"no job file {path.name}") from exc
+    key = (path.name, info.st_size, info.st_mtime_ns, params.max_segments)
+    async with m.toolpath_lock:  # one planning thread at a time
+        cached = m.toolpaths.get(key)
+        if cached is None:
+            core = m.kernel.config.core.model_copy(deep=True)
+            core.machine.soft_limits = False  # preview in work coordinates, whatever the WCS
+            lines = await asyncio.to_thread(_read_lines, path)
+            cached = await asyncio.to_thread(plan_toolpath, lines, core, params.max_segments)
+            m.toolpaths[key] = cached
+            while len(m.toolpaths) > TOOLPATH_CACHE:
+                m.toolpaths.popitem(last=False)
+    return {"name": path.name, **cached}
+
+
+def _read_lines(path: Any) -> list[str]:
+    try:
+        return path.read_text(errors="replace").splitlines()
+    except OSError as exc:
+        raise CommandError(FILE_ERROR, f"cannot read {path.name}: {exc.strerror}") from exc
