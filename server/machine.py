@@ -114,6 +114,10 @@ class Machine:
             raise
         messages: list[str] = []
         for output in outputs:
+            if isinstance(output, Sync) and output.kind == "probe":
+                self.stepgen.probe_towards = bool(output.params.get("towards", True))
+                self.stepgen.probe_hit = False
+        for output in outputs:
             if isinstance(output, Move):
                 await self.queue_move(output)
             elif isinstance(output, Action):
@@ -182,14 +186,14 @@ class Machine:
 
     def _finish_probe(self, request: Sync) -> list[str]:
         position = self.stepgen.state.position_mm
-        success = self.backend.probe_triggered(position)
+        success = self.stepgen.probe_hit
         self.interpreter.set_position(position)
         self.planner.set_position(position)
         self.interpreter.record_probe(position, success)
         coords = ",".join(f"{v:.3f}" for v in position)
         report = f"[PRB:{coords}:{int(success)}]"
         if not success and request.params.get("error_on_fail", True):
-            self.kernel.alarm(5, "probe fail: the probe did not trigger")
+            self.kernel.alarm(5, "probe fail: the probe did not change state within the move")
         return [report]
 
     def position_report(self) -> str:

@@ -3,11 +3,13 @@
 Pure computation (no asyncio, no I/O). Units are machine mm, mm/s, mm/s² and seconds.
 
 The interpreter side calls :meth:`Planner.append` / :meth:`Planner.append_action` and watches
-:meth:`Planner.is_full` for back-pressure; someone calls :meth:`Planner.plan` every few
-milliseconds of input; the step generator calls :meth:`Planner.pop` for the next block to run.
-Appending is O(1): per-block numbers go into columns of one preallocated numpy array and
-:meth:`Planner.plan` re-plans the whole waiting window with a handful of numpy operations
-(:mod:`server.trapezoid`). :class:`~server.block.Block` objects are only built at ``pop()``.
+:meth:`Planner.is_full` for back-pressure; the step generator calls :meth:`Planner.pop` for the
+next block to run and :meth:`Planner.plan` whenever :meth:`Planner.planned_ahead_s` runs short.
+Appending is O(1) plain Python: the block's length, feed and direction are staged. ``plan()``
+copies staged blocks into the columns of one growable numpy array, derives their limits
+(projected axis rates and accelerations, nominal speeds, junction limits) in a batch, and
+re-plans the whole waiting window with a handful of numpy operations (:mod:`server.trapezoid`).
+:class:`~server.block.Block` objects are only built at ``pop()``.
 
 Why ``pop()`` may use a plan made before more blocks were appended: appending only adds
 look-ahead, which can only raise the limits, so the old plan (which stops at the old end of the
@@ -26,7 +28,7 @@ import numpy as np
 
 from server.block import Block, BlockColumns, FloatArray
 from server.moves import Action, Move, MoveKind, Position
-from server.trapezoid import PROFILE_ROWS, junction_speed_sq, junction_speeds_sq, plan_window
+from server.trapezoid import PROFILE_ROWS, axis_limits, junction_speeds_sq, plan_window
 
 if TYPE_CHECKING:
     from server.config import CoreConfig
@@ -134,9 +136,8 @@ class Planner:
             self._sync()  # blocks already appended keep the limits they were appended with
         self._settings = settings
         self._inv_rate = tuple(1.0 / rate for rate in settings.max_rate_mm_s)
-        self._inv_accel = tuple(1.0 / accel for accel in settings.accel_mm_s2)
         self._inv_rate_col = np.array(self._inv_rate)[:, None]
-        self._inv_accel_col = np.array(self._inv_accel)[:, None]
+        self._inv_accel_col = 1.0 / np.array(settings.accel_mm_s2)[:, None]
 
     # ------------------------------------------------------------------ appending
 
@@ -327,10 +328,10 @@ class Planner:
         if length < MIN_LENGTH_MM or move is None:
             return _unplanned(move, actions, start, end, self._zero)
         unit = tuple([x / length for x in delta])
-        rate, accel = self._limits(unit)
+        rate, accel = axis_limits(np.array(unit)[:, None], self._inv_rate_col, self._inv_accel_col)
         kind, feed = _kind_and_feed(move)
-        nominal = self._nominal(feed, rate, kind)
-        return _unplanned(move, actions, start, end, unit, length, nominal, accel)
+        nominal = self._nominals(np.array([feed]), rate, np.array([kind]))
+        return _unplanned(move, actions, start, end, unit, length, nominal.item(), accel.item())
 
     def insert_front(self, block: Block) -> None:
         """Put a block (a remainder after a feed hold) back at the head; it starts from rest.
@@ -339,25 +340,18 @@ class Planner:
         """
         if block.move is None or block.length_mm < MIN_LENGTH_MM:
             inputs = (0.0, math.inf, _NO_OVERRIDE, block.lead_s, *self._zero)
-            derived = (1.0, math.inf, math.inf, 0.0)
-            estimate_s = block.lead_s
         else:
-            rate, accel = self._limits(block.unit)
             kind, feed = _kind_and_feed(block.move)
-            nominal = self._nominal(feed, rate, kind)
             inputs = (block.length_mm, feed, kind, 0.0, *block.unit)
-            derived = (accel, rate, nominal, 0.0)
-            estimate_s = block.length_mm / nominal
-        head = self._columns.push_front(inputs)
-        data = self._columns.data
-        data[ACCEL : JUNCTION + 1, head] = derived
-        if head + 1 < self._columns.tail:
-            data[JUNCTION, head + 1] = self._junction_after(head)
+        columns = self._columns
+        head = columns.push_front(inputs)
+        self._derive(head, head + 1)
+        self._derive_junctions(head + 1, min(head + 2, columns.tail))
         geometry = (block.move, block.actions, block.start_mm, block.end_mm, block.unit)
         self._geometry.appendleft(geometry)
         self._start_mm_s = 0.0
         self._dirty = self._head_dirty = True
-        self._time_estimate_s += estimate_s
+        self._time_estimate_s += block.lead_s + block.length_mm / columns.data[NOMINAL, head]
 
     # ------------------------------------------------------------------ internals
 
@@ -365,29 +359,27 @@ class Planner:
         """Copy staged blocks into the columns and derive their limits, all at once."""
         columns = self._columns
         first = columns.sync()
-        if first == columns.tail:
-            return
-        data, new = columns.data, slice(first, columns.tail)
-        size = np.abs(data[self._units, new])
-        rate_inv = (size * self._inv_rate_col).max(axis=0)
-        accel_inv = (size * self._inv_accel_col).max(axis=0)
-        rate = np.divide(1.0, rate_inv, out=np.full(rate_inv.shape, np.inf), where=rate_inv > 0)
-        data[RATE, new] = rate
-        np.divide(1.0, accel_inv, out=data[ACCEL, new], where=accel_inv > 0)
-        data[ACCEL, new][accel_inv <= 0] = 1.0  # zero-length blocks: any positive value
-        data[NOMINAL, new] = self._nominals(data[FEED, new], rate, data[KIND, new])
-        self._derive_junctions(first, columns.tail)
+        if first < columns.tail:
+            self._derive(first, columns.tail)
 
-    def _derive_junctions(self, first: int, tail: int) -> None:
-        """Junction limits of blocks ``first .. tail-1`` against the block before each.
+    def _derive(self, first: int, stop: int) -> None:
+        """Axis limits, nominal speeds and junction limits of columns ``first .. stop-1``."""
+        data, new = self._columns.data, slice(first, stop)
+        rate, accel = axis_limits(data[self._units, new], self._inv_rate_col, self._inv_accel_col)
+        data[RATE, new], data[ACCEL, new] = rate, accel
+        data[NOMINAL, new] = self._nominals(data[FEED, new], rate, data[KIND, new])
+        self._derive_junctions(first, stop)
+
+    def _derive_junctions(self, first: int, stop: int) -> None:
+        """Junction limits of columns ``first .. stop-1`` against the column before each.
 
         The head's own junction never counts (its entry is the start speed).
         """
         data, begin = self._columns.data, max(first, self._columns.head + 1)
         data[JUNCTION, first:begin] = 0.0
-        if begin >= tail:
+        if begin >= stop:
             return
-        before, after = slice(begin - 1, tail - 1), slice(begin, tail)
+        before, after = slice(begin - 1, stop - 1), slice(begin, stop)
         accel = np.minimum(data[ACCEL, before], data[ACCEL, after])
         deviation_mm = self._settings.junction_deviation_mm
         units = self._units
@@ -395,35 +387,12 @@ class Planner:
         limit[(data[LENGTH, before] == 0.0) | (data[LENGTH, after] == 0.0)] = 0.0
         data[JUNCTION, after] = limit
 
-    def _junction_after(self, index: int) -> float:
-        """The junction limit between columns ``index`` and ``index + 1`` (synced)."""
-        data = self._columns.data
-        if data[LENGTH, index] == 0.0 or data[LENGTH, index + 1] == 0.0:
-            return 0.0
-        accel = min(data[ACCEL, index], data[ACCEL, index + 1])
-        before, after = data[self._units, index].tolist(), data[self._units, index + 1].tolist()
-        return junction_speed_sq(before, after, accel, self._settings.junction_deviation_mm)
-
     def _nominals(self, feed: FloatArray, rate: FloatArray, kind: FloatArray) -> FloatArray:
-        """Nominal speeds (mm/s) with the overrides applied; see :meth:`_nominal`."""
+        """Nominal speeds (mm/s): the feed scaled by its override, capped by the axis rate
+        limit (scaled by the rapid override for rapids), never under ``min_feed_mm_s``."""
         feed = feed * np.where(kind == _FEED_OVERRIDE, self._feed_override, 1.0)
         rate = rate * np.where(kind == _RAPID_OVERRIDE, self._rapid_override, 1.0)
         return np.maximum(np.minimum(feed, rate), self._settings.min_feed_mm_s)
-
-    def _limits(self, unit: Position) -> tuple[float, float]:
-        """Speed (mm/s) and acceleration (mm/s²) limits along ``unit`` from the per-axis limits."""
-        size = [abs(x) for x in unit]
-        rate = 1.0 / max(map(mul, size, self._inv_rate))
-        accel = 1.0 / max(map(mul, size, self._inv_accel))
-        return rate, accel
-
-    def _nominal(self, feed_mm_s: float, rate_mm_s: float, kind: float) -> float:
-        """The feed scaled by its override, capped by the (rapid-overridden) axis rate limit."""
-        if kind == _FEED_OVERRIDE:
-            feed_mm_s *= self._feed_override
-        elif kind == _RAPID_OVERRIDE:
-            rate_mm_s *= self._rapid_override
-        return max(min(feed_mm_s, rate_mm_s), self._settings.min_feed_mm_s)
 
     def _take_pending(self, more: list[Action]) -> list[Action]:
         if not self._pending:

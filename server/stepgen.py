@@ -103,6 +103,8 @@ class StepGenerator:
                                                 strict=True)) + 0.01
         self.last_input_s = -math.inf
         self.before_pop: Callable[[], None] | None = None  # offline feeders refill here
+        self.probe_towards = True  # G38.2/3 stop on contact; G38.4/5 on loss of contact
+        self.probe_hit = False
         self.flush_requested = False
         self.state = MotionState(position_mm=planner.position_mm)
         self._cursor = _Cursor(steps=[round(p * s) for p, s in
@@ -302,6 +304,15 @@ class StepGenerator:
         state.queue_depth = len(self.planner)
         self._step_to(now_s, position)
         self.backend.sample(now_s, position, state.speed_mm_s)
+        if block is not None and state.kind is MoveKind.PROBE:
+            self._check_probe(position)
+
+    def _check_probe(self, position: Position) -> None:
+        """A probing move stops where the probe input changes (G38.2/3 contact, G38.4/5 loss)."""
+        if self.backend.probe_triggered(position) == self.probe_towards:
+            self.probe_hit = True
+            self.stop_now()
+            self.listener.on_idle()
 
     def _publish_still(self) -> None:
         state = self.state

@@ -35,8 +35,10 @@ log = logging.getLogger("motiond.telemetry")
 QUEUE_FRAMES = 256
 TOPICS = frozenset({"status", "telemetry", "console", "job"})
 CUTTING = frozenset({MoveKind.FEED, MoveKind.ARC, MoveKind.PROBE})
-_WAKE_EVENTS = ("state", "halt", "clear_halt", "hold", "resume", "override", "action",
-                "program_end", "job")
+_WAKE_EVENTS = ("state", "halt", "clear_halt", "hold", "hold_stopped", "resume", "override",
+                "action", "program_end", "job")
+_BUSY_STATES = frozenset({MachineState.RUN, MachineState.JOG, MachineState.HOME,
+                          MachineState.HOLD})
 
 
 def encode(message: dict[str, Any]) -> str:
@@ -147,10 +149,11 @@ class Publisher:
         loop = asyncio.get_running_loop()
         try:
             while True:
-                if not self.channels:
+                while not self.channels:
                     self._wake.clear()
                     await self._wake.wait()
                 started = loop.time()
+                self._wake.clear()  # what happens from now on wakes the next round
                 try:
                     moving = self.publish_once()
                 except Exception:  # noqa: BLE001 - a bad sample must not end the publisher
@@ -158,7 +161,6 @@ class Publisher:
                     moving = False
                 await asyncio.sleep(max(0.0, started + self.period_s - loop.time()))
                 if not moving:
-                    self._wake.clear()
                     with contextlib.suppress(TimeoutError):
                         await asyncio.wait_for(self._wake.wait(), self.idle_period_s)
         finally:
@@ -166,7 +168,7 @@ class Publisher:
                 unsubscribe()
 
     def publish_once(self) -> bool:
-        """Sample now; send status if it changed and telemetry while moving. True if moving."""
+        """Sample now; send status if it changed and telemetry while moving. True while busy."""
         status = build_status(self.kernel)
         if status != self._last_status:
             self._last_status = status
@@ -177,7 +179,13 @@ class Publisher:
         if moving or point != self._last_telemetry:
             self._last_telemetry = point
             self.broadcast("telemetry", "notify_telemetry", sample)
-        return moving or self.kernel.jobs.running
+        return moving or self.busy()
+
+    def busy(self) -> bool:
+        """Whether things are about to change: motion queued, a cycle or a job under way."""
+        kernel = self.kernel
+        return (kernel.state in _BUSY_STATES or len(kernel.machine.planner) > 0
+                or kernel.jobs.running)
 
     def _on_push(self, message: str) -> None:
         self.broadcast("console", "notify_gcode_response", {"message": message})

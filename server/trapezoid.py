@@ -64,6 +64,24 @@ def junction_speed_sq(
     return accel_mm_s2 * deviation_mm * sin_half / (1.0 - sin_half)
 
 
+def axis_limits(
+    unit: FloatArray, inv_rate: FloatArray, inv_accel: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Speed (mm/s) and acceleration (mm/s²) limits along many directions at once.
+
+    ``unit`` is (axes, blocks); ``inv_rate`` and ``inv_accel`` hold 1/limit per axis, shaped
+    (axes, 1). The limit along ``u`` is ``min_i limit_i/|u_i|``. A zero vector (a zero-length
+    block) gets an infinite speed and an acceleration of 1 (any positive value serves).
+    """
+    size = np.abs(unit)
+    rate_inv = (size * inv_rate).max(axis=0)
+    accel_inv = (size * inv_accel).max(axis=0)
+    moving = rate_inv > 0.0
+    rate = np.divide(1.0, rate_inv, out=np.full(rate_inv.shape, np.inf), where=moving)
+    accel = np.divide(1.0, accel_inv, out=np.ones(accel_inv.shape), where=moving)
+    return rate, accel
+
+
 def junction_speeds_sq(
     prev_unit: FloatArray,
     unit: FloatArray,
@@ -138,8 +156,7 @@ def _trapezoids(
     ramp_mm = (entry + cruise) * ramp1
     ramp_mm += (cruise + exit_) * ramp2
     flat_mm = np.maximum(length_mm - 0.5 * ramp_mm, 0.0)
-    flat.fill(0.0)
-    np.divide(flat_mm, cruise, out=flat, where=cruise > 0.0)
+    np.divide(flat_mm, np.maximum(cruise, 1e-300), out=flat)  # zero-length blocks: 0 / tiny
     np.add(ramp1, flat, out=total)
     total += ramp2
     total += lead_s

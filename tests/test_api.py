@@ -119,6 +119,10 @@ def state_is(*states: str) -> Any:
     return lambda params: params["status"]["state"] in states
 
 
+def moving(params: dict[str, Any]) -> bool:
+    return bool(params["status"]["moving"]) and params["status"]["mpos"][0] > 0
+
+
 # -- server and protocol ----------------------------------------------------------------------
 async def test_server_info_names_the_machine_axes_and_every_method(tmp_path: Path) -> None:
     async with serving(api_config(tmp_path)) as (app, address), client(address) as rpc:
@@ -191,11 +195,11 @@ async def test_status_subscribers_see_the_machine_run_and_come_to_rest(tmp_path:
         subscribed = await rpc.call("machine.subscribe")
         assert subscribed["status"]["state"] == "Idle"
         await rpc.call("gcode.send", lines="G1 X20 F3000")
-        running_status = await rpc.wait_for("notify_status_update", state_is("Run"))
+        running_status = await rpc.wait_for("notify_status_update", moving)
         telemetry = await rpc.wait_for("notify_telemetry", lambda p: p["speed_mm_min"] > 0)
         rest = await rpc.wait_for("notify_status_update", lambda p: p["status"]["state"] ==
                                   "Idle" and p["status"]["mpos"][0] == 20.0)
-    assert running_status["status"]["moving"] is True
+    assert running_status["status"]["state"] == "Run"
     assert 0 < telemetry["speed_mm_min"] <= 3000.5
     assert rest["status"]["speed_mm_min"] == 0.0 and rest["status"]["queue_depth"] == 0
 
@@ -205,7 +209,7 @@ async def test_hold_stops_the_move_and_resume_finishes_it(tmp_path: Path) -> Non
             client(address) as rpc:
         await rpc.call("machine.subscribe", topics=["status"])
         await rpc.call("gcode.send", lines="G1 X60 F3000")
-        await rpc.wait_for("notify_status_update", state_is("Run"))
+        await rpc.wait_for("notify_status_update", moving)
         await rpc.call("machine.hold")
         held = await rpc.wait_for("notify_status_update", state_is("Hold:0"))
         await asyncio.sleep(0.2)
@@ -223,7 +227,7 @@ async def test_reset_while_moving_alarms_with_its_meaning_until_unlocked(tmp_pat
             client(address) as rpc:
         await rpc.call("machine.subscribe", topics=["status", "console"])
         await rpc.call("gcode.send", lines="G1 X60 F3000")
-        await rpc.wait_for("notify_status_update", state_is("Run"))
+        await rpc.wait_for("notify_status_update", moving)
         await rpc.call("machine.reset")
         alarm = await rpc.wait_for("notify_status_update", state_is("Alarm"))
         pushed = await rpc.wait_for("notify_gcode_response", lambda p: p["message"] == "ALARM:3")
@@ -289,7 +293,7 @@ async def test_job_controls_pause_resume_and_abort_a_running_job(tmp_path: Path)
             client(address) as rpc:
         await rpc.call("machine.subscribe", topics=["job", "status"])
         await rpc.call("job.start", name="long.nc")
-        await rpc.wait_for("notify_status_update", state_is("Run"))
+        await rpc.wait_for("notify_status_update", moving)
         paused = await rpc.call("job.pause")
         await rpc.wait_for("notify_status_update", state_is("Hold:0"))
         resumed = await rpc.call("job.resume")

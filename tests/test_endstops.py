@@ -8,6 +8,7 @@ from typing import Any
 import pytest
 
 from server.app import App
+from server.backends.sim import SimBackend
 from server.clock import VirtualClock
 from server.errors import CommandError, ConfigError
 from server.events import MachineState
@@ -22,6 +23,13 @@ AXES = {
           "feed_mm_s": 2, "pull_off_mm": 1},
 }
 STEP_MM = 1 / 80  # one X/Y step: the sim reports positions in whole steps
+
+
+def sim(app: App) -> SimBackend:
+    """The simulated machine behind ``app`` (the default backend)."""
+    backend = app.kernel.machine.backend
+    assert isinstance(backend, SimBackend)
+    return backend
 
 
 def endstops(**axes: dict[str, Any]) -> dict[str, Any]:

@@ -15,6 +15,7 @@ import pytest
 
 from modules.laser import LaserConfig
 from server.app import App
+from server.backends.sim import SimBackend
 from server.config import load_config
 from server.errors import CommandError, ConfigError
 from server.moves import MoveKind, ToolMode
@@ -25,6 +26,13 @@ from tests.helpers import SOURCE, running, submit_all
 PERIOD_S = 0.001
 LASER = {"minimum_power": 0.1, "maximum_power": 0.8, "maximum_s_value": 1000}
 POWER = -1  # history rows: (time_s, x, y, z, speed_mm_s, power)
+
+
+def sim(app: App) -> SimBackend:
+    """The simulated machine behind ``app`` (the default backend)."""
+    backend = app.kernel.machine.backend
+    assert isinstance(backend, SimBackend)
+    return backend
 
 
 def record_motion(app: App) -> list[tuple[Any, ...]]:

@@ -8,6 +8,7 @@ import pytest
 
 from modules.spindle import SpindleConfig, spindle_pwm
 from server.app import App
+from server.backends.sim import SimBackend
 from server.errors import CommandError, ConfigError
 from server.moves import ToolMode
 from server.protocol import Realtime
@@ -17,6 +18,13 @@ from tests.helpers import running, submit_all
 FAN = {"fan": {"on_mcode": 106, "off_mcode": 107}}
 TICK_S = 0.001
 SPINDLE = {"min_rpm": 100, "max_rpm": 1000, "min_pwm": 0.1, "max_pwm": 1.0}
+
+
+def sim(app: App) -> SimBackend:
+    """The simulated machine behind ``app`` (the default backend)."""
+    backend = app.kernel.machine.backend
+    assert isinstance(backend, SimBackend)
+    return backend
 
 
 def trace(app: App, pin: str) -> list[tuple[float, float]]:
