@@ -197,9 +197,9 @@ class Endstops(Module):
         """Home ``axes`` group by group; raise :class:`HomingFailed` with the Grbl alarm code."""
         core = _CoreAccess(self.machine)
         if self._state is MachineState.ALARM:
-            core.clear_alarm()
+            self.ctx.clear_alarm()
         self._abort = None
-        core.set_state(MachineState.HOME)
+        self.ctx.set_state(MachineState.HOME)
         self.homing = True
         try:
             for order in sorted({axis.cfg.order for axis in axes}):
@@ -208,7 +208,7 @@ class Endstops(Module):
             self.homing = False
             self._active = {axis.switch for axis in self.triggered()}
             if self._state is MachineState.HOME:
-                core.set_state(MachineState.IDLE)
+                self.ctx.set_state(MachineState.IDLE)
 
     async def _home_group(self, group: list[_Axis], core: _CoreAccess) -> None:
         seek = min(axis.cfg.seek_mm_s for axis in group)
@@ -299,20 +299,6 @@ class _CoreAccess:
     def __init__(self, machine: Any) -> None:
         self.machine = machine
 
-    def set_state(self, state: MachineState) -> None:
-        """Proposed ``ModuleContext.set_state(state)``."""
-        self.machine.kernel.set_state(state)
-
-    def clear_alarm(self) -> None:
-        """Proposed ``ModuleContext.clear_alarm()`` ($H unlocks, as in Grbl)."""
-        self.machine.kernel.clear_alarm()
-
     def set_position(self, position_mm: Position) -> None:
-        """Proposed ``Machine.set_machine_position(position_mm)``: redefine, without moving."""
-        machine = self.machine
-        machine.stop_now()
-        stepgen = machine.stepgen
-        stepgen.state.position_mm = position_mm
-        stepgen.set_steps_per_mm(stepgen.steps_per_mm)  # re-base step counters, emit nothing
-        machine.planner.set_position(position_mm)
-        machine.interpreter.set_position(position_mm)
+        """Redefine the machine position without moving."""
+        self.machine.set_machine_position(position_mm)

@@ -6,8 +6,8 @@ it. S is in RPM, multiplied by the spindle override, and mapped as Grbl does: S0
 ``min_rpm`` gives ``min_pwm``, ``max_rpm`` and above give ``max_pwm``, linear in between.
 ``dir_pin`` (optional) is 1 for M4.
 
-The spindle goes off at once on halt (M112, alarm) and shutdown, and within ``RESET_POLL_S``
-of a soft reset (Ctrl-X) that raised no alarm (the kernel has no reset event). Like Grbl it keeps
+The spindle goes off at once on halt (M112, alarm), soft reset (Ctrl-X) and shutdown. Like Grbl
+it keeps
 turning through a feed hold unless the spindle-stop realtime byte (0x9E) is sent during the
 hold; it then restarts on resume.
 
@@ -40,7 +40,6 @@ from server.moves import Action, ToolMode
 
 PIN_PATTERN = r"^[A-Za-z0-9_.\-]+$"
 MOTION_WORDS = frozenset("XYZABCIJKR")
-RESET_POLL_S = 0.01
 
 
 class SpindleConfig(ModuleConfig):
@@ -95,6 +94,7 @@ class Spindle(Module):
         ctx.subscribe("override", self._on_override)
         ctx.subscribe("halt", self._halt)
         ctx.subscribe("shutdown", self._halt)
+        ctx.subscribe("reset", self._halt)
         ctx.subscribe("state", self._on_state)
         ctx.subscribe("spindle_stop", self._spindle_stop)
         ctx.subscribe("resume", self._resume)
@@ -102,17 +102,6 @@ class Spindle(Module):
         if config.spin_up_delay_s > 0:
             for code in ("M3", "M4", "M5"):
                 ctx.register_command(code, self._spindle_line)
-
-    async def run(self) -> None:
-        """Stop on a soft reset: watch the machine's reset counter (no kernel event exists)."""
-        machine, clock = self.ctx.machine, self.ctx.clock  # type: ignore[attr-defined]
-        epoch = machine.epoch
-        while True:
-            await clock.sleep_until(clock.now_s() + RESET_POLL_S)
-            if machine.epoch != epoch:
-                epoch = machine.epoch
-                if self._state is not MachineState.HOME:  # homing stops motion too
-                    self._halt()
 
     # -- ordered actions -------------------------------------------------------------------
     def _on_action(self, action: Action) -> None:

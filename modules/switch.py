@@ -9,8 +9,8 @@ M7, M8 and M9 belong to the interpreter, which turns them into ``Action("coolant
 with ``on_mcode = 7`` (mist) or ``8`` (flood) follows that action instead (M9 turns both off),
 and Grbl's realtime coolant toggles (0xA0 flood, 0xA1 mist) switch it at once.
 ``M42 P<n>`` addresses the switch whose ``pin`` is ``n`` or ``P<n>``; a pin that no switch owns
-is refused. Switches go off on shutdown, and on halt and soft reset (Ctrl-X, noticed within
-``RESET_POLL_S``: the kernel has no reset event) unless ``off_on_halt = false``.
+is refused. Switches go off on shutdown, and at once on halt and soft reset (Ctrl-X) unless
+``off_on_halt = false``.
 
     [switch.fan]
     pin = "fan"
@@ -31,7 +31,6 @@ from pydantic import Field, model_validator
 
 from server.dispatcher import Command
 from server.errors import CommandError
-from server.events import MachineState
 from server.modal import M_GROUPS
 from server.module import Module, ModuleConfig, ModuleContext
 from server.moves import Action
@@ -40,7 +39,6 @@ PIN_PATTERN = r"^[A-Za-z0-9_.\-]+$"
 COOLANT_CODES = {7: "mist", 8: "flood"}
 M42_QUERY = "switch.m42_owner"  # event: (pin text, list to append owners to)
 BAD_NUMBER = 2
-RESET_POLL_S = 0.01
 VALUE_MISSING = 31
 
 
@@ -93,25 +91,8 @@ class Switch(Module):
         ctx.subscribe("action", self._on_action)
         if config.off_on_halt:
             ctx.subscribe("halt", self._off_now)
+            ctx.subscribe("reset", self._off_now)
         ctx.subscribe("shutdown", self._off_now)
-        ctx.subscribe("state", self._on_state)
-        self._homing = False
-
-    async def run(self) -> None:
-        """Turn off on a soft reset: watch the machine's reset counter (no kernel event)."""
-        if not self.config.off_on_halt:
-            return
-        machine, clock = self.ctx.machine, self.ctx.clock  # type: ignore[attr-defined]
-        epoch = machine.epoch
-        while True:
-            await clock.sleep_until(clock.now_s() + RESET_POLL_S)
-            if machine.epoch != epoch:
-                epoch = machine.epoch
-                if not self._homing:  # homing stops motion too
-                    self._off_now()
-
-    def _on_state(self, state: MachineState) -> None:
-        self._homing = state is MachineState.HOME
 
     # -- commands: queue, never apply ------------------------------------------------------
     async def _mcode(self, command: Command) -> None:

@@ -161,7 +161,8 @@ class JsonApi:
     async def socket(self, request: web.Request) -> web.StreamResponse:
         if not self.origin_allowed(request):
             raise web.HTTPForbidden(text="origin not allowed")
-        socket = web.WebSocketResponse(heartbeat=20, max_msg_size=MAX_MESSAGE_BYTES)
+        socket = web.WebSocketResponse(heartbeat=20, max_msg_size=MAX_MESSAGE_BYTES,
+                                       compress=False)  # frames are encoded once for all
         await socket.prepare(request)
         connection = Connection(self, socket, f"api-{next(self._ids)}",
                                 self.token_ok(request.query.get("token")))

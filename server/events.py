@@ -5,7 +5,8 @@ off before :meth:`EventBus.emit` returns. A subscriber that raises is logged and
 faulty listener must never stop the others from hearing a halt.
 
 Kernel events (arguments in brackets):
-  ``halt`` (reason: str) · ``clear_halt`` · ``hold`` · ``resume`` · ``motors_enable`` ·
+  ``halt`` (reason: str) · ``clear_halt`` · ``reset`` (Ctrl-X) ·
+  ``hold`` · ``resume`` · ``motors_enable`` ·
   ``motors_disable`` · ``second`` (now_s) · ``state`` (MachineState) · ``action`` (Action) ·
   ``program_end`` · ``push`` (message line for every connection) · ``shutdown`` ·
   ``override`` (feed %, rapid %, spindle %)

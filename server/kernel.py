@@ -59,6 +59,12 @@ class _Context:
     def emit(self, event: str, *args: Any) -> None:
         self._kernel.events.emit(event, *args)
 
+    def set_state(self, state: MachineState) -> None:
+        self._kernel.set_state(state)
+
+    def clear_alarm(self) -> None:
+        self._kernel.clear_alarm()
+
     @property
     def machine(self) -> Machine:
         return self._kernel.machine

@@ -23,7 +23,7 @@ from server.dispatcher import Command
 from server.errors import BUSY, CommandError, SoftLimitError
 from server.events import MachineState
 from server.interpreter import Interpreter, InterpreterSettings
-from server.moves import Action, Move, MoveKind, Sync, ToolMode
+from server.moves import Action, Move, MoveKind, Position, Sync, ToolMode
 from server.planner import Planner, PlannerSettings
 from server.protocol import Realtime
 from server.reports import ALARM_ABORT_CYCLE, ALARM_HALT, ALARM_SOFT_LIMIT
@@ -246,12 +246,22 @@ class Machine:
             spindle=None if spindle is None else (
                 100 if spindle == 0 else self.spindle_override + spindle))
 
+    def toggle_coolant(self, which: str) -> None:
+        """Realtime flood/mist toggle (0xA0/0xA1): at once, reflected in status ``A:``."""
+        if which == "flood":
+            self.tool.flood = not self.tool.flood
+        else:
+            self.tool.mist = not self.tool.mist
+        self.kernel.events.emit("toggle_coolant", which)
+
     def emergency_stop(self) -> None:
         """M112: halt at once, before the lines queued ahead of it run."""
         if self.kernel.state is not MachineState.ALARM:
             self.kernel.alarm(ALARM_HALT, "emergency stop (M112): $X or M999 to unlock")
 
     def feed_hold(self) -> None:
+        if self.kernel.state is MachineState.HOME:  # as in Grbl: homing ignores feed hold
+            return
         if self.kernel.state in (MachineState.RUN, MachineState.JOG) or not self.stepgen.idle:
             if self.kernel.state is MachineState.JOG:
                 self.cancel_jog()
@@ -285,6 +295,7 @@ class Machine:
         moving = self.stepgen.state.moving
         self.stop_now()
         self.interpreter.reset()
+        self.kernel.events.emit("reset")
         if moving:
             self.kernel.alarm(ALARM_ABORT_CYCLE,
                               "reset while in motion: position may be lost, re-home")
@@ -299,6 +310,13 @@ class Machine:
         self.interpreter.set_position(position)
         self.room.set()
         self.idle_event.set()
+
+    def set_machine_position(self, position_mm: Position) -> None:
+        """Redefine where the machine is without moving it (homing sets the axes' ends)."""
+        self.stop_now()
+        self.stepgen.rebase(position_mm)
+        self.planner.set_position(position_mm)
+        self.interpreter.set_position(position_mm)
 
     def set_overrides(self, feed: int | None = None, rapid: int | None = None,
                       spindle: int | None = None) -> None:
@@ -370,8 +388,8 @@ _REALTIME_ACTIONS = {
     Realtime.RESUME: Machine.cycle_start,
     Realtime.JOG_CANCEL: Machine.cancel_jog,
     Realtime.SPINDLE_STOP: lambda m: m.kernel.events.emit("spindle_stop"),
-    Realtime.FLOOD: lambda m: m.kernel.events.emit("toggle_coolant", "flood"),
-    Realtime.MIST: lambda m: m.kernel.events.emit("toggle_coolant", "mist"),
+    Realtime.FLOOD: lambda m: m.toggle_coolant("flood"),
+    Realtime.MIST: lambda m: m.toggle_coolant("mist"),
 }
 # (feed step, rapid value, spindle step); a step of 0 means "back to 100%".
 _OVERRIDE_STEPS: dict[Realtime, tuple[int | None, int | None, int | None]] = {

@@ -24,6 +24,7 @@ from pydantic import BaseModel, ConfigDict
 if TYPE_CHECKING:
     from server.clock import Clock
     from server.dispatcher import Handler
+    from server.events import MachineState
     from server.moves import Action
     from server.stepgen import MotionState
 
@@ -69,6 +70,14 @@ class ModuleContext(Protocol):
 
     def emit(self, event: str, *args: Any) -> None:
         """Emit a kernel event (for example a module's own state change)."""
+        ...
+
+    def set_state(self, state: MachineState) -> None:
+        """Set the machine state (homing shows ``Home``)."""
+        ...
+
+    def clear_alarm(self) -> None:
+        """Unlock after an alarm, as ``$X`` does (homing unlocks in Grbl)."""
         ...
 
 

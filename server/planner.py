@@ -118,7 +118,7 @@ class Planner:
         self._feed_override = self._rapid_override = 1.0
         self._dirty = self._head_dirty = False
         self._time_planned_s = self._time_estimate_s = 0.0
-        self.settings = settings
+        self._use_settings(settings)
         self.position_mm: Position = self._zero
         self._chain_mm: Position = self._zero
         self.set_position(position_mm)
@@ -130,10 +130,12 @@ class Planner:
 
     @settings.setter
     def settings(self, settings: PlannerSettings) -> None:
+        self._sync()  # blocks already appended keep the limits they were appended with
+        self._use_settings(settings)
+
+    def _use_settings(self, settings: PlannerSettings) -> None:
         if len(settings.max_rate_mm_s) != len(self._zero):
             raise ValueError("new planner settings must keep the number of axes")
-        if hasattr(self, "_settings"):
-            self._sync()  # blocks already appended keep the limits they were appended with
         self._settings = settings
         self._inv_rate = tuple(1.0 / rate for rate in settings.max_rate_mm_s)
         self._inv_rate_col = np.array(self._inv_rate)[:, None]

@@ -154,6 +154,7 @@ class StepGenerator:
             rest = self.planner.make_block(self.state.position_mm, block.end_mm, block.move, [])
             self.planner.insert_front(rest)
         cursor.block = None
+        cursor.time_s = cursor.distance_mm = 0.0
         self.planner.set_start_speed(0.0)
         self._running = True
         self._set_hold(HoldState.NONE)
@@ -162,6 +163,7 @@ class StepGenerator:
         """Halt: stop at once where the steps are, drop everything queued."""
         cursor = self._cursor
         cursor.block = None
+        cursor.time_s = cursor.distance_mm = 0.0
         self._running = False
         self._resume_when_stopped = False
         self.flush_requested = False
@@ -339,8 +341,13 @@ class StepGenerator:
     def set_steps_per_mm(self, steps_per_mm: tuple[float, ...]) -> None:
         """Change the resolution (only while idle): step counts are re-based on the position."""
         self.steps_per_mm = steps_per_mm
+        self.rebase(self.state.position_mm)
+
+    def rebase(self, position_mm: Position) -> None:
+        """Declare the tool to be at ``position_mm`` without moving (homing); idle only."""
+        self.state.position_mm = position_mm
         self._cursor.steps = [round(p * s) for p, s in
-                              zip(self.state.position_mm, steps_per_mm, strict=True)]
+                              zip(position_mm, self.steps_per_mm, strict=True)]
 
     @property
     def steps(self) -> tuple[int, ...]:

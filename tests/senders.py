@@ -282,6 +282,13 @@ class GrblStreamerRun:
     grbl-streamer writes ``$$``/``$#``/``$G`` outside its character counting and answers the
     first ``ok`` it gets with its oldest streamed line, so the job starts only once every boot
     query has been answered (as its own GUI users do by waiting for the settings).
+
+    grbl-streamer fills the window from two threads without a lock: the caller of ``job_run``
+    and its reader thread (on each ``ok``). At 115200 baud the first ``ok`` comes long after
+    the first fill; over a pty motiond answers within microseconds and the two threads then
+    send lines twice, skip or swap them (seen here: ``M03S80`` written after two moves). The
+    two entry points are serialised with one lock, which is what the library's own callers
+    would need; ``wire`` records what really went down the device, in order.
     """
 
     def __init__(self) -> None:
@@ -296,15 +303,23 @@ class GrblStreamerRun:
         self.alarms: list[str] = []
         self.states: list[tuple[str, tuple[float, ...]]] = []
         self.boots = 0
+        self.wire: list[str] = []  # every line written to the device once connected
         self.streamer = GrblStreamer(self._event, name="motiond-test")
-        original_ok = self.streamer._handle_ok
+        streaming = threading.RLock()
+        original_ok, original_stream = self.streamer._handle_ok, self.streamer._stream
 
         def handle_ok() -> None:
             with self.lock:
                 self.oks += 1
-            original_ok()
+            with streaming:
+                original_ok()
+
+        def stream() -> None:
+            with streaming:
+                original_stream()
 
         self.streamer._handle_ok = handle_ok  # type: ignore[method-assign]
+        self.streamer._stream = stream  # type: ignore[method-assign]
 
     def _event(self, name: str, *args: Any) -> None:
         with self.lock:
@@ -333,6 +348,16 @@ class GrblStreamerRun:
 
     async def connect(self, device: str, timeout_s: float = 10.0) -> None:
         await asyncio.to_thread(self.streamer.cnect, device, 115200)
+        interface = self.streamer._iface
+        original_write = interface.write
+
+        def write(data: str) -> int | None:
+            with self.lock:
+                if data.endswith("\n"):
+                    self.wire.append(data[:-1])
+                return original_write(data)
+
+        interface.write = write  # type: ignore[method-assign]
         await wait_for(lambda: self.streamer.connected, timeout_s, "the Grbl banner")
         self.streamer.poll_start()
         await wait_for(self.settled, timeout_s, "answers to $$, $# and $G")

@@ -168,8 +168,6 @@ async def test_feed_hold_turns_the_laser_off_at_once_and_resume_brings_it_back()
         assert sim(app).output("laser") == 0.0
 
 
-@pytest.mark.xfail(reason="core bug: StepGenerator.resume() keeps the held block's stale "
-                          "time, so motion jumps ahead on resume (see the module report)")
 async def test_after_resume_dynamic_power_ramps_up_from_standstill() -> None:
     async with running(make_config(laser={})) as app:
         machine, clock = app.kernel.machine, app.clock

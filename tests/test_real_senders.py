@@ -106,8 +106,9 @@ async def test_grbl_streamer_over_the_pty_streams_a_corpus_job_to_the_end(
         assert any(state == "Run" for state, _ in sender.states), "its ? polling saw the motion"
         assert app.kernel.state is MachineState.IDLE
         assert_exact_end(app, lines, spy)
-        # what grbl-streamer actually sent (rewritten without spaces) means the same moves
-        assert expected_run(sender.sent, app.kernel.config.core).targets == spy.targets
+        # what went down the pty (rewritten without spaces) means the same moves
+        assert sender.wire[-len(sender.sent):] == sender.sent
+        assert expected_run(sender.wire, app.kernel.config.core).targets == spy.targets
 
 
 @pytest.mark.parametrize("clock", ["virtual", "real"])
