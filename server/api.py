@@ -40,15 +40,21 @@ MAX_IN_FLIGHT = 64
 MAX_MESSAGE_BYTES = 64 << 20
 UPLOAD_CHUNK_BYTES = 1 << 16
 PARSE_ERROR, INVALID_REQUEST, METHOD_NOT_FOUND, INVALID_PARAMS, INTERNAL = (
-    -32700, -32600, -32601, -32602, -32603)
+    -32700,
+    -32600,
+    -32601,
+    -32602,
+    -32603,
+)
 TOO_BUSY = -32000
 
 
 class Connection:
     """One ``/api`` client: its channel, its request tasks and its right to control."""
 
-    def __init__(self, api: JsonApi, socket: web.WebSocketResponse, name: str,
-                 can_control: bool) -> None:
+    def __init__(
+        self, api: JsonApi, socket: web.WebSocketResponse, name: str, can_control: bool
+    ) -> None:
         self.api = api
         self.socket = socket
         self.name = name
@@ -65,11 +71,20 @@ class Connection:
         except ValueError:
             self.reply(None, error=(PARSE_ERROR, "parse error: not JSON", None))
             return
-        if not isinstance(message, dict) or message.get("jsonrpc") != "2.0" \
-                or not isinstance(message.get("method"), str):
+        if (
+            not isinstance(message, dict)
+            or message.get("jsonrpc") != "2.0"
+            or not isinstance(message.get("method"), str)
+        ):
             request_id = message.get("id") if isinstance(message, dict) else None
-            self.reply(request_id, error=(INVALID_REQUEST, "not a JSON-RPC 2.0 request "
-                                          "(batches are not supported)", None))
+            self.reply(
+                request_id,
+                error=(
+                    INVALID_REQUEST,
+                    "not a JSON-RPC 2.0 request (batches are not supported)",
+                    None,
+                ),
+            )
             return
         if len(self._tasks) >= MAX_IN_FLIGHT:
             self.reply(message.get("id"), error=(TOO_BUSY, "too many requests in flight", None))
@@ -78,8 +93,9 @@ class Connection:
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
 
-    def reply(self, request_id: Any, result: Any = None,
-              error: tuple[int, str, Any] | None = None) -> None:
+    def reply(
+        self, request_id: Any, result: Any = None, error: tuple[int, str, Any] | None = None
+    ) -> None:
         """Queue a response (not for notifications, which have no id)."""
         message: dict[str, Any] = {"jsonrpc": "2.0", "id": request_id}
         if error is None:
@@ -161,11 +177,13 @@ class JsonApi:
     async def socket(self, request: web.Request) -> web.StreamResponse:
         if not self.origin_allowed(request):
             raise web.HTTPForbidden(text="origin not allowed")
-        socket = web.WebSocketResponse(heartbeat=20, max_msg_size=MAX_MESSAGE_BYTES,
-                                       compress=False)  # frames are encoded once for all
+        socket = web.WebSocketResponse(
+            heartbeat=20, max_msg_size=MAX_MESSAGE_BYTES, compress=False
+        )  # frames are encoded once for all
         await socket.prepare(request)
-        connection = Connection(self, socket, f"api-{next(self._ids)}",
-                                self.token_ok(request.query.get("token")))
+        connection = Connection(
+            self, socket, f"api-{next(self._ids)}", self.token_ok(request.query.get("token"))
+        )
         if request.transport is not None:
             connection.channel.on_overflow = request.transport.abort
         self.connections.add(connection)
@@ -201,12 +219,17 @@ class JsonApi:
             stored = await self.kernel.jobs.save_stream(name, chunks, limit)
         except CommandError as exc:
             code, message, data = command_error(exc)
-            return web.json_response({"error": {"code": code, "message": message, "data": data}},
-                                     status=400)
-        result = {"name": stored.name, "size_bytes": stored.size_bytes,
-                  "modified_s": stored.modified_s}
-        self.publisher.broadcast("job", "notify_filelist_changed",
-                                 {"action": "upload", "file": result})
+            return web.json_response(
+                {"error": {"code": code, "message": message, "data": data}}, status=400
+            )
+        result = {
+            "name": stored.name,
+            "size_bytes": stored.size_bytes,
+            "modified_s": stored.modified_s,
+        }
+        self.publisher.broadcast(
+            "job", "notify_filelist_changed", {"action": "upload", "file": result}
+        )
         return web.json_response({"result": result})
 
 

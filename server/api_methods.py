@@ -48,8 +48,11 @@ class RpcError(Exception):
 def command_error(exc: CommandError) -> tuple[int, str, dict[str, Any]]:
     """A refused command as a JSON-RPC error: the code is Grbl's (or motiond's) number."""
     meaning = ERROR_MESSAGES.get(exc.code, "")
-    return exc.code, f"error:{exc.code} {exc.message or meaning}".strip(), {
-        "grbl_error": exc.code, "meaning": meaning}
+    return (
+        exc.code,
+        f"error:{exc.code} {exc.message or meaning}".strip(),
+        {"grbl_error": exc.code, "meaning": meaning},
+    )
 
 
 class Params(BaseModel):
@@ -70,12 +73,15 @@ class MethodSpec:
 METHODS: dict[str, MethodSpec] = {}
 
 
-def method(name: str, params: type[Params] = Params,
-           control: bool = False) -> Callable[[Handler], Handler]:
+def method(
+    name: str, params: type[Params] = Params, control: bool = False
+) -> Callable[[Handler], Handler]:
     """Register a handler under a JSON-RPC method name."""
+
     def register(handler: Handler) -> Handler:
         METHODS[name] = MethodSpec(name, handler, params, control)
         return handler
+
     return register
 
 
@@ -102,8 +108,9 @@ class Methods:
         try:
             parsed = spec.params.model_validate(params)
         except ValidationError as exc:
-            problems = [f"{'.'.join(map(str, e['loc'])) or 'params'}: {e['msg']}"
-                        for e in exc.errors()]
+            problems = [
+                f"{'.'.join(map(str, e['loc'])) or 'params'}: {e['msg']}" for e in exc.errors()
+            ]
             raise RpcError(INVALID_PARAMS, "invalid params: " + "; ".join(problems)) from exc
         result = spec.handler(self, connection, parsed)
         if inspect.isawaitable(result):
@@ -119,8 +126,9 @@ class Methods:
         return {"state": state_text(self.kernel)}
 
     def file_changed(self, action: str, name: str) -> None:
-        self.api.publisher.broadcast("job", "notify_filelist_changed",
-                                     {"action": action, "file": {"name": name}})
+        self.api.publisher.broadcast(
+            "job", "notify_filelist_changed", {"action": action, "file": {"name": name}}
+        )
 
 
 # -- server -----------------------------------------------------------------------------------
@@ -128,17 +136,29 @@ class Methods:
 def server_info(m: Methods, connection: Connection, params: Params) -> dict[str, Any]:
     core = m.kernel.config.core
     return {
-        "name": "motiond", "version": __version__, "machine": core.machine.name,
-        "axes": [{"name": name.upper(), "min_mm": axis.min_mm, "max_mm": axis.max_mm,
-                  "max_rate_mm_min": axis.max_rate_mm_s * 60.0}
-                 for name, axis in core.axes.items()],
-        "laser_mode": core.machine.laser_mode, "has_laser": "laser" in m.kernel.modules,
+        "name": "motiond",
+        "version": __version__,
+        "machine": core.machine.name,
+        "axes": [
+            {
+                "name": name.upper(),
+                "min_mm": axis.min_mm,
+                "max_mm": axis.max_mm,
+                "max_rate_mm_min": axis.max_rate_mm_s * 60.0,
+            }
+            for name, axis in core.axes.items()
+        ],
+        "laser_mode": core.machine.laser_mode,
+        "has_laser": "laser" in m.kernel.modules,
         "max_s": m.machine.settings.values().get(30, 1000.0),
-        "modules": sorted(m.kernel.modules), "commands": m.kernel.dispatcher.names(),
-        "can_control": connection.can_control, "auth_required": m.api.http.token is not None,
+        "modules": sorted(m.kernel.modules),
+        "commands": m.kernel.dispatcher.names(),
+        "can_control": connection.can_control,
+        "auth_required": m.api.http.token is not None,
         "status_rate_hz": round(1.0 / m.api.publisher.period_s, 3),
         "upload": {"url": "/upload", "max_bytes": core.jobs.max_upload_bytes},
-        "methods": sorted(METHODS), "topics": sorted(TOPICS),
+        "methods": sorted(METHODS),
+        "topics": sorted(TOPICS),
     }
 
 
@@ -208,8 +228,9 @@ _REALTIME = {"!": "hold", "~": "resume", "\x18": "reset", "\x85": "jog_cancel"}
 async def _one_line(m: Methods, connection: Connection, line: str) -> dict[str, Any]:
     text = line.strip()
     if text == "?":
-        report = StatusScheduler().report(snapshot(m.kernel, m.kernel.config.core.protocol
-                                                   .rx_buffer_bytes))
+        report = StatusScheduler().report(
+            snapshot(m.kernel, m.kernel.config.core.protocol.rx_buffer_bytes)
+        )
         return {"line": line, "reply": "ok", "messages": [report]}
     try:
         if text in _REALTIME:
@@ -223,8 +244,12 @@ async def _one_line(m: Methods, connection: Connection, line: str) -> dict[str, 
             messages = await m.submit(connection, line)
     except CommandError as exc:
         code, message, data = command_error(exc)
-        return {"line": line, "reply": f"error:{code}", "messages": [],
-                "error": {"code": code, "message": message, "meaning": data["meaning"]}}
+        return {
+            "line": line,
+            "reply": f"error:{code}",
+            "messages": [],
+            "error": {"code": code, "message": message, "meaning": data["meaning"]},
+        }
     return {"line": line, "reply": "ok", "messages": messages}
 
 
@@ -252,7 +277,9 @@ def _reset(m: Methods) -> None:
 
 
 REALTIME_ACTIONS: dict[str, Callable[[Methods], None]] = {
-    "hold": _hold, "resume": _resume, "reset": _reset,
+    "hold": _hold,
+    "resume": _resume,
+    "reset": _reset,
     "jog_cancel": lambda m: m.machine.cancel_jog(),
     "estop": lambda m: m.machine.emergency_stop(),
 }
@@ -299,8 +326,11 @@ class JogParams(Params):
 
 @method("machine.jog", JogParams, control=True)
 async def machine_jog(m: Methods, connection: Connection, params: JogParams) -> dict[str, Any]:
-    words = [f"{axis.upper()}{value:.4f}" for axis, value in
-             params.model_dump(include=set("xyzabc")).items() if value is not None]
+    words = [
+        f"{axis.upper()}{value:.4f}"
+        for axis, value in params.model_dump(include=set("xyzabc")).items()
+        if value is not None
+    ]
     if not words:
         raise RpcError(INVALID_PARAMS, "invalid params: give at least one axis distance")
     mode = "G91" if params.relative else "G90"
@@ -317,8 +347,11 @@ class OverrideParams(Params):
 @method("machine.override", OverrideParams, control=True)
 def machine_override(m: Methods, connection: Connection, params: OverrideParams) -> dict[str, Any]:
     m.machine.set_overrides(feed=params.feed, rapid=params.rapid, spindle=params.spindle)
-    return {"feed": m.machine.feed_override, "rapid": m.machine.rapid_override,
-            "spindle": m.machine.spindle_override}
+    return {
+        "feed": m.machine.feed_override,
+        "rapid": m.machine.rapid_override,
+        "spindle": m.machine.spindle_override,
+    }
 
 
 class FireParams(Params):
@@ -342,9 +375,15 @@ async def laser_off(m: Methods, connection: Connection, params: Params) -> dict[
 def settings_list(m: Methods, connection: Connection, params: Params) -> list[dict[str, Any]]:
     settings = m.machine.settings
     values = settings.values()
-    return [{"number": number, "value": values[number], "description": setting.description,
-             "writable": setting.write is not None}
-            for number, setting in sorted(settings.table.items())]
+    return [
+        {
+            "number": number,
+            "value": values[number],
+            "description": setting.description,
+            "writable": setting.write is not None,
+        }
+        for number, setting in sorted(settings.table.items())
+    ]
 
 
 class SettingParams(Params):
@@ -382,8 +421,11 @@ async def job_upload(m: Methods, connection: Connection, params: UploadParams) -
     if (params.text is None) == (params.base64 is None):
         raise RpcError(INVALID_PARAMS, "invalid params: give exactly one of text and base64")
     try:
-        data = params.text.encode() if params.text is not None else \
-            base64.b64decode(params.base64 or "", validate=True)
+        data = (
+            params.text.encode()
+            if params.text is not None
+            else base64.b64decode(params.base64 or "", validate=True)
+        )
     except binascii.Error as exc:
         raise RpcError(INVALID_PARAMS, "invalid params: base64: not valid base64") from exc
     stored = await m.kernel.jobs.save(params.name, data)
@@ -427,8 +469,9 @@ def job_progress(m: Methods, connection: Connection, params: Params) -> dict[str
 
 
 @method("job.toolpath", ToolpathParams)
-async def job_toolpath(m: Methods, connection: Connection,
-                       params: ToolpathParams) -> dict[str, Any]:
+async def job_toolpath(
+    m: Methods, connection: Connection, params: ToolpathParams
+) -> dict[str, Any]:
     path = m.kernel.jobs.path(params.name)
     try:
         info = await asyncio.to_thread(path.stat)

@@ -19,8 +19,9 @@ MAX_SEGMENT_RAD = math.pi / 2
 MAX_CHORDS = 1_000_000
 
 
-def radius_form_centre(start: Position, end: Position, plane: tuple[int, int], r_mm: float,
-                       clockwise: bool) -> tuple[float, float]:
+def radius_form_centre(
+    start: Position, end: Position, plane: tuple[int, int], r_mm: float, clockwise: bool
+) -> tuple[float, float]:
     """The centre of an R-form arc (Grbl's construction); a negative R takes the long way.
 
     Raises:
@@ -35,20 +36,22 @@ def radius_form_centre(start: Position, end: Position, plane: tuple[int, int], r
     h_squared_x4 = 4.0 * r_mm * r_mm - chord * chord
     if h_squared_x4 < 0.0:
         if h_squared_x4 < -1e-9 * chord * chord:
-            raise CommandError(ARC_RADIUS_ERROR, f"arc radius {abs(r_mm):g} mm is too small "
-                               f"for a chord of {chord:g} mm")
+            raise CommandError(
+                ARC_RADIUS_ERROR,
+                f"arc radius {abs(r_mm):g} mm is too small for a chord of {chord:g} mm",
+            )
         h_squared_x4 = 0.0  # a half circle whose R was rounded when written
     h_x2_div_d = -math.sqrt(h_squared_x4) / chord
     if not clockwise:
         h_x2_div_d = -h_x2_div_d
     if r_mm < 0.0:
         h_x2_div_d = -h_x2_div_d
-    return (start[a0] + 0.5 * (dx - dy * h_x2_div_d),
-            start[a1] + 0.5 * (dy + dx * h_x2_div_d))
+    return (start[a0] + 0.5 * (dx - dy * h_x2_div_d), start[a1] + 0.5 * (dy + dx * h_x2_div_d))
 
 
-def check_offset_radius(start: Position, end: Position, plane: tuple[int, int],
-                        centre: tuple[float, float]) -> None:
+def check_offset_radius(
+    start: Position, end: Position, plane: tuple[int, int], centre: tuple[float, float]
+) -> None:
     """Grbl's radius check for IJK arcs: start and end radii may differ by 0.005 mm, or by
     up to 0.5 mm when that is within 0.1 % of the radius.
 
@@ -60,14 +63,22 @@ def check_offset_radius(start: Position, end: Position, plane: tuple[int, int],
     r_end = math.hypot(end[a0] - centre[0], end[a1] - centre[1])
     delta = abs(r_end - r_start)
     if delta > 0.005 and (delta > 0.5 or delta > 0.001 * r_start):
-        raise CommandError(INVALID_TARGET, f"arc end point is {delta:.4f} mm off the circle "
-                           f"(radius {r_start:.4f} mm at the start, {r_end:.4f} mm at the end)")
+        raise CommandError(
+            INVALID_TARGET,
+            f"arc end point is {delta:.4f} mm off the circle "
+            f"(radius {r_start:.4f} mm at the start, {r_end:.4f} mm at the end)",
+        )
     if r_start == 0.0:
         raise CommandError(INVALID_TARGET, "arc centre equals the start point")
 
 
-def angular_travel(start: Position, end: Position, plane: tuple[int, int],
-                   centre: tuple[float, float], clockwise: bool) -> float:
+def angular_travel(
+    start: Position,
+    end: Position,
+    plane: tuple[int, int],
+    centre: tuple[float, float],
+    clockwise: bool,
+) -> float:
     """Signed angle swept from start to end (negative clockwise); end == start is a full turn."""
     a0, a1 = plane
     r0, r1 = start[a0] - centre[0], start[a1] - centre[1]
@@ -91,8 +102,14 @@ def segment_count(travel_rad: float, radius_mm: float, tolerance_mm: float) -> i
     return max(count, 1)
 
 
-def chords(start: Position, end: Position, plane: tuple[int, int], centre: tuple[float, float],
-           clockwise: bool, tolerance_mm: float) -> list[Position]:
+def chords(
+    start: Position,
+    end: Position,
+    plane: tuple[int, int],
+    centre: tuple[float, float],
+    clockwise: bool,
+    tolerance_mm: float,
+) -> list[Position]:
     """The end points of the chords tracing the arc; the last one is exactly ``end``.
 
     The radius is interpolated linearly from the start radius to the end radius (a spiral when

@@ -30,44 +30,65 @@ examples:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="motiond", description="A networked motion controller speaking Grbl 1.1 and "
-        "Smoothieware over TCP, WebSocket and serial.", epilog=EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter)
+        prog="motiond",
+        description="A networked motion controller speaking Grbl 1.1 and "
+        "Smoothieware over TCP, WebSocket and serial.",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("--version", action="version", version=f"motiond {__version__}")
-    parser.add_argument("--log-level", default="info",
-                        choices=["debug", "info", "warning", "error"], help="default: info")
+    parser.add_argument(
+        "--log-level",
+        default="info",
+        choices=["debug", "info", "warning", "error"],
+        help="default: info",
+    )
     commands = parser.add_subparsers(dest="command", metavar="COMMAND")
     serve = commands.add_parser("serve", help="run the server (the default command)")
     _serve_options(serve)
     _serve_options(parser)
     check = commands.add_parser("check-config", help="validate a config file")
     check.add_argument("file", type=Path)
-    for name, help_text in (("estimate", "estimate a job's time and extent"),
-                            ("render", "draw a job's toolpath as SVG or PNG")):
+    for name, help_text in (
+        ("estimate", "estimate a job's time and extent"),
+        ("render", "draw a job's toolpath as SVG or PNG"),
+    ):
         sub = commands.add_parser(name, help=help_text)
         sub.add_argument("file", type=Path, help="a G-code file")
         sub.add_argument("--config", type=Path, help="machine config (default: embedded)")
-        sub.add_argument("--no-limits", action="store_true",
-                         help="ignore the machine's travel (preview a job for another machine)")
+        sub.add_argument(
+            "--no-limits",
+            action="store_true",
+            help="ignore the machine's travel (preview a job for another machine)",
+        )
         if name == "estimate":
             sub.add_argument("--json", action="store_true", help="print JSON")
             sub.add_argument("--no-progress", action="store_true", help="no progress bar")
         else:
-            sub.add_argument("-o", "--output", type=Path, required=True,
-                             help="output file (.svg or .png)")
+            sub.add_argument(
+                "-o", "--output", type=Path, required=True, help="output file (.svg or .png)"
+            )
     return parser
 
 
 def _serve_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", type=Path, default=_env_path("MOTIOND_CONFIG"),
-                        help="machine config file (default: $MOTIOND_CONFIG, else embedded)")
+    parser.add_argument(
+        "--config",
+        type=Path,
+        default=_env_path("MOTIOND_CONFIG"),
+        help="machine config file (default: $MOTIOND_CONFIG, else embedded)",
+    )
     parser.add_argument("--host", help="bind address for TCP and HTTP (overrides config)")
     parser.add_argument("--tcp-port", type=int, help="raw TCP port (default 2323)")
     parser.add_argument("--http-port", type=int, help="HTTP/WebSocket port (default 8080)")
     parser.add_argument("--serial", metavar="DEVICE", help="also serve a serial device")
     parser.add_argument("--pty", metavar="PATH", help="also serve a pseudo-terminal linked at PATH")
-    parser.add_argument("--data-dir", type=Path, default=_env_path("MOTIOND_DATA_DIR"),
-                        help="job files directory (default: $MOTIOND_DATA_DIR, else config)")
+    parser.add_argument(
+        "--data-dir",
+        type=Path,
+        default=_env_path("MOTIOND_DATA_DIR"),
+        help="job files directory (default: $MOTIOND_DATA_DIR, else config)",
+    )
 
 
 def _env_path(name: str) -> Path | None:
@@ -77,8 +98,9 @@ def _env_path(name: str) -> Path | None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=args.log_level.upper(),
-                        format="%(asctime)s %(levelname)-7s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=args.log_level.upper(), format="%(asctime)s %(levelname)-7s %(name)s: %(message)s"
+    )
     try:
         if args.command == "check-config":
             return check_config(args.file)

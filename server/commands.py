@@ -34,11 +34,23 @@ class CoreCommands:
 
     def register(self, dispatcher: Dispatcher) -> None:
         locked_ok = {
-            "$": self.help, "$$": self.settings, "$=": self.write_setting, "$#": self.offsets,
-            "$G": self.modal, "$I": self.build_info, "$N": self.startup, "$N0=": self.startup_set,
-            "$N1=": self.startup_set, "$C": self.check_mode, "$X": self.unlock,
-            "$RST=": self.restore, "$SLP": self.sleep, "version": self.version,
-            "M112": self.emergency, "M999": self.unlock, "M105": self.temperature,
+            "$": self.help,
+            "$$": self.settings,
+            "$=": self.write_setting,
+            "$#": self.offsets,
+            "$G": self.modal,
+            "$I": self.build_info,
+            "$N": self.startup,
+            "$N0=": self.startup_set,
+            "$N1=": self.startup_set,
+            "$C": self.check_mode,
+            "$X": self.unlock,
+            "$RST=": self.restore,
+            "$SLP": self.sleep,
+            "version": self.version,
+            "M112": self.emergency,
+            "M999": self.unlock,
+            "M105": self.temperature,
             "M115": self.firmware_info,
         }
         for name, handler in locked_ok.items():
@@ -68,8 +80,11 @@ class CoreCommands:
 
     def build_info(self, command: Command) -> list[str]:
         core = self.kernel.config.core
-        return format_build_info(f"{BANNER_VERSION}.motiond-{__version__}",
-                                 core.planner.max_blocks, core.protocol.rx_buffer_bytes)
+        return format_build_info(
+            f"{BANNER_VERSION}.motiond-{__version__}",
+            core.planner.max_blocks,
+            core.protocol.rx_buffer_bytes,
+        )
 
     def startup(self, command: Command) -> list[str]:
         return [f"$N{n}={self.startup_lines.get(n, '')}" for n in (0, 1)]
@@ -129,12 +144,16 @@ class CoreCommands:
 
     def version(self, command: Command) -> list[str]:
         name = self.kernel.config.core.machine.name
-        return [f"Build version: motiond-{__version__}, Build date: -, MCU: python, "
-                f"System Clock: -, Grbl {BANNER_VERSION} compatible, machine: {name}"]
+        return [
+            f"Build version: motiond-{__version__}, Build date: -, MCU: python, "
+            f"System Clock: -, Grbl {BANNER_VERSION} compatible, machine: {name}"
+        ]
 
     def temperature(self, command: Command) -> list[str]:
         return ["T:0.0 /0.0 B:0.0 /0.0"]
 
     def firmware_info(self, command: Command) -> list[str]:
-        return [f"FIRMWARE_NAME:motiond {__version__} (Grbl {BANNER_VERSION} compatible) "
-                "PROTOCOL_VERSION:1.0 MACHINE_TYPE:laser/cnc EXTRUDER_COUNT:0"]
+        return [
+            f"FIRMWARE_NAME:motiond {__version__} (Grbl {BANNER_VERSION} compatible) "
+            "PROTOCOL_VERSION:1.0 MACHINE_TYPE:laser/cnc EXTRUDER_COUNT:0"
+        ]

@@ -119,8 +119,10 @@ class Dispatcher:
             return await self._dollar(stripped, text, source)
         named = _NAMED.match(stripped)
         if named and _key(named.group(1)) in self._entries:
-            return await self._run(_key(named.group(1)), Command(
-                _key(named.group(1)), text, named.group(2) or "", source))
+            return await self._run(
+                _key(named.group(1)),
+                Command(_key(named.group(1)), text, named.group(2) or "", source),
+            )
         return await self._gcode_line(text, source)
 
     async def _dollar(self, stripped: str, text: str, source: Source) -> list[str]:
@@ -184,8 +186,24 @@ def _key(name: str) -> str:
     return name.lower()
 
 
-_QUERIES = frozenset({"$", "$$", "$#", "$G", "$I", "$N", "?", "VERSION", "M114", "M119", "M105",
-                      "M115", "PROGRESS", "LS"})
+_QUERIES = frozenset(
+    {
+        "$",
+        "$$",
+        "$#",
+        "$G",
+        "$I",
+        "$N",
+        "?",
+        "VERSION",
+        "M114",
+        "M119",
+        "M105",
+        "M115",
+        "PROGRESS",
+        "LS",
+    }
+)
 
 
 def _is_query(stripped: str) -> bool:

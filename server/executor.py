@@ -49,8 +49,15 @@ class LineExecutor(NonModal):
     """Executes one line on copies of the state; read ``modal``, ``offsets``, ``position``
     and ``wco`` after :meth:`run` to commit them."""
 
-    def __init__(self, geometry: Geometry, modal: ModalState, offsets: Offsets,
-                 position: Position, words: Words, line_number: int | None) -> None:
+    def __init__(
+        self,
+        geometry: Geometry,
+        modal: ModalState,
+        offsets: Offsets,
+        position: Position,
+        words: Words,
+        line_number: int | None,
+    ) -> None:
         self.geo = geometry
         self.words = words
         self.start = modal
@@ -146,8 +153,7 @@ class LineExecutor(NonModal):
         if seconds is None:
             raise CommandError(VALUE_WORD_MISSING, "G4 needs a P word (seconds)")
         self.values_used.add("P")
-        self.before.append(Action("dwell", {"seconds": seconds}, lead_s=seconds,
-                                  stops_motion=True))
+        self.before.append(Action("dwell", {"seconds": seconds}, lead_s=seconds, stops_motion=True))
 
     def _tool_length(self) -> None:
         code = self.words.g("tool_length")
@@ -164,8 +170,9 @@ class LineExecutor(NonModal):
     def _motion(self) -> None:
         code, words = self.words.g("motion"), self.words
         explicit = code is not None and code != G80
-        other_command = any(c in AXIS_COMMANDS for k, c in words.groups.items()
-                            if k in ("non_modal", "tool_length"))
+        other_command = any(
+            c in AXIS_COMMANDS for k, c in words.groups.items() if k in ("non_modal", "tool_length")
+        )
         if not explicit and (not words.axes or other_command):
             return
         mode = self.modal.motion
@@ -238,15 +245,17 @@ class LineExecutor(NonModal):
         if target == self.position:
             raise CommandError(INVALID_TARGET, "probe target equals the current position")
         self.emit(target, MoveKind.PROBE, self._feed_mm_s(math.dist(target, self.position)))
-        self.moves.append(Sync("probe", {"towards": mode in (382, 383),
-                                         "error_on_fail": mode in (382, 384)}))
+        self.moves.append(
+            Sync("probe", {"towards": mode in (382, 383), "error_on_fail": mode in (382, 384)})
+        )
 
     # -- arcs --------------------------------------------------------------------------------
     def _plane(self) -> tuple[int, int]:
         names, index = PLANE_AXES[self.modal.plane], self.geo.axis_index
         if names[0] not in index or names[1] not in index:
-            raise CommandError(UNSUPPORTED, f"G{self.modal.plane} arcs need axes "
-                               f"{names[0]} and {names[1]}")
+            raise CommandError(
+                UNSUPPORTED, f"G{self.modal.plane} arcs need axes {names[0]} and {names[1]}"
+            )
         return index[names[0]], index[names[1]]
 
     def _arc(self, clockwise: bool) -> None:
@@ -265,8 +274,9 @@ class LineExecutor(NonModal):
             self.values_used.update(set("IJK") & values.keys())
             centre = self._offset_centre(plane)
             arcs.check_offset_radius(start, end, plane, centre)
-        points = arcs.chords(start, end, plane, centre, clockwise,
-                             self.geo.settings.arc_tolerance_mm)
+        points = arcs.chords(
+            start, end, plane, centre, clockwise, self.geo.settings.arc_tolerance_mm
+        )
         self._emit_chords(points)
 
     def _need_plane_words(self, plane: tuple[int, int]) -> None:

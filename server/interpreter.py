@@ -51,8 +51,17 @@ __all__ = ["Interpreter", "InterpreterSettings"]
 INVALID_JOG = 16
 JOG_TRAVEL_EXCEEDED = 15
 JOG_G_CODES = {200: "units", 210: "units", 900: "distance", 910: "distance", 530: "machine"}
-MOTION_NAMES = {0: "G0", 10: "G1", 20: "G2", 30: "G3", 382: "G38.2", 383: "G38.3",
-                384: "G38.4", 385: "G38.5", 800: "G80"}
+MOTION_NAMES = {
+    0: "G0",
+    10: "G1",
+    20: "G2",
+    30: "G3",
+    382: "G38.2",
+    383: "G38.3",
+    384: "G38.4",
+    385: "G38.5",
+    800: "G80",
+}
 
 
 class Interpreter:
@@ -104,8 +113,9 @@ class Interpreter:
 
     def _general_line(self, line: Line) -> list[Output]:
         words = read_words(line.words, self._geo.axis_index)
-        executor = LineExecutor(self._geo, self._modal, self._offsets, self.position, words,
-                                line.line_number)
+        executor = LineExecutor(
+            self._geo, self._modal, self._offsets, self.position, words, line.line_number
+        )
         outputs = executor.run()
         self._modal, self._offsets = executor.modal, executor.offsets
         self.position, self._wco = executor.position, executor.wco
@@ -172,8 +182,7 @@ class Interpreter:
             raise line.error
         modes, axes, feed = self._jog_words(line)
         inches = modes["units"] == 200 if "units" in modes else self._modal.inches
-        incremental = (modes["distance"] == 910 if "distance" in modes
-                       else self._modal.incremental)
+        incremental = modes["distance"] == 910 if "distance" in modes else self._modal.incremental
         target = list(self.position)
         for i, value in axes.items():
             mm = value * self._geo.inch_scale[i] if inches else value
@@ -202,8 +211,9 @@ class Interpreter:
                 if value < 0:
                     raise CommandError(4, "negative F value")
                 feed = value
-            elif letter == "G" and (code := round(value * 10)) in JOG_G_CODES \
-                    and code == value * 10:
+            elif (
+                letter == "G" and (code := round(value * 10)) in JOG_G_CODES and code == value * 10
+            ):
                 group = JOG_G_CODES[code]
                 if group in modes:
                     raise CommandError(21, f"two {group} commands in a jog")
@@ -251,10 +261,12 @@ class Interpreter:
         m = self._modal
         coolant = " ".join(c for c, on in (("M7", m.mist), ("M8", m.flood)) if on) or "M9"
         feed = m.feed / MM_PER_INCH if m.inches and not m.inverse_time else m.feed
-        return (f"[GC:{MOTION_NAMES[m.motion]} {_wcs_name(m.wcs)} G{m.plane} "
-                f"G{20 if m.inches else 21} G{91 if m.incremental else 90} "
-                f"G{93 if m.inverse_time else 94} M{int(m.tool_mode)} {coolant} T{m.tool} "
-                f"F{_number(feed)} S{_number(m.s)}]")
+        return (
+            f"[GC:{MOTION_NAMES[m.motion]} {_wcs_name(m.wcs)} G{m.plane} "
+            f"G{20 if m.inches else 21} G{91 if m.incremental else 90} "
+            f"G{93 if m.inverse_time else 94} M{int(m.tool_mode)} {coolant} T{m.tool} "
+            f"F{_number(feed)} S{_number(m.s)}]"
+        )
 
     def offsets_report(self) -> list[str]:
         """Grbl's ``$#`` lines: G54-G59, G28, G30, G92, TLO and PRB (inches with ``$13=1``)."""

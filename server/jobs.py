@@ -71,17 +71,29 @@ class Jobs:
         self._task: asyncio.Task[None] | None = None
         self._progress: JobProgress | None = None
         dispatcher = kernel.dispatcher
-        for name, handler in (("ls", self._ls), ("play", self._play), ("progress", self._status),
-                              ("abort", self._abort), ("suspend", self._suspend),
-                              ("resume", self._resume)):
+        for name, handler in (
+            ("ls", self._ls),
+            ("play", self._play),
+            ("progress", self._status),
+            ("abort", self._abort),
+            ("suspend", self._suspend),
+            ("resume", self._resume),
+        ):
             dispatcher.register(name, handler, when_locked=name in ("ls", "progress", "abort"))
 
     # -- files ------------------------------------------------------------------------------
     def path(self, name: str) -> Path:
         """The file for ``name``, refusing anything that could leave the data directory."""
         name = name.strip().removeprefix("/sd/")
-        bad = (not name or len(name) > MAX_NAME or name.startswith(".") or "\0" in name
-               or "/" in name or "\\" in name or name in ("..", "."))
+        bad = (
+            not name
+            or len(name) > MAX_NAME
+            or name.startswith(".")
+            or "\0" in name
+            or "/" in name
+            or "\\" in name
+            or name in ("..", ".")
+        )
         if bad:
             raise CommandError(FILE_ERROR, f"invalid job file name {name!r}")
         path = (self.data_dir / name).resolve()
@@ -106,8 +118,9 @@ class Jobs:
 
         return await self.save_stream(name, one_chunk(), self.max_bytes)
 
-    async def save_stream(self, name: str, chunks: AsyncIterator[bytes],
-                          limit_bytes: int) -> JobFile:
+    async def save_stream(
+        self, name: str, chunks: AsyncIterator[bytes], limit_bytes: int
+    ) -> JobFile:
         """Write a file atomically (temp file, then rename); nothing is left behind on error."""
         path = self.path(name)
         await asyncio.to_thread(self.data_dir.mkdir, parents=True, exist_ok=True)
@@ -150,8 +163,9 @@ class Jobs:
         if not path.is_file():
             raise CommandError(FILE_ERROR, f"no job file {path.name}")
         self._progress = JobProgress(path.name, "running", started_s=self.kernel.clock.now_s())
-        self._task = asyncio.get_running_loop().create_task(self._run(path, self._progress),
-                                                            name=f"job:{path.name}")
+        self._task = asyncio.get_running_loop().create_task(
+            self._run(path, self._progress), name=f"job:{path.name}"
+        )
         self._announce()
 
     def abort(self) -> None:
@@ -236,8 +250,11 @@ class Jobs:
     # -- Smoothie commands ------------------------------------------------------------------
     def _ls(self, command: Command) -> list[str]:
         sizes = "-s" in command.args
-        return [f"{'./' if f.name.lower().startswith('ok') else ''}{f.name}"
-                + (f" {f.size_bytes}" if sizes else "") for f in self.files()]
+        return [
+            f"{'./' if f.name.lower().startswith('ok') else ''}{f.name}"
+            + (f" {f.size_bytes}" if sizes else "")
+            for f in self.files()
+        ]
 
     def _play(self, command: Command) -> list[str]:
         name = command.args.split()[0] if command.args.split() else ""
@@ -249,9 +266,11 @@ class Jobs:
         if progress is None or progress.state not in ("running", "paused"):
             return ["[MSG:Not currently playing]"]
         remaining = progress.remaining_s
-        return [f"[MSG:file: {progress.name}, {progress.percent:.0f} % complete, elapsed time: "
-                f"{_clock(progress.elapsed_s)}, est time: "
-                f"{'-' if remaining is None else _clock(remaining)}]"]
+        return [
+            f"[MSG:file: {progress.name}, {progress.percent:.0f} % complete, elapsed time: "
+            f"{_clock(progress.elapsed_s)}, est time: "
+            f"{'-' if remaining is None else _clock(remaining)}]"
+        ]
 
     def _abort(self, command: Command) -> list[str]:
         self.abort()

@@ -28,7 +28,6 @@ from server.stepgen import MotionState
 log = logging.getLogger("motiond.kernel")
 
 
-
 class _Context:
     """A module's handle on the kernel (implements server.module.ModuleContext)."""
 
@@ -150,9 +149,11 @@ class Kernel:
     async def run(self) -> None:
         """Run the step generator, the second ticker and every module until :meth:`stop`."""
         async with asyncio.TaskGroup() as group:
-            tasks = [group.create_task(self.machine.run(), name="stepgen"),
-                     group.create_task(self._second_ticker(), name="second"),
-                     group.create_task(self.loop_monitor.run(), name="loop-monitor")]
+            tasks = [
+                group.create_task(self.machine.run(), name="stepgen"),
+                group.create_task(self._second_ticker(), name="second"),
+                group.create_task(self.loop_monitor.run(), name="loop-monitor"),
+            ]
             for section, module in self.modules.items():
                 tasks.append(group.create_task(self._supervise(section, module), name=section))
             self.started.set()

@@ -58,9 +58,13 @@ def build_backend(core: CoreConfig) -> Backend:
     """The backend named by ``[backend] kind``."""
     if core.backend.kind == "null":
         return NullBackend()
-    return SimBackend(core.axis_names, [axis.steps_per_mm for axis in core.axes.values()],
-                      history_samples=core.backend.history_samples,
-                      trace_csv=core.backend.trace_csv, probe_at_mm=core.backend.probe_at_mm)
+    return SimBackend(
+        core.axis_names,
+        [axis.steps_per_mm for axis in core.axes.values()],
+        history_samples=core.backend.history_samples,
+        trace_csv=core.backend.trace_csv,
+        probe_at_mm=core.backend.probe_at_mm,
+    )
 
 
 def interpreter_settings(core: CoreConfig) -> InterpreterSettings:
@@ -87,8 +91,12 @@ class Machine:
         self.interpreter.set_position(origin)
         self.planner = Planner(PlannerSettings.from_config(core), origin)
         self.stepgen = StepGenerator(
-            self.planner, self.backend, tuple(a.steps_per_mm for a in core.axes.values()), self,
-            tick_hz=core.stepgen.tick_hz)
+            self.planner,
+            self.backend,
+            tuple(a.steps_per_mm for a in core.axes.values()),
+            self,
+            tick_hz=core.stepgen.tick_hz,
+        )
         self.room = asyncio.Event()
         self.idle_event = asyncio.Event()
         self.idle_event.set()
@@ -243,8 +251,10 @@ class Machine:
         self.set_overrides(
             feed=None if feed is None else (100 if feed == 0 else self.feed_override + feed),
             rapid=rapid,
-            spindle=None if spindle is None else (
-                100 if spindle == 0 else self.spindle_override + spindle))
+            spindle=None
+            if spindle is None
+            else (100 if spindle == 0 else self.spindle_override + spindle),
+        )
 
     def toggle_coolant(self, which: str) -> None:
         """Realtime flood/mist toggle (0xA0/0xA1): at once, reflected in status ``A:``."""
@@ -297,8 +307,9 @@ class Machine:
         self.interpreter.reset()
         self.kernel.events.emit("reset")
         if moving:
-            self.kernel.alarm(ALARM_ABORT_CYCLE,
-                              "reset while in motion: position may be lost, re-home")
+            self.kernel.alarm(
+                ALARM_ABORT_CYCLE, "reset while in motion: position may be lost, re-home"
+            )
         elif self.kernel.state not in (MachineState.ALARM,):
             self.kernel.set_state(MachineState.IDLE)
 
@@ -318,8 +329,9 @@ class Machine:
         self.planner.set_position(position_mm)
         self.interpreter.set_position(position_mm)
 
-    def set_overrides(self, feed: int | None = None, rapid: int | None = None,
-                      spindle: int | None = None) -> None:
+    def set_overrides(
+        self, feed: int | None = None, rapid: int | None = None, spindle: int | None = None
+    ) -> None:
         if feed is not None:
             self.feed_override = max(10, min(200, feed))
         if rapid is not None:
@@ -327,8 +339,9 @@ class Machine:
         if spindle is not None:
             self.spindle_override = max(10, min(200, spindle))
         self.planner.set_overrides(self.feed_override / 100, self.rapid_override / 100)
-        self.kernel.events.emit("override", self.feed_override, self.rapid_override,
-                                self.spindle_override)
+        self.kernel.events.emit(
+            "override", self.feed_override, self.rapid_override, self.spindle_override
+        )
 
     # -- settings and modes -----------------------------------------------------------------
     def apply_settings(self) -> None:

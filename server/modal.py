@@ -94,9 +94,21 @@ class ModalState:
 
     def copy(self) -> ModalState:
         """A shallow copy (all fields are immutable values)."""
-        return ModalState(self.motion, self.plane, self.inches, self.incremental,
-                          self.arc_absolute, self.inverse_time, self.wcs, self.tool_mode,
-                          self.mist, self.flood, self.tool, self.feed, self.s)
+        return ModalState(
+            self.motion,
+            self.plane,
+            self.inches,
+            self.incremental,
+            self.arc_absolute,
+            self.inverse_time,
+            self.wcs,
+            self.tool_mode,
+            self.mist,
+            self.flood,
+            self.tool,
+            self.feed,
+            self.s,
+        )
 
 
 @dataclass(slots=True)
@@ -120,8 +132,16 @@ class Offsets:
 
     def copy(self) -> Offsets:
         """A shallow copy (all fields are immutable values)."""
-        return Offsets(self.wcs, self.g28, self.g30, self.g92, self.g92_saved, self.tlo_mm,
-                       self.probe, self.probe_ok)
+        return Offsets(
+            self.wcs,
+            self.g28,
+            self.g30,
+            self.g92,
+            self.g92_saved,
+            self.tlo_mm,
+            self.probe,
+            self.probe_ok,
+        )
 
     def wco(self, wcs: int, z_axis: int | None) -> Position:
         """Work coordinate offset: the WCS ``wcs`` + G92 + tool length offset on Z."""
@@ -167,8 +187,11 @@ def read_words(words: list[tuple[str, float]], axis_index: dict[str, int]) -> Wo
             _add_value(block, letter, value)
         else:
             raise CommandError(UNSUPPORTED, _unknown_letter(letter))
-    commands = [code for name, code in block.groups.items()
-                if not name.startswith("m_") and code in AXIS_COMMANDS]
+    commands = [
+        code
+        for name, code in block.groups.items()
+        if not name.startswith("m_") and code in AXIS_COMMANDS
+    ]
     if len(commands) > 1:
         raise CommandError(AXIS_COMMAND_CONFLICT, "two commands on one line use axis words")
     return block
@@ -279,11 +302,14 @@ class Geometry:
     def of(cls, settings: InterpreterSettings) -> Geometry:
         """The tables for ``settings``."""
         names = settings.axis_names
-        return cls(settings, {name: i for i, name in enumerate(names)},
-                   names.index("Z") if "Z" in names else None,
-                   tuple(MM_PER_INCH if name in "XYZ" else 1.0 for name in names),
-                   tuple(v - SOFT_LIMIT_SLACK_MM for v in settings.min_mm),
-                   tuple(v + SOFT_LIMIT_SLACK_MM for v in settings.max_mm))
+        return cls(
+            settings,
+            {name: i for i, name in enumerate(names)},
+            names.index("Z") if "Z" in names else None,
+            tuple(MM_PER_INCH if name in "XYZ" else 1.0 for name in names),
+            tuple(v - SOFT_LIMIT_SLACK_MM for v in settings.min_mm),
+            tuple(v + SOFT_LIMIT_SLACK_MM for v in settings.max_mm),
+        )
 
     def outside(self, target: Position) -> str | None:
         """Why ``target`` is outside the travel (when soft limits are on), or None."""
@@ -292,6 +318,8 @@ class Geometry:
         for i, value in enumerate(target):
             if not self.low[i] <= value <= self.high[i]:
                 s = self.settings
-                return (f"{s.axis_names[i]}{value:.3f} outside the travel "
-                        f"[{s.min_mm[i]:g}, {s.max_mm[i]:g}]")
+                return (
+                    f"{s.axis_names[i]}{value:.3f} outside the travel "
+                    f"[{s.min_mm[i]:g}, {s.max_mm[i]:g}]"
+                )
         return None

@@ -111,5 +111,3 @@ def available_modules() -> dict[str, type[Module]]:
         cls = entry.load()
         found[entry.name] = cls
     return found
-
-

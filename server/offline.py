@@ -78,8 +78,13 @@ class _Listener:
 class _Feeder:
     """Pulls outputs from the job until the planner is full; records the first error."""
 
-    def __init__(self, lines: Iterable[str], core: CoreConfig, stats: JobStats,
-                 on_line: Callable[[int], None] | None) -> None:
+    def __init__(
+        self,
+        lines: Iterable[str],
+        core: CoreConfig,
+        stats: JobStats,
+        on_line: Callable[[int], None] | None,
+    ) -> None:
         self.interpreter = Interpreter(interpreter_settings(core))
         origin = tuple(0.0 for _ in core.axis_names)
         self.interpreter.set_position(origin)
@@ -88,8 +93,9 @@ class _Feeder:
         self._outputs = self._generate(lines, on_line)
         self.done = False
 
-    def _generate(self, lines: Iterable[str],
-                  on_line: Callable[[int], None] | None) -> Iterator[Output]:
+    def _generate(
+        self, lines: Iterable[str], on_line: Callable[[int], None] | None
+    ) -> Iterator[Output]:
         for number, text in enumerate(lines, 1):
             self.stats.lines = number
             if on_line is not None:
@@ -114,18 +120,28 @@ class _Feeder:
                 planner.append_action(output)
 
 
-def _pipeline(lines: Iterable[str], core: CoreConfig, backend: Backend, stats: JobStats,
-              on_line: Callable[[int], None] | None) -> tuple[_Feeder, StepGenerator]:
+def _pipeline(
+    lines: Iterable[str],
+    core: CoreConfig,
+    backend: Backend,
+    stats: JobStats,
+    on_line: Callable[[int], None] | None,
+) -> tuple[_Feeder, StepGenerator]:
     feeder = _Feeder(lines, core, stats, on_line)
     steps_per_mm = tuple(axis.steps_per_mm for axis in core.axes.values())
-    stepgen = StepGenerator(feeder.planner, backend, steps_per_mm, _Listener(),
-                            tick_hz=core.stepgen.tick_hz)
+    stepgen = StepGenerator(
+        feeder.planner, backend, steps_per_mm, _Listener(), tick_hz=core.stepgen.tick_hz
+    )
     stepgen.before_pop = feeder.refill
     return feeder, stepgen
 
 
-def iterate_blocks(lines: Iterable[str], core: CoreConfig, stats: JobStats,
-                   on_line: Callable[[int], None] | None = None) -> Iterator[Block]:
+def iterate_blocks(
+    lines: Iterable[str],
+    core: CoreConfig,
+    stats: JobStats,
+    on_line: Callable[[int], None] | None = None,
+) -> Iterator[Block]:
     """Every block of the job in execution order, planned exactly as the server plans them."""
     feeder, stepgen = _pipeline(lines, core, NullBackend(), stats, on_line)
     while True:
@@ -138,8 +154,9 @@ def iterate_blocks(lines: Iterable[str], core: CoreConfig, stats: JobStats,
         yield block
 
 
-def estimate(lines: Iterable[str], core: CoreConfig,
-             on_line: Callable[[int], None] | None = None) -> JobStats:
+def estimate(
+    lines: Iterable[str], core: CoreConfig, on_line: Callable[[int], None] | None = None
+) -> JobStats:
     """Job time and extent without ticking (fast)."""
     stats = JobStats()
     for _ in iterate_blocks(lines, core, stats, on_line):
@@ -191,8 +208,9 @@ def _read_lines(path: Path) -> list[str]:
 def _progress(total: int, label: str, enabled: bool) -> tuple[Callable[[int], None], Any]:
     from tqdm import tqdm
 
-    bar = tqdm(total=total, unit="line", desc=label, disable=not enabled, leave=False,
-               mininterval=0.2)
+    bar = tqdm(
+        total=total, unit="line", desc=label, disable=not enabled, leave=False, mininterval=0.2
+    )
     last = [0]
 
     def update(number: int) -> None:
@@ -232,8 +250,12 @@ def describe(path: Path, stats: JobStats, axis_names: tuple[str, ...]) -> str:
         f"  max speed   {stats.max_speed_mm_s * 60:,.0f} mm/min",
     ]
     if stats.bbox_min_mm:
-        extent = "  ".join(f"{name} {low:.3f}..{high:.3f}" for name, low, high in
-                           zip(axis_names, stats.bbox_min_mm, stats.bbox_max_mm, strict=True))
+        extent = "  ".join(
+            f"{name} {low:.3f}..{high:.3f}"
+            for name, low, high in zip(
+                axis_names, stats.bbox_min_mm, stats.bbox_max_mm, strict=True
+            )
+        )
         rows.append(f"  extent      {extent}")
     if stats.error:
         rows.append(f"  STOPPED at line {stats.error_line}: {stats.error}")
@@ -260,8 +282,9 @@ def render_command(args: Any, config: Config) -> int:
     if stats.error:
         title += f" (stopped at line {stats.error_line})"
     draw(toolpath, output, title)
-    print(f"wrote {output} ({len(toolpath.feed):,} feed and "
-          f"{len(toolpath.rapid):,} rapid segments)")
+    print(
+        f"wrote {output} ({len(toolpath.feed):,} feed and {len(toolpath.rapid):,} rapid segments)"
+    )
     if stats.error:
         print(f"  stopped at line {stats.error_line}: {stats.error}", file=sys.stderr)
     return 1 if stats.error else 0

@@ -392,8 +392,10 @@ class Planner:
     def _nominals(self, feed: FloatArray, rate: FloatArray, kind: FloatArray) -> FloatArray:
         """Nominal speeds (mm/s): the feed scaled by its override, capped by the axis rate
         limit (scaled by the rapid override for rapids), never under ``min_feed_mm_s``."""
-        feed = feed * np.where(kind == _FEED_OVERRIDE, self._feed_override, 1.0)
-        rate = rate * np.where(kind == _RAPID_OVERRIDE, self._rapid_override, 1.0)
+        if self._feed_override != 1.0:
+            feed = feed * np.where(kind == _FEED_OVERRIDE, self._feed_override, 1.0)
+        if self._rapid_override != 1.0:
+            rate = rate * np.where(kind == _RAPID_OVERRIDE, self._rapid_override, 1.0)
         return np.maximum(np.minimum(feed, rate), self._settings.min_feed_mm_s)
 
     def _take_pending(self, more: list[Action]) -> list[Action]:

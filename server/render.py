@@ -61,16 +61,21 @@ def draw(path: Toolpath, output: Path, title: str) -> None:
 
     figure, axes = plt.subplots(figsize=(10, 8), dpi=120)
     if path.rapid:
-        axes.add_collection(LineCollection(path.rapid, colors="#9a9a9a", linewidths=0.5,
-                                           linestyles=(0, (3, 3)), label="rapid"))
+        axes.add_collection(
+            LineCollection(
+                path.rapid, colors="#9a9a9a", linewidths=0.5, linestyles=(0, (3, 3)), label="rapid"
+            )
+        )
     speeds_mm_min = [speed * 60.0 for speed in path.speed_mm_s]
     low, high = min(speeds_mm_min, default=0.0), max(speeds_mm_min, default=1.0)
     if high - low < 1.0:  # one speed all through: give the colour bar a readable span
         low, high = max(0.0, low - 50.0), high + 50.0
     norm = Normalize(vmin=low, vmax=high)
     colormap = matplotlib.colormaps["viridis"]
-    colours = [(*colormap(norm(speed))[:3], 0.1 + 0.9 * power)
-               for speed, power in zip(speeds_mm_min, path.relative_power(), strict=True)]
+    colours = [
+        (*colormap(norm(speed))[:3], 0.1 + 0.9 * power)
+        for speed, power in zip(speeds_mm_min, path.relative_power(), strict=True)
+    ]
     lines = LineCollection(path.feed, colors=colours, linewidths=0.9)
     axes.add_collection(lines)
     mappable = plt.cm.ScalarMappable(norm=norm, cmap=colormap)

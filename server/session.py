@@ -85,14 +85,16 @@ class Outbox:
 class Session:
     """See the module docstring. Owns one task: the line executor."""
 
-    def __init__(self, kernel: Kernel, name: str, *, websocket: bool = False,
-                 can_control: bool = True) -> None:
+    def __init__(
+        self, kernel: Kernel, name: str, *, websocket: bool = False, can_control: bool = True
+    ) -> None:
         core = kernel.config.core
         self.kernel = kernel
         self.name = name
         self.can_control = can_control
-        self.protocol = LineProtocol(line_limit=core.protocol.line_limit,
-                                     dialect=core.protocol.dialect, websocket=websocket)
+        self.protocol = LineProtocol(
+            line_limit=core.protocol.line_limit, dialect=core.protocol.dialect, websocket=websocket
+        )
         self.outbox = Outbox(core.protocol.outgoing_limit_bytes)
         self._lines: deque[tuple[int, LineReceived | LineRejected]] = deque()
         self._lines_ready = asyncio.Event()
@@ -177,9 +179,11 @@ class Session:
     def _status(self) -> str:
         core = self.kernel.config.core
         free = max(0, core.protocol.rx_buffer_bytes - self._queued_bytes)
-        return self._scheduler.report(snapshot(self.kernel, free),
-                                      report_mask=core.machine.status_report_mask,
-                                      inches=core.machine.report_inches)
+        return self._scheduler.report(
+            snapshot(self.kernel, free),
+            report_mask=core.machine.status_report_mask,
+            inches=core.machine.report_inches,
+        )
 
     # -- output -----------------------------------------------------------------------------
     def push(self, message: str) -> None:

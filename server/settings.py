@@ -73,12 +73,19 @@ def _axis(index: int, key: str, scale: float = 1.0) -> Accessors:
 def setting_table(core: CoreConfig) -> dict[int, Setting]:
     """Every setting this machine has, by number."""
     table: dict[int, Setting] = {}
-    for number, value, text in ((0, 10, "step pulse, µs"), (1, 25, "step idle delay, ms"),
-                                (2, 0, "step pulse invert"), (3, 0, "direction invert"),
-                                (4, 0, "step enable invert"), (5, 0, "limit pins invert"),
-                                (6, 0, "probe pin invert"), (21, 0, "hard limits"),
-                                (22, 0, "homing cycle"), (30, 1000, "max spindle/laser S"),
-                                (31, 0, "min spindle/laser S")):
+    for number, value, text in (
+        (0, 10, "step pulse, µs"),
+        (1, 25, "step idle delay, ms"),
+        (2, 0, "step pulse invert"),
+        (3, 0, "direction invert"),
+        (4, 0, "step enable invert"),
+        (5, 0, "limit pins invert"),
+        (6, 0, "probe pin invert"),
+        (21, 0, "hard limits"),
+        (22, 0, "homing cycle"),
+        (30, 1000, "max spindle/laser S"),
+        (31, 0, "min spindle/laser S"),
+    ):
         table[number] = _fixed(value, text)(number)
     table[10] = Setting(10, "status report mask", *_attr("machine", "status_report_mask"))
     table[11] = Setting(11, "junction deviation, mm", *_attr("planner", "junction_deviation_mm"))
@@ -87,12 +94,15 @@ def setting_table(core: CoreConfig) -> dict[int, Setting]:
     table[20] = Setting(20, "soft limits", *_bool("machine", "soft_limits"))
     table[32] = Setting(32, "laser mode", *_bool("machine", "laser_mode"))
     for index, _ in enumerate(core.axes):
-        table[100 + index] = Setting(100 + index, "steps/mm", *_axis(index, "steps_per_mm"),
-                                     geometry=True)
-        table[110 + index] = Setting(110 + index, "max rate, mm/min",
-                                     *_axis(index, "max_rate_mm_s", MM_PER_MIN))
-        table[120 + index] = Setting(120 + index, "acceleration, mm/s^2",
-                                     *_axis(index, "accel_mm_s2"))
+        table[100 + index] = Setting(
+            100 + index, "steps/mm", *_axis(index, "steps_per_mm"), geometry=True
+        )
+        table[110 + index] = Setting(
+            110 + index, "max rate, mm/min", *_axis(index, "max_rate_mm_s", MM_PER_MIN)
+        )
+        table[120 + index] = Setting(
+            120 + index, "acceleration, mm/s^2", *_axis(index, "accel_mm_s2")
+        )
         table[130 + index] = Setting(130 + index, "max travel, mm", *_travel(index), geometry=True)
     return table
 
@@ -142,8 +152,10 @@ class Settings:
 
     def values(self) -> dict[int, float | int]:
         """Every setting's value; integer and on/off settings as ints (``$10=1``, not ``1.000``)."""
-        return {number: _typed(number, setting.read(self.core))
-                for number, setting in sorted(self.table.items())}
+        return {
+            number: _typed(number, setting.read(self.core))
+            for number, setting in sorted(self.table.items())
+        }
 
     def write(self, statement: str) -> None:
         """Apply ``N=value`` (the text after ``$``); raise CommandError with Grbl's codes."""
@@ -194,8 +206,10 @@ class Settings:
     def _save(self) -> None:
         if self.path is None:
             return
-        lines = ["# Written by motiond for $x=value; delete to go back to the config file.",
-                 "[settings]"]
+        lines = [
+            "# Written by motiond for $x=value; delete to go back to the config file.",
+            "[settings]",
+        ]
         for number, setting in sorted(self.table.items()):
             if setting.write is not None:
                 lines.append(f'"{number}" = {setting.read(self.core)!r}')

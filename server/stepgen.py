@@ -98,17 +98,23 @@ class StepGenerator:
         self.tick_s = 1.0 / tick_hz
         self.start_delay_s = start_delay_s
         settings = planner.settings
-        self.replan_horizon_s = 1.5 * max(
-            rate / accel for rate, accel in zip(settings.max_rate_mm_s, settings.accel_mm_s2,
-                                                strict=True)) + 0.01
+        self.replan_horizon_s = (
+            1.5
+            * max(
+                rate / accel
+                for rate, accel in zip(settings.max_rate_mm_s, settings.accel_mm_s2, strict=True)
+            )
+            + 0.01
+        )
         self.last_input_s = -math.inf
         self.before_pop: Callable[[], None] | None = None  # offline feeders refill here
         self.probe_towards = True  # G38.2/3 stop on contact; G38.4/5 on loss of contact
         self.probe_hit = False
         self.flush_requested = False
         self.state = MotionState(position_mm=planner.position_mm)
-        self._cursor = _Cursor(steps=[round(p * s) for p, s in
-                                      zip(planner.position_mm, steps_per_mm, strict=True)])
+        self._cursor = _Cursor(
+            steps=[round(p * s) for p, s in zip(planner.position_mm, steps_per_mm, strict=True)]
+        )
         self._running = False
         self._last_tick_s: float | None = None
         self._resume_when_stopped = False
@@ -216,8 +222,11 @@ class StepGenerator:
         if not self._running:
             if len(planner) == 0:
                 return None
-            ready = (planner.is_full() or self.flush_requested
-                     or now_s - self.last_input_s >= self.start_delay_s)
+            ready = (
+                planner.is_full()
+                or self.flush_requested
+                or now_s - self.last_input_s >= self.start_delay_s
+            )
             if not ready:
                 return None
             self._running = True
@@ -269,8 +278,9 @@ class StepGenerator:
                 for action in block.actions:
                     self.listener.on_action(action)
                 block.actions = []
-                cursor.hold_accel_mm_s2 = min(cursor.hold_accel_mm_s2,
-                                              block.accel_mm_s2 or math.inf)
+                cursor.hold_accel_mm_s2 = min(
+                    cursor.hold_accel_mm_s2, block.accel_mm_s2 or math.inf
+                )
         if cursor.hold_speed_mm_s <= 0.0:
             self._set_hold(HoldState.STOPPED)
             self.listener.on_hold_stopped()
@@ -293,8 +303,10 @@ class StepGenerator:
             else:
                 distance = min(cursor.distance_mm, block.length_mm)
                 state.speed_mm_s = cursor.hold_speed_mm_s
-            position = tuple(start + unit * distance
-                             for start, unit in zip(block.start_mm, block.unit, strict=True))
+            position = tuple(
+                start + unit * distance
+                for start, unit in zip(block.start_mm, block.unit, strict=True)
+            )
             state.position_mm = position
             state.moving = True
             move = block.move
@@ -346,8 +358,9 @@ class StepGenerator:
     def rebase(self, position_mm: Position) -> None:
         """Declare the tool to be at ``position_mm`` without moving (homing); idle only."""
         self.state.position_mm = position_mm
-        self._cursor.steps = [round(p * s) for p, s in
-                              zip(position_mm, self.steps_per_mm, strict=True)]
+        self._cursor.steps = [
+            round(p * s) for p, s in zip(position_mm, self.steps_per_mm, strict=True)
+        ]
 
     @property
     def steps(self) -> tuple[int, ...]:

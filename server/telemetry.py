@@ -35,10 +35,19 @@ log = logging.getLogger("motiond.telemetry")
 QUEUE_FRAMES = 256
 TOPICS = frozenset({"status", "telemetry", "console", "job"})
 CUTTING = frozenset({MoveKind.FEED, MoveKind.ARC, MoveKind.PROBE})
-_WAKE_EVENTS = ("state", "halt", "clear_halt", "hold", "hold_stopped", "resume", "override",
-                "action", "program_end", "job")
-_BUSY_STATES = frozenset({MachineState.RUN, MachineState.JOG, MachineState.HOME,
-                          MachineState.HOLD})
+_WAKE_EVENTS = (
+    "state",
+    "halt",
+    "clear_halt",
+    "hold",
+    "hold_stopped",
+    "resume",
+    "override",
+    "action",
+    "program_end",
+    "job",
+)
+_BUSY_STATES = frozenset({MachineState.RUN, MachineState.JOG, MachineState.HOME, MachineState.HOLD})
 
 
 def encode(message: dict[str, Any]) -> str:
@@ -142,8 +151,9 @@ class Publisher:
     async def run(self) -> None:
         """Publish until cancelled."""
         events = self.kernel.events
-        self._unsubscribe = [events.subscribe(name, lambda *_: self.wake())
-                             for name in _WAKE_EVENTS]
+        self._unsubscribe = [
+            events.subscribe(name, lambda *_: self.wake()) for name in _WAKE_EVENTS
+        ]
         self._unsubscribe.append(events.subscribe("push", self._on_push))
         self._unsubscribe.append(events.subscribe("job", self._on_job))
         loop = asyncio.get_running_loop()
@@ -184,8 +194,9 @@ class Publisher:
     def busy(self) -> bool:
         """Whether things are about to change: motion queued, a cycle or a job under way."""
         kernel = self.kernel
-        return (kernel.state in _BUSY_STATES or len(kernel.machine.planner) > 0
-                or kernel.jobs.running)
+        return (
+            kernel.state in _BUSY_STATES or len(kernel.machine.planner) > 0 or kernel.jobs.running
+        )
 
     def _on_push(self, message: str) -> None:
         self.broadcast("console", "notify_gcode_response", {"message": message})
@@ -205,8 +216,11 @@ def build_status(kernel: Kernel) -> dict[str, Any]:
     mpos = motion.position_mm
     alarm = None
     if kernel.state is MachineState.ALARM:
-        alarm = {"code": kernel.alarm_code, "message": kernel.alarm_message,
-                 "meaning": ALARM_MESSAGES.get(kernel.alarm_code, "")}
+        alarm = {
+            "code": kernel.alarm_code,
+            "message": kernel.alarm_message,
+            "meaning": ALARM_MESSAGES.get(kernel.alarm_code, ""),
+        }
     progress = kernel.jobs.progress()
     return {
         "state": state_text(kernel),
@@ -216,13 +230,20 @@ def build_status(kernel: Kernel) -> dict[str, Any]:
         "wco": _round(interpreter.wco()),
         "speed_mm_min": round(motion.speed_mm_s * 60.0, 1),
         "power_pct": round(laser_power_pct(kernel), 1),
-        "tool": {"mode": f"M{int(machine.tool.mode)}", "s": machine.tool.s,
-                 "flood": machine.tool.flood, "mist": machine.tool.mist},
+        "tool": {
+            "mode": f"M{int(machine.tool.mode)}",
+            "s": machine.tool.s,
+            "flood": machine.tool.flood,
+            "mist": machine.tool.mist,
+        },
         "moving": motion.moving,
         "queue_depth": len(machine.planner),
         "line": motion.line_number if motion.moving else None,
-        "overrides": {"feed": machine.feed_override, "rapid": machine.rapid_override,
-                      "spindle": machine.spindle_override},
+        "overrides": {
+            "feed": machine.feed_override,
+            "rapid": machine.rapid_override,
+            "spindle": machine.spindle_override,
+        },
         "modal": interpreter.modal_snapshot(),
         "job": None if progress is None else job_dict(progress),
         "modules": {name: module.status() for name, module in kernel.modules.items()},
@@ -232,10 +253,12 @@ def build_status(kernel: Kernel) -> dict[str, Any]:
 def telemetry_sample(kernel: Kernel) -> dict[str, Any]:
     """One point for the live plots: machine time, speed and laser power."""
     motion = kernel.machine.stepgen.state
-    return {"t_s": round(kernel.clock.now_s(), 4),
-            "speed_mm_min": round(motion.speed_mm_s * 60.0, 1),
-            "power_pct": round(laser_power_pct(kernel), 1),
-            "s": motion.s_value if motion.moving else kernel.machine.tool.s}
+    return {
+        "t_s": round(kernel.clock.now_s(), 4),
+        "speed_mm_min": round(motion.speed_mm_s * 60.0, 1),
+        "power_pct": round(laser_power_pct(kernel), 1),
+        "s": motion.s_value if motion.moving else kernel.machine.tool.s,
+    }
 
 
 def laser_power_pct(kernel: Kernel) -> float:

@@ -60,7 +60,7 @@ class Decimator:
 
     @property
     def tolerance_mm(self) -> float:
-        return BASE_TOLERANCE_MM * 4.0 ** self.level
+        return BASE_TOLERANCE_MM * 4.0**self.level
 
     def add(self, segment: Segment) -> None:
         length = math.hypot(segment.x1 - segment.x0, segment.y1 - segment.y0)
@@ -96,10 +96,21 @@ class Decimator:
 
     def _start(self, segment: Segment) -> None:
         length = math.hypot(segment.x1 - segment.x0, segment.y1 - segment.y0) or 1.0
-        copy = Segment(segment.x0, segment.y0, segment.x1, segment.y1, segment.kind,
-                       segment.speed_mm_min, segment.power_pct)
-        self._run = _Run(copy, (segment.x1 - segment.x0) / length,
-                         (segment.y1 - segment.y0) / length, self._key(segment))
+        copy = Segment(
+            segment.x0,
+            segment.y0,
+            segment.x1,
+            segment.y1,
+            segment.kind,
+            segment.speed_mm_min,
+            segment.power_pct,
+        )
+        self._run = _Run(
+            copy,
+            (segment.x1 - segment.x0) / length,
+            (segment.y1 - segment.y0) / length,
+            self._key(segment),
+        )
 
     def _flush(self) -> None:
         if self._run is not None:
@@ -113,9 +124,12 @@ class Decimator:
         if level >= 4 and segment.kind != GAP:  # far over budget: shape only
             return (CUT, 0, 0)
         power_levels = max(1, 16 >> level)
-        speed_ratio = 1.05 ** (2 ** level)
-        speed_bin = int(math.log(segment.speed_mm_min) / math.log(speed_ratio)) \
-            if segment.speed_mm_min > 0 else -1
+        speed_ratio = 1.05 ** (2**level)
+        speed_bin = (
+            int(math.log(segment.speed_mm_min) / math.log(speed_ratio))
+            if segment.speed_mm_min > 0
+            else -1
+        )
         return (segment.kind, speed_bin, round(segment.power_pct / 100.0 * power_levels))
 
     def _coarsen(self) -> None:
@@ -142,15 +156,24 @@ def plan_toolpath(lines: Iterable[str], core: CoreConfig, max_segments: int) -> 
         travel = move.kind in TRAVEL_KINDS
         on = move.tool_mode is not ToolMode.OFF and not travel
         power = min(100.0, max(0.0, move.s_value / max_s * 100.0)) if on else 0.0
-        decimator.add(Segment(block.start_mm[0], block.start_mm[1], block.end_mm[0],
-                              block.end_mm[1], RAPID if travel else CUT,
-                              block.cruise_mm_s * 60.0, power))
+        decimator.add(
+            Segment(
+                block.start_mm[0],
+                block.start_mm[1],
+                block.end_mm[0],
+                block.end_mm[1],
+                RAPID if travel else CUT,
+                block.cruise_mm_s * 60.0,
+                power,
+            )
+        )
     segments = decimator.finish()
     return _describe(segments, stats, end, decimator)
 
 
-def _describe(segments: list[Segment], stats: JobStats, end: tuple[float, ...],
-              decimator: Decimator) -> dict[str, Any]:
+def _describe(
+    segments: list[Segment], stats: JobStats, end: tuple[float, ...], decimator: Decimator
+) -> dict[str, Any]:
     points: list[float] = []
     if segments:
         points += [round(segments[0].x0, 3), round(segments[0].y0, 3)]
@@ -163,8 +186,10 @@ def _describe(segments: list[Segment], stats: JobStats, end: tuple[float, ...],
         "kinds": [segment.kind for segment in segments],
         "speeds": [round(segment.speed_mm_min) for segment in segments],
         "powers": [round(segment.power_pct, 1) for segment in segments],
-        "bounds": {"min": [min(xs, default=0.0), min(ys, default=0.0)],
-                   "max": [max(xs, default=0.0), max(ys, default=0.0)]},
+        "bounds": {
+            "min": [min(xs, default=0.0), min(ys, default=0.0)],
+            "max": [max(xs, default=0.0), max(ys, default=0.0)],
+        },
         "end": [round(value, 3) for value in end],
         "duration_s": round(stats.duration_s, 2),
         "cut_mm": round(stats.cut_mm, 1),

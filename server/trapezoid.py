@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from functools import reduce
 from operator import mul
 
 import numpy as np
@@ -44,6 +45,8 @@ import numpy.typing as npt
 FloatArray = npt.NDArray[np.float64]
 
 PROFILE_ROWS = 7
+STILL_LIMIT = 1e150
+"""Speed and acceleration limit of a zero-length block (see :func:`axis_limits`)."""
 """Rows of the plan: entry, cruise, exit speed (mm/s); ramp1, flat, ramp2, total time (s)."""
 
 
@@ -71,15 +74,14 @@ def axis_limits(
 
     ``unit`` is (axes, blocks); ``inv_rate`` and ``inv_accel`` hold 1/limit per axis, shaped
     (axes, 1). The limit along ``u`` is ``min_i limit_i/|u_i|``. A zero vector (a zero-length
-    block) gets an infinite speed and an acceleration of 1 (any positive value serves).
+    block) gets :data:`STILL_LIMIT` for both: finite, so ``2·a·d`` is 0 and a ramp without a
+    change of speed takes no time, and small enough that its square is finite.
     """
     size = np.abs(unit)
-    rate_inv = (size * inv_rate).max(axis=0)
-    accel_inv = (size * inv_accel).max(axis=0)
-    moving = rate_inv > 0.0
-    rate = np.divide(1.0, rate_inv, out=np.full(rate_inv.shape, np.inf), where=moving)
-    accel = np.divide(1.0, accel_inv, out=np.ones(accel_inv.shape), where=moving)
-    return rate, accel
+    rate_inv = reduce(np.maximum, size * inv_rate)
+    accel_inv = reduce(np.maximum, size * inv_accel)
+    floor = 1.0 / STILL_LIMIT
+    return 1.0 / np.maximum(rate_inv, floor), 1.0 / np.maximum(accel_inv, floor)
 
 
 def junction_speeds_sq(
@@ -89,7 +91,7 @@ def junction_speeds_sq(
     deviation_mm: float,
 ) -> FloatArray:
     """:func:`junction_speed_sq` for many junctions at once; units are (axes, junctions)."""
-    cos_theta = -np.einsum("ij,ij->j", prev_unit, unit)
+    cos_theta = -(prev_unit * unit).sum(axis=0)
     sin_half = np.sqrt(np.maximum(0.5 * (1.0 - cos_theta), 0.0))
     limit = accel_mm_s2 * deviation_mm * sin_half / np.maximum(1.0 - sin_half, 1e-300)
     limit[cos_theta > 0.999999] = 0.0

@@ -100,6 +100,7 @@ class SimBackend:
     def _write_trace(self, path: Path, rows: list[tuple[float, ...]]) -> None:
         with path.open("w", newline="") as handle:
             writer = csv.writer(handle)
-            writer.writerow(["time_s", *(f"{a.lower()}_mm" for a in self.axis_names),
-                             "speed_mm_s", "power"])
+            writer.writerow(
+                ["time_s", *(f"{a.lower()}_mm" for a in self.axis_names), "speed_mm_s", "power"]
+            )
             writer.writerows(rows)

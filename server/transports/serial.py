@@ -68,7 +68,8 @@ class SerialTransport:
         while True:
             try:
                 reader, writer = await serial_asyncio.open_serial_connection(
-                    url=device, baudrate=self.config.baud)
+                    url=device, baudrate=self.config.baud
+                )
             except (OSError, ValueError) as exc:
                 log.warning("cannot open %s (%s); retrying", device, exc)
                 await asyncio.sleep(1.0)

@@ -65,8 +65,9 @@ class TcpTransport:
             log.info("%s disconnected", session.name)
 
 
-async def serve_stream(session: Session, reader: asyncio.StreamReader,
-                       writer: asyncio.StreamWriter) -> None:
+async def serve_stream(
+    session: Session, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
+) -> None:
     """Pump bytes between a stream pair and a session until either side ends."""
     session.outbox.on_overflow = writer.transport.abort
     session.start()

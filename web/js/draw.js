@@ -1,0 +1,167 @@
+// Drawing helpers for the toolpath view: the speed palette, the grid, the planned and cut path,
+// and the tool. All take a 2D context already scaled to CSS pixels and a view transform
+// {scale, tx, ty}: screen x = x * scale + tx, screen y = -y * scale + ty (Y up, like the machine).
+
+const STOPS = ["#4f46e5", "#0ea5e9", "#22c55e", "#eab308", "#f97316", "#ef4444"];
+export const BUCKETS = 24;
+const RAPID = 0;
+const CUT = 1;
+
+function hex(color) {
+  return [1, 3, 5].map((i) => parseInt(color.slice(i, i + 2), 16));
+}
+
+/** BUCKETS colours from slow (indigo) to fast (red). */
+export const PALETTE = Array.from({ length: BUCKETS }, (_, i) => {
+  const t = (i / (BUCKETS - 1)) * (STOPS.length - 1);
+  const k = Math.min(STOPS.length - 2, Math.floor(t));
+  const a = hex(STOPS[k]);
+  const b = hex(STOPS[k + 1]);
+  const f = t - k;
+  return a.map((v, j) => Math.round(v + (b[j] - v) * f));
+});
+
+export const sx = (view, x) => x * view.scale + view.tx;
+export const sy = (view, y) => -y * view.scale + view.ty;
+
+/** Group segments by colour and opacity so the whole path is a few dozen strokes. */
+export function bucketize(path) {
+  const { kinds, speeds, powers } = path;
+  let low = Infinity;
+  let high = -Infinity;
+  let maxPower = 0;
+  kinds.forEach((kind, i) => {
+    if (kind !== CUT) return;
+    low = Math.min(low, speeds[i]);
+    high = Math.max(high, speeds[i]);
+    maxPower = Math.max(maxPower, powers[i]);
+  });
+  if (!Number.isFinite(low)) { low = 0; high = 1; }
+  const span = Math.max(1, high - low);
+  const groups = new Map();
+  const rapids = [];
+  kinds.forEach((kind, i) => {
+    if (kind === RAPID) { rapids.push(i); return; }
+    if (kind !== CUT) return;
+    const colour = Math.round(((speeds[i] - low) / span) * (BUCKETS - 1));
+    const level = maxPower > 0 ? (powers[i] > 0 ? 1 + Math.round((2 * powers[i]) / maxPower) : 0) : 3;
+    const key = colour * 4 + level;
+    if (!groups.has(key)) groups.set(key, []);
+    groups.get(key).push(i);
+  });
+  return { groups, rapids, low, high, maxPower };
+}
+
+const ALPHA = [0.22, 0.55, 0.78, 1.0];
+
+export function drawPath(ctx, view, path, buckets) {
+  const p = path.pointArray;
+  ctx.lineCap = "round";
+  ctx.lineJoin = "round";
+  ctx.setLineDash([4, 4]);
+  ctx.lineWidth = 1;
+  ctx.strokeStyle = "rgba(148, 163, 184, 0.35)";
+  strokeSegments(ctx, view, p, buckets.rapids);
+  ctx.setLineDash([]);
+  ctx.lineWidth = 1.4;
+  for (const [key, indices] of buckets.groups) {
+    const [r, g, b] = PALETTE[Math.floor(key / 4)];
+    ctx.strokeStyle = `rgba(${r}, ${g}, ${b}, ${ALPHA[key % 4]})`;
+    strokeSegments(ctx, view, p, indices);
+  }
+}
+
+/** The part already cut, drawn over the plan (segments first..last-1 that cut). */
+export function drawDone(ctx, view, path, first, last) {
+  const p = path.pointArray;
+  ctx.lineCap = "round";
+  ctx.lineJoin = "round";
+  ctx.setLineDash([]);
+  ctx.lineWidth = 2;
+  ctx.strokeStyle = "rgba(255, 244, 230, 0.92)";
+  ctx.shadowColor = "rgba(251, 146, 60, 0.8)";
+  ctx.shadowBlur = 4;
+  const indices = [];
+  for (let i = first; i < last; i++) if (path.kinds[i] === CUT) indices.push(i);
+  strokeSegments(ctx, view, p, indices);
+  ctx.shadowBlur = 0;
+}
+
+function strokeSegments(ctx, view, p, indices) {
+  ctx.beginPath();
+  let previous = -2;
+  for (const i of indices) {
+    if (i !== previous + 1) ctx.moveTo(sx(view, p[2 * i]), sy(view, p[2 * i + 1]));
+    ctx.lineTo(sx(view, p[2 * i + 2]), sy(view, p[2 * i + 3]));
+    previous = i;
+  }
+  ctx.stroke();
+}
+
+/** A grid whose spacing suits the zoom, the work origin, and the machine's travel. */
+export function drawGrid(ctx, view, width, height, travel) {
+  const steps = [0.1, 0.2, 0.5, 1, 2, 5, 10, 20, 50, 100, 200, 500, 1000];
+  const step = steps.find((s) => s * view.scale >= 28) || 1000;
+  const x0 = Math.floor(-view.tx / view.scale / step) * step;
+  const x1 = (width - view.tx) / view.scale;
+  const y0 = Math.floor((view.ty - height) / view.scale / step) * step;
+  const y1 = view.ty / view.scale;
+  ctx.lineWidth = 1;
+  for (let x = x0; x <= x1; x += step) line(ctx, sx(view, x), 0, sx(view, x), height, gridColour(x, step));
+  for (let y = y0; y <= y1; y += step) line(ctx, 0, sy(view, y), width, sy(view, y), gridColour(y, step));
+  line(ctx, sx(view, 0), 0, sx(view, 0), height, "rgba(74, 222, 128, 0.35)");
+  line(ctx, 0, sy(view, 0), width, sy(view, 0), "rgba(248, 113, 113, 0.35)");
+  if (travel) {
+    ctx.setLineDash([6, 5]);
+    ctx.strokeStyle = "rgba(96, 165, 250, 0.45)";
+    const left = sx(view, travel.x0);
+    const top = sy(view, travel.y1);
+    ctx.strokeRect(left, top, (travel.x1 - travel.x0) * view.scale, (travel.y1 - travel.y0) * view.scale);
+    ctx.setLineDash([]);
+    ctx.fillStyle = "rgba(96, 165, 250, 0.6)";
+    ctx.font = "11px system-ui, sans-serif";
+    ctx.fillText("machine travel", left + 6, top + 14);
+  }
+  ctx.fillStyle = "rgba(140, 154, 171, 0.8)";
+  ctx.font = "11px ui-monospace, monospace";
+  ctx.fillText(`grid ${step} mm`, 10, height - 10);
+}
+
+function gridColour(value, step) {
+  const major = Math.abs(Math.round(value / step) % 5) === 0;
+  return major ? "rgba(148, 163, 184, 0.13)" : "rgba(148, 163, 184, 0.055)";
+}
+
+function line(ctx, x0, y0, x1, y1, colour) {
+  ctx.strokeStyle = colour;
+  ctx.beginPath();
+  ctx.moveTo(Math.round(x0) + 0.5, Math.round(y0) + 0.5);
+  ctx.lineTo(Math.round(x1) + 0.5, Math.round(y1) + 0.5);
+  ctx.stroke();
+}
+
+/** The tool: a crosshair, glowing with the laser's power. */
+export function drawTool(ctx, view, x, y, powerPct) {
+  const px = sx(view, x);
+  const py = sy(view, y);
+  if (powerPct > 0) {
+    const radius = 8 + 18 * Math.min(1, powerPct / 100);
+    const glow = ctx.createRadialGradient(px, py, 0, px, py, radius);
+    glow.addColorStop(0, "rgba(255, 255, 255, 0.95)");
+    glow.addColorStop(0.25, "rgba(244, 63, 94, 0.9)");
+    glow.addColorStop(1, "rgba(244, 63, 94, 0)");
+    ctx.fillStyle = glow;
+    ctx.beginPath();
+    ctx.arc(px, py, radius, 0, 2 * Math.PI);
+    ctx.fill();
+  }
+  ctx.strokeStyle = powerPct > 0 ? "#fff" : "#e2e8f0";
+  ctx.lineWidth = 1.5;
+  ctx.beginPath();
+  ctx.arc(px, py, 6, 0, 2 * Math.PI);
+  ctx.moveTo(px - 12, py); ctx.lineTo(px - 3, py);
+  ctx.moveTo(px + 3, py); ctx.lineTo(px + 12, py);
+  ctx.moveTo(px, py - 12); ctx.lineTo(px, py - 3);
+  ctx.moveTo(px, py + 3); ctx.lineTo(px, py + 12);
+  ctx.stroke();
+}
