@@ -10,6 +10,9 @@ A block's motion has three phases: a first ramp from ``entry_mm_s`` to ``cruise_
 last one decelerates; when an override lowered the nominal speed below the speed motion already
 has, the first ramp decelerates instead (at the same rate ``accel_mm_s2``). A zero-length block
 (``move`` is None) carries actions only and stands still for ``lead_s`` (a dwell) or no time.
+
+:class:`BlockColumns` is the planner's storage for the blocks still waiting: their numbers as
+columns of one numpy array, so a re-plan is a handful of array operations.
 """
 
 from __future__ import annotations

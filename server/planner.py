@@ -205,11 +205,12 @@ class Planner:
 
         Never full with fewer than two blocks, so a single very long move can always queue.
         """
-        count = len(self._columns)
+        columns, limits = self._columns, self._settings
+        count = columns.tail - columns.head
         if count < 2:
             return False
-        limits = self._settings
-        return count >= limits.max_blocks or self.planned_time_s() >= limits.max_planned_s
+        planned_s = self._time_planned_s + self._time_estimate_s
+        return count >= limits.max_blocks or planned_s >= limits.max_planned_s
 
     def planned_time_s(self) -> float:
         """Seconds of queued motion: planned durations, plus a lower bound (the time at the

@@ -6,7 +6,7 @@ motion stops). Per block ``k`` the inputs are its length ``d_k`` (mm), accelerat
 (mm/s²), nominal speed (mm/s), junction limit ``J_k`` on the square of its entry speed
 (mm²/s², the junction-deviation limit against block ``k-1``; ignored for ``k = 0`` whose entry
 is fixed to the start speed) and lead time (s). Zero-length blocks use ``d = 0`` with any
-positive ``a`` and an infinite nominal speed.
+positive ``a`` and a huge nominal speed.
 
 The passes work on squared speeds, where a full-rate ramp over block ``k`` changes ``v²`` by
 ``2·a_k·d_k``. With ``C[i] = Σ_{k<i} 2·a_k·d_k`` and node caps ``L[i]`` (junction limit and both
@@ -23,9 +23,10 @@ block in motion): acceleration limits then win over the caps, which are exceeded
 distance as physics allows. ``F`` is feasible both ways (``|F[i+1] − F[i]| ≤ 2·a_i·d_i``), so
 every block's ramps fit in its length.
 
-Rounding: the prefix form carries an absolute error in ``v²`` of a few ulps of ``C[n]`` (about
-1e-11 mm²/s² for a 0.5 s window at 1,000 mm/s²). Clamping with ``B ≤ L`` and ``F ≤ V``, which
-hold exactly in real arithmetic, makes every speed that is set by its own cap exact.
+Rounding: the prefix form carries an absolute error in ``v²`` of a few ulps of ``C[n]`` (250 mm
+of window at 1,000 mm/s² gives ``C[n] = 5e5`` mm²/s², so about 1e-10 mm²/s²). Clamping with
+``B ≤ L`` and ``F ≤ V``, which hold exactly in real arithmetic, makes every speed that is set by
+its own cap exact, and stops (caps of 0) are exact anyway.
 
 :func:`plan_window` does this with a handful of numpy operations over the whole window;
 :func:`plan_window_reference` is the same computation written as the classic per-block loops,
@@ -45,9 +46,9 @@ import numpy.typing as npt
 FloatArray = npt.NDArray[np.float64]
 
 PROFILE_ROWS = 7
+"""Rows of the plan: entry, cruise, exit speed (mm/s); ramp1, flat, ramp2, total time (s)."""
 STILL_LIMIT = 1e150
 """Speed and acceleration limit of a zero-length block (see :func:`axis_limits`)."""
-"""Rows of the plan: entry, cruise, exit speed (mm/s); ramp1, flat, ramp2, total time (s)."""
 
 
 def junction_speed_sq(
@@ -91,9 +92,9 @@ def junction_speeds_sq(
     deviation_mm: float,
 ) -> FloatArray:
     """:func:`junction_speed_sq` for many junctions at once; units are (axes, junctions)."""
-    cos_theta = -(prev_unit * unit).sum(axis=0)
+    cos_theta: FloatArray = -(prev_unit * unit).sum(axis=0)
     sin_half = np.sqrt(np.maximum(0.5 * (1.0 - cos_theta), 0.0))
-    limit = accel_mm_s2 * deviation_mm * sin_half / np.maximum(1.0 - sin_half, 1e-300)
+    limit: FloatArray = accel_mm_s2 * deviation_mm * sin_half / np.maximum(1.0 - sin_half, 1e-300)
     limit[cos_theta > 0.999999] = 0.0
     limit[cos_theta < -0.999999] = np.inf
     return limit
@@ -117,7 +118,7 @@ def plan_window(
     two_ad = 2.0 * accel_mm_s2 * length_mm
     cum = np.empty(n + 1)
     cum[0] = 0.0
-    np.cumsum(two_ad, out=cum[1:])
+    np.add.accumulate(two_ad, out=cum[1:])
     nominal_sq = nominal_mm_s * nominal_mm_s
     caps = np.empty(n + 1)
     caps[0] = np.inf

@@ -60,6 +60,8 @@ def assert_kinematics(blocks: list[Block], start_mm_s: float = 0.0) -> None:
             limit = block.accel_mm_s2 * step_s * (1 + 1e-9) + 1e-12
             assert np.all(np.abs(np.diff(speeds)) <= limit)
             assert np.all(speeds >= 0.0)
+            distances = np.array([block.distance_at(t) for t in times])
+            assert np.all(np.diff(distances) >= 0.0)
         speed = block.speed_at(block.duration_s)
         assert abs(speed - block.exit_mm_s) <= 1e-9
     assert speed <= 1e-9, "motion stops at the end of the queue"
@@ -279,8 +281,9 @@ def test_the_numpy_prefix_scans_equal_the_plain_python_passes(
     junction = [rng.choice([0.0, 1.0, 100.0, math.inf]) for _ in blocks]
     lead = [0.0] * len(blocks)
     out = np.empty((7, len(blocks)))
-    arrays = [np.array(column) for column in (length, accel, nominal, junction, lead)]
-    plan_window(*arrays, start_mm_s, out)
+    arrays = (np.array(column) for column in (length, accel, nominal, junction, lead))
+    length_a, accel_a, nominal_a, junction_a, lead_a = arrays
+    plan_window(length_a, accel_a, nominal_a, junction_a, lead_a, start_mm_s, out)
     expected = plan_window_reference(length, accel, nominal, junction, lead, start_mm_s)
     scale_sq = 2 * sum(a * d for a, d in zip(accel, length, strict=True)) + start_mm_s**2 + 1.0
     speeds_sq, expected_sq = out[:3] ** 2, np.array(expected[:3]) ** 2  # v² is what is summed

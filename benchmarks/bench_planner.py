@@ -1,0 +1,157 @@
+"""Planner cost: re-planning a full window, and the append/pop pipeline around it.
+
+* re-plan: :meth:`Planner.plan` over 4,096 queued blocks (a raster of short zig-zag segments),
+  against the same backward/forward passes and trapezoids written as plain-Python loops
+  (:func:`server.trapezoid.plan_window_reference`) on the same window, side by side in this
+  process (interleaved rounds, best CPU time of each);
+* pipeline: append + pop per block through a window kept full, re-planning whenever the last
+  plan's look-ahead runs short (as the step generator does), in blocks/s.
+
+Run: ``python -m benchmarks.bench_planner [--blocks N] [--rounds R]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import replace
+from functools import partial
+
+from benchmarks.common import side_by_side
+from server.moves import Move, MoveKind
+from server.planner import (
+    ACCEL,
+    DURATION,
+    ENTRY,
+    JUNCTION,
+    LEAD,
+    LENGTH,
+    NOMINAL,
+    Planner,
+    PlannerSettings,
+)
+from server.trapezoid import plan_window_reference
+
+MACHINE = PlannerSettings(
+    max_rate_mm_s=(500.0, 500.0, 10.0),
+    accel_mm_s2=(3000.0, 3000.0, 200.0),
+    max_blocks=4096,
+    max_planned_s=1e9,  # bound the window by count only
+)
+
+
+def raster(count: int) -> list[Move]:
+    """Short segments along X with a small Y wiggle, varying feeds (laser-raster-like)."""
+    moves = []
+    for k in range(1, count + 1):
+        feed_mm_s = (50.0, 150.0, 400.0)[k % 3]
+        moves.append(Move((0.2 * k, 0.05 * (k % 2), 0.0), feed_mm_s, MoveKind.FEED))
+    return moves
+
+
+def full_window(blocks: int) -> Planner:
+    planner = Planner(MACHINE, (0.0, 0.0, 0.0))
+    for move in raster(blocks):
+        planner.append(move)
+    planner.plan()
+    return planner
+
+
+def replan(planner: Planner, times: int) -> None:
+    """Force ``times`` full re-plans (alternating the start speed marks the window changed)."""
+    for index in range(times):
+        planner.set_start_speed(1e-3 * (index & 1))
+        planner.plan()
+
+
+Inputs = tuple[list[float], list[float], list[float], list[float], list[float]]
+
+
+def reference_inputs(planner: Planner) -> Inputs:
+    """Length, acceleration, nominal speed, junction limit and lead time of every block."""
+    window = planner._columns.window()  # the benchmark reads the same numbers plan() uses
+    rows = (window[row].tolist() for row in (LENGTH, ACCEL, NOMINAL, JUNCTION, LEAD))
+    length, accel, nominal, junction, lead = rows
+    return length, accel, nominal, junction, lead
+
+
+def reference_replan(inputs: Inputs, times: int) -> None:
+    for index in range(times):
+        plan_window_reference(*inputs, start_mm_s=1e-3 * (index & 1))
+
+
+def check_same_plan(planner: Planner, inputs: Inputs) -> float:
+    """Largest difference in block duration (s) between the numpy plan and the loops."""
+    planner.set_start_speed(0.0)
+    planner.plan()
+    ours = planner._columns.window()[DURATION].tolist()
+    theirs = plan_window_reference(*inputs, start_mm_s=0.0)[DURATION - ENTRY]
+    return max(abs(a - b) for a, b in zip(ours, theirs, strict=True))
+
+
+def pipeline(machine: PlannerSettings, moves: list[Move], horizon_s: float) -> int:
+    """Append and pop every move through a full window; re-plan when look-ahead runs short."""
+    planner = Planner(machine, (0.0, 0.0, 0.0))
+    popped = 0
+    for move in moves:
+        planner.append(move)
+        if planner.is_full():
+            if planner.planned_ahead_s() < horizon_s:
+                planner.plan()
+            planner.pop()
+            popped += 1
+    planner.plan()
+    while planner.pop() is not None:
+        popped += 1
+    return popped
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--blocks", type=int, default=4096)
+    parser.add_argument("--rounds", type=int, default=7)
+    args = parser.parse_args()
+    blocks, rounds = args.blocks, args.rounds
+
+    planner = full_window(blocks)
+    inputs = reference_inputs(planner)
+    ours_times, reference_times = 50, 2
+    ours_s, reference_s = side_by_side(
+        rounds,
+        lambda: replan(planner, ours_times),
+        lambda: reference_replan(inputs, reference_times),
+    )
+    ours_us = ours_s / ours_times * 1e6
+    reference_us = reference_s / reference_times * 1e6
+    print(f"re-plan of {blocks:,} queued blocks (best of {rounds} interleaved rounds, CPU time)")
+    ours_rate = blocks / ours_us * 1e6
+    print(f"  numpy prefix scans   {ours_us:10,.0f} µs/re-plan  {ours_rate:14,.0f} blocks/s")
+    print(
+        f"  plain-Python loops   {reference_us:10,.0f} µs/re-plan  "
+        f"{blocks / reference_us * 1e6:14,.0f} blocks/s"
+    )
+    print(f"  ratio                {reference_us / ours_us:10,.1f}x faster")
+    print(f"  same plan: largest duration difference {check_same_plan(planner, inputs):.2e} s")
+
+    moves = raster(100_000)
+    rates = zip(MACHINE.max_rate_mm_s, MACHINE.accel_mm_s2, strict=True)
+    horizon_s = 1.5 * max(rate / accel for rate, accel in rates)  # the longest stop, with margin
+    print(
+        f"append + pop of {len(moves):,} blocks through a full window, re-planning when the "
+        f"plan covers under {horizon_s:.2f} s ahead"
+    )
+    for label, machine in (
+        (f"window {MACHINE.max_blocks:,} blocks", MACHINE),
+        ("window 0.5 s (default)", replace(MACHINE, max_planned_s=0.5)),
+    ):
+        run = partial(pipeline, machine, moves, horizon_s)
+        (pipeline_s,) = side_by_side(max(1, rounds // 3), run)
+        print(
+            f"  {label:24} {len(moves) / pipeline_s:12,.0f} blocks/s  "
+            f"{pipeline_s / len(moves) * 1e6:6.2f} µs/block"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
