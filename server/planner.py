@@ -118,6 +118,7 @@ class Planner:
         self._feed_override = self._rapid_override = 1.0
         self._dirty = self._head_dirty = False
         self._time_planned_s = self._time_estimate_s = 0.0
+        self._ahead_2ad = 0.0
         self._use_settings(settings)
         self.position_mm: Position = self._zero
         self._chain_mm: Position = self._zero
@@ -218,6 +219,27 @@ class Planner:
         plan."""
         return self._time_planned_s + self._time_estimate_s
 
+    def lookahead_short(self) -> bool:
+        """Whether the last plan's stop at the end of its window may shape the head's exit.
+
+        The backward scan limits the head's exit (the next block's entry) by the minimum of one
+        term per later node; the window end's term is ``sum(2*a*d)`` over the planned blocks
+        after the head, and the next node's own term is its cap (junction and both nominal
+        speeds, squared). While the end's term is at least that cap it cannot be the minimum,
+        and blocks appended since only add terms at least as large: the last plan is then
+        exactly what a new one would give for the head, so re-planning can wait. True also
+        when the head is unplanned or changed.
+        """
+        if not self._dirty:
+            return False
+        if self._head_dirty or self._planned < 2:
+            return True
+        data, head = self._columns.data, self._columns.head
+        head_2ad = 2.0 * float(data[ACCEL, head]) * float(data[LENGTH, head])
+        cap_sq = min(float(data[JUNCTION, head + 1]), float(data[NOMINAL, head]) ** 2,
+                     float(data[NOMINAL, head + 1]) ** 2)
+        return self._ahead_2ad - head_2ad < cap_sq
+
     def planned_ahead_s(self) -> float:
         """Seconds of motion the last plan still covers from the head (head included).
 
@@ -244,6 +266,7 @@ class Planner:
         rows = window[LENGTH], window[ACCEL], window[NOMINAL], window[JUNCTION], window[LEAD]
         plan_window(*rows, self._start_mm_s, window[ENTRY : DURATION + 1])
         self._time_planned_s = float(window[DURATION].sum())
+        self._ahead_2ad = float(2.0 * np.dot(window[ACCEL], window[LENGTH]))
         self._time_estimate_s = 0.0
 
     def pop(self) -> Block | None:
@@ -267,6 +290,7 @@ class Planner:
         self._planned -= 1
         self._start_mm_s = exit_
         self._time_planned_s -= duration
+        self._ahead_2ad -= 2.0 * accel * length
         if not len(columns):
             self._clear_window()
         if move is None:

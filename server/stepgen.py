@@ -97,15 +97,6 @@ class StepGenerator:
         self.listener = listener
         self.tick_s = 1.0 / tick_hz
         self.start_delay_s = start_delay_s
-        settings = planner.settings
-        self.replan_horizon_s = (
-            1.5
-            * max(
-                rate / accel
-                for rate, accel in zip(settings.max_rate_mm_s, settings.accel_mm_s2, strict=True)
-            )
-            + 0.01
-        )
         self.last_input_s = -math.inf
         self.before_pop: Callable[[], None] | None = None  # offline feeders refill here
         self.probe_towards = True  # G38.2/3 stop on contact; G38.4/5 on loss of contact
@@ -245,14 +236,15 @@ class StepGenerator:
         """The next block, re-planned first when the last plan's look-ahead ran short.
 
         Only the popped block's speeds are ever used, so planning at pop time is enough; doing
-        it only when the planned look-ahead behind the head is shorter than the longest stop
-        batches re-planning (about once per half window) and keeps it a function of the block
-        sequence alone, identical for live execution and the offline estimate.
+        it only when the last plan's window end could still shape the head (see
+        :meth:`Planner.lookahead_short`) batches re-planning without changing any speed, and
+        keeps it a function of the block sequence alone, identical for live execution and the
+        offline estimate.
         """
         planner = self.planner
         if self.before_pop is not None:
             self.before_pop()
-        if planner.planned_ahead_s() < self.replan_horizon_s:
+        if planner.lookahead_short():
             planner.plan()
         return planner.pop()
 

@@ -223,3 +223,15 @@ async def test_feed_override_replans_the_queued_moves() -> None:
     slow, fast = await job_time(100), await job_time(200)
     assert fast == pytest.approx(slow / 2, rel=0.05)
     assert math.isclose(slow, 20.0, rel_tol=0.02)
+
+
+def test_lazy_replanning_gives_exactly_the_plan_of_replanning_at_every_pop(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    core = make_config(machine={"soft_limits": False}).core
+    lines = (CORPUS / "laser-vector-jsdc.gcode").read_text().splitlines()[:1200]
+    lazy = estimate(lines, core)
+    monkeypatch.setattr(Planner, "lookahead_short", lambda self: self._dirty)
+    eager = estimate(lines, core)
+    assert lazy.blocks == eager.blocks > 1000
+    assert lazy.duration_s == eager.duration_s
