@@ -17,6 +17,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from server.backends.base import Backend
 from server.backends.null import NullBackend
 from server.config import Config, CoreConfig
@@ -29,6 +31,7 @@ from server.planner import Block, Planner, PlannerSettings
 from server.stepgen import StepGenerator
 
 CUTTING = (MoveKind.FEED, MoveKind.ARC, MoveKind.PROBE)
+BBOX_BATCH = 4096
 
 
 @dataclass(slots=True)
@@ -46,22 +49,37 @@ class JobStats:
     bbox_max_mm: list[float] = field(default_factory=list)
     error: str | None = None
     error_line: int | None = None
+    _ends: list[tuple[float, ...]] = field(default_factory=list, repr=False)
 
     def add(self, block: Block) -> None:
         self.duration_s += block.duration_s
         self.blocks += 1
-        if block.move is None:
+        move = block.move
+        if move is None:
             return
-        if block.move.kind in CUTTING:
+        if move.kind in CUTTING:
             self.cut_mm += block.length_mm
         else:
             self.rapid_mm += block.length_mm
-        self.max_speed_mm_s = max(self.max_speed_mm_s, block.cruise_mm_s)
-        if not self.bbox_min_mm:
-            self.bbox_min_mm, self.bbox_max_mm = list(block.start_mm), list(block.start_mm)
-        for axis, value in enumerate(block.end_mm):
-            self.bbox_min_mm[axis] = min(self.bbox_min_mm[axis], value)
-            self.bbox_max_mm[axis] = max(self.bbox_max_mm[axis], value)
+        if block.cruise_mm_s > self.max_speed_mm_s:
+            self.max_speed_mm_s = block.cruise_mm_s
+        self._ends.append(block.end_mm)
+        if len(self._ends) == 1:
+            self._ends.append(block.start_mm)
+        if len(self._ends) >= BBOX_BATCH:
+            self.finish()
+
+    def finish(self) -> None:
+        """Fold the collected end points into the bounding box (done in batches, with numpy)."""
+        if not self._ends:
+            return
+        points = np.asarray(self._ends)
+        self._ends.clear()
+        low, high = points.min(axis=0).tolist(), points.max(axis=0).tolist()
+        if self.bbox_min_mm:
+            low = [min(a, b) for a, b in zip(low, self.bbox_min_mm, strict=True)]
+            high = [max(a, b) for a, b in zip(high, self.bbox_max_mm, strict=True)]
+        self.bbox_min_mm, self.bbox_max_mm = low, high
 
 
 class _Listener:
@@ -148,6 +166,7 @@ def iterate_blocks(
         block = stepgen.pop_block()
         if block is None:
             if feeder.done:
+                stats.finish()
                 return
             continue
         stats.add(block)
@@ -234,10 +253,14 @@ def estimate_command(args: Any, config: Config) -> int:
     stats = estimate(lines, config.core, update)
     bar.close()
     if args.json:
-        print(json.dumps({"file": str(path), **asdict(stats)}, indent=2))
+        print(json.dumps({"file": str(path), **_public(asdict(stats))}, indent=2))
     else:
         print(describe(path, stats, config.core.axis_names))
     return 1 if stats.error else 0
+
+
+def _public(fields: dict[str, Any]) -> dict[str, Any]:
+    return {key: value for key, value in fields.items() if not key.startswith("_")}
 
 
 def describe(path: Path, stats: JobStats, axis_names: tuple[str, ...]) -> str:
