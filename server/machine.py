@@ -26,7 +26,12 @@ from server.interpreter import Interpreter, InterpreterSettings
 from server.moves import Action, Move, MoveKind, Position, Sync, ToolMode
 from server.planner import Planner, PlannerSettings
 from server.protocol import Realtime
-from server.reports import ALARM_ABORT_CYCLE, ALARM_HALT, ALARM_SOFT_LIMIT
+from server.reports import (
+    ALARM_ABORT_CYCLE,
+    ALARM_BACKEND_FAILED,
+    ALARM_HALT,
+    ALARM_SOFT_LIMIT,
+)
 from server.settings import Settings
 from server.stepgen import HoldState, StepGenerator
 
@@ -386,9 +391,17 @@ class Machine:
     async def run(self) -> None:
         """The step generator task; also wakes writers waiting for planner room."""
         try:
-            await self.stepgen.run(self.kernel.clock, self._after_tick)
+            await self.stepgen.run(self.kernel.clock, self._after_tick, self._backend_fault)
         finally:
             self.backend.close()
+
+    def _backend_fault(self, exc: Exception) -> None:
+        """A tick raised: stop everything and alarm once (later failures are only logged)."""
+        if self.kernel.alarm_code == ALARM_BACKEND_FAILED:
+            log.debug("backend still failing: %r", exc)
+            return
+        log.error("backend failed: %r", exc, exc_info=exc)
+        self.kernel.alarm(ALARM_BACKEND_FAILED, f"backend failed: {exc!r}")
 
     def _after_tick(self) -> None:
         if not self.room.is_set() and not self.planner.is_full():

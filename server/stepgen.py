@@ -360,8 +360,17 @@ class StepGenerator:
         return tuple(self._cursor.steps)
 
     # -- the task ---------------------------------------------------------------------------
-    async def run(self, clock: Clock, after_tick: Callable[[], None] = lambda: None) -> None:
-        """Tick at ``tick_hz`` on ``clock`` forever; late ticks catch up on the next call."""
+    async def run(
+        self,
+        clock: Clock,
+        after_tick: Callable[[], None] = lambda: None,
+        on_fault: Callable[[Exception], None] | None = None,
+    ) -> None:
+        """Tick at ``tick_hz`` on ``clock`` forever; late ticks catch up on the next call.
+
+        A tick that raises (a failing backend) is reported to ``on_fault``, which must stop
+        motion; the task keeps ticking, so the server stays up and answers.
+        """
         next_s = clock.now_s()
         self._last_tick_s = next_s
         while True:
@@ -370,5 +379,10 @@ class StepGenerator:
             now_s = clock.now_s()
             if now_s - next_s > 0.25:  # the loop was stalled for long: do not replay old ticks
                 next_s = now_s
-            self.tick(now_s)
+            try:
+                self.tick(now_s)
+            except Exception as exc:
+                if on_fault is None:
+                    raise
+                on_fault(exc)
             after_tick()
