@@ -99,7 +99,8 @@ class ProtocolConfig(Strict):
     line_limit: int = Field(256, ge=16, le=65536)
     rx_buffer_bytes: int = Field(128, ge=16, le=65536)
     outgoing_limit_bytes: int = Field(1 << 20, ge=1024)
-    token: str | None = None
+    token: str | None = Field(None, min_length=8, description="also $MOTIOND_TOKEN")
+    unauthenticated: Literal["read-only", "none"] = "read-only"
 
 
 class JobsConfig(Strict):

@@ -14,13 +14,15 @@ A transport creates a :class:`Session`, feeds it bytes (or WebSocket text) and d
 from __future__ import annotations
 
 import asyncio
+import hmac
 import logging
+import os
 import re
 from collections import deque
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from server.errors import CommandError
+from server.errors import AUTH_REQUIRED, CommandError
 from server.protocol import (
     LineProtocol,
     LineReceived,
@@ -35,6 +37,7 @@ if TYPE_CHECKING:
     from server.kernel import Kernel
 
 log = logging.getLogger("motiond.session")
+_AUTH = re.compile(r"^\s*\$AUTH=(.*)$", re.I)
 _M112 = re.compile(r"^\s*(?:N\d+\s*)?M\s*0*112(?:\D|$)", re.I)
 INBOUND_LINES = 64
 
@@ -86,12 +89,14 @@ class Session:
     """See the module docstring. Owns one task: the line executor."""
 
     def __init__(
-        self, kernel: Kernel, name: str, *, websocket: bool = False, can_control: bool = True
+        self, kernel: Kernel, name: str, *, websocket: bool = False, token: str | None = None
     ) -> None:
         core = kernel.config.core
         self.kernel = kernel
         self.name = name
-        self.can_control = can_control
+        self._token = line_token(kernel)
+        self.can_control = self._token is None or token_matches(token, self._token)
+        self.may_observe = self.can_control or core.protocol.unauthenticated == "read-only"
         self.protocol = LineProtocol(
             line_limit=core.protocol.line_limit, dialect=core.protocol.dialect, websocket=websocket
         )
@@ -159,6 +164,8 @@ class Session:
         self._lines_ready.set()
 
     def _realtime(self, command: Realtime) -> None:
+        if not self.may_observe:
+            return
         if command is Realtime.STATUS:
             self.outbox.put(self.protocol.push(self._status()))
             return
@@ -188,10 +195,20 @@ class Session:
     # -- output -----------------------------------------------------------------------------
     def push(self, message: str) -> None:
         """An unsolicited line for this client (kernel ``push`` event)."""
+        if not self.may_observe:
+            return
         try:
             self.outbox.put(self.protocol.push(message))
         except ValueError:
             log.warning("dropped a push message that is not safe for senders: %r", message)
+
+    def _login(self, given: str) -> bytes:
+        """``$AUTH=token``: this connection may control the machine from now on."""
+        if self._token is None or token_matches(given.strip(), self._token):
+            self.can_control = self.may_observe = True
+            return self.protocol.reply_ok()
+        log.warning("%s: wrong token", self.name)
+        return self.protocol.reply_error(CommandError(AUTH_REQUIRED, "wrong token"))
 
     async def _executor(self) -> None:
         while not self._closing:
@@ -212,6 +229,11 @@ class Session:
             return self.protocol.reply_error(event.error)
         if event.handled:  # M110: the protocol already set the line number
             return self.protocol.reply_ok()
+        login = _AUTH.match(event.text)
+        if login is not None:
+            return self._login(login.group(1))
+        if not self.may_observe:
+            return self.protocol.reply_error(CommandError(AUTH_REQUIRED, "log in with $AUTH="))
         try:
             messages = await self.kernel.dispatcher.submit(event.text, self)
         except CommandError as exc:
@@ -221,6 +243,15 @@ class Session:
             self.kernel.alarm(ALARM_MODULE_FAILED, f"internal error on {event.text!r}: {exc!r}")
             return self.protocol.reply_error(CommandError(20, "internal error"))
         return self.protocol.reply_ok(messages)
+
+
+def line_token(kernel: Kernel) -> str | None:
+    """The token line-protocol connections must present (config, else ``$MOTIOND_TOKEN``)."""
+    return kernel.config.core.protocol.token or os.environ.get("MOTIOND_TOKEN") or None
+
+
+def token_matches(given: str | None, expected: str) -> bool:
+    return given is not None and hmac.compare_digest(given.encode(), expected.encode())
 
 
 def _size(event: LineReceived | LineRejected) -> int:

@@ -79,7 +79,8 @@ class HttpTransport:
         socket = web.WebSocketResponse(heartbeat=20)
         await socket.prepare(request)
         self._sockets.add(socket)
-        session = Session(self.kernel, f"ws-{next(self._ids)}", websocket=True)
+        token = request.query.get("token") or request.headers.get("X-Motiond-Token")
+        session = Session(self.kernel, f"ws-{next(self._ids)}", websocket=True, token=token)
         transport = request.transport
         if transport is not None:
             session.outbox.on_overflow = transport.abort

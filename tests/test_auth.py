@@ -1,0 +1,79 @@
+"""Optional authentication on the line protocol: $AUTH=token, read-only or no session."""
+
+from __future__ import annotations
+
+import asyncio
+
+import websockets
+
+from server.app import App
+from server.clock import VirtualClock
+from server.transports.tcp import TcpTransport
+from server.transports.websocket import HttpTransport
+from tests.conftest import make_config
+
+TOKEN = "s3cret-token"
+
+
+async def exchange(port: int, data: bytes, replies: int) -> list[str]:
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    writer.write(data)
+    lines: list[str] = []
+    def answered() -> int:
+        return len([line for line in lines if line == "ok" or line.startswith(("error", "<"))])
+
+    while answered() < replies:
+        lines.append((await asyncio.wait_for(reader.readline(), 5)).decode().strip())
+    writer.close()
+    return [line for line in lines if line and not line.startswith("Grbl")]
+
+
+async def serve(policy: str) -> App:
+    config = make_config(protocol={"token": TOKEN, "unauthenticated": policy})
+    app = App(config, clock=VirtualClock(), transports=[TcpTransport, HttpTransport])
+    app.task = asyncio.create_task(app.run())  # type: ignore[attr-defined]
+    await app.ready.wait()
+    return app
+
+
+async def stop(app: App) -> None:
+    app.request_stop()
+    await app.task  # type: ignore[attr-defined]
+
+
+async def test_without_the_token_a_connection_may_watch_but_not_move() -> None:
+    app = await serve("read-only")
+    port = app.transports[0].port  # type: ignore[attr-defined]
+    lines = await exchange(port, b"G0 X10\n$G\n?", 3)
+    replies = [line for line in lines if not line.startswith("<")]
+    assert replies[0] == "error:46"
+    assert replies[1].startswith("[GC:") and replies[2] == "ok"
+    assert any(line.startswith("<Idle|") for line in lines)
+    assert app.kernel.machine.planner.position_mm == (0.0, 0.0, 0.0)
+    await stop(app)
+
+
+async def test_auth_with_the_right_token_unlocks_control_and_a_wrong_one_does_not() -> None:
+    app = await serve("none")
+    port = app.transports[0].port  # type: ignore[attr-defined]
+    assert await exchange(port, b"$G\n$AUTH=wrong\nG0 X1\n", 3) == [
+        "error:46", "error:46", "error:46"]
+    assert await exchange(port, f"$AUTH={TOKEN}\nG0 X1\n".encode(), 2) == ["ok", "ok"]
+    await stop(app)
+
+
+async def test_websocket_lines_take_the_token_from_the_query() -> None:
+    app = await serve("none")
+    http_port = app.transports[1].port  # type: ignore[attr-defined]
+    async with websockets.connect(f"ws://127.0.0.1:{http_port}/ws?token={TOKEN}") as socket:
+        await socket.send("G0 X2\n")
+        replies = []
+        while "ok\r\n" not in replies:
+            replies.append(await asyncio.wait_for(socket.recv(), 5))
+    async with websockets.connect(f"ws://127.0.0.1:{http_port}/ws") as socket:
+        await socket.send("G0 X3\n")
+        replies = []
+        while not any(r.startswith("error") for r in replies):
+            replies.append(await asyncio.wait_for(socket.recv(), 5))
+        assert "error:46\r\n" in replies
+    await stop(app)
