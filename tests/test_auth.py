@@ -77,3 +77,19 @@ async def test_websocket_lines_take_the_token_from_the_query() -> None:
             replies.append(await asyncio.wait_for(socket.recv(), 5))
         assert "error:46\r\n" in replies
     await stop(app)
+
+
+async def test_a_page_on_another_site_cannot_open_the_line_socket() -> None:
+    app = await serve("read-only")
+    http_port = app.transports[1].port  # type: ignore[attr-defined]
+    url = f"ws://127.0.0.1:{http_port}/ws"
+    try:
+        await websockets.connect(url, origin="http://evil.example")  # type: ignore[arg-type]
+        raise AssertionError("a foreign origin was let in")
+    except websockets.InvalidStatus as exc:
+        assert exc.response.status_code == 403
+    same_site = f"http://127.0.0.1:{http_port}"
+    async with websockets.connect(url, origin=same_site) as socket:  # type: ignore[arg-type]
+        await socket.send("?")
+        assert (await asyncio.wait_for(socket.recv(), 5)).strip()
+    await stop(app)

@@ -15,6 +15,7 @@ from collections.abc import Callable
 from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING
+from urllib.parse import urlsplit
 
 from aiohttp import WSMsgType, web
 
@@ -25,6 +26,16 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("motiond.http")
 RouteHook = Callable[["HttpTransport", web.Application], None]
+
+
+def origin_allowed(request: web.Request, allowed_origins: list[str]) -> bool:
+    """Whether a request may act on the machine: no Origin (not a browser), the page's own
+    origin, or one listed in ``[http] allowed_origins`` ("*" allows any). A page on another
+    site must not drive the machine through the user's browser."""
+    origin = request.headers.get("Origin")
+    if origin is None or origin in allowed_origins or "*" in allowed_origins:
+        return True
+    return urlsplit(origin).netloc.lower() == request.host.lower()
 
 
 def web_root() -> Path:
@@ -76,6 +87,9 @@ class HttpTransport:
         return web.FileResponse(web_root() / "index.html")
 
     async def _line_socket(self, request: web.Request) -> web.WebSocketResponse:
+        if not origin_allowed(request, self.config.allowed_origins):
+            log.warning("refused /ws from origin %s", request.headers.get("Origin"))
+            raise web.HTTPForbidden(text="origin not allowed")
         socket = web.WebSocketResponse(heartbeat=20)
         await socket.prepare(request)
         self._sockets.add(socket)
