@@ -23,14 +23,14 @@ import json
 import logging
 from collections.abc import AsyncIterator
 from typing import TYPE_CHECKING, Any
-from urllib.parse import urlsplit
 
 from aiohttp import WSMsgType, web
 
+import server.api_jobs  # noqa: F401 - registers the settings.* and job.* methods
 from server.api_methods import Methods, RpcError, command_error
 from server.errors import AUTH_REQUIRED, CommandError
 from server.telemetry import Channel, Publisher, encode
-from server.transports.websocket import HttpTransport
+from server.transports.websocket import HttpTransport, origin_allowed
 
 if TYPE_CHECKING:
     from server.kernel import Kernel
@@ -105,7 +105,18 @@ class Connection:
             message["error"] = {"code": code, "message": text}
             if data is not None:
                 message["error"]["data"] = data
-        self.channel.offer(encode(message))
+        try:
+            frame = encode(message)
+        except (TypeError, ValueError) as exc:  # not JSON-able (NaN, an object): say so
+            log.exception("cannot encode the reply to request %r", request_id)
+            frame = encode(
+                {
+                    "jsonrpc": "2.0",
+                    "id": request_id,
+                    "error": {"code": INTERNAL, "message": f"internal error: {exc}"},
+                }
+            )
+        self.channel.offer(frame)
 
     async def _run(self, message: dict[str, Any]) -> None:
         result: Any = None
@@ -163,11 +174,7 @@ class JsonApi:
     # -- access -----------------------------------------------------------------------------
     def origin_allowed(self, request: web.Request) -> bool:
         """Same-origin pages, listed origins and non-browser clients (no Origin header)."""
-        origin = request.headers.get("Origin")
-        allowed = self.http.allowed_origins
-        if origin is None or origin in allowed or "*" in allowed:
-            return True
-        return urlsplit(origin).netloc.lower() == request.host.lower()
+        return origin_allowed(request, self.http.allowed_origins)
 
     def token_ok(self, token: str | None) -> bool:
         expected = self.http.token

@@ -5,28 +5,27 @@ with :func:`method` under its JSON-RPC name, with a pydantic model for its named
 Methods marked ``control`` need a connection that may control the machine. Everything that
 acts on the machine goes through the same paths a sender uses: lines through the dispatcher
 (``$J=``, ``$X``, ``$H``, ``$110=500``, ``fire``), realtime commands straight to the machine.
+Server, status, G-code and control methods are here; settings and jobs in
+:mod:`server.api_jobs`.
 """
 
 from __future__ import annotations
 
 import asyncio
-import base64
-import binascii
 import inspect
 import re
 from collections import OrderedDict
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from server import __version__
-from server.errors import AUTH_REQUIRED, FILE_ERROR, CommandError
+from server.errors import AUTH_REQUIRED, CommandError
 from server.reports import ERROR_MESSAGES, StatusScheduler
 from server.status import snapshot, state_text
-from server.telemetry import TOPICS, build_status, job_dict
-from server.toolpath import plan_toolpath
+from server.telemetry import TOPICS, build_status
 
 if TYPE_CHECKING:
     from server.api import Connection, JsonApi
@@ -34,7 +33,6 @@ if TYPE_CHECKING:
 _M112 = re.compile(r"^\s*(?:N\d+\s*)?M\s*0*112(?:\D|$)", re.I)
 INVALID_PARAMS, METHOD_NOT_FOUND = -32602, -32601
 MAX_LINES = 10_000
-TOOLPATH_CACHE = 4
 
 
 class RpcError(Exception):
@@ -150,6 +148,7 @@ def server_info(m: Methods, connection: Connection, params: Params) -> dict[str,
         ],
         "laser_mode": core.machine.laser_mode,
         "has_laser": "laser" in m.kernel.modules,
+        "has_homing": "endstops" in m.kernel.modules,
         "max_s": m.machine.settings.values().get(30, 1000.0),
         "modules": sorted(m.kernel.modules),
         "commands": m.kernel.dispatcher.names(),
@@ -368,131 +367,3 @@ async def laser_fire(m: Methods, connection: Connection, params: FireParams) -> 
 @method("laser.off", control=True)
 async def laser_off(m: Methods, connection: Connection, params: Params) -> dict[str, Any]:
     return {"messages": await m.submit(connection, "fire off")}
-
-
-# -- settings ---------------------------------------------------------------------------------
-@method("settings.list")
-def settings_list(m: Methods, connection: Connection, params: Params) -> list[dict[str, Any]]:
-    settings = m.machine.settings
-    values = settings.values()
-    return [
-        {
-            "number": number,
-            "value": values[number],
-            "description": setting.description,
-            "writable": setting.write is not None,
-        }
-        for number, setting in sorted(settings.table.items())
-    ]
-
-
-class SettingParams(Params):
-    number: int = Field(ge=0)
-    value: float
-
-
-@method("settings.set", SettingParams, control=True)
-async def settings_set(m: Methods, connection: Connection, params: SettingParams) -> dict[str, Any]:
-    await m.submit(connection, f"${params.number}={params.value:g}")
-    return {"number": params.number, "value": m.machine.settings.values()[params.number]}
-
-
-# -- jobs -------------------------------------------------------------------------------------
-class NameParams(Params):
-    name: str = Field(min_length=1, max_length=255)
-
-
-class UploadParams(NameParams):
-    text: str | None = None
-    base64: str | None = None
-
-
-class ToolpathParams(NameParams):
-    max_segments: int = Field(50_000, ge=100, le=200_000)
-
-
-@method("job.list")
-def job_list(m: Methods, connection: Connection, params: Params) -> list[dict[str, Any]]:
-    return [asdict(file) for file in m.kernel.jobs.files()]
-
-
-@method("job.upload", UploadParams, control=True)
-async def job_upload(m: Methods, connection: Connection, params: UploadParams) -> dict[str, Any]:
-    if (params.text is None) == (params.base64 is None):
-        raise RpcError(INVALID_PARAMS, "invalid params: give exactly one of text and base64")
-    try:
-        data = (
-            params.text.encode()
-            if params.text is not None
-            else base64.b64decode(params.base64 or "", validate=True)
-        )
-    except binascii.Error as exc:
-        raise RpcError(INVALID_PARAMS, "invalid params: base64: not valid base64") from exc
-    stored = await m.kernel.jobs.save(params.name, data)
-    m.file_changed("upload", stored.name)
-    return asdict(stored)
-
-
-@method("job.delete", NameParams, control=True)
-async def job_delete(m: Methods, connection: Connection, params: NameParams) -> dict[str, Any]:
-    await m.kernel.jobs.delete(params.name)
-    m.file_changed("delete", params.name)
-    return {"deleted": params.name}
-
-
-def _progress(m: Methods) -> dict[str, Any] | None:
-    progress = m.kernel.jobs.progress()
-    return None if progress is None else job_dict(progress)
-
-
-@method("job.start", NameParams, control=True)
-def job_start(m: Methods, connection: Connection, params: NameParams) -> dict[str, Any] | None:
-    m.kernel.jobs.play(params.name)
-    return _progress(m)
-
-
-def _job_method(name: str, action: str) -> None:
-    def handler(m: Methods, connection: Connection, params: Params) -> dict[str, Any] | None:
-        getattr(m.kernel.jobs, action)()
-        return _progress(m)
-
-    method(f"job.{name}", control=True)(handler)
-
-
-for _name, _job_action in (("pause", "suspend"), ("resume", "resume"), ("abort", "abort")):
-    _job_method(_name, _job_action)
-
-
-@method("job.progress")
-def job_progress(m: Methods, connection: Connection, params: Params) -> dict[str, Any] | None:
-    return _progress(m)
-
-
-@method("job.toolpath", ToolpathParams)
-async def job_toolpath(
-    m: Methods, connection: Connection, params: ToolpathParams
-) -> dict[str, Any]:
-    path = m.kernel.jobs.path(params.name)
-    try:
-        info = await asyncio.to_thread(path.stat)
-    except OSError as exc:
-        raise CommandError(FILE_ERROR, f"no job file {path.name}") from exc
-    key = (path.name, info.st_size, info.st_mtime_ns, params.max_segments)
-    async with m.toolpath_lock:  # one planning thread at a time
-        cached = m.toolpaths.get(key)
-        if cached is None:
-            core = m.kernel.config.core.model_copy(deep=True)
-            core.machine.soft_limits = False  # preview in work coordinates, whatever the WCS
-            lines = await asyncio.to_thread(_read_lines, path)
-            cached = await asyncio.to_thread(plan_toolpath, lines, core, params.max_segments)
-            m.toolpaths[key] = cached
-            while len(m.toolpaths) > TOOLPATH_CACHE:
-                m.toolpaths.popitem(last=False)
-    return {"name": path.name, **cached}
-
-
-def _read_lines(path: Any) -> list[str]:
-    try:
-        return path.read_text(errors="replace").splitlines()
-    except OSError as exc:
-        raise CommandError(FILE_ERROR, f"cannot read {path.name}: {exc.strerror}") from exc

@@ -56,7 +56,7 @@ def settings_path(kernel: Kernel) -> Path:
     path = kernel.config.path
     if path is not None:
         return path.with_name(path.stem + ".settings.toml")
-    return kernel.config.core.jobs.data_dir.expanduser() / "settings.toml"
+    return kernel.config.core.jobs.data_dir.expanduser() / ".settings.toml"  # not a job
 
 
 def build_backend(core: CoreConfig) -> Backend:

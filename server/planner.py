@@ -370,6 +370,7 @@ class Planner:
         else:
             kind, feed = _kind_and_feed(block.move)
             inputs = (block.length_mm, feed, kind, 0.0, *block.unit)
+        self._sync()  # derive the limits of staged blocks first: push_front syncs raw inputs
         columns = self._columns
         head = columns.push_front(inputs)
         self._derive(head, head + 1)

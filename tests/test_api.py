@@ -21,7 +21,6 @@ from server.api import API_KEY, JsonApi
 from server.app import App
 from server.clock import RealClock
 from server.config import Config
-from server.toolpath import CUT, Decimator, Segment
 from server.transports.websocket import HttpTransport
 from tests.conftest import CORPUS, make_config
 from tests.helpers import running
@@ -55,8 +54,9 @@ class RpcClient:
         request_id = next(self._ids)
         future: asyncio.Future[dict[str, Any]] = asyncio.get_running_loop().create_future()
         self._waiting[request_id] = future
-        await self.connection.send(json.dumps(
-            {"jsonrpc": "2.0", "id": request_id, "method": method, "params": params}))
+        await self.connection.send(
+            json.dumps({"jsonrpc": "2.0", "id": request_id, "method": method, "params": params})
+        )
         return await asyncio.wait_for(future, 10)
 
     async def call(self, method: str, **params: Any) -> Any:
@@ -70,8 +70,9 @@ class RpcClient:
         assert "error" in response, response
         return response["error"]
 
-    async def wait_for(self, method: str, predicate: Any = lambda params: True,
-                       timeout_s: float = 10.0) -> dict[str, Any]:
+    async def wait_for(
+        self, method: str, predicate: Any = lambda params: True, timeout_s: float = 10.0
+    ) -> dict[str, Any]:
         """The first notification (already seen or coming) matching ``predicate``."""
         async with asyncio.timeout(timeout_s):
             seen = 0
@@ -130,7 +131,8 @@ async def test_server_info_names_the_machine_axes_and_every_method(tmp_path: Pat
     assert info["name"] == "motiond" and info["can_control"] is True
     assert [axis["name"] for axis in info["axes"]] == ["X", "Y", "Z"]
     assert {"gcode.send", "machine.subscribe", "job.toolpath", "settings.set"} <= set(
-        info["methods"])
+        info["methods"]
+    )
     assert info["upload"]["url"] == "/upload"
 
 
@@ -155,8 +157,9 @@ async def test_protocol_errors_are_answered_with_json_rpc_codes(tmp_path: Path) 
 
 async def test_a_notification_request_runs_without_a_reply(tmp_path: Path) -> None:
     async with serving(api_config(tmp_path)) as (app, address), client(address) as rpc:
-        await rpc.connection.send(json.dumps(
-            {"jsonrpc": "2.0", "method": "gcode.send", "params": {"lines": "G92 X7"}}))
+        await rpc.connection.send(
+            json.dumps({"jsonrpc": "2.0", "method": "gcode.send", "params": {"lines": "G92 X7"}})
+        )
         await asyncio.sleep(0.2)
         status = await rpc.call("machine.status")
     assert status["wpos"][0] == 7.0
@@ -165,7 +168,8 @@ async def test_a_notification_request_runs_without_a_reply(tmp_path: Path) -> No
 
 # -- G-code and control -----------------------------------------------------------------------
 async def test_gcode_send_answers_every_line_in_order_and_stops_at_the_first_error(
-        tmp_path: Path) -> None:
+    tmp_path: Path,
+) -> None:
     async with serving(api_config(tmp_path)) as (app, address), client(address) as rpc:
         sent = await rpc.call("gcode.send", lines=["G21", "$G", "G1 X5 F600", "G99", "G0 X1"])
         all_sent = await rpc.call("gcode.send", lines="G77\nG0 X2", stop_on_error=False)
@@ -184,29 +188,31 @@ async def test_jog_moves_the_machine_by_the_step_size(tmp_path: Path) -> None:
         await rpc.call("machine.subscribe", topics=["status"])
         await rpc.call("machine.jog", x=10, y=-0.0, feed_mm_min=6000)
         await rpc.call("machine.jog", y=2.5, feed_mm_min=6000)
-        params = await rpc.wait_for("notify_status_update", lambda p: p["status"]["mpos"][:2]
-                                    == [10.0, 2.5] and p["status"]["state"] == "Idle")
+        params = await rpc.wait_for(
+            "notify_status_update",
+            lambda p: p["status"]["mpos"][:2] == [10.0, 2.5] and p["status"]["state"] == "Idle",
+        )
     assert params["status"]["wpos"][:2] == [10.0, 2.5]
 
 
 async def test_status_subscribers_see_the_machine_run_and_come_to_rest(tmp_path: Path) -> None:
-    async with serving(api_config(tmp_path), RealClock()) as (app, address), \
-            client(address) as rpc:
+    async with serving(api_config(tmp_path), RealClock()) as (app, address), client(address) as rpc:
         subscribed = await rpc.call("machine.subscribe")
         assert subscribed["status"]["state"] == "Idle"
         await rpc.call("gcode.send", lines="G1 X20 F3000")
         running_status = await rpc.wait_for("notify_status_update", moving)
         telemetry = await rpc.wait_for("notify_telemetry", lambda p: p["speed_mm_min"] > 0)
-        rest = await rpc.wait_for("notify_status_update", lambda p: p["status"]["state"] ==
-                                  "Idle" and p["status"]["mpos"][0] == 20.0)
+        rest = await rpc.wait_for(
+            "notify_status_update",
+            lambda p: p["status"]["state"] == "Idle" and p["status"]["mpos"][0] == 20.0,
+        )
     assert running_status["status"]["state"] == "Run"
     assert 0 < telemetry["speed_mm_min"] <= 3000.5
     assert rest["status"]["speed_mm_min"] == 0.0 and rest["status"]["queue_depth"] == 0
 
 
 async def test_hold_stops_the_move_and_resume_finishes_it(tmp_path: Path) -> None:
-    async with serving(api_config(tmp_path), RealClock()) as (app, address), \
-            client(address) as rpc:
+    async with serving(api_config(tmp_path), RealClock()) as (app, address), client(address) as rpc:
         await rpc.call("machine.subscribe", topics=["status"])
         await rpc.call("gcode.send", lines="G1 X60 F3000")
         await rpc.wait_for("notify_status_update", moving)
@@ -215,16 +221,17 @@ async def test_hold_stops_the_move_and_resume_finishes_it(tmp_path: Path) -> Non
         await asyncio.sleep(0.2)
         still = await rpc.call("machine.status")
         await rpc.call("machine.resume")
-        done = await rpc.wait_for("notify_status_update", lambda p: p["status"]["state"] ==
-                                  "Idle" and p["status"]["mpos"][0] == 60.0)
+        done = await rpc.wait_for(
+            "notify_status_update",
+            lambda p: p["status"]["state"] == "Idle" and p["status"]["mpos"][0] == 60.0,
+        )
     assert 0.0 < held["status"]["mpos"][0] < 60.0
     assert still["mpos"] == held["status"]["mpos"] and still["state"] == "Hold:0"
     assert done["status"]["alarm"] is None
 
 
 async def test_reset_while_moving_alarms_with_its_meaning_until_unlocked(tmp_path: Path) -> None:
-    async with serving(api_config(tmp_path), RealClock()) as (app, address), \
-            client(address) as rpc:
+    async with serving(api_config(tmp_path), RealClock()) as (app, address), client(address) as rpc:
         await rpc.call("machine.subscribe", topics=["status", "console"])
         await rpc.call("gcode.send", lines="G1 X60 F3000")
         await rpc.wait_for("notify_status_update", moving)
@@ -252,6 +259,20 @@ async def test_estop_and_the_laser_fire_command(tmp_path: Path) -> None:
     assert fired["messages"] == ["[MSG:fire 5% for at most 2s]"]
     assert power == 5.0
     assert status["state"] == "Alarm" and status["alarm"]["code"] == 40 and status["power_pct"] == 0
+
+
+async def test_home_runs_the_homing_cycle_and_is_refused_without_endstops(tmp_path: Path) -> None:
+    switches = {"switch_at_mm": -5, "seek_mm_s": 100}
+    config = api_config(tmp_path, endstops={"axes": {"x": switches, "y": switches}})
+    async with serving(config, RealClock()) as (app, address), client(address) as rpc:
+        info = await rpc.call("server.info")
+        await rpc.call("machine.estop")
+        homed = await rpc.call("machine.home")
+    assert info["has_homing"] is True
+    assert homed == {"state": "Idle", "messages": ["[MSG:Homed XY]"]}
+    async with serving(api_config(tmp_path)) as (app, address), client(address) as rpc:
+        refused = await rpc.error("machine.home")
+    assert refused["code"] == 5 and "homing is not configured" in refused["message"]
 
 
 async def test_settings_are_listed_and_written_through_the_dollar_command(tmp_path: Path) -> None:
@@ -289,8 +310,7 @@ async def test_an_uploaded_job_runs_to_the_end_with_progress_updates(tmp_path: P
 
 async def test_job_controls_pause_resume_and_abort_a_running_job(tmp_path: Path) -> None:
     (tmp_path / "long.nc").write_text("G1 X100 F3000\nG1 X0\n")
-    async with serving(api_config(tmp_path), RealClock()) as (app, address), \
-            client(address) as rpc:
+    async with serving(api_config(tmp_path), RealClock()) as (app, address), client(address) as rpc:
         await rpc.call("machine.subscribe", topics=["job", "status"])
         await rpc.call("job.start", name="long.nc")
         await rpc.wait_for("notify_status_update", moving)
@@ -306,7 +326,8 @@ async def test_job_controls_pause_resume_and_abort_a_running_job(tmp_path: Path)
 
 
 async def test_upload_over_the_socket_and_the_planned_toolpath_of_a_corpus_job(
-        tmp_path: Path) -> None:
+    tmp_path: Path,
+) -> None:
     text = (CORPUS / "laser-vector-jsdc.gcode").read_text()
     async with serving(api_config(tmp_path)) as (app, address), client(address) as rpc:
         await rpc.call("job.upload", name="jsdc.gcode", text=text)
@@ -323,51 +344,41 @@ async def test_upload_over_the_socket_and_the_planned_toolpath_of_a_corpus_job(
     assert deleted == {"deleted": "jsdc.gcode"} and gone["code"] == 44
 
 
-def test_decimation_merges_collinear_pieces_and_keeps_corners() -> None:
-    decimator = Decimator(cap=1000)
-    points = [(x * 0.5, 0.0) for x in range(21)] + [(10.0, y * 0.5) for y in range(1, 21)]
-    for (x0, y0), (x1, y1) in itertools.pairwise(points):
-        decimator.add(Segment(x0, y0, x1, y1, CUT, 600.0, 50.0))
-    kept = decimator.finish()
-    assert [(s.x0, s.y0, s.x1, s.y1) for s in kept] == [(0, 0, 10, 0), (10, 0, 10, 10)]
-
-
-def test_decimation_stays_under_the_cap_for_a_long_zigzag() -> None:
-    decimator = Decimator(cap=500)
-    for i in range(20_000):
-        y = (i % 2) * 0.001
-        decimator.add(Segment(i * 0.01, (1 - i % 2) * 0.001, (i + 1) * 0.01, y, CUT, 600.0,
-                              float(i % 100)))
-    kept = decimator.finish()
-    assert len(kept) <= 500
-    assert kept[0].x0 == 0.0 and kept[-1].x1 == pytest.approx(200.0)
-
-
 # -- fan-out, slow subscribers, access --------------------------------------------------------
 async def test_updates_are_rate_limited_and_encoded_once_for_all_subscribers(
-        tmp_path: Path) -> None:
-    async with serving(api_config(tmp_path), RealClock()) as (app, address), \
-            client(address) as first, client(address) as second:
+    tmp_path: Path,
+) -> None:
+    async with (
+        serving(api_config(tmp_path), RealClock()) as (app, address),
+        client(address) as first,
+        client(address) as second,
+    ):
         api: JsonApi = http_of(app).app[API_KEY]
         await first.call("machine.subscribe")
         await second.call("machine.subscribe")
         await asyncio.sleep(0.2)
-        encoded_before, counts_before = api.publisher.encoded, (
-            len(first.notifications), len(second.notifications))
+        encoded_before, counts_before = (
+            api.publisher.encoded,
+            (len(first.notifications), len(second.notifications)),
+        )
         await first.call("gcode.send", lines="G1 X50 F3000")  # one second of motion
         await first.wait_for("notify_status_update", lambda p: p["status"]["mpos"][0] == 50.0)
         await asyncio.sleep(0.3)
         encoded = api.publisher.encoded - encoded_before
-        received = (len(first.notifications) - counts_before[0],
-                    len(second.notifications) - counts_before[1])
-    statuses = [m for m in first.notifications[counts_before[0]:]
-                if m["method"] == "notify_status_update"]
+        received = (
+            len(first.notifications) - counts_before[0],
+            len(second.notifications) - counts_before[1],
+        )
+    statuses = [
+        m for m in first.notifications[counts_before[0] :] if m["method"] == "notify_status_update"
+    ]
     assert received[0] == received[1] == encoded, "one encoding per update, sent to everyone"
     assert 10 <= len(statuses) <= 1.6 * 20 + 4, "at most 20 status updates a second"
 
 
 async def test_a_subscriber_that_stops_reading_is_dropped_and_the_others_keep_going(
-        tmp_path: Path) -> None:
+    tmp_path: Path,
+) -> None:
     async with serving(api_config(tmp_path)) as (app, address):
         api: JsonApi = http_of(app).app[API_KEY]
         host, port = address.split(":")
@@ -384,16 +395,15 @@ async def test_a_subscriber_that_stops_reading_is_dropped_and_the_others_keep_go
                 if api.publisher.dropped:
                     break
             app.kernel.push("[MSG:last]")
-            last = await reader.wait_for("notify_gcode_response",
-                                         lambda p: p["message"] == "[MSG:last]")
+            last = await reader.wait_for(
+                "notify_gcode_response", lambda p: p["message"] == "[MSG:last]"
+            )
         assert api.publisher.dropped == 1
         assert last["message"] == "[MSG:last]"
-        assert len(api.connections) == 0 or all(not c.channel.overflowed
-                                                 for c in api.connections)
+        assert len(api.connections) == 0 or all(not c.channel.overflowed for c in api.connections)
 
 
-async def test_a_token_makes_connections_read_only_until_they_authenticate(
-        tmp_path: Path) -> None:
+async def test_a_token_makes_connections_read_only_until_they_authenticate(tmp_path: Path) -> None:
     config = api_config(tmp_path, http={"port": 0, "token": "s3cret"})
     async with serving(config) as (app, address), client(address) as rpc:
         info = await rpc.call("server.info")
@@ -404,8 +414,9 @@ async def test_a_token_makes_connections_read_only_until_they_authenticate(
         accepted = await rpc.call("gcode.send", lines="G0 X1")
         async with aiohttp.ClientSession() as http:
             upload = await http.post(f"http://{address}/upload?name=a.nc", data=b"G0 X1")
-            with_token = await http.post(f"http://{address}/upload?name=a.nc&token=s3cret",
-                                         data=b"G0 X1")
+            with_token = await http.post(
+                f"http://{address}/upload?name=a.nc&token=s3cret", data=b"G0 X1"
+            )
         async with client(address, "/api?token=s3cret") as trusted:
             assert (await trusted.call("server.info"))["can_control"] is True
     assert info["can_control"] is False and info["auth_required"] is True
@@ -420,8 +431,10 @@ async def test_a_page_from_another_origin_is_refused(tmp_path: Path) -> None:
     async with serving(config) as (app, address):
         with pytest.raises(websockets.InvalidStatus) as refused:
             await websockets.connect(f"ws://{address}/api", origin="http://evil.example")
-        async with client(address, origin="http://ui.example") as listed, \
-                client(address, origin=f"http://{address}") as same:
+        async with (
+            client(address, origin="http://ui.example") as listed,
+            client(address, origin=f"http://{address}") as same,
+        ):
             assert (await listed.call("machine.status"))["state"] == "Idle"
             assert (await same.call("machine.status"))["state"] == "Idle"
     assert refused.value.response.status_code == 403

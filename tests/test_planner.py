@@ -578,3 +578,18 @@ def test_new_settings_apply_to_blocks_appended_afterwards() -> None:
     planner.append(feed_to(100.0, 100.0, 0.0, feed_mm_s=1000.0))
     before, after = run(planner)
     assert (before.nominal_mm_s, after.nominal_mm_s) == (500.0, 200.0)
+
+
+def test_insert_front_derives_the_limits_of_blocks_appended_but_not_yet_planned() -> None:
+    planner = Planner(PlannerSettings((100.0, 40.0, 10.0), (1000.0, 400.0, 100.0)),
+                      (0.0, 0.0, 0.0))
+    planner.append(Move((10.0, 0.0, 0.0), 50.0, MoveKind.FEED))
+    head = planner.pop()
+    assert head is not None
+    planner.append(Move((10.0, 20.0, 0.0), 50.0, MoveKind.FEED))  # staged, limits not derived
+    planner.insert_front(planner.make_block((5.0, 0.0, 0.0), (10.0, 0.0, 0.0), head.move, []))
+    with np.errstate(all="raise"):
+        rest, turn = planner.pop(), planner.pop()
+    assert rest is not None and turn is not None
+    assert (rest.length_mm, rest.accel_mm_s2) == (5.0, 1000.0)
+    assert (turn.length_mm, turn.accel_mm_s2, turn.nominal_mm_s) == (20.0, 400.0, 40.0)

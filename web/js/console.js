@@ -28,9 +28,11 @@ export class ConsoleView {
 
   line(text, kind) {
     const stick = this.log.scrollTop + this.log.clientHeight >= this.log.scrollHeight - 8;
-    this.log.append(el("div", { class: kind }, text));
+    const node = el("div", { class: kind }, text);
+    this.log.append(node);
     while (this.log.childElementCount > MAX_LINES) this.log.firstElementChild.remove();
     if (stick) this.log.scrollTop = this.log.scrollHeight;
+    return node;
   }
 
   info(text) { this.line(text, "info"); }
@@ -58,7 +60,9 @@ export class ConsoleView {
       this.line(item.line, "sent");
       for (const message of item.messages) this.line(message, "msg");
       if (item.error) {
-        this.line(`${item.reply} — ${item.error.meaning || item.error.message}`, "err");
+        const { message, meaning } = item.error;
+        const node = this.line(message, "err");
+        if (meaning && !message.includes(meaning)) node.append(el("span", { class: "meaning" }, ` — ${meaning}`));
       } else {
         this.line("ok", "ok");
       }

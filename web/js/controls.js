@@ -8,7 +8,7 @@ const ENABLED = {
   hold: (s) => ["run", "jog", "home"].includes(s),
   resume: (s) => s === "hold",
   unlock: (s) => s === "alarm",
-  home: (s) => ["idle", "alarm"].includes(s),
+  home: (s, info) => ["idle", "alarm"].includes(s) && info?.has_homing,
   fire: (s, info) => s === "idle" && info?.has_laser,
   control: () => true,
 };
@@ -35,6 +35,10 @@ export class Controls {
     });
     $("#btn-fire").title = info.has_laser ? "Fire the laser at low power for focusing"
       : "No [laser] module is configured";
+    const homing = info.has_homing ? "Run the homing cycle ($H)" : "No [endstops] module is configured";
+    $("#btn-home").title = homing;
+    $("#alarm-home").title = homing;
+    $("#alarm-home").hidden = !info.has_homing;
   }
 
   /** Run an API call; errors become toasts and console lines. */
@@ -126,7 +130,7 @@ export class Controls {
     this.firing = Boolean(laser?.firing);
     const fire = $("#btn-fire");
     fire.classList.toggle("firing", this.firing);
-    $("span", fire).textContent = this.firing ? "Stop laser" : "Fire laser";
+    $("span", fire).textContent = this.firing ? "Stop" : "Fire";
     $$("[data-needs]").forEach((button) => {
       const rule = ENABLED[button.dataset.needs];
       const firingStop = button === fire && this.firing;

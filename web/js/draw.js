@@ -2,7 +2,7 @@
 // and the tool. All take a 2D context already scaled to CSS pixels and a view transform
 // {scale, tx, ty}: screen x = x * scale + tx, screen y = -y * scale + ty (Y up, like the machine).
 
-const STOPS = ["#4f46e5", "#0ea5e9", "#22c55e", "#eab308", "#f97316", "#ef4444"];
+const STOPS = ["#818cf8", "#38bdf8", "#34d399", "#facc15", "#fb923c", "#f43f5e"];
 export const BUCKETS = 24;
 const RAPID = 0;
 const CUT = 1;
@@ -24,35 +24,42 @@ export const PALETTE = Array.from({ length: BUCKETS }, (_, i) => {
 export const sx = (view, x) => x * view.scale + view.tx;
 export const sy = (view, y) => -y * view.scale + view.ty;
 
+/** Whether segment i cuts: a feed move, with the laser on when the job uses the laser. */
+export function cuts(path, i) {
+  return path.kinds[i] === CUT && (!path.usesPower || path.powers[i] > 0);
+}
+
 /** Group segments by colour and opacity so the whole path is a few dozen strokes. */
 export function bucketize(path) {
   const { kinds, speeds, powers } = path;
+  const maxPower = Math.max(0, ...powers);
+  path.usesPower = maxPower > 0;
   let low = Infinity;
   let high = -Infinity;
-  let maxPower = 0;
   kinds.forEach((kind, i) => {
-    if (kind !== CUT) return;
+    if (!cuts(path, i)) return;
     low = Math.min(low, speeds[i]);
     high = Math.max(high, speeds[i]);
-    maxPower = Math.max(maxPower, powers[i]);
   });
-  if (!Number.isFinite(low)) { low = 0; high = 1; }
-  const span = Math.max(1, high - low);
+  if (!Number.isFinite(low)) { low = 0; high = 0; }
+  const span = high - low;
   const groups = new Map();
   const rapids = [];
+  const travels = [];
   kinds.forEach((kind, i) => {
-    if (kind === RAPID) { rapids.push(i); return; }
-    if (kind !== CUT) return;
-    const colour = Math.round(((speeds[i] - low) / span) * (BUCKETS - 1));
-    const level = maxPower > 0 ? (powers[i] > 0 ? 1 + Math.round((2 * powers[i]) / maxPower) : 0) : 3;
-    const key = colour * 4 + level;
+    if (kind === RAPID) rapids.push(i);
+    else if (kind === CUT && !cuts(path, i)) travels.push(i);
+    if (!cuts(path, i)) return;
+    const colour = span >= 1 ? Math.round(((speeds[i] - low) / span) * (BUCKETS - 1)) : BUCKETS >> 1;
+    const level = maxPower > 0 ? Math.min(2, Math.floor((3 * powers[i]) / maxPower)) : 2;
+    const key = colour * 3 + level;
     if (!groups.has(key)) groups.set(key, []);
     groups.get(key).push(i);
   });
-  return { groups, rapids, low, high, maxPower };
+  return { groups, rapids, travels, low, high, maxPower };
 }
 
-const ALPHA = [0.22, 0.55, 0.78, 1.0];
+const ALPHA = [0.5, 0.75, 1.0];
 
 export function drawPath(ctx, view, path, buckets) {
   const p = path.pointArray;
@@ -63,10 +70,12 @@ export function drawPath(ctx, view, path, buckets) {
   ctx.strokeStyle = "rgba(148, 163, 184, 0.35)";
   strokeSegments(ctx, view, p, buckets.rapids);
   ctx.setLineDash([]);
+  ctx.strokeStyle = "rgba(148, 163, 184, 0.28)";
+  strokeSegments(ctx, view, p, buckets.travels);
   ctx.lineWidth = 1.4;
   for (const [key, indices] of buckets.groups) {
-    const [r, g, b] = PALETTE[Math.floor(key / 4)];
-    ctx.strokeStyle = `rgba(${r}, ${g}, ${b}, ${ALPHA[key % 4]})`;
+    const [r, g, b] = PALETTE[Math.floor(key / 3)];
+    ctx.strokeStyle = `rgba(${r}, ${g}, ${b}, ${ALPHA[key % 3]})`;
     strokeSegments(ctx, view, p, indices);
   }
 }
@@ -82,7 +91,7 @@ export function drawDone(ctx, view, path, first, last) {
   ctx.shadowColor = "rgba(251, 146, 60, 0.8)";
   ctx.shadowBlur = 4;
   const indices = [];
-  for (let i = first; i < last; i++) if (path.kinds[i] === CUT) indices.push(i);
+  for (let i = first; i < last; i++) if (cuts(path, i)) indices.push(i);
   strokeSegments(ctx, view, p, indices);
   ctx.shadowBlur = 0;
 }

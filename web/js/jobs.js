@@ -169,6 +169,7 @@ export class JobsView {
     error.hidden = !job.error;
     error.textContent = job.error || "";
     const active = ["running", "paused"].includes(job.state);
+    $(".job-actions").hidden = !active;
     $("#job-pause").hidden = job.state === "paused";
     $("#job-resume").hidden = job.state !== "paused";
     $("#job-pause").disabled = !active || !this.canControl;

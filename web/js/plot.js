@@ -3,6 +3,11 @@
 import { $, grouped } from "./util.js";
 
 const WINDOW_S = 30;
+
+/** Axis numbers: 2 500 -> "2.5k". */
+function compact(value) {
+  return value >= 1000 ? `${+(value / 1000).toFixed(1)}k` : String(value);
+}
 const IDLE_TICK_MS = 250;
 
 export class LivePlot {
@@ -31,16 +36,17 @@ export class LivePlot {
       height: this.container.clientHeight || 150,
       legend: { show: false },
       cursor: { show: false },
-      padding: [8, 4, 0, 0],
+      padding: [10, 6, 0, 0],
       scales: {
         x: { time: false, range: () => { const now = this.now(); return [now - WINDOW_S, now]; } },
         speed: { range: () => [0, this.maxSpeed] },
         power: { range: [0, 100] },
       },
       axes: [
-        { ...axis, values: (u, ticks) => ticks.map((v) => `${Math.round(v - this.now())}s`), size: 26 },
-        { ...axis, scale: "speed", size: 48, values: (u, ticks) => ticks.map((v) => grouped(v)) },
-        { ...axis, scale: "power", side: 1, size: 36, grid: { show: false }, values: (u, ticks) => ticks.map((v) => `${v}%`) },
+        { ...axis, size: 26, splits: () => this.splits(),
+          values: (u, ticks) => ticks.map((v) => { const s = Math.round(v - this.now()); return s ? `${s}s` : "now"; }) },
+        { ...axis, scale: "speed", size: 44, values: (u, ticks) => ticks.map(compact) },
+        { ...axis, scale: "power", side: 1, size: 44, grid: { show: false }, values: (u, ticks) => ticks.map((v) => `${v}%`) },
       ],
       series: [
         {},
@@ -53,6 +59,12 @@ export class LivePlot {
 
   now() {
     return performance.now() / 1000;
+  }
+
+  /** Time ticks every 5 s, counted back from now. */
+  splits() {
+    const now = this.now();
+    return Array.from({ length: WINDOW_S / 5 + 1 }, (_, i) => now - WINDOW_S + 5 * i);
   }
 
   /** A telemetry sample (notify_telemetry) or a status update. */

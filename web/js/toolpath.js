@@ -5,7 +5,7 @@
 // update looks for the tool's position on the segments just ahead of the last match, so the
 // cut part is drawn segment by segment, corners included, however sparse the updates.
 
-import { bucketize, drawDone, drawGrid, drawPath, drawTool } from "./draw.js";
+import { BUCKETS, PALETTE, bucketize, cuts, drawDone, drawGrid, drawPath, drawTool } from "./draw.js";
 import { $, duration, grouped } from "./util.js";
 
 const MARGIN = 0.08;
@@ -60,8 +60,11 @@ export class ToolpathView {
     const summary = path ? `${path.name} · ${grouped(path.segments)} segments · ${duration(path.duration_s)} planned` : "";
     $("#view-job").textContent = summary;
     if (path) {
-      $("#legend-min").textContent = grouped(this.buckets.low);
-      $("#legend-max").textContent = grouped(this.buckets.high);
+      const { low, high } = this.buckets;
+      $("#legend-min").textContent = grouped(low);
+      $("#legend-max").textContent = high - low >= 1 ? grouped(high) : "";
+      $("#legend").classList.toggle("single", high - low < 1);
+      $(".legend-bar").style.background = high - low < 1 ? `rgb(${PALETTE[BUCKETS >> 1].join(",")})` : "";
     }
     this.userMoved = false;
     this.fit();
@@ -254,11 +257,12 @@ export class ToolpathView {
     ctx.clearRect(0, 0, this.canvas.width, this.canvas.height);
     ctx.drawImage(this.base, 0, 0);
     ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
-    if (this.path && this.partial && this.done < this.path.segments && this.path.kinds[this.done] === 1) {
-      const p = this.path.pointArray;
+    const path = this.path;
+    if (path && this.partial && this.done < path.segments && cuts(path, this.done)) {
+      const p = path.pointArray;
       const i = this.done;
       drawDone(ctx, this.view, { pointArray: Float64Array.of(p[2 * i], p[2 * i + 1], ...this.partial),
-        kinds: [1] }, 0, 1);
+        kinds: [1], powers: [1], usesPower: false }, 0, 1);
     }
     if (this.status) drawTool(ctx, this.view, this.status.wpos[0], this.status.wpos[1], this.status.power_pct);
   }
