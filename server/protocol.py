@@ -139,6 +139,7 @@ class ResendError(CommandError):
 _ALWAYS_REALTIME = bytes(value for value in Realtime if value not in b"?!~")
 _SPECIAL_GRBL = re.compile(rb"[\r\n?!~\x18\x80-\xff]")
 _SPECIAL_REPRAP = re.compile(rb"[\r\n\x18\x80-\xff]")
+_STATUS_RUN = re.compile(rb"\?+")
 _TEXT_REALTIME = re.compile("([" + "".join(chr(v) for v in Realtime if v >= 0x80) + "])")
 _CONTROL = re.compile(r"[\x00-\x08\x0a-\x1f\x7f-\x9f]")
 _N_WORD = re.compile(r"[Nn]\s*(-?\d+)")
@@ -263,6 +264,11 @@ class LineProtocol:
                 self._take_text(data[position:end])
             if special is None:
                 return
+            if data[end] == 0x3F and self.dialect is Dialect.GRBL:  # a run of '?': one request
+                self._end_utf8_character()
+                self._realtime(0x3F, events)
+                position = _STATUS_RUN.match(data, end).end()  # type: ignore[union-attr]
+                continue
             self._take_special(data[end], events)
             position = end + 1
 

@@ -40,6 +40,7 @@ log = logging.getLogger("motiond.session")
 _AUTH = re.compile(r"^\s*\$AUTH=(.*)$", re.I)
 _M112 = re.compile(r"^\s*(?:N\d+\s*)?M\s*0*112(?:\D|$)", re.I)
 INBOUND_LINES = 64
+YIELD_AFTER_S = 0.001  # the executor gives other tasks a turn at least this often
 
 
 class Outbox:
@@ -151,8 +152,13 @@ class Session:
         await self._room.wait()
 
     def _handle(self, events: list[LineReceived | LineRejected | RealtimeReceived]) -> None:
+        reported = False
         for event in events:
             if isinstance(event, RealtimeReceived):
+                if event.command is Realtime.STATUS:
+                    if reported:  # like Grbl's status flag: one report per batch of '?'
+                        continue
+                    reported = True
                 self._realtime(event.command)
                 continue
             if isinstance(event, LineReceived) and _M112.match(event.text) and self.can_control:
@@ -211,10 +217,13 @@ class Session:
         return self.protocol.reply_error(CommandError(AUTH_REQUIRED, "wrong token"))
 
     async def _executor(self) -> None:
+        loop = asyncio.get_running_loop()
+        turn_s = loop.time()
         while not self._closing:
             if not self._lines:
                 self._lines_ready.clear()
                 await self._lines_ready.wait()
+                turn_s = loop.time()
                 continue
             epoch, event = self._lines.popleft()
             reply = await self._execute(event)
@@ -223,6 +232,9 @@ class Session:
             if epoch == self._epoch:
                 self._queued_bytes = max(0, self._queued_bytes - _size(event))
                 self.outbox.put(reply)
+            if loop.time() - turn_s > YIELD_AFTER_S:  # lines that never wait must not hog
+                await asyncio.sleep(0)
+                turn_s = loop.time()
 
     async def _execute(self, event: LineReceived | LineRejected) -> bytes:
         if isinstance(event, LineRejected):

@@ -79,6 +79,7 @@ async def serve_stream(
                 break
             session.receive_data(data)
             await session.wait_room()
+            await asyncio.sleep(0)  # buffered input must not hold the loop: one chunk a turn
     except (ConnectionError, OSError):
         pass
     finally:

@@ -107,6 +107,7 @@ class HttpTransport:
                 elif message.type is WSMsgType.BINARY:
                     session.receive_data(message.data)
                 await session.wait_room()
+                await asyncio.sleep(0)  # one message a turn: a flood must not hold the loop
         finally:
             self._sockets.discard(socket)
             await session.close()
