@@ -21,6 +21,8 @@ import hmac
 import itertools
 import json
 import logging
+import os
+import time
 from collections.abc import AsyncIterator
 from typing import TYPE_CHECKING, Any
 
@@ -47,6 +49,23 @@ PARSE_ERROR, INVALID_REQUEST, METHOD_NOT_FOUND, INVALID_PARAMS, INTERNAL = (
     -32603,
 )
 TOO_BUSY = -32000
+RATE_LIMITED = -32001
+
+
+class TokenBucket:
+    """A request-rate limit: ``rate`` per second on average, bursts up to ``burst``."""
+
+    def __init__(self, rate: float, burst: float) -> None:
+        self.rate, self.burst = rate, burst
+        self.tokens, self.last_s = burst, time.monotonic()
+
+    def take(self, now_s: float) -> bool:
+        self.tokens = min(self.burst, self.tokens + (now_s - self.last_s) * self.rate)
+        self.last_s = now_s
+        if self.tokens < 1.0:
+            return False
+        self.tokens -= 1.0
+        return True
 
 
 class Connection:
@@ -63,6 +82,8 @@ class Connection:
         self.gcode_lock = asyncio.Lock()
         self.closing = False
         self._tasks: set[asyncio.Task[None]] = set()
+        rate = api.http.max_requests_per_s
+        self._bucket = TokenBucket(rate, burst=max(1.0, rate))
 
     def receive(self, text: str) -> None:
         """A text frame: one JSON-RPC request or notification."""
@@ -88,6 +109,10 @@ class Connection:
             return
         if len(self._tasks) >= MAX_IN_FLIGHT:
             self.reply(message.get("id"), error=(TOO_BUSY, "too many requests in flight", None))
+            return
+        if not self._bucket.take(time.monotonic()):
+            error = (RATE_LIMITED, "too many requests per second", None)
+            self.reply(message.get("id"), error=error)
             return
         task = asyncio.get_running_loop().create_task(self._run(message), name=self.name)
         self._tasks.add(task)
@@ -177,13 +202,12 @@ class JsonApi:
         return origin_allowed(request, self.http.allowed_origins)
 
     def token_ok(self, token: str | None) -> bool:
-        expected = self.http.token
+        expected = self.http.token or os.environ.get("MOTIOND_TOKEN") or None
         return expected is None or (token is not None and hmac.compare_digest(token, expected))
 
     # -- /api -------------------------------------------------------------------------------
     async def socket(self, request: web.Request) -> web.StreamResponse:
-        if not self.origin_allowed(request):
-            raise web.HTTPForbidden(text="origin not allowed")
+        self.transport.admit(request)
         socket = web.WebSocketResponse(
             heartbeat=20, max_msg_size=MAX_MESSAGE_BYTES, compress=False
         )  # frames are encoded once for all
@@ -194,6 +218,7 @@ class JsonApi:
         if request.transport is not None:
             connection.channel.on_overflow = request.transport.abort
         self.connections.add(connection)
+        self.transport.open_sockets += 1
         writer = asyncio.get_running_loop().create_task(_write(connection), name="api-writer")
         try:
             async for message in socket:
@@ -203,6 +228,7 @@ class JsonApi:
                     connection.reply(None, error=(INVALID_REQUEST, "send JSON as text", None))
         finally:
             self.connections.discard(connection)
+            self.transport.open_sockets -= 1
             await connection.close()
             writer.cancel()
             with contextlib.suppress(asyncio.CancelledError, ConnectionError):

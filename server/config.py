@@ -86,6 +86,8 @@ class HttpConfig(Strict):
     port: int = Field(8080, ge=0, le=65535)
     allowed_origins: list[str] = Field(default_factory=list)
     token: str | None = None
+    max_connections: int = Field(32, ge=1, description="WebSocket connections, /ws and /api")
+    max_requests_per_s: float = Field(200.0, gt=0, description="per /api connection")
 
 
 class SerialConfig(Strict):

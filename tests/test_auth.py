@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import json
 
 import websockets
 
@@ -93,3 +94,26 @@ async def test_a_page_on_another_site_cannot_open_the_line_socket() -> None:
         await socket.send("?")
         assert (await asyncio.wait_for(socket.recv(), 5)).strip()
     await stop(app)
+
+
+async def test_websocket_connections_beyond_the_limit_and_request_floods_get_clear_errors() -> None:
+    config = make_config(http={"max_connections": 2, "max_requests_per_s": 20})
+    app = App(config, clock=VirtualClock(), transports=[HttpTransport])
+    task = asyncio.create_task(app.run())
+    await app.ready.wait()
+    port = app.transports[0].port  # type: ignore[attr-defined]
+    line_socket = websockets.connect(f"ws://127.0.0.1:{port}/ws")
+    async with line_socket, websockets.connect(f"ws://127.0.0.1:{port}/api") as api:
+        try:
+            await websockets.connect(f"ws://127.0.0.1:{port}/api")
+            raise AssertionError("a third connection was let in")
+        except websockets.InvalidStatus as exc:
+            assert exc.response.status_code == 503
+        for request_id in range(60):
+            await api.send(json.dumps({"jsonrpc": "2.0", "id": request_id,
+                                       "method": "server.info"}))
+        answers = [json.loads(await asyncio.wait_for(api.recv(), 5)) for _ in range(60)]
+        limited = [a for a in answers if a.get("error", {}).get("code") == -32001]
+        assert 20 <= len(answers) - len(limited) <= 25 and len(limited) >= 35
+    app.request_stop()
+    await task

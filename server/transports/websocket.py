@@ -61,6 +61,7 @@ class HttpTransport:
         self.app.router.add_static("/", web_root(), show_index=False)
         self._runner: web.AppRunner | None = None
         self._sockets: set[web.WebSocketResponse] = set()
+        self.open_sockets = 0  # /ws and /api together
         self._ids = itertools.count(1)
 
     async def start(self) -> None:
@@ -86,13 +87,21 @@ class HttpTransport:
     async def _index(self, request: web.Request) -> web.StreamResponse:
         return web.FileResponse(web_root() / "index.html")
 
-    async def _line_socket(self, request: web.Request) -> web.WebSocketResponse:
+    def admit(self, request: web.Request) -> None:
+        """Refuse a WebSocket from a foreign origin (403) or beyond ``max_connections`` (503)."""
         if not origin_allowed(request, self.config.allowed_origins):
-            log.warning("refused /ws from origin %s", request.headers.get("Origin"))
+            log.warning("refused %s from origin %s", request.path, request.headers.get("Origin"))
             raise web.HTTPForbidden(text="origin not allowed")
+        if self.open_sockets >= self.config.max_connections:
+            log.warning("refused %s: %d connections open", request.path, self.open_sockets)
+            raise web.HTTPServiceUnavailable(text="too many connections")
+
+    async def _line_socket(self, request: web.Request) -> web.WebSocketResponse:
+        self.admit(request)
         socket = web.WebSocketResponse(heartbeat=20)
         await socket.prepare(request)
         self._sockets.add(socket)
+        self.open_sockets += 1
         token = request.query.get("token") or request.headers.get("X-Motiond-Token")
         session = Session(self.kernel, f"ws-{next(self._ids)}", websocket=True, token=token)
         transport = request.transport
@@ -110,6 +119,7 @@ class HttpTransport:
                 await asyncio.sleep(0)  # one message a turn: a flood must not hold the loop
         finally:
             self._sockets.discard(socket)
+            self.open_sockets -= 1
             await session.close()
             writer.cancel()
             with contextlib.suppress(asyncio.CancelledError, ConnectionError):
