@@ -1,8 +1,11 @@
 """Parser throughput: motiond's parser against PyPI's pygcode, side by side on every corpus file.
 
 Both produce the full output (every word, the line number, comments; motiond also validates
-checksums). Rounds are interleaved and each parser's best CPU time counts, so other load on a
-shared machine does not skew the ratio. Run: ``python -m benchmarks.bench_parser``.
+checksums). Two modes: *streaming* parses each line and drops it, as the server does (each
+result is touched: words and comments); *retained* keeps every result, which adds the garbage
+collector's cost to both. Rounds are interleaved and each parser's best CPU time counts, so
+other load on a shared machine does not skew the ratio.
+Run: ``python -m benchmarks.bench_parser``.
 """
 
 from __future__ import annotations
@@ -15,23 +18,41 @@ from benchmarks.common import corpus_files, side_by_side
 from server.gcode import parse_line
 
 
+def ours_streaming(lines: list[str]) -> None:
+    for text in lines:
+        line = parse_line(text)
+        line.words, line.comments  # noqa: B018 - touch the full output
+
+
+def theirs_streaming(lines: list[str]) -> None:
+    for text in lines:
+        line = PygcodeLine(text)
+        line.block.words, line.comment  # noqa: B018
+
+
 def main() -> int:
-    print(f"{'file':32} {'lines':>7} {'motiond lines/s':>16} {'pygcode lines/s':>16} {'ratio':>7}")
-    total_ours = total_theirs = 0.0
-    total_lines = 0
+    print(f"{'file':30} {'lines':>7} {'streaming: motiond/s':>21} {'pygcode/s':>10} {'ratio':>6}"
+          f" {'retained: ratio':>16}")
+    totals = [0.0, 0.0, 0.0, 0.0]
+    count = 0
     for path in corpus_files():
         lines = path.read_text(errors="replace").splitlines()
-        ours, theirs = side_by_side(
+        times = side_by_side(
             3,
+            lambda lines=lines: ours_streaming(lines),
+            lambda lines=lines: theirs_streaming(lines),
             lambda lines=lines: [parse_line(text) for text in lines],
             lambda lines=lines: [PygcodeLine(text) for text in lines],
         )
-        total_ours, total_theirs, total_lines = total_ours + ours, total_theirs + theirs, \
-            total_lines + len(lines)
-        print(f"{path.name:32} {len(lines):7,} {len(lines) / ours:16,.0f} "
-              f"{len(lines) / theirs:16,.0f} {theirs / ours:6.1f}x")
-    print(f"{'all':32} {total_lines:7,} {total_lines / total_ours:16,.0f} "
-          f"{total_lines / total_theirs:16,.0f} {total_theirs / total_ours:6.1f}x")
+        totals = [total + t for total, t in zip(totals, times, strict=True)]
+        count += len(lines)
+        ours, theirs, ours_kept, theirs_kept = times
+        kept_ratio = theirs_kept / ours_kept
+        print(f"{path.name:30} {len(lines):7,} {len(lines) / ours:21,.0f} "
+              f"{len(lines) / theirs:10,.0f} {theirs / ours:5.1f}x {kept_ratio:15.1f}x")
+    ours, theirs, ours_kept, theirs_kept = totals
+    print(f"{'all':30} {count:7,} {count / ours:21,.0f} {count / theirs:10,.0f} "
+          f"{theirs / ours:5.1f}x {theirs_kept / ours_kept:15.1f}x")
     return 0
 
 

@@ -19,10 +19,10 @@ import logging
 import os
 import re
 from collections import deque
-from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from server.errors import AUTH_REQUIRED, CommandError
+from server.outbox import BoundedQueue
 from server.protocol import (
     LineProtocol,
     LineReceived,
@@ -43,47 +43,13 @@ INBOUND_LINES = 64
 YIELD_AFTER_S = 0.001  # the executor gives other tasks a turn at least this often
 
 
-class Outbox:
-    """A bounded byte queue drained by the transport's writer task."""
-
-    def __init__(self, limit_bytes: int) -> None:
-        self.limit_bytes = limit_bytes
-        self.on_overflow: Callable[[], None] = lambda: None
-        self._chunks: deque[bytes] = deque()
-        self._size = 0
-        self._ready = asyncio.Event()
-        self.overflowed = False
-        self.closed = False
-
-    def put(self, data: bytes) -> bool:
-        """Queue data; returns False (and marks overflow) when the client is not keeping up."""
-        if self.closed:
-            return False
-        if self._size + len(data) > self.limit_bytes:
-            self.overflowed = True
-            self.close()
-            self.on_overflow()
-            return False
-        self._chunks.append(data)
-        self._size += len(data)
-        self._ready.set()
-        return True
+class Outbox(BoundedQueue[bytes]):
+    """What one line-protocol client is sent, bounded in bytes, drained as one chunk."""
 
     async def get(self) -> bytes | None:
-        """Everything queued so far as one chunk, or None once closed and empty."""
-        while not self._chunks:
-            if self.closed:
-                return None
-            self._ready.clear()
-            await self._ready.wait()
-        data = b"".join(self._chunks)
-        self._chunks.clear()
-        self._size = 0
-        return data
-
-    def close(self) -> None:
-        self.closed = True
-        self._ready.set()
+        """Everything queued so far as one chunk, or None once closed."""
+        chunks = await self.get_all()
+        return None if chunks is None else b"".join(chunks)
 
 
 class Session:

@@ -19,12 +19,12 @@ import contextlib
 import dataclasses
 import json
 import logging
-from collections import deque
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from server.events import MachineState
 from server.moves import MoveKind, ToolMode
+from server.outbox import BoundedQueue
 from server.reports import ALARM_MESSAGES
 from server.status import state_text
 
@@ -60,45 +60,20 @@ def notification(method: str, params: dict[str, Any]) -> str:
     return encode({"jsonrpc": "2.0", "method": method, "params": params})
 
 
-class Channel:
-    """One client's bounded queue of encoded frames, drained by its writer task."""
+class Channel(BoundedQueue[str]):
+    """One API client's bounded queue of encoded frames, drained frame by frame."""
 
     def __init__(self, limit_frames: int = QUEUE_FRAMES) -> None:
-        self.limit_frames = limit_frames
+        super().__init__(limit_frames, size=lambda frame: 1)
         self.topics: set[str] = set()
-        self.on_overflow: Callable[[], None] = lambda: None
-        self.overflowed = False
-        self.closed = False
-        self._frames: deque[str] = deque()
-        self._ready = asyncio.Event()
 
     def offer(self, frame: str) -> bool:
         """Queue a frame; False (and the channel closes) when the client is not keeping up."""
-        if self.closed:
-            return False
-        if len(self._frames) >= self.limit_frames:
-            self.overflowed = True
-            self.close()
-            self.on_overflow()
-            return False
-        self._frames.append(frame)
-        self._ready.set()
-        return True
+        return self.put(frame)
 
     async def get(self) -> str | None:
         """The next frame, or None once the channel is closed."""
-        while not self._frames:
-            if self.closed:
-                return None
-            self._ready.clear()
-            await self._ready.wait()
-        if self.closed and self.overflowed:
-            return None
-        return self._frames.popleft()
-
-    def close(self) -> None:
-        self.closed = True
-        self._ready.set()
+        return await self.get_one()
 
 
 class Publisher:
