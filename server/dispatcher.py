@@ -34,7 +34,9 @@ Handler = Callable[["Command"], Awaitable[HandlerResult] | HandlerResult]
 _NAMED = re.compile(r"([A-Za-z][A-Za-z_\-]+)(?:\s+(.*))?$", re.S)
 _DOLLAR = re.compile(r"\$([$#]|[A-Za-z]*)\s*(.*)$", re.S)
 _SETTING = re.compile(r"\$(\d+)\s*=\s*(.*)$")
+_STARTUP = re.compile(r"\$[Nn](\d)\s*=(.*)$", re.S)
 LOCKED_OUT = 9
+INVALID_DOLLAR = 3
 
 
 class Source(Protocol):
@@ -129,6 +131,10 @@ class Dispatcher:
         setting = _SETTING.match(stripped)
         if setting:
             return await self._run("$=", Command("$=", text, stripped[1:], source))
+        startup = _STARTUP.match(stripped)
+        if startup:
+            name = f"$N{startup.group(1)}="
+            return await self._run(name, Command(name, text, startup.group(2), source))
         match = _DOLLAR.match(stripped)
         if match is None:
             raise CommandError(3, f"invalid $ statement {stripped!r}")
@@ -161,7 +167,8 @@ class Dispatcher:
     async def _run(self, name: str, command: Command) -> list[str]:
         entry = self._entries.get(name)
         if entry is None:
-            raise CommandError(UNKNOWN_COMMAND, f"unknown command {name}")
+            code = INVALID_DOLLAR if name.startswith("$") else UNKNOWN_COMMAND
+            raise CommandError(code, f"unknown command {name}")
         if self._is_locked() and not entry.when_locked:
             raise CommandError(LOCKED_OUT, f"{name} locked out during alarm: $X or M999 to unlock")
         messages: list[str] = []

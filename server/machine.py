@@ -111,11 +111,11 @@ class Machine:
         self._cancelling_jog = False
         self._check_saved: Interpreter | None = None
         self._defaults = core.model_copy(deep=True)
-        self.settings = Settings(self, settings_path(kernel))
         self.feed_override = 100
         self.rapid_override = 100
         self.spindle_override = 100
         kernel.dispatcher.set_gcode_handler(self.handle_gcode)
+        self.settings = Settings(self, settings_path(kernel))  # last: it applies saved values
 
     # -- the G-code handler -----------------------------------------------------------------
     async def handle_gcode(self, command: Command) -> list[str]:

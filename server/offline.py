@@ -94,7 +94,11 @@ class _Listener:
 
 
 class _Feeder:
-    """Pulls outputs from the job until the planner is full; records the first error."""
+    """Feeds the job's outputs until the planner is full, as a sender that keeps up would.
+
+    A line's outputs may straddle a full planner (the chords of an arc), exactly as the live
+    machine waits for room between them. Records the first refused line.
+    """
 
     def __init__(
         self,
@@ -108,34 +112,46 @@ class _Feeder:
         self.interpreter.set_position(origin)
         self.planner = Planner(PlannerSettings.from_config(core), origin)
         self.stats = stats
-        self._outputs = self._generate(lines, on_line)
+        self._lines = enumerate(lines, 1)
+        self._on_line = on_line
+        self._waiting: list[Output] = []  # outputs of the current line not yet queued
         self.done = False
-
-    def _generate(
-        self, lines: Iterable[str], on_line: Callable[[int], None] | None
-    ) -> Iterator[Output]:
-        for number, text in enumerate(lines, 1):
-            self.stats.lines = number
-            if on_line is not None:
-                on_line(number)
-            try:
-                outputs = self.interpreter.execute(parse_line(text))
-            except CommandError as exc:
-                self.stats.error, self.stats.error_line = f"error:{exc.code} {exc.message}", number
-                return
-            yield from outputs
 
     def refill(self) -> None:
         planner = self.planner
-        while not self.done and not planner.is_full():
-            output = next(self._outputs, None)
-            if output is None:
-                self.done = True
-            elif isinstance(output, Move):
-                planner.append(output)
-                self.stats.moves += 1
-            elif isinstance(output, Action):
-                planner.append_action(output)
+        is_full, append = planner.is_full, planner.append
+        waiting = self._waiting
+        while not self.done:
+            if not waiting and not self._next_line():
+                return
+            while waiting:
+                if is_full():
+                    return
+                output = waiting.pop()
+                if type(output) is Move:
+                    append(output)
+                    self.stats.moves += 1
+                elif type(output) is Action:
+                    planner.append_action(output)
+
+    def _next_line(self) -> bool:
+        """Interpret the next line into ``_waiting`` (reversed, to pop from the end)."""
+        entry = next(self._lines, None)
+        if entry is None:
+            self.done = True
+            return False
+        number, text = entry
+        self.stats.lines = number
+        if self._on_line is not None:
+            self._on_line(number)
+        try:
+            outputs = self.interpreter.execute(parse_line(text))
+        except CommandError as exc:
+            self.stats.error, self.stats.error_line = f"error:{exc.code} {exc.message}", number
+            self.done = True
+            return False
+        self._waiting.extend(reversed(outputs))
+        return True
 
 
 def _pipeline(

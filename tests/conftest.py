@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import os
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -29,8 +30,10 @@ BASE: dict[str, Any] = {
 
 
 def make_config(extra: dict[str, Any] | None = None, **sections: Any) -> Config:
-    """A small XYZ machine, with extra sections merged in."""
+    """A small XYZ machine, with extra sections merged in; its data directory is a fresh
+    temporary folder, so tests never read or write the user's settings and jobs."""
     data = copy.deepcopy(BASE)
+    data["jobs"] = {"data_dir": tempfile.mkdtemp(prefix="motiond-test-")}
     for key, value in {**(extra or {}), **sections}.items():
         if isinstance(value, dict) and isinstance(data.get(key), dict):
             data[key].update(value)
