@@ -29,6 +29,7 @@ MAX_LINE_NUMBER = 10_000_000
 _NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)"
 _WORD = re.compile(rf"([A-Z])({_NUMBER})")
 _LETTER = re.compile(r"([A-Z])")
+_split_letters = _LETTER.split
 _COMMENT = re.compile(r"\(([^)]*)\)|;(.*)", re.S)
 _CHECKSUM = re.compile(r"\s*(\d{1,3})\s*")
 _REPEATABLE = frozenset("GM")
@@ -73,6 +74,19 @@ def parse_line(text: str) -> Line:
     """Parse one line of G-code. Never raises; see :class:`Line`."""
     if "*" in text or "(" in text or ";" in text:
         return _parse_framed_or_commented(text)
+    # The common line: plain words. Anything unusual falls through to the general path.
+    compact = "".join(text.split()).upper()
+    parts = _split_letters(compact)
+    if compact and not parts[0] and compact.isascii() and "_" not in compact \
+            and "N" not in compact:
+        letters = parts[1::2]
+        try:
+            words = list(zip(letters, map(float, parts[2::2]), strict=True))
+        except ValueError:
+            pass
+        else:
+            if len(set(letters)) == len(letters):
+                return Line(text, words, [], None, None, False, None)
     return _parse_body(Line(text, [], []), text)
 
 

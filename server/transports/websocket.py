@@ -38,6 +38,11 @@ def origin_allowed(request: web.Request, allowed_origins: list[str]) -> bool:
     return urlsplit(origin).netloc.lower() == request.host.lower()
 
 
+def _browsable(host: str) -> str:
+    """An address a browser on this machine can open for a bind address."""
+    return "127.0.0.1" if host in ("0.0.0.0", "", "::") else host
+
+
 def web_root() -> Path:
     """The folder of the browser UI (installed as the ``web`` package)."""
     return Path(str(resources.files("web")))
@@ -74,7 +79,8 @@ class HttpTransport:
         server = site._server  # noqa: SLF001 - aiohttp exposes the bound port only here
         if server is not None and server.sockets:  # type: ignore[attr-defined]
             self.port = server.sockets[0].getsockname()[1]  # type: ignore[attr-defined]
-        log.info("HTTP/WebSocket listening on %s:%d", self.config.host, self.port)
+        log.info("HTTP/WebSocket listening on %s:%d — web UI at http://%s:%d/",
+                 self.config.host, self.port, _browsable(self.config.host), self.port)
 
     async def close(self) -> None:
         for socket in list(self._sockets):
