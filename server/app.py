@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import logging
 from collections.abc import Callable
 from typing import Protocol
@@ -72,6 +73,9 @@ class App:
             try:
                 for transport in self.transports:
                     await transport.start()
+                # Everything start-up made lives as long as the process: keep it out of the
+                # garbage collector's full scans, which otherwise stall the loop 15-20 ms.
+                gc.freeze()
                 self.ready.set()
                 await self._stop.wait()
             finally:
