@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import random
+from collections.abc import Callable
 
 import pytest
 
@@ -96,33 +97,40 @@ def test_late_ticks_change_neither_the_path_nor_the_timing_nor_the_steps() -> No
     assert compared > 100
 
 
+class Ticker:
+    """Drives a step generator at 1 kHz on a hand-held clock."""
+
+    def __init__(self, stepgen: StepGenerator) -> None:
+        self.stepgen, self.now = stepgen, 0.0
+        stepgen.request_start()
+        stepgen.tick(self.now)
+
+    def until(self, done: Callable[[], bool]) -> list[float]:
+        """Tick until ``done()``; the speed after each tick."""
+        speeds = []
+        while not done():
+            self.now += 0.001
+            self.stepgen.tick(self.now)
+            speeds.append(self.stepgen.state.speed_mm_s)
+        return speeds
+
+
 def test_feed_hold_decelerates_within_the_limit_and_resume_finishes_exactly() -> None:
     stepgen, backend, planner = generator(core_config())
     feed(planner, [(100.0, 0.0, 0.0), (100.0, 100.0, 0.0)], 200.0)
-    stepgen.request_start()
-    now = 0.0
-    stepgen.tick(now)
-    while stepgen.state.speed_mm_s < 150:
-        now += 0.001
-        stepgen.tick(now)
+    ticker = Ticker(stepgen)
+    ticker.until(lambda: stepgen.state.speed_mm_s >= 150)
     stepgen.hold()
     assert stepgen.state.hold is HoldState.DECELERATING
-    speeds = []
-    while stepgen.state.hold is not HoldState.STOPPED:
-        now += 0.001
-        stepgen.tick(now)
-        speeds.append(stepgen.state.speed_mm_s)
+    speeds = ticker.until(lambda: stepgen.state.hold is HoldState.STOPPED)
     accel = 3000.0
     assert all(a - b <= accel * 0.001 + 1e-9 for a, b in zip(speeds, speeds[1:], strict=False))
     stopped_at = stepgen.state.position_mm
-    for _ in range(200):  # stays put while held
-        now += 0.001
-        stepgen.tick(now)
+    held_until = ticker.now + 0.2
+    ticker.until(lambda: ticker.now >= held_until)  # stays put while held
     assert stepgen.state.position_mm == stopped_at
     stepgen.resume()
-    while not stepgen.idle:
-        now += 0.001
-        stepgen.tick(now)
+    ticker.until(lambda: stepgen.idle)
     assert stepgen.state.position_mm == (100.0, 100.0, 0.0)
     assert backend.steps == [8000, 8000, 0]
 
@@ -130,22 +138,14 @@ def test_feed_hold_decelerates_within_the_limit_and_resume_finishes_exactly() ->
 def test_hold_on_short_blocks_decelerates_across_block_boundaries() -> None:
     stepgen, backend, planner = generator(core_config())
     feed(planner, [(0.5 * i, 0.0, 0.0) for i in range(1, 200)], 300.0)
-    stepgen.request_start()
-    now = 0.0
-    stepgen.tick(now)
-    while stepgen.state.speed_mm_s < 250:
-        now += 0.001
-        stepgen.tick(now)
+    ticker = Ticker(stepgen)
+    ticker.until(lambda: stepgen.state.speed_mm_s >= 250)
     blocks_before = stepgen.state.blocks_done
     stepgen.hold()
-    while stepgen.state.hold is not HoldState.STOPPED:
-        now += 0.001
-        stepgen.tick(now)
+    ticker.until(lambda: stepgen.state.hold is HoldState.STOPPED)
     assert stepgen.state.blocks_done > blocks_before + 5, "a 300 mm/s stop takes 15 mm"
     stepgen.resume()
-    while not stepgen.idle:
-        now += 0.001
-        stepgen.tick(now)
+    ticker.until(lambda: stepgen.idle)
     assert backend.steps == [round(99.5 * 80), 0, 0]
 
 
