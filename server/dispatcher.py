@@ -25,7 +25,7 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
-from server.errors import UNKNOWN_COMMAND, CommandError
+from server.errors import BUSY, UNKNOWN_COMMAND, CommandError
 from server.gcode import Line, parse_line
 
 HandlerResult = list[str] | None
@@ -87,6 +87,8 @@ class Dispatcher:
         self._gcode: Handler | None = None
         self._lock = asyncio.Lock()
         self._is_locked = is_locked
+        self._closed = False
+        self._immediate: set[str] = set()
 
     def register(self, name: str, handler: Handler, *, when_locked: bool = False) -> None:
         """Add a handler for ``name`` (``M106``, ``$H``, ``fire``).
@@ -105,9 +107,34 @@ class Dispatcher:
         """Every registered command name."""
         return sorted(self._entries)
 
-    async def submit(self, text: str, source: Source) -> list[str]:
-        """Execute one line in order with every other source; returns messages for the reply."""
+    def close(self) -> None:
+        """Shutdown: refuse every line from now on."""
+        self._closed = True
+
+    def register_immediate(self, name: str, handler: Handler) -> None:
+        """A named command that runs at once, outside the ordered stream (job control:
+        ``suspend``, ``resume``, ``abort`` must work while a held job waits for room)."""
+        self.register(name, handler, when_locked=True)
+        self._immediate.add(_key(name))
+
+    async def submit(
+        self, text: str, source: Source, still_valid: Callable[[], bool] | None = None
+    ) -> list[str]:
+        """Execute one line in order with every other source; returns messages for the reply.
+
+        ``still_valid`` is checked once the line's turn comes: a line overtaken by a reset of
+        its connection while it waited is dropped (CommandError BUSY), never run late.
+        """
+        if self._closed:
+            raise CommandError(BUSY, "shutting down")
+        named = _NAMED.match(text.strip())
+        if named and _key(named.group(1)) in self._immediate:
+            return await self.execute(text, source)
         async with self._lock:
+            if self._closed:
+                raise CommandError(BUSY, "shutting down")
+            if still_valid is not None and not still_valid():
+                raise CommandError(BUSY, "overtaken by a reset")
             return await self.execute(text, source)
 
     async def execute(self, text: str, source: Source) -> list[str]:

@@ -30,6 +30,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("motiond.jobs")
 MAX_NAME = 200
+YIELD_AFTER_S = 0.001
 
 
 @dataclass(slots=True)
@@ -71,15 +72,11 @@ class Jobs:
         self._task: asyncio.Task[None] | None = None
         self._progress: JobProgress | None = None
         dispatcher = kernel.dispatcher
-        for name, handler in (
-            ("ls", self._ls),
-            ("play", self._play),
-            ("progress", self._status),
-            ("abort", self._abort),
-            ("suspend", self._suspend),
-            ("resume", self._resume),
-        ):
-            dispatcher.register(name, handler, when_locked=name in ("ls", "progress", "abort"))
+        dispatcher.register("ls", self._ls, when_locked=True)
+        dispatcher.register("play", self._play)
+        for name, handler in (("progress", self._status), ("abort", self._abort),
+                              ("suspend", self._suspend), ("resume", self._resume)):
+            dispatcher.register_immediate(name, handler)  # a held job holds the stream
 
     # -- files ------------------------------------------------------------------------------
     def path(self, name: str) -> Path:
@@ -222,7 +219,9 @@ class Jobs:
 
     async def _stream(self, lines: list[str], progress: JobProgress) -> None:
         source = _JobSource(f"job:{progress.name}")
-        dispatcher = self.kernel.dispatcher
+        dispatcher, machine = self.kernel.dispatcher, self.kernel.machine
+        loop = asyncio.get_running_loop()
+        turn_s = loop.time()
         for number, line in enumerate(lines, 1):
             try:
                 await dispatcher.submit(line, source)
@@ -231,7 +230,13 @@ class Jobs:
                 return
             progress.lines_done = number
             progress.percent = 100.0 * number / max(1, len(lines))
-        await self.kernel.machine.wait_idle()
+            if loop.time() - turn_s > YIELD_AFTER_S:  # lines that never wait must not hog
+                await asyncio.sleep(0)
+                turn_s = loop.time()
+        await machine.wait_idle()
+        if self.kernel.state is MachineState.ALARM:
+            self._fail(progress, f"line {progress.lines_done}: stopped by an alarm")
+            return
         progress.state, progress.percent = "done", 100.0
         progress.remaining_s = 0.0
         self.progress()

@@ -69,6 +69,9 @@ class _Context:
         return self._kernel.machine
 
 
+LOCKED_STATES = frozenset({MachineState.ALARM, MachineState.SLEEP})  # $X / Ctrl-X to leave
+
+
 class LoopMonitor:
     """Measures how late the event loop wakes a 1 ms sleeper: the worst stall, in seconds.
 
@@ -103,7 +106,7 @@ class Kernel:
         self.state = MachineState.IDLE
         self.alarm_code = 0
         self.alarm_message = ""
-        self.dispatcher = Dispatcher(is_locked=lambda: self.state is MachineState.ALARM)
+        self.dispatcher = Dispatcher(is_locked=lambda: self.state in LOCKED_STATES)
         self.machine = Machine(self)
         self.jobs = Jobs(self)
         self.modules: dict[str, Module] = {}
@@ -141,6 +144,7 @@ class Kernel:
         """``$X`` / ``M999``: unlock after an alarm."""
         if self.state is MachineState.ALARM:
             self.alarm_code, self.alarm_message = 0, ""
+            self.machine.leave_check_mode()
             self.set_state(MachineState.IDLE)
             self.events.emit("clear_halt")
             self.push("[MSG:Caution: Unlocked]")
@@ -167,6 +171,7 @@ class Kernel:
     def stop(self) -> None:
         """Ask :meth:`run` to end: tools off, motion stopped, tasks cancelled. Repeatable."""
         if not self._stop.is_set():
+            self.dispatcher.close()
             self.machine.stop_now()
             self.events.emit("shutdown")
             self._stop.set()

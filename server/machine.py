@@ -277,6 +277,9 @@ class Machine:
     def feed_hold(self) -> None:
         if self.kernel.state is MachineState.HOME:  # as in Grbl: homing ignores feed hold
             return
+        if self.stepgen.idle and self.kernel.state is MachineState.IDLE:
+            self.kernel.events.emit("hold")  # nothing moves, but a focusing `fire` stops
+            return
         if self.kernel.state in (MachineState.RUN, MachineState.JOG) or not self.stepgen.idle:
             if self.kernel.state is MachineState.JOG:
                 self.cancel_jog()
@@ -309,6 +312,7 @@ class Machine:
         """Ctrl-X: stop at once, flush, keep the position; ALARM:3 if it was moving."""
         moving = self.stepgen.state.moving
         self.stop_now()
+        self.leave_check_mode()
         self.interpreter.reset()
         self.kernel.events.emit("reset")
         if moving:
@@ -377,6 +381,8 @@ class Machine:
 
     def leave_check_mode(self) -> None:
         """Leave check mode with the modal state it had before (Grbl resets here)."""
+        if not self.check_mode:
+            return
         if self._check_saved is not None:
             self.interpreter = self._check_saved
             self._check_saved = None

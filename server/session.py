@@ -92,13 +92,13 @@ class Session:
         self._unsubscribe()
         self.outbox.close()
         self._closing = True
+        if self.kernel.config.core.machine.hold_on_disconnect and self.can_control:
+            self.kernel.machine.feed_hold()
         self._lines.clear()
         self._lines_ready.set()
         if self._task is not None:
             await self._task
             self._task = None
-        if self.kernel.config.core.machine.hold_on_disconnect and self.can_control:
-            self.kernel.machine.feed_hold()
 
     @property
     def closed(self) -> bool:
@@ -192,7 +192,7 @@ class Session:
                 turn_s = loop.time()
                 continue
             epoch, event = self._lines.popleft()
-            reply = await self._execute(event)
+            reply = await self._execute(event, epoch)
             if len(self._lines) < INBOUND_LINES // 2:
                 self._room.set()
             if epoch == self._epoch:
@@ -202,7 +202,7 @@ class Session:
                 await asyncio.sleep(0)
                 turn_s = loop.time()
 
-    async def _execute(self, event: LineReceived | LineRejected) -> bytes:
+    async def _execute(self, event: LineReceived | LineRejected, epoch: int) -> bytes:
         if isinstance(event, LineRejected):
             return self.protocol.reply_error(event.error)
         if event.handled:  # M110: the protocol already set the line number
@@ -213,7 +213,8 @@ class Session:
         if not self.may_observe:
             return self.protocol.reply_error(CommandError(AUTH_REQUIRED, "log in with $AUTH="))
         try:
-            messages = await self.kernel.dispatcher.submit(event.text, self)
+            messages = await self.kernel.dispatcher.submit(
+                event.text, self, still_valid=lambda: epoch == self._epoch)
         except CommandError as exc:
             return self.protocol.reply_error(exc)
         except Exception as exc:  # noqa: BLE001 - unexpected: alarm, answer, keep serving
