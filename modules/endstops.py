@@ -95,7 +95,7 @@ class Endstops(Module):
     def __init__(self, ctx: ModuleContext, config: EndstopsConfig) -> None:
         super().__init__(ctx, config)
         self.config: EndstopsConfig = config
-        self.machine: Any = ctx.machine  # type: ignore[attr-defined]
+        self.machine = ctx.machine
         self.axes = self._resolve_axes()
         backend = self.machine.backend
         if hasattr(backend, "switches_at_mm"):

@@ -154,7 +154,7 @@ class Laser(Module):
 
     @property
     def _machine(self) -> Any:
-        return self.ctx.machine  # type: ignore[attr-defined]
+        return self.ctx.machine
 
     def _apply(self, power: float, now_s: float) -> None:
         if power == self.power:

@@ -120,7 +120,7 @@ class Spindle(Module):
         self._set(spindle_pwm(self.config, self.mode, rpm) if on else 0.0)
 
     def _set(self, pwm: float) -> None:
-        backend = self.ctx.machine.backend  # type: ignore[attr-defined]
+        backend = self.ctx.machine.backend
         now_s = self.ctx.clock.now_s()
         if pwm != self.pwm:
             backend.set_output(self.config.pin, pwm, now_s)
@@ -158,7 +158,7 @@ class Spindle(Module):
         """Run an M3/M4/M5 line as usual, then make motion wait for a spindle starting up."""
         line = command.line
         assert line is not None
-        messages = await self.ctx.machine.handle_gcode(command)  # type: ignore[attr-defined]
+        messages = await self.ctx.machine.handle_gcode(command)
         codes = {value for letter, value in line.words if letter == "M"}
         if 5 in codes:
             self._queued_on = False

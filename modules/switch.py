@@ -155,7 +155,7 @@ class Switch(Module):
 
     def _set(self, value: float) -> None:
         if value != self.value:
-            backend = self.ctx.machine.backend  # type: ignore[attr-defined]
+            backend = self.ctx.machine.backend
             backend.set_output(self.pin, value, self.ctx.clock.now_s())
             self.value = value
 

@@ -25,6 +25,7 @@ if TYPE_CHECKING:
     from server.clock import Clock
     from server.dispatcher import Handler
     from server.events import MachineState
+    from server.machine import Machine
     from server.moves import Action
     from server.stepgen import MotionState
 
@@ -74,6 +75,11 @@ class ModuleContext(Protocol):
 
     def set_state(self, state: MachineState) -> None:
         """Set the machine state (homing shows ``Home``)."""
+        ...
+
+    @property
+    def machine(self) -> Machine:
+        """The motion pipeline: its backend (outputs, switches), G-code handler, positions."""
         ...
 
     def clear_alarm(self) -> None:

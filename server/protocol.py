@@ -267,7 +267,8 @@ class LineProtocol:
             if data[end] == 0x3F and self.dialect is Dialect.GRBL:  # a run of '?': one request
                 self._end_utf8_character()
                 self._realtime(0x3F, events)
-                position = _STATUS_RUN.match(data, end).end()  # type: ignore[union-attr]
+                run = _STATUS_RUN.match(data, end)
+                position = run.end() if run else end + 1
                 continue
             self._take_special(data[end], events)
             position = end + 1
