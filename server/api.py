@@ -213,7 +213,10 @@ class JsonApi:
         )  # frames are encoded once for all
         await socket.prepare(request)
         connection = Connection(
-            self, socket, f"api-{next(self._ids)}", self.token_ok(request.query.get("token"))
+            self,
+            socket,
+            f"api-{next(self._ids)}",
+            self.token_ok(request.query.get("token")) and request.query.get("mode") != "observe",
         )
         if request.transport is not None:
             connection.channel.on_overflow = request.transport.abort

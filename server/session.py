@@ -56,7 +56,13 @@ class Session:
     """See the module docstring. Owns one task: the line executor."""
 
     def __init__(
-        self, kernel: Kernel, name: str, *, websocket: bool = False, token: str | None = None
+        self,
+        kernel: Kernel,
+        name: str,
+        *,
+        websocket: bool = False,
+        token: str | None = None,
+        observer: bool = False,
     ) -> None:
         core = kernel.config.core
         self.kernel = kernel
@@ -64,6 +70,8 @@ class Session:
         self._token = line_token(kernel)
         self.can_control = self._token is None or token_matches(token, self._token)
         self.may_observe = self.can_control or core.protocol.unauthenticated == "read-only"
+        if observer:  # asked to only watch: status and pushes, never control
+            self.can_control = False
         self.protocol = LineProtocol(
             line_limit=core.protocol.line_limit, dialect=core.protocol.dialect, websocket=websocket
         )

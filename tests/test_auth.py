@@ -117,3 +117,22 @@ async def test_websocket_connections_beyond_the_limit_and_request_floods_get_cle
         assert 20 <= len(answers) - len(limited) <= 25 and len(limited) >= 35
     app.request_stop()
     await task
+
+
+async def test_observer_connections_watch_but_never_control_even_without_a_token() -> None:
+    app = App(make_config(), clock=VirtualClock(), transports=[HttpTransport])
+    task = asyncio.create_task(app.run())
+    await app.ready.wait()
+    port = app.transports[0].port  # type: ignore[attr-defined]
+    async with websockets.connect(f"ws://127.0.0.1:{port}/ws?mode=observe") as socket:
+        await socket.send("G0 X5\n?")
+        replies = [await asyncio.wait_for(socket.recv(), 5) for _ in range(3)]
+        assert "error:46\r\n" in replies and any(r.startswith("<Idle") for r in replies)
+    async with websockets.connect(f"ws://127.0.0.1:{port}/api?mode=observe") as api:
+        await api.send(json.dumps({"jsonrpc": "2.0", "id": 1, "method": "machine.hold"}))
+        assert json.loads(await asyncio.wait_for(api.recv(), 5))["error"]["code"] == 46
+        await api.send(json.dumps({"jsonrpc": "2.0", "id": 2, "method": "machine.status"}))
+        assert "result" in json.loads(await asyncio.wait_for(api.recv(), 5))
+    assert app.kernel.machine.planner.position_mm == (0.0, 0.0, 0.0)
+    app.request_stop()
+    await task

@@ -109,7 +109,9 @@ class HttpTransport:
         self._sockets.add(socket)
         self.open_sockets += 1
         token = request.query.get("token") or request.headers.get("X-Motiond-Token")
-        session = Session(self.kernel, f"ws-{next(self._ids)}", websocket=True, token=token)
+        observer = request.query.get("mode") == "observe"
+        session = Session(self.kernel, f"ws-{next(self._ids)}", websocket=True, token=token,
+                          observer=observer)
         transport = request.transport
         if transport is not None:
             session.outbox.on_overflow = transport.abort
