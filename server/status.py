@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING
 from server.events import MachineState
 from server.moves import ToolMode
 from server.reports import StatusSnapshot
-from server.stepgen import HoldState
+from server.stepgen import HoldState, MotionState
 
 if TYPE_CHECKING:
     from server.kernel import Kernel
@@ -37,7 +37,7 @@ def snapshot(kernel: Kernel, rx_free_bytes: int) -> StatusSnapshot:
         machine_mm=motion.position_mm,
         wco_mm=machine.interpreter.wco(),
         feed_mm_s=motion.speed_mm_s,
-        spindle_s=motion.s_value if motion.moving else tool.s,
+        spindle_s=_spindle_s(motion.s_value if motion.moving else tool.s, tool.mode, motion),
         planner_free_blocks=max(0, machine.core.planner.max_blocks - len(machine.planner)),
         rx_free_bytes=rx_free_bytes,
         line_number=motion.line_number if motion.moving else None,
@@ -45,3 +45,9 @@ def snapshot(kernel: Kernel, rx_free_bytes: int) -> StatusSnapshot:
         overrides=(machine.feed_override, machine.rapid_override, machine.spindle_override),
         accessories=accessories,
     )
+
+
+def _spindle_s(s_value: float, mode: ToolMode, motion: MotionState) -> float:
+    """The S a status report shows: 0 once the spindle or laser is off, as Grbl does."""
+    active = motion.tool_mode if motion.moving else mode
+    return 0.0 if active is ToolMode.OFF else s_value

@@ -91,3 +91,15 @@ async def test_help_build_info_and_version() -> None:
         assert help_[0].startswith("[HLP:$$ $# $G $I $N")
         assert info[0].startswith("[VER:1.1h.motiond") and info[1] == "[OPT:VL,4096,128]"
         assert version[0].startswith("Build version: motiond-")
+
+
+async def test_the_status_shows_s_only_while_the_spindle_or_laser_is_on() -> None:
+    from server.status import snapshot
+
+    async with running(make_config()) as app:
+        await submit_all(app, ["M4 S500", "G1 X5 F3000"])
+        await app.kernel.machine.wait_idle()
+        assert snapshot(app.kernel, 128).spindle_s == 500
+        await submit_all(app, ["M5", "G1 X6"])
+        await app.kernel.machine.wait_idle()
+        assert snapshot(app.kernel, 128).spindle_s == 0
