@@ -178,12 +178,12 @@ class Dispatcher:
         line = parse_line(text)
         if line.error is not None:
             raise line.error
-        for letter, value in line.words:
+        for letter, value in zip(line.letters, line.values):  # noqa: B905 - parallel lists
             if letter in "GM":
                 name = f"{letter}{value:g}"
                 if name in self._entries:
                     return await self._run(name, Command(name, text, "", source, line))
-        if not line.words:
+        if not line.letters:
             return []
         if self._is_locked():
             raise CommandError(LOCKED_OUT, "G-code locked out during alarm: $X or M999 to unlock")

@@ -14,7 +14,6 @@ Accepted syntax: words are a letter and a number with optional spaces anywhere
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass, field
 from functools import reduce
 from operator import xor
 
@@ -34,14 +33,25 @@ _COMMENT = re.compile(r"\(([^)]*)\)|;(.*)", re.S)
 _CHECKSUM = re.compile(r"\s*(\d{1,3})\s*")
 _REPEATABLE = frozenset("GM")
 
+# Byte tables of the fast path (see parse_line).
+_UPPER, _LOWER = b"ABCDEFGHIJKLMNOPQRSTUVWXYZ", b"abcdefghijklmnopqrstuvwxyz"
+# Letters become the separator; "_" and whitespace other than spaces (float() would accept
+# them) become "#", which float() refuses.
+_NUMBERS_ONLY = bytes.maketrans(_UPPER + _LOWER + b"_\t\n\r\x0b\x0c", b" " * 52 + b"#" * 6)
+_TO_UPPER = bytes.maketrans(_LOWER, _UPPER)
+_NOT_LETTERS = bytes(code for code in range(256) if code not in _UPPER + _LOWER)
 
-@dataclass(slots=True)
+
 class Line:
     """One parsed line.
 
+    The words are kept as a string of letters and a parallel list of values, so that parsing
+    a line allocates no object per word; :attr:`words` pairs them up when that reads better.
+
     Attributes:
         text: the line as received, without its line ending.
-        words: ``(letter, value)`` pairs in order, letters upper-case, without the ``N`` word.
+        letters: the word letters in order, upper-case, without the ``N`` word (``"GXY"``).
+        values: the number of each word, parallel to ``letters``.
         comments: the text of ``( ... )`` and ``;`` comments, in order, without delimiters.
         line_number: the value of a leading ``N`` word, if any.
         checksum: the number after ``*``, if any (already validated when ``error`` is None).
@@ -49,20 +59,38 @@ class Line:
         error: why the line is malformed; such a line must not be executed.
     """
 
-    text: str
-    words: list[tuple[str, float]] = field(default_factory=list)
-    comments: list[str] = field(default_factory=list)
-    line_number: int | None = None
-    checksum: int | None = None
-    block_delete: bool = False
-    error: CommandError | None = None
+    __slots__ = ("text", "letters", "values", "comments", "line_number", "checksum",
+                 "block_delete", "error")
+
+    def __init__(self, text: str, letters: str, values: list[float]) -> None:
+        self.text = text
+        self.letters = letters
+        self.values = values
+        self.comments: tuple[str, ...] = ()
+        self.line_number: int | None = None
+        self.checksum: int | None = None
+        self.block_delete = False
+        self.error: CommandError | None = None
+
+    @classmethod
+    def of(cls, text: str, words: list[tuple[str, float]]) -> Line:
+        """A line made from ``(letter, value)`` pairs (for tests and synthesised lines)."""
+        return cls(text, "".join(letter for letter, _ in words), [value for _, value in words])
+
+    @property
+    def words(self) -> list[tuple[str, float]]:
+        """``(letter, value)`` pairs in order."""
+        return list(zip(self.letters, self.values, strict=True))
 
     def get(self, letter: str) -> float | None:
         """The value of the first word with this letter, or None."""
-        for word_letter, value in self.words:
+        for word_letter, value in zip(self.letters, self.values, strict=True):
             if word_letter == letter:
                 return value
         return None
+
+    def __repr__(self) -> str:
+        return f"Line({self.text!r}, words={self.words}, error={self.error})"
 
 
 def checksum_of(text: str) -> int:
@@ -72,26 +100,31 @@ def checksum_of(text: str) -> int:
 
 def parse_line(text: str) -> Line:
     """Parse one line of G-code. Never raises; see :class:`Line`."""
-    if "*" in text or "(" in text or ";" in text:
-        return _parse_framed_or_commented(text)
-    # The common line: plain words. Anything unusual falls through to the general path.
-    compact = "".join(text.split()).upper()
-    parts = _split_letters(compact)
-    if compact and not parts[0] and compact.isascii() and "_" not in compact \
-            and "N" not in compact:
-        letters = parts[1::2]
-        try:
-            words = list(zip(letters, map(float, parts[2::2]), strict=True))
-        except ValueError:
-            pass
-        else:
-            if len(set(letters)) == len(letters):
-                return Line(text, words, [], None, None, False, None)
-    return _parse_body(Line(text, [], []), text)
+    # The common line, plain words, takes a few C-level calls on the bytes: the spaces go,
+    # the letters become separators. If the first byte left is a letter, every other byte is
+    # a letter or lies in the number piece after one, and float() must accept each piece:
+    # a comment, a checksum, "_" or any stray character fails float(), a letter without a
+    # number makes the counts differ, and such lines go to the general path, which also
+    # finds the error. (Exponents cannot occur: E is a letter.)
+    if text.isascii():
+        raw = text.encode()
+        separated = raw.translate(_NUMBERS_ONLY, b" ")
+        numbers = separated.split()
+        letters = raw.translate(_TO_UPPER, _NOT_LETTERS).decode()
+        if len(numbers) == len(letters) == len(set(letters)) and separated[:1] == b" ":
+            try:
+                line = Line(text, letters, list(map(float, numbers)))
+            except ValueError:
+                pass
+            else:
+                if "N" in letters:
+                    _take_line_number(line)
+                return line
+    return _parse_framed_or_commented(text)
 
 
 def _parse_framed_or_commented(text: str) -> Line:
-    line = Line(text, [], [])
+    line = Line(text, "", [])
     body = text
     if "*" in body:
         body = _split_checksum(line, body)
@@ -111,23 +144,23 @@ def _parse_body(line: Line, body: str) -> Line:
         compact = compact[1:]
     if not compact or compact == "%":
         return line
-    # Fast path: split on letters and let float() check each number. float() also accepts
-    # syntax G-code does not (other scripts' digits, "_" separators; exponents cannot occur
-    # since E is a letter), so such lines go to the slow diagnosis.
-    parts = _LETTER.split(compact)
-    letters = parts[1::2]
+    # Split on letters and let float() check each number. float() also accepts syntax G-code
+    # does not (other scripts' digits, "_" separators; exponents cannot occur since E is a
+    # letter), so such lines go to the slow diagnosis.
+    parts = _split_letters(compact)
+    letters = "".join(parts[1::2])
     try:
         if parts[0] or not compact.isascii() or "_" in compact:
             raise ValueError
-        words = list(zip(letters, map(float, parts[2::2]), strict=True))
+        values = list(map(float, parts[2::2]))
     except ValueError:
         line.error = _diagnose(compact)
         return line
-    if "N" in compact:
-        _take_line_number(line, words)
-    if len(set(letters)) != len(letters) and line.error is None:
-        line.error = _repeated_word(words)
-    line.words = words
+    line.letters, line.values = letters, values
+    if "N" in letters:
+        _take_line_number(line)
+    if len(set(line.letters)) != len(line.letters) and line.error is None:
+        line.error = _repeated_word(line.letters)
     return line
 
 
@@ -146,18 +179,20 @@ def _split_checksum(line: Line, body: str) -> str:
 
 def _strip_comments(line: Line, body: str) -> str:
     kept: list[str] = []
+    comments: list[str] = []
     position = 0
     for match in _COMMENT.finditer(body):
         kept.append(body[position : match.start()])
         paren, semicolon = match.groups()
         if paren is None:
-            line.comments.append(semicolon.strip())
+            comments.append(semicolon.strip())
             position = len(body)
             break
-        line.comments.append(paren.strip())
+        comments.append(paren.strip())
         position = match.end()
     kept.append(body[position:])
     rest = "".join(kept)
+    line.comments = tuple(comments)
     if "(" in rest:
         line.error = CommandError(EXPECTED_COMMAND_LETTER, "unclosed '(' comment")
     return rest
@@ -178,21 +213,18 @@ def _diagnose(compact: str) -> CommandError:
     return CommandError(EXPECTED_COMMAND_LETTER, "unparseable line")
 
 
-def _take_line_number(line: Line, words: list[tuple[str, float]]) -> None:
-    for index, (letter, value) in enumerate(words):
-        if letter != "N":
-            continue
-        if index != 0 or value != int(value) or not 0 <= value < MAX_LINE_NUMBER:
-            line.error = CommandError(INVALID_LINE_NUMBER, "invalid line number")
-            return
-        line.line_number = int(value)
-        del words[0]
+def _take_line_number(line: Line) -> None:
+    value = line.values[0]
+    if line.letters[0] != "N" or value != int(value) or not 0 <= value < MAX_LINE_NUMBER:
+        line.error = CommandError(INVALID_LINE_NUMBER, "invalid line number")
         return
+    line.line_number = int(value)
+    line.letters, line.values = line.letters[1:], line.values[1:]
 
 
-def _repeated_word(words: list[tuple[str, float]]) -> CommandError | None:
+def _repeated_word(letters: str) -> CommandError | None:
     seen: set[str] = set()
-    for letter, _ in words:
+    for letter in letters:
         if letter in seen and letter not in _REPEATABLE:
             return CommandError(REPEATED_WORD, f"repeated {letter} word")
         seen.add(letter)

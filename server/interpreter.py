@@ -104,7 +104,7 @@ class Interpreter:
         """
         if line.error is not None:
             raise line.error
-        if line.block_delete or not line.words:
+        if line.block_delete or not line.letters:
             return []
         outputs = self._fast_line(line)
         if outputs is None:
@@ -127,7 +127,7 @@ class Interpreter:
         modal, index = self._modal, self._geo.axis_index
         motion, explicit, feed, s = modal.motion, False, None, None
         axes: list[tuple[int, float]] = []
-        for letter, value in line.words:
+        for letter, value in zip(line.letters, line.values):  # noqa: B905 - parallel lists
             i = index.get(letter)
             if i is not None:
                 axes.append((i, value))

@@ -7,7 +7,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from server.errors import CommandError
-from server.gcode import checksum_of, parse_line
+from server.gcode import _parse_framed_or_commented, checksum_of, parse_line
 
 
 @pytest.mark.parametrize(
@@ -31,7 +31,7 @@ def test_words_are_a_letter_and_a_number_with_optional_spaces(text: str, words: 
 def test_comments_are_kept_and_removed_from_words() -> None:
     line = parse_line("G1 (MSG, hello) X1 ; the rest (ignored")
     assert line.words == [("G", 1), ("X", 1)]
-    assert line.comments == ["MSG, hello", "the rest (ignored"]
+    assert line.comments == ("MSG, hello", "the rest (ignored")
 
 
 def test_empty_comment_only_and_percent_lines_have_no_words() -> None:
@@ -106,3 +106,33 @@ def test_formatted_words_parse_back_to_their_values(words: list[tuple[str, float
     assert line.error is None
     assert [(k, round(v, 4)) for k, v in line.words] == [
         (k, round(float(f"{v:.4f}"), 4)) for k, v in words]
+
+
+@pytest.mark.parametrize(
+    "text, code",
+    [
+        ("X Y1 2", 2),  # X has no number: the space must not pair X with 1
+        ("5XY1", 1),  # something before the first letter
+        ("G1 X1_0", 1),  # float() accepts "1_0"; G-code does not
+        ("G1 X١", 1),  # nor other scripts' digits
+        ("G1 X1 ;c", None),
+        ("G1 X1\x0b", None),
+    ],
+)
+def test_the_fast_path_refuses_what_float_alone_would_accept(text: str, code: int | None) -> None:
+    line = parse_line(text)
+    assert (line.error.code if line.error else None) == code
+    if code is None:
+        assert line.words == [("G", 1), ("X", 1)]
+
+
+_GCODE_ALPHABET = st.sampled_from("GgXxYNM0123456789.-+ _*;()%/\t#E")
+
+
+@given(st.text(_GCODE_ALPHABET, max_size=40))
+def test_the_fast_path_agrees_with_the_general_path(text: str) -> None:
+    fast, general = parse_line(text), _parse_framed_or_commented(text)
+    assert (fast.letters, fast.values, fast.line_number, fast.comments, fast.block_delete) == (
+        general.letters, general.values, general.line_number, general.comments,
+        general.block_delete)
+    assert (fast.error and fast.error.code) == (general.error and general.error.code)

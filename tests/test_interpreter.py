@@ -480,7 +480,7 @@ def test_chords_never_stray_from_the_arc_beyond_the_tolerance_and_end_exactly(
     interpreter.set_position((begin[0], begin[1], 0.0))
     words = [("G", 2.0 if clockwise else 3.0), ("X", end[0]), ("Y", end[1]), ("Z", climb),
              ("I", centre[0] - begin[0]), ("J", centre[1] - begin[1]), ("F", 100.0)]
-    out = interpreter.execute(Line("arc", words))
+    out = interpreter.execute(Line.of("arc", words))
     points = [m.target_mm for m in moves(out)]
     assert points[-1] == (end[0], end[1], climb)
     direction = -1.0 if clockwise else 1.0
