@@ -2,9 +2,9 @@
 
 Both produce the full output (every word, the line number, comments; motiond also validates
 checksums). Two modes: *streaming* parses each line and drops it, as the server does (each
-result is touched: letters, values and comments); *retained* keeps every result, which adds the garbage
-collector's cost to both. Rounds are interleaved and each parser's best CPU time counts, so
-other load on a shared machine does not skew the ratio.
+result is touched: letters, values and comments); *retained* keeps every result, which adds
+the garbage collector's cost to both. Rounds are interleaved and each parser's best CPU time
+counts, so other load on a shared machine does not skew the ratio.
 Run: ``python -m benchmarks.bench_parser``.
 """
 

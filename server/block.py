@@ -27,6 +27,9 @@ from server.moves import Action, Move, Position
 
 FloatArray = npt.NDArray[np.float64]
 
+READ_CHUNK = 32
+"""Columns converted to Python floats at once by :meth:`BlockColumns.column`."""
+
 
 @dataclass(slots=True)
 class Block:
@@ -118,6 +121,21 @@ class Block:
         return tuple(s + u * distance for s, u in zip(self.start_mm, self.unit, strict=True))
 
 
+@dataclass(slots=True)
+class SettledBlocks:
+    """Blocks committed at once (:meth:`~server.planner.Planner.pop_settled`), for offline runs
+    that need only their numbers.
+
+    Attributes:
+        rows: the planner's rows up to the duration (see the row names in
+            :mod:`server.planner`), one column per block, in execution order.
+        geometry: per block, ``(move, actions, start_mm, end_mm, unit)`` as in :class:`Block`.
+    """
+
+    rows: FloatArray
+    geometry: list[tuple[Move | None, list[Action], Position, Position, Position]]
+
+
 class BlockColumns:
     """The per-block numbers of a window of blocks, one column per block, rows by quantity.
 
@@ -126,15 +144,24 @@ class BlockColumns:
     copies staged columns into the array in one operation and says which columns are new.
     Columns ``head .. tail-1`` are the window; the array grows by doubling and is compacted when
     the window has drifted to its end.
+
+    Reading one column at a time from numpy is slow, so :meth:`column` converts the first
+    ``read_rows`` rows of :data:`READ_CHUNK` columns to Python floats at once and serves reads
+    from that copy until the owner writes to the array and calls :meth:`invalidate`.
     """
 
-    def __init__(self, rows: int, input_rows: list[int], capacity: int = 256) -> None:
+    def __init__(
+        self, rows: int, input_rows: list[int], read_rows: int, capacity: int = 256
+    ) -> None:
         self.data: FloatArray = np.zeros((rows, capacity))
         self.input_rows = input_rows
+        self.read_rows = read_rows
         self.head = 0
         self.tail = 0  # including staged columns
         self._synced = 0
         self._staged: list[tuple[float, ...]] = []
+        self._read: list[list[float]] = []  # columns _read_start .. as Python lists
+        self._read_start = 0
 
     def __len__(self) -> int:
         return self.tail - self.head
@@ -151,6 +178,7 @@ class BlockColumns:
             self._relocate(front=1)
         self.head -= 1
         self.data[self.input_rows, self.head] = values
+        self._read = []
         return self.head
 
     def sync(self) -> int:
@@ -174,10 +202,32 @@ class BlockColumns:
         """The window as a view of shape (rows, blocks); call :meth:`sync` first."""
         return self.data[:, self.head : self.tail]
 
-    def pop_front(self, rows: int) -> list[float]:
-        """Remove the head column (already synced); return its first ``rows`` values."""
-        values: list[float] = self.data[:rows, self.head].tolist()
+    def column(self, index: int) -> list[float]:
+        """The first ``read_rows`` values of synced column ``index``, as Python floats."""
+        offset = index - self._read_start
+        if not 0 <= offset < len(self._read):
+            stop = min(index + READ_CHUNK, self._synced)
+            self._read = self.data[: self.read_rows, index:stop].T.tolist()
+            self._read_start, offset = index, 0
+        return self._read[offset]
+
+    def invalidate(self) -> None:
+        """Forget the Python copy: the owner wrote to columns that may have been read."""
+        self._read = []
+
+    def pop_front(self) -> list[float]:
+        """Remove the head column (already synced); return its first ``read_rows`` values."""
+        values = self.column(self.head)
         self.head += 1
+        if self.head == self.tail:
+            self.clear()
+        return values
+
+    def pop_front_many(self, count: int) -> FloatArray:
+        """Remove ``count`` columns from the head (already synced); return a copy of their first
+        ``read_rows`` rows."""
+        values = self.data[: self.read_rows, self.head : self.head + count].copy()
+        self.head += count
         if self.head == self.tail:
             self.clear()
         return values
@@ -186,6 +236,7 @@ class BlockColumns:
         """Empty the window."""
         self.head = self.tail = self._synced = 0
         self._staged = []
+        self._read = []
 
     def _relocate(self, front: int) -> None:
         """Move the synced columns to start at ``front``, growing the array when over half full."""
@@ -198,5 +249,6 @@ class BlockColumns:
             data = np.zeros((data.shape[0], capacity))
         data[:, front : front + synced - head] = self.data[:, head:synced].copy()
         self.data = data
+        self._read = []
         shift = front - head
         self.head, self.tail, self._synced = head + shift, self.tail + shift, synced + shift

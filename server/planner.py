@@ -26,14 +26,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from server.block import Block, BlockColumns, FloatArray
+from server.block import Block, BlockColumns, FloatArray, SettledBlocks
 from server.moves import Action, Move, MoveKind, Position
 from server.trapezoid import PROFILE_ROWS, axis_limits, junction_speeds_sq, plan_window
 
 if TYPE_CHECKING:
     from server.config import CoreConfig
 
-__all__ = ["MIN_LENGTH_MM", "Block", "Planner", "PlannerSettings"]
+__all__ = ["MIN_LENGTH_MM", "Block", "Planner", "PlannerSettings", "SettledBlocks"]
 
 MIN_LENGTH_MM = 1e-6
 """Moves shorter than this are dropped; the next block starts where the last one ended, so
@@ -50,6 +50,8 @@ UNIT = DURATION + 1
 
 # KIND codes: which override scales a block's nominal speed.
 _NO_OVERRIDE, _FEED_OVERRIDE, _RAPID_OVERRIDE = 0.0, 1.0, 2.0
+CUTTING_CODE = _FEED_OVERRIDE
+"""The KIND of exactly the FEED, ARC and PROBE moves (jog and homing have no override)."""
 _RAPID, _JOG, _HOMING = MoveKind.RAPID, MoveKind.JOG, MoveKind.HOMING
 FEED_OVERRIDE_RANGE = (0.1, 2.0)
 RAPID_OVERRIDE_RANGE = (0.25, 1.0)
@@ -109,16 +111,16 @@ class Planner:
         self._zero: Position = (0.0,) * axes
         self._units = slice(UNIT, UNIT + axes)
         self._columns = BlockColumns(
-            UNIT + axes, [LENGTH, FEED, KIND, LEAD, *range(UNIT, UNIT + axes)]
+            UNIT + axes, [LENGTH, FEED, KIND, LEAD, *range(UNIT, UNIT + axes)], _POP_ROWS
         )
         self._planned = 0  # blocks from the head covered by the last plan
+        self._settled = 0  # ... of which appending more blocks cannot change the speeds
         self._geometry: deque[_Geometry] = deque()
         self._pending: list[Action] = []
         self._start_mm_s = 0.0
         self._feed_override = self._rapid_override = 1.0
         self._dirty = self._head_dirty = False
         self._time_planned_s = self._time_estimate_s = 0.0
-        self._ahead_2ad = 0.0
         self._use_settings(settings)
         self.position_mm: Position = self._zero
         self._chain_mm: Position = self._zero
@@ -220,25 +222,12 @@ class Planner:
         return self._time_planned_s + self._time_estimate_s
 
     def lookahead_short(self) -> bool:
-        """Whether the last plan's stop at the end of its window may shape the head's exit.
-
-        The backward scan limits the head's exit (the next block's entry) by the minimum of one
-        term per later node; the window end's term is ``sum(2*a*d)`` over the planned blocks
-        after the head, and the next node's own term is its cap (junction and both nominal
-        speeds, squared). While the end's term is at least that cap it cannot be the minimum,
-        and blocks appended since only add terms at least as large: the last plan is then
-        exactly what a new one would give for the head, so re-planning can wait. True also
-        when the head is unplanned or changed.
+        """Whether the head may plan differently now that blocks were appended since the last
+        plan: the head is past the blocks that plan settled (see
+        :func:`~server.trapezoid.plan_window`), or it is unplanned or changed. While False the
+        last plan is exactly what a new one would give for the head, so re-planning can wait.
         """
-        if not self._dirty:
-            return False
-        if self._head_dirty or self._planned < 2:
-            return True
-        data, head = self._columns.data, self._columns.head
-        head_2ad = 2.0 * float(data[ACCEL, head]) * float(data[LENGTH, head])
-        cap_sq = min(float(data[JUNCTION, head + 1]), float(data[NOMINAL, head]) ** 2,
-                     float(data[NOMINAL, head + 1]) ** 2)
-        return self._ahead_2ad - head_2ad < cap_sq
+        return self._dirty and (self._head_dirty or self._settled <= 0)
 
     def planned_ahead_s(self) -> float:
         """Seconds of motion the last plan still covers from the head (head included).
@@ -264,9 +253,9 @@ class Planner:
         if not self._planned:
             return
         rows = window[LENGTH], window[ACCEL], window[NOMINAL], window[JUNCTION], window[LEAD]
-        plan_window(*rows, self._start_mm_s, window[ENTRY : DURATION + 1])
+        self._settled = plan_window(*rows, self._start_mm_s, window[ENTRY : DURATION + 1])
+        self._columns.invalidate()
         self._time_planned_s = float(window[DURATION].sum())
-        self._ahead_2ad = float(2.0 * np.dot(window[ACCEL], window[LENGTH]))
         self._time_estimate_s = 0.0
 
     def pop(self) -> Block | None:
@@ -285,18 +274,43 @@ class Planner:
             self._dirty = True
             self.plan()
         (length, _, _, lead, accel, _, nominal, _, entry, cruise, exit_, ramp1, flat, ramp2,
-         duration) = columns.pop_front(_POP_ROWS)  # fmt: skip
+         duration) = columns.pop_front()  # fmt: skip
         move, actions, start, end, unit = self._geometry.popleft()
         self._planned -= 1
+        self._settled -= 1
         self._start_mm_s = exit_
         self._time_planned_s -= duration
-        self._ahead_2ad -= 2.0 * accel * length
         if not len(columns):
             self._clear_window()
         if move is None:
             nominal = accel = 0.0
         return Block(move, actions, start, end, unit, length, nominal, accel,
                      entry, cruise, exit_, ramp1, flat, ramp2, lead, duration)  # fmt: skip
+
+    def pop_settled(self) -> SettledBlocks | None:
+        """Commit and remove the head and every block after it that the last plan settled, at
+        once; None with no block waiting (pending follow actions stay for :meth:`pop`).
+
+        Re-plans first when :meth:`lookahead_short`. The blocks are exactly what as many
+        :meth:`pop` calls would give, with or without appends in between: settled blocks never
+        need a re-plan. For offline runs, which need the numbers but no :class:`Block`.
+        """
+        columns = self._columns
+        if not len(columns):
+            return None
+        if self._head_dirty or self._planned <= 0 or self.lookahead_short():
+            self._dirty = True
+            self.plan()
+        count = max(self._settled, 1)
+        rows = columns.pop_front_many(count)
+        geometry = [self._geometry.popleft() for _ in range(count)]
+        self._planned -= count
+        self._settled -= count
+        self._start_mm_s = float(rows[EXIT, -1])
+        self._time_planned_s -= float(rows[DURATION].sum())
+        if not len(columns):
+            self._clear_window()
+        return SettledBlocks(rows, geometry)
 
     def flush(self) -> list[Action]:
         """Drop every waiting block and pending action (halt); return the dropped actions.
@@ -341,6 +355,7 @@ class Planner:
         self._feed_override, self._rapid_override = feed, rapid
         window = self._columns.window()
         window[NOMINAL] = self._nominals(window[FEED], window[RATE], window[KIND])
+        self._columns.invalidate()
         self._dirty = self._head_dirty = True
 
     # ------------------------------------------------------------------ feed-hold remainders
@@ -375,6 +390,7 @@ class Planner:
         head = columns.push_front(inputs)
         self._derive(head, head + 1)
         self._derive_junctions(head + 1, min(head + 2, columns.tail))
+        columns.invalidate()
         geometry = (block.move, block.actions, block.start_mm, block.end_mm, block.unit)
         self._geometry.appendleft(geometry)
         self._start_mm_s = 0.0
@@ -441,7 +457,7 @@ class Planner:
 
     def _clear_window(self) -> None:
         self._columns.clear()
-        self._planned = 0
+        self._planned = self._settled = 0
         self._dirty = self._head_dirty = False
         self._time_planned_s = self._time_estimate_s = 0.0
 

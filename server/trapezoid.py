@@ -108,11 +108,18 @@ def plan_window(
     lead_s: FloatArray,
     start_mm_s: float,
     out: FloatArray,
-) -> None:
+) -> int:
     """Plan ``n`` blocks from the fixed start speed to a stop; write ``out`` (shape (7, n)).
 
     ``out`` rows: entry, cruise, exit speed (mm/s), first ramp, cruise, last ramp and total
     duration (s, total including ``lead_s``).
+
+    Returns how many leading blocks are *settled*: their speeds stay the same however many
+    blocks are appended to the window later. Appending replaces the end's term in the backward
+    minimum, ``C[n] − C[i]``, by larger ones, so node ``i`` cannot change while that term is
+    at least the node's own cap ``L[i]`` (the minimum is then at most ``L[i]`` without it).
+    The head always counts (its entry is fixed); block ``k ≥ 1`` counts while every node up
+    to its exit ``k + 1 < n`` passes that test.
     """
     n = length_mm.shape[0]
     two_ad = 2.0 * accel_mm_s2 * length_mm
@@ -125,6 +132,8 @@ def plan_window(
     caps[n] = 0.0
     np.minimum(nominal_sq[:-1], nominal_sq[1:], out=caps[1:n])
     np.minimum(caps[1:n], junction_sq[1:], out=caps[1:n])
+    unsettled = np.flatnonzero(cum[n] - cum[2:n] < caps[2:n])
+    settled = int(unsettled[0]) + 1 if unsettled.size else max(n - 1, 1)
     backward = np.minimum.accumulate((caps + cum)[::-1])[::-1]
     backward -= cum
     np.minimum(backward, caps, out=backward)  # exact where a node's own cap binds
@@ -136,6 +145,7 @@ def plan_window(
     np.minimum(speed_sq, limit, out=speed_sq)
     np.maximum(speed_sq, 0.0, out=speed_sq)
     _trapezoids(length_mm, accel_mm_s2, nominal_mm_s, lead_s, two_ad, speed_sq, out)
+    return settled
 
 
 def _trapezoids(

@@ -12,7 +12,7 @@ from server.backends.sim import SimBackend
 from server.config import CoreConfig
 from server.events import MachineState
 from server.moves import Move, MoveKind
-from server.offline import estimate, execute
+from server.offline import JobStats, estimate, execute, iterate_blocks
 from server.planner import Planner, PlannerSettings
 from server.stepgen import HoldState, StepGenerator
 from tests.conftest import CORPUS, make_config
@@ -225,13 +225,57 @@ async def test_feed_override_replans_the_queued_moves() -> None:
     assert math.isclose(slow, 20.0, rel_tol=0.02)
 
 
+def _block_speeds(lines: list[str], core: CoreConfig) -> list[tuple[float, ...]]:
+    stats = JobStats()
+    return [(block.entry_mm_s, block.cruise_mm_s, block.exit_mm_s, block.duration_s)
+            for block in iterate_blocks(lines, core, stats)]
+
+
+def _fast_zigzag() -> list[str]:
+    """Short segments at 300 mm/s with corners: a window of a few blocks cannot reach cruise,
+    so its end shapes the plan and the lazy criterion decides often."""
+    lines = ["G1 F18000"]
+    for k in range(1, 1500):
+        lines.append(f"G1 X{0.4 * k:.3f} Y{(k % 7) * 0.3 if k % 50 else 5.0:.3f}")
+    return lines
+
+
+@pytest.mark.parametrize("window", ["jsdc, default window", "zigzag, 6-block window"])
 def test_lazy_replanning_gives_exactly_the_plan_of_replanning_at_every_pop(
-    monkeypatch: pytest.MonkeyPatch,
+    monkeypatch: pytest.MonkeyPatch, window: str
 ) -> None:
-    core = make_config(machine={"soft_limits": False}).core
-    lines = (CORPUS / "laser-vector-jsdc.gcode").read_text().splitlines()[:1200]
-    lazy = estimate(lines, core)
+    if window.startswith("jsdc"):
+        core = make_config(machine={"soft_limits": False}).core
+        lines = (CORPUS / "laser-vector-jsdc.gcode").read_text().splitlines()[:1200]
+    else:
+        planner = {"max_blocks": 6, "max_planned_s": 60.0}
+        core = make_config(machine={"soft_limits": False}, planner=planner).core
+        lines = _fast_zigzag()
+    lazy = _block_speeds(lines, core)
     monkeypatch.setattr(Planner, "lookahead_short", lambda self: self._dirty)
-    eager = estimate(lines, core)
-    assert lazy.blocks == eager.blocks > 1000
-    assert lazy.duration_s == eager.duration_s
+    eager = _block_speeds(lines, core)
+    assert len(lazy) == len(eager) > 1000
+    for one, other in zip(lazy, eager, strict=True):  # equal but for rounding (a few ulps)
+        assert all(math.isclose(a, b, rel_tol=1e-12, abs_tol=1e-12)
+                   for a, b in zip(one, other, strict=True))
+
+
+@pytest.mark.parametrize(
+    "name", ["zigzag"] + sorted(p.name for p in CORPUS.iterdir() if p.suffix != ".md"))
+def test_estimate_in_settled_batches_sums_the_blocks_popped_one_by_one(name: str) -> None:
+    if name == "zigzag":
+        planner = {"max_blocks": 6, "max_planned_s": 60.0}
+        core = make_config(machine={"soft_limits": False}, planner=planner).core
+        lines = _fast_zigzag()
+    else:
+        core = make_config(machine={"soft_limits": False}).core
+        lines = (CORPUS / name).read_text(errors="replace").splitlines()
+    batched, single = estimate(lines, core), JobStats()
+    blocks = list(iterate_blocks(lines, core, single))
+    assert (batched.blocks, batched.moves, batched.lines, batched.error) == (
+        len(blocks), single.moves, single.lines, single.error)
+    assert (batched.bbox_min_mm, batched.bbox_max_mm) == (single.bbox_min_mm, single.bbox_max_mm)
+    assert batched.max_speed_mm_s == single.max_speed_mm_s
+    for field in ("duration_s", "cut_mm", "rapid_mm"):
+        assert math.isclose(getattr(batched, field), getattr(single, field), rel_tol=1e-12,
+                            abs_tol=1e-9), field
