@@ -4,7 +4,10 @@
 * full virtual execution by the step generator at 1 kHz: real-time factor and steps/s;
 * baseline, side by side: parsing alone, so the ratio shows what planning costs on top.
 
-Run: ``python benchmarks/bench_offline.py [--quick]`` (quick: skip the full execution of the
+Parsing and the estimate run interleaved, three rounds each, and the best CPU time of each
+counts (see :func:`benchmarks.common.side_by_side`); the full execution runs once.
+
+Run: ``python -m benchmarks.bench_offline [--quick]`` (quick: skip the full execution of the
 big raster file).
 """
 
@@ -13,7 +16,7 @@ from __future__ import annotations
 import sys
 import time
 
-from benchmarks.common import corpus_files
+from benchmarks.common import corpus_files, side_by_side
 from server.backends.sim import SimBackend
 from server.config import load_config
 from server.gcode import parse_line
@@ -28,13 +31,13 @@ def main() -> int:
           f"{'est. RTF':>9} {'execute RTF':>12} {'steps/s':>11}")
     for path in corpus_files():
         lines = path.read_text(errors="replace").splitlines()
-        started = time.perf_counter()
-        for text in lines:
-            parse_line(text)
-        parse_s = time.perf_counter() - started
-        started = time.perf_counter()
-        stats = estimate(lines, core)
-        estimate_s = time.perf_counter() - started
+        results = []
+        parse_s, estimate_s = side_by_side(
+            3,
+            lambda lines=lines: [parse_line(text) for text in lines],
+            lambda lines=lines, results=results: results.append(estimate(lines, core)),
+        )
+        stats = results[-1]
         row = (f"{path.name:30} {stats.blocks:7,} {len(lines) / parse_s:14,.0f} "
                f"{stats.blocks / estimate_s:18,.0f} {stats.duration_s / estimate_s:8,.0f}x")
         if quick and stats.blocks > 20_000:

@@ -16,7 +16,9 @@ few LinuxCNC/Smoothieware additions. Conventions worth knowing:
   ``feed_mm_s = inf`` (the planner caps them at the axes' max rates).
 * Arcs are cut into chords within ``arc_tolerance_mm`` (end point exact); IJK arcs whose end
   equals the start are full circles, also with no axis words at all (``G2 I10 J0``).
-* Zero-length moves produce no :class:`Move`. After a probe the position is the probe target
+* Follow actions (spindle/S, coolant, ...) that come just before a move on the same line ride
+  in that move's ``actions``, where the planner would attach them anyway; only actions with no
+  move after them are outputs of their own. Zero-length moves produce no :class:`Move`. After a probe the position is the probe target
   until the dispatcher calls :meth:`Interpreter.set_position`; G28.2 leaves it unchanged.
 * Beyond Grbl: G59.1-G59.3 (``G10 P7..P9``), G90.1 absolute arc centres, G92.2/G92.3
   (LinuxCNC), G28.2 homing (Smoothieware), M6, M17/M18/M84, M112, M114, M999. Rotary axes
@@ -119,18 +121,25 @@ class Interpreter:
         outputs = executor.run()
         self._modal, self._offsets = executor.modal, executor.offsets
         self.position, self._wco = executor.position, executor.wco
-        return outputs
+        return _fold_follow_actions(outputs)
 
     def _fast_line(self, line: Line) -> list[Output] | None:
         """G0/G1 + axis + F + S lines under G94 without surprises; None sends the line to the
         general path (which also produces every error)."""
-        modal, index = self._modal, self._geo.axis_index
+        modal, geo = self._modal, self._geo
+        if modal.inverse_time:
+            return None
+        index, scale = geo.axis_index, geo.inch_scale if modal.inches else None
+        incremental, wco = modal.incremental, self._wco
         motion, explicit, feed, s = modal.motion, False, None, None
-        axes: list[tuple[int, float]] = []
+        target: list[float] | None = None
         for letter, value in zip(line.letters, line.values):  # noqa: B905 - parallel lists
             i = index.get(letter)
-            if i is not None:
-                axes.append((i, value))
+            if i is not None:  # the parser refuses repeated axis words
+                if target is None:
+                    target = list(self.position)
+                mm = value * scale[i] if scale else value
+                target[i] = target[i] + mm if incremental else mm + wco[i]
             elif letter == "G" and not explicit and (value == 0.0 or value == 1.0):
                 motion, explicit = (G0 if value == 0.0 else G1), True
             elif letter == "F" and value >= 0.0:
@@ -139,34 +148,25 @@ class Interpreter:
                 s = value + 0.0
             else:
                 return None
-        if (motion != G0 and motion != G1) or modal.inverse_time:
+        if motion != G0 and motion != G1:
             return None
         feed_mm_min = modal.feed if feed is None else feed
-        if motion == G1 and (axes or explicit) and feed_mm_min <= 0.0:
+        if motion == G1 and (target or explicit) and feed_mm_min <= 0.0:
             return None
-        target = self._fast_target(axes) if axes else None
-        if target is not None and self._geo.outside(target) is not None:
+        end = None if target is None else tuple(target)
+        if end is not None and geo.outside(end) is not None:
             return None
-        outputs: list[Output] = []
+        actions: list[Action] = []
         if s is not None and s != modal.s:
-            outputs.append(Action("spindle", {"mode": modal.tool_mode, "s": s}))
+            actions.append(Action("spindle", {"mode": modal.tool_mode, "s": s}))
             modal.s = s
         modal.motion, modal.feed = motion, feed_mm_min
-        if target is not None and target != self.position:
-            speed = math.inf if motion == G0 else feed_mm_min / 60.0
-            kind = MoveKind.RAPID if motion == G0 else MoveKind.FEED
-            outputs.append(Move(target, speed, kind, modal.tool_mode, modal.s, line.line_number))
-            self.position = target
-        return outputs
-
-    def _fast_target(self, axes: list[tuple[int, float]]) -> Position:
-        target = list(self.position)
-        scale = self._geo.inch_scale if self._modal.inches else None
-        incremental, wco = self._modal.incremental, self._wco
-        for i, value in axes:
-            mm = value * scale[i] if scale else value
-            target[i] = target[i] + mm if incremental else mm + wco[i]
-        return tuple(target)
+        if end is None or end == self.position:
+            return list(actions)
+        self.position = end
+        speed = math.inf if motion == G0 else feed_mm_min / 60.0
+        kind = MoveKind.RAPID if motion == G0 else MoveKind.FEED
+        return [Move(end, speed, kind, modal.tool_mode, modal.s, line.line_number, actions)]
 
     # -- jogging -----------------------------------------------------------------------------
     def jog(self, line: Line) -> list[Move]:
@@ -309,3 +309,21 @@ def _wcs_name(index: int) -> str:
 def _number(value: float) -> str:
     """A report number: no decimals when whole, else up to three."""
     return f"{value:.0f}" if value == int(value) else f"{value:.3f}".rstrip("0")
+
+
+def _fold_follow_actions(outputs: list[Output]) -> list[Output]:
+    """Follow actions just before a move ride in that move's ``actions``: they take effect
+    where it starts, exactly as the planner would attach them."""
+    folded: list[Output] = []
+    waiting: list[Action] = []
+    for output in outputs:
+        if type(output) is Action and output.lead_s <= 0.0 and not output.stops_motion:
+            waiting.append(output)
+            continue
+        if type(output) is Move:
+            output.actions[:0] = waiting
+        else:
+            folded += waiting
+        waiting = []
+        folded.append(output)
+    return folded + waiting

@@ -148,7 +148,7 @@ class _Feeder:
         while True:
             outputs = self._waiting or self._next_line()
             if not outputs:
-                if self.done:
+                if self.done:  # the end of the job, or a refused line: read no further
                     return
                 continue
             self._waiting = self._queue(outputs)
@@ -173,7 +173,7 @@ class _Feeder:
 
     def _next_line(self) -> list[Output]:
         """The outputs of the next line (none at the end of the job or after an error)."""
-        entry = next(self._lines, None)
+        entry = None if self.done else next(self._lines, None)
         if entry is None:
             self.done = True
             return []

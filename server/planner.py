@@ -141,8 +141,9 @@ class Planner:
             raise ValueError("new planner settings must keep the number of axes")
         self._settings = settings
         self._inv_rate = tuple(1.0 / rate for rate in settings.max_rate_mm_s)
-        self._inv_rate_col = np.array(self._inv_rate)[:, None]
-        self._inv_accel_col = 1.0 / np.array(settings.accel_mm_s2)[:, None]
+        # accelerations then rates, as the ACCEL and RATE rows
+        limits = np.array([settings.accel_mm_s2, settings.max_rate_mm_s])
+        self._inverse_limits = (1.0 / limits)[:, :, None]
 
     # ------------------------------------------------------------------ appending
 
@@ -370,7 +371,7 @@ class Planner:
         if length < MIN_LENGTH_MM or move is None:
             return _unplanned(move, actions, start, end, self._zero)
         unit = tuple([x / length for x in delta])
-        rate, accel = axis_limits(np.array(unit)[:, None], self._inv_rate_col, self._inv_accel_col)
+        accel, rate = axis_limits(np.array(unit)[:, None], self._inverse_limits)
         kind, feed = _kind_and_feed(move)
         nominal = self._nominals(np.array([feed]), rate, np.array([kind]))
         return _unplanned(move, actions, start, end, unit, length, nominal.item(), accel.item())
@@ -409,9 +410,8 @@ class Planner:
     def _derive(self, first: int, stop: int) -> None:
         """Axis limits, nominal speeds and junction limits of columns ``first .. stop-1``."""
         data, new = self._columns.data, slice(first, stop)
-        rate, accel = axis_limits(data[self._units, new], self._inv_rate_col, self._inv_accel_col)
-        data[RATE, new], data[ACCEL, new] = rate, accel
-        data[NOMINAL, new] = self._nominals(data[FEED, new], rate, data[KIND, new])
+        data[ACCEL : RATE + 1, new] = axis_limits(data[self._units, new], self._inverse_limits)
+        self._nominals(data[FEED, new], data[RATE, new], data[KIND, new], out=data[NOMINAL, new])
         self._derive_junctions(first, stop)
 
     def _derive_junctions(self, first: int, stop: int) -> None:
@@ -428,17 +428,20 @@ class Planner:
         deviation_mm = self._settings.junction_deviation_mm
         units = self._units
         limit = junction_speeds_sq(data[units, before], data[units, after], accel, deviation_mm)
-        limit[(data[LENGTH, before] == 0.0) | (data[LENGTH, after] == 0.0)] = 0.0
+        limit[data[LENGTH, before] * data[LENGTH, after] == 0.0] = 0.0  # next to a still block
         data[JUNCTION, after] = limit
 
-    def _nominals(self, feed: FloatArray, rate: FloatArray, kind: FloatArray) -> FloatArray:
+    def _nominals(
+        self, feed: FloatArray, rate: FloatArray, kind: FloatArray, out: FloatArray | None = None
+    ) -> FloatArray:
         """Nominal speeds (mm/s): the feed scaled by its override, capped by the axis rate
         limit (scaled by the rapid override for rapids), never under ``min_feed_mm_s``."""
         if self._feed_override != 1.0:
             feed = feed * np.where(kind == _FEED_OVERRIDE, self._feed_override, 1.0)
         if self._rapid_override != 1.0:
             rate = rate * np.where(kind == _RAPID_OVERRIDE, self._rapid_override, 1.0)
-        return np.maximum(np.minimum(feed, rate), self._settings.min_feed_mm_s)
+        nominal = np.minimum(feed, rate, out=out)
+        return np.maximum(nominal, self._settings.min_feed_mm_s, out=nominal)
 
     def _take_pending(self, more: list[Action]) -> list[Action]:
         if not self._pending:

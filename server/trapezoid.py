@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from functools import reduce
 from operator import mul
 
 import numpy as np
@@ -68,21 +67,18 @@ def junction_speed_sq(
     return accel_mm_s2 * deviation_mm * sin_half / (1.0 - sin_half)
 
 
-def axis_limits(
-    unit: FloatArray, inv_rate: FloatArray, inv_accel: FloatArray
-) -> tuple[FloatArray, FloatArray]:
-    """Speed (mm/s) and acceleration (mm/s²) limits along many directions at once.
+def axis_limits(unit: FloatArray, inverse_limits: FloatArray) -> FloatArray:
+    """Per-axis limits projected on many directions at once.
 
-    ``unit`` is (axes, blocks); ``inv_rate`` and ``inv_accel`` hold 1/limit per axis, shaped
-    (axes, 1). The limit along ``u`` is ``min_i limit_i/|u_i|``. A zero vector (a zero-length
-    block) gets :data:`STILL_LIMIT` for both: finite, so ``2·a·d`` is 0 and a ramp without a
-    change of speed takes no time, and small enough that its square is finite.
+    ``unit`` is (axes, blocks); ``inverse_limits`` holds 1/limit per kind of limit and axis,
+    shaped (kinds, axes, 1) (say accelerations in mm/s² and max rates in mm/s). Returns the
+    limits along each direction, (kinds, blocks): along ``u`` it is ``min_i limit_i/|u_i|``.
+    A zero vector (a zero-length block) gets :data:`STILL_LIMIT`: finite, so ``2·a·d`` is 0 and
+    a ramp without a change of speed takes no time, and small enough that its square is finite.
     """
-    size = np.abs(unit)
-    rate_inv = reduce(np.maximum, size * inv_rate)
-    accel_inv = reduce(np.maximum, size * inv_accel)
-    floor = 1.0 / STILL_LIMIT
-    return 1.0 / np.maximum(rate_inv, floor), 1.0 / np.maximum(accel_inv, floor)
+    worst = (np.abs(unit) * inverse_limits).max(axis=1)
+    np.maximum(worst, 1.0 / STILL_LIMIT, out=worst)
+    return np.divide(1.0, worst, out=worst)
 
 
 def junction_speeds_sq(

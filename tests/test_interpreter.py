@@ -279,20 +279,28 @@ def test_g93_arc_chords_share_one_speed_that_takes_60_over_f_seconds() -> None:
     assert length / chords[0].feed_mm_s == pytest.approx(10.0)
 
 
-def test_spindle_action_comes_before_the_move_on_the_same_line() -> None:
-    _, out = run(["M3 S1000 G1 X10 F100"])
-    assert isinstance(out[0], Action) and out[0].name == "spindle"
-    assert out[0].params == {"mode": ToolMode.CW, "s": 1000.0}
-    assert isinstance(out[1], Move) and out[1].tool_mode is ToolMode.CW
-    assert out[1].s_value == 1000.0
+def test_spindle_action_rides_at_the_start_of_the_move_on_the_same_line() -> None:
+    _, out = run(["M3 S1000 M8 G1 X10 F100"])
+    assert len(out) == 1 and isinstance(out[0], Move)
+    assert out[0].actions == [Action("spindle", {"mode": ToolMode.CW, "s": 1000.0}),
+                              Action("coolant", {"mist": False, "flood": True})]
+    assert out[0].tool_mode is ToolMode.CW and out[0].s_value == 1000.0
 
 
-def test_an_s_change_alone_emits_a_spindle_action_and_rides_in_the_move() -> None:
+def test_an_s_change_emits_a_spindle_action_in_the_move_or_alone() -> None:
     interpreter, _ = run(["M4 S0", "G1 X1 F100"])
-    out = interpreter.execute(parse_line("X2 S40"))
-    assert isinstance(out[0], Action) and out[0].params == {"mode": ToolMode.CCW, "s": 40.0}
-    assert isinstance(out[1], Move) and out[1].s_value == 40.0
-    assert interpreter.execute(parse_line("X3 S40"))[0].s_value == 40.0  # type: ignore[union-attr]
+    out = interpreter.execute(parse_line("X2 S40"))  # the fast path
+    assert len(out) == 1 and isinstance(out[0], Move) and out[0].s_value == 40.0
+    assert out[0].actions == [Action("spindle", {"mode": ToolMode.CCW, "s": 40.0})]
+    again = interpreter.execute(parse_line("X3 S40"))[0]
+    assert isinstance(again, Move) and again.s_value == 40.0 and again.actions == []
+    assert interpreter.execute(parse_line("S50")) == [
+        Action("spindle", {"mode": ToolMode.CCW, "s": 50.0})]
+
+
+def test_follow_actions_before_a_sync_stay_in_order_with_it() -> None:
+    _, out = run(["M8 M114"])
+    assert [type(o).__name__ for o in out] == ["Action", "Sync"]
 
 
 def test_coolant_dwell_pause_and_program_end_actions() -> None:

@@ -11,6 +11,9 @@ import pytest
 from server.backends.sim import SimBackend
 from server.config import CoreConfig
 from server.events import MachineState
+from server.gcode import parse_line
+from server.interpreter import Interpreter
+from server.machine import interpreter_settings
 from server.moves import Move, MoveKind
 from server.offline import JobStats, estimate, execute, iterate_blocks
 from server.planner import Planner, PlannerSettings
@@ -279,3 +282,21 @@ def test_estimate_in_settled_batches_sums_the_blocks_popped_one_by_one(name: str
     for field in ("duration_s", "cut_mm", "rapid_mm"):
         assert math.isclose(getattr(batched, field), getattr(single, field), rel_tol=1e-12,
                             abs_tol=1e-9), field
+
+
+@pytest.mark.parametrize(
+    "name, refused", [("cnc-calibration-arcs.gcode", 624), ("cnc-helical-thread.gcode", 5)])
+def test_estimate_stops_at_the_first_refused_line_and_reads_no_further(
+    name: str, refused: int
+) -> None:
+    core = make_config(machine={"soft_limits": False}).core
+    lines = (CORPUS / name).read_text().splitlines()
+    interpreter = Interpreter(interpreter_settings(core))
+    before = sum(isinstance(output, Move)
+                 for text in lines[: refused - 1]
+                 for output in interpreter.execute(parse_line(text)))
+    stats, single = estimate(lines, core), JobStats()
+    blocks = list(iterate_blocks(lines, core, single))
+    for run in (stats, single):
+        assert (run.error_line, run.lines, run.moves) == (refused, refused, before)
+    assert stats.blocks == len(blocks)
