@@ -18,7 +18,6 @@ columns of one numpy array, so a re-plan is a handful of array operations.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from itertools import chain
 
 import numpy as np
 import numpy.typing as npt
@@ -159,7 +158,15 @@ class BlockColumns:
         self.head = 0
         self.tail = 0  # including staged columns
         self._synced = 0
-        self._staged: list[tuple[float, ...]] = []
+        self._staged: list[float] = []  # the values of the staged columns, one after another
+        # (rows of data, positions in a column's values) for each run of consecutive input rows
+        self._runs: list[tuple[slice, slice]] = []
+        start = 0
+        for end in range(1, len(input_rows) + 1):
+            if end == len(input_rows) or input_rows[end] != input_rows[end - 1] + 1:
+                self._runs.append((slice(input_rows[start], input_rows[end - 1] + 1),
+                                   slice(start, end)))
+                start = end
         self._read: list[list[float]] = []  # columns _read_start .. as Python lists
         self._read_start = 0
 
@@ -168,7 +175,7 @@ class BlockColumns:
 
     def push(self, values: tuple[float, ...]) -> None:
         """Stage a column given by its ``input_rows`` values."""
-        self._staged.append(values)
+        self._staged += values
         self.tail += 1
 
     def push_front(self, values: tuple[float, ...]) -> int:
@@ -191,9 +198,10 @@ class BlockColumns:
             return self.tail
         if self.tail > self.data.shape[1]:
             self._relocate(front=0)
-        first, count, width = self._synced, len(staged), len(self.input_rows)
-        values = np.fromiter(chain.from_iterable(staged), np.float64, count * width)
-        self.data[self.input_rows, first : self.tail] = values.reshape(count, width).T
+        first, width = self._synced, len(self.input_rows)
+        columns = np.fromiter(staged, np.float64, len(staged)).reshape(-1, width).T
+        for rows, values in self._runs:
+            self.data[rows, first : self.tail] = columns[values]
         self._synced = self.tail
         self._staged = []
         return first

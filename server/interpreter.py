@@ -18,7 +18,8 @@ few LinuxCNC/Smoothieware additions. Conventions worth knowing:
   equals the start are full circles, also with no axis words at all (``G2 I10 J0``).
 * Follow actions (spindle/S, coolant, ...) that come just before a move on the same line ride
   in that move's ``actions``, where the planner would attach them anyway; only actions with no
-  move after them are outputs of their own. Zero-length moves produce no :class:`Move`. After a probe the position is the probe target
+  move after them are outputs of their own.
+* Zero-length moves produce no :class:`Move`. After a probe the position is the probe target
   until the dispatcher calls :meth:`Interpreter.set_position`; G28.2 leaves it unchanged.
 * Beyond Grbl: G59.1-G59.3 (``G10 P7..P9``), G90.1 absolute arc centres, G92.2/G92.3
   (LinuxCNC), G28.2 homing (Smoothieware), M6, M17/M18/M84, M112, M114, M999. Rotary axes

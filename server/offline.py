@@ -59,7 +59,8 @@ class JobStats:
     bbox_max_mm: list[float] = field(default_factory=list)
     error: str | None = None
     error_line: int | None = None
-    _ends: list[tuple[float, ...]] = field(default_factory=list, repr=False)
+    _points: list[float] = field(default_factory=list, repr=False)  # end points, flat
+    _axes: int = field(default=0, repr=False)
 
     def add(self, block: Block) -> None:
         self.duration_s += block.duration_s
@@ -73,34 +74,36 @@ class JobStats:
             self.rapid_mm += block.length_mm
         if block.cruise_mm_s > self.max_speed_mm_s:
             self.max_speed_mm_s = block.cruise_mm_s
-        self._add_points([block.end_mm], block.start_mm)
+        self._add_point(block.start_mm, block.end_mm)
 
     def add_settled(self, settled: SettledBlocks) -> None:
         """:meth:`add` for many blocks at once, with numpy."""
         rows = settled.rows
-        self.duration_s += float(rows[DURATION].sum())
-        self.blocks += rows.shape[1]
-        lengths, cutting = rows[LENGTH], rows[KIND] == CUTTING_CODE
-        self.cut_mm += float(lengths[cutting].sum())
-        self.rapid_mm += float(lengths[~cutting].sum())  # action blocks have no length
-        self.max_speed_mm_s = max(self.max_speed_mm_s, float(rows[CRUISE].max()))
-        moves = [(start, end) for move, _, start, end, _ in settled.geometry if move is not None]
-        if moves:
-            self._add_points([end for _, end in moves], moves[0][0])
+        durations, lengths, cutting = rows[DURATION], rows[LENGTH], rows[KIND] == CUTTING_CODE
+        self.duration_s += float(np.add.reduce(durations))
+        self.blocks += durations.shape[0]
+        self.cut_mm += float(np.add.reduce(lengths[cutting]))
+        self.rapid_mm += float(np.add.reduce(lengths[~cutting]))  # action blocks: no length
+        self.max_speed_mm_s = max(self.max_speed_mm_s, float(np.maximum.reduce(rows[CRUISE])))
+        for move, _, start, end, _ in settled.geometry:
+            if move is not None:
+                self._add_point(start, end)
 
-    def _add_points(self, ends: list[tuple[float, ...]], first_start: tuple[float, ...]) -> None:
-        if not self._ends and not self.bbox_min_mm:
-            self._ends.append(first_start)
-        self._ends.extend(ends)
-        if len(self._ends) >= BBOX_BATCH:
+    def _add_point(self, start: tuple[float, ...], end: tuple[float, ...]) -> None:
+        points = self._points
+        if not self._axes:  # the first move: its start counts too
+            self._axes = len(start)
+            points += start
+        points += end
+        if len(points) >= BBOX_BATCH * self._axes:
             self.finish()
 
     def finish(self) -> None:
         """Fold the collected end points into the bounding box (done in batches, with numpy)."""
-        if not self._ends:
+        if not self._points:
             return
-        points = np.asarray(self._ends)
-        self._ends.clear()
+        points = np.fromiter(self._points, np.float64, len(self._points)).reshape(-1, self._axes)
+        self._points.clear()
         low, high = points.min(axis=0).tolist(), points.max(axis=0).tolist()
         if self.bbox_min_mm:
             low = [min(a, b) for a, b in zip(low, self.bbox_min_mm, strict=True)]

@@ -256,7 +256,7 @@ class Planner:
         rows = window[LENGTH], window[ACCEL], window[NOMINAL], window[JUNCTION], window[LEAD]
         self._settled = plan_window(*rows, self._start_mm_s, window[ENTRY : DURATION + 1])
         self._columns.invalidate()
-        self._time_planned_s = float(window[DURATION].sum())
+        self._time_planned_s = float(np.add.reduce(window[DURATION]))
         self._time_estimate_s = 0.0
 
     def pop(self) -> Block | None:
@@ -308,7 +308,7 @@ class Planner:
         self._planned -= count
         self._settled -= count
         self._start_mm_s = float(rows[EXIT, -1])
-        self._time_planned_s -= float(rows[DURATION].sum())
+        self._time_planned_s -= float(np.add.reduce(rows[DURATION]))
         if not len(columns):
             self._clear_window()
         return SettledBlocks(rows, geometry)

@@ -76,7 +76,7 @@ def axis_limits(unit: FloatArray, inverse_limits: FloatArray) -> FloatArray:
     A zero vector (a zero-length block) gets :data:`STILL_LIMIT`: finite, so ``2·a·d`` is 0 and
     a ramp without a change of speed takes no time, and small enough that its square is finite.
     """
-    worst = (np.abs(unit) * inverse_limits).max(axis=1)
+    worst = np.maximum.reduce(np.abs(unit) * inverse_limits, axis=1)
     np.maximum(worst, 1.0 / STILL_LIMIT, out=worst)
     return np.divide(1.0, worst, out=worst)
 
@@ -128,8 +128,11 @@ def plan_window(
     caps[n] = 0.0
     np.minimum(nominal_sq[:-1], nominal_sq[1:], out=caps[1:n])
     np.minimum(caps[1:n], junction_sq[1:], out=caps[1:n])
-    unsettled = np.flatnonzero(cum[n] - cum[2:n] < caps[2:n])
-    settled = int(unsettled[0]) + 1 if unsettled.size else max(n - 1, 1)
+    settled = max(n - 1, 1)
+    if n > 2:
+        unsettled = cum[n] - cum[2:n] < caps[2:n]
+        first = int(unsettled.argmax())
+        settled = first + 1 if unsettled[first] else settled
     backward = np.minimum.accumulate((caps + cum)[::-1])[::-1]
     backward -= cum
     np.minimum(backward, caps, out=backward)  # exact where a node's own cap binds
