@@ -89,18 +89,18 @@ def check_same_plan(planner: Planner, inputs: Inputs) -> float:
     return max(abs(a - b) for a, b in zip(ours, theirs, strict=True))
 
 
-def pipeline(machine: PlannerSettings, moves: list[Move], horizon_s: float) -> int:
-    """Append and pop every move through a full window; re-plan when look-ahead runs short."""
+def pipeline(machine: PlannerSettings, moves: list[Move]) -> int:
+    """Append and pop every move through a full window, re-planning as the step generator does
+    (:meth:`StepGenerator.pop_block`: when the head is past the blocks the last plan settled)."""
     planner = Planner(machine, (0.0, 0.0, 0.0))
     popped = 0
     for move in moves:
         planner.append(move)
         if planner.is_full():
-            if planner.planned_ahead_s() < horizon_s:
+            if planner.lookahead_short():
                 planner.plan()
             planner.pop()
             popped += 1
-    planner.plan()
     while planner.pop() is not None:
         popped += 1
     return popped
@@ -134,17 +134,13 @@ def main() -> int:
     print(f"  same plan: largest duration difference {check_same_plan(planner, inputs):.2e} s")
 
     moves = raster(100_000)
-    rates = zip(MACHINE.max_rate_mm_s, MACHINE.accel_mm_s2, strict=True)
-    horizon_s = 1.5 * max(rate / accel for rate, accel in rates)  # the longest stop, with margin
-    print(
-        f"append + pop of {len(moves):,} blocks through a full window, re-planning when the "
-        f"plan covers under {horizon_s:.2f} s ahead"
-    )
+    print(f"append + pop of {len(moves):,} blocks through a full window, re-planning as the step "
+          "generator does")
     for label, machine in (
         (f"window {MACHINE.max_blocks:,} blocks", MACHINE),
         ("window 0.5 s (default)", replace(MACHINE, max_planned_s=0.5)),
     ):
-        run = partial(pipeline, machine, moves, horizon_s)
+        run = partial(pipeline, machine, moves)
         (pipeline_s,) = side_by_side(max(1, rounds // 3), run)
         print(
             f"  {label:24} {len(moves) / pipeline_s:12,.0f} blocks/s  "
