@@ -4,7 +4,7 @@ Pure computation (no asyncio, no I/O). Units are machine mm, mm/s, mm/s² and se
 
 The interpreter side calls :meth:`Planner.append` / :meth:`Planner.append_action` and watches
 :meth:`Planner.is_full` for back-pressure; the step generator calls :meth:`Planner.pop` for the
-next block to run and :meth:`Planner.plan` whenever :meth:`Planner.planned_ahead_s` runs short.
+next block to run, and :meth:`Planner.plan` first whenever :meth:`Planner.lookahead_short`.
 Appending is O(1) plain Python: the block's length, feed and direction are staged. ``plan()``
 copies staged blocks into the columns of one growable numpy array, derives their limits
 (projected axis rates and accelerations, nominal speeds, junction limits) in a batch, and
@@ -264,8 +264,8 @@ class Planner:
 
         Plans first only when the head was never planned or the start speed, the overrides or
         the head changed since the last plan; otherwise the last plan stands (it stays feasible,
-        see the module docstring; call :meth:`plan` when :meth:`planned_ahead_s` runs short to
-        keep full look-ahead). With no block waiting, returns an action-only block carrying the
+        see the module docstring; call :meth:`plan` first when :meth:`lookahead_short` to keep
+        full look-ahead). With no block waiting, returns an action-only block carrying the
         pending follow actions, or None. The popped block's exit speed becomes the start speed.
         """
         columns = self._columns

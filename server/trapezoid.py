@@ -114,8 +114,8 @@ def plan_window(
     blocks are appended to the window later. Appending replaces the end's term in the backward
     minimum, ``C[n] − C[i]``, by larger ones, so node ``i`` cannot change while that term is
     at least the node's own cap ``L[i]`` (the minimum is then at most ``L[i]`` without it).
-    The head always counts (its entry is fixed); block ``k ≥ 1`` counts while every node up
-    to its exit ``k + 1 < n`` passes that test.
+    Block ``k`` counts while every node up to its exit ``k + 1 < n`` passes that test (its
+    entry is then settled too, the head's being fixed); the last block never counts.
     """
     n = length_mm.shape[0]
     two_ad = 2.0 * accel_mm_s2 * length_mm
@@ -128,11 +128,11 @@ def plan_window(
     caps[n] = 0.0
     np.minimum(nominal_sq[:-1], nominal_sq[1:], out=caps[1:n])
     np.minimum(caps[1:n], junction_sq[1:], out=caps[1:n])
-    settled = max(n - 1, 1)
-    if n > 2:
-        unsettled = cum[n] - cum[2:n] < caps[2:n]
+    settled = n - 1
+    if n > 1:
+        unsettled = cum[n] - cum[1:n] < caps[1:n]
         first = int(unsettled.argmax())
-        settled = first + 1 if unsettled[first] else settled
+        settled = first if unsettled[first] else settled
     backward = np.minimum.accumulate((caps + cum)[::-1])[::-1]
     backward -= cum
     np.minimum(backward, caps, out=backward)  # exact where a node's own cap binds

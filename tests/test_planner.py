@@ -593,3 +593,16 @@ def test_insert_front_derives_the_limits_of_blocks_appended_but_not_yet_planned(
     assert rest is not None and turn is not None
     assert (rest.length_mm, rest.accel_mm_s2) == (5.0, 1000.0)
     assert (turn.length_mm, turn.accel_mm_s2, turn.nominal_mm_s) == (20.0, 400.0, 40.0)
+
+
+def test_a_plan_made_before_more_appends_does_not_settle_the_head_exit() -> None:
+    """plan(), then appends, then pop: the head was planned to stop at the old window end, so
+    the look-ahead is short and a re-plan lets it carry its speed into the new block."""
+    planner = Planner(PlannerSettings((500.0, 500.0), (3000.0, 3000.0)), (0.0, 0.0))
+    planner.append(Move((10.0, 0.0), 100.0, MoveKind.FEED))
+    planner.plan()
+    planner.append(Move((20.0, 0.0), 100.0, MoveKind.FEED))
+    assert planner.lookahead_short()
+    planner.plan()
+    head = planner.pop()
+    assert head is not None and head.exit_mm_s == pytest.approx(100.0)
