@@ -177,7 +177,7 @@ class Planner:
                 code, scaled = _NO_OVERRIDE, feed
             self._time_estimate_s += length / max(scaled, self._settings.min_feed_mm_s)
         self._columns.push((length, feed, code, 0.0, *unit))
-        actions = self._take_pending(move.actions) if self._pending or move.actions else []
+        actions = self._take_pending(move.actions) if self._pending else move.actions
         self._geometry.append((move, actions, start, target, unit))
         self._dirty = True
 
