@@ -230,17 +230,6 @@ class Planner:
         """
         return self._dirty and (self._head_dirty or self._settled <= 0)
 
-    def planned_ahead_s(self) -> float:
-        """Seconds of motion the last plan still covers from the head (head included).
-
-        The last plan brings motion to a stop at its end, so when this is shorter than the
-        longest stop the head would slow down needlessly: time to :meth:`plan` again. Zero when
-        the head was never planned or the start speed, overrides or head changed since.
-        """
-        if self._head_dirty or self._planned <= 0:
-            return 0.0
-        return self._time_planned_s
-
     # ------------------------------------------------------------------ planning and popping
 
     def plan(self) -> None:

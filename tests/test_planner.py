@@ -554,23 +554,6 @@ def test_settings_come_from_the_machine_config() -> None:
     )
 
 
-def test_planned_ahead_covers_the_last_plan_and_is_zero_when_stale() -> None:
-    planner = Planner(XYZ, (0.0, 0.0, 0.0))
-    planner.append(feed_to(10.0, 0.0, 0.0))
-    assert planner.planned_ahead_s() == 0.0  # never planned
-    planner.append(feed_to(20.0, 0.0, 0.0))
-    planner.plan()
-    total_s = planner.planned_ahead_s()
-    assert total_s == pytest.approx(planner.planned_time_s())
-    first = planner.pop()
-    assert first is not None
-    assert planner.planned_ahead_s() == pytest.approx(total_s - first.duration_s)
-    planner.append(feed_to(30.0, 0.0, 0.0))  # appending does not change what the plan covers
-    assert planner.planned_ahead_s() == pytest.approx(total_s - first.duration_s)
-    planner.set_overrides(feed=0.5)
-    assert planner.planned_ahead_s() == 0.0
-
-
 def test_new_settings_apply_to_blocks_appended_afterwards() -> None:
     planner = Planner(XYZ, (0.0, 0.0, 0.0))
     planner.append(feed_to(100.0, 0.0, 0.0, feed_mm_s=1000.0))
