@@ -332,13 +332,18 @@ def _public(fields: dict[str, Any]) -> dict[str, Any]:
     return {key: value for key, value in fields.items() if not key.startswith("_")}
 
 
+def _count(number: int, noun: str) -> str:
+    return f"{number:,} {noun}{'' if number == 1 else 's'}"
+
+
 def describe(path: Path, stats: JobStats, axis_names: tuple[str, ...]) -> str:
     rows = [
         f"{path}",
         f"  time        {format_duration(stats.duration_s)}",
         f"  cutting     {stats.cut_mm:,.1f} mm",
         f"  rapids      {stats.rapid_mm:,.1f} mm",
-        f"  moves       {stats.moves:,} ({stats.blocks:,} planned blocks, {stats.lines:,} lines)",
+        f"  moves       {stats.moves:,} ({_count(stats.blocks, 'planned block')}, "
+        f"{_count(stats.lines, 'line')})",
         f"  max speed   {stats.max_speed_mm_s * 60:,.0f} mm/min",
     ]
     if stats.bbox_min_mm:
