@@ -1,9 +1,9 @@
 """``[endstops]``: limit switches, hard limits, ``M119`` and homing (``$H``, ``G28.2``).
 
 One switch per configured axis, at the end the axis homes to (``direction``). With the
-simulated backend, ``switch_at_mm`` places it (``x_min``/``x_max`` in the backend's
-``switches_at_mm``, in the sim's physical coordinates: where the steps put the tool); an axis
-without it has no switch there, and homing it fails.
+simulated backend, ``switch_at_mm`` places it (``x_min``/``x_max``, in the sim's physical
+coordinates: where the steps put the tool); an axis without it has no switch there, and homing
+it fails.
 
 Homing (``$H``, ``$HX``..., ``G28.2 [X Y Z]``; allowed in ALARM, state ``Home`` meanwhile) runs
 the axes in ``order`` groups, lowest first; the axes of one group move together. Per group, as
@@ -33,11 +33,12 @@ from typing import Any, Literal
 
 from pydantic import Field
 
+from server.codes import CodeCall
 from server.dispatcher import Command
 from server.errors import CommandError, ConfigError
 from server.events import MachineState
 from server.module import Module, ModuleConfig, ModuleContext
-from server.moves import Move, MoveKind, Position
+from server.moves import Move, MoveKind, Output, Position, Sync
 
 ALARM_HARD_LIMIT = 1
 ALARM_HOMING_RESET = 6
@@ -45,7 +46,6 @@ ALARM_PULL_OFF = 8
 ALARM_NOT_FOUND = 9
 NOT_IDLE = 8
 LOCKED = 9
-AXIS_LETTERS = "XYZABC"
 SEEK_SCALE = 1.5  # Grbl: search up to 1.5 x the travel
 LOCATE_SCALE = 5.0  # Grbl: locate within 5 x the pull-off
 
@@ -95,25 +95,23 @@ class Endstops(Module):
     def __init__(self, ctx: ModuleContext, config: EndstopsConfig) -> None:
         super().__init__(ctx, config)
         self.config: EndstopsConfig = config
-        self.machine = ctx.machine
         self.axes = self._resolve_axes()
-        backend = self.machine.backend
-        if hasattr(backend, "switches_at_mm"):
-            for axis in self.axes:
-                if axis.cfg.switch_at_mm is not None:
-                    backend.switches_at_mm[axis.switch] = axis.cfg.switch_at_mm
+        for axis in self.axes:
+            if axis.cfg.switch_at_mm is not None:
+                ctx.inputs.place_switch(axis.switch, axis.cfg.switch_at_mm)
         self.homing = False
         self.homed: set[str] = set()
         self._state = MachineState.IDLE
         self._abort: str | None = None
         self._active: set[str] = set()
-        for name in ("$H", "G28.2", *(f"$H{axis.name}" for axis in self.axes)):
+        for name in ("$H", *(f"$H{axis.name}" for axis in self.axes)):
             ctx.register_command(name, self._home_command, when_locked=True)
-        ctx.register_command("M119", self._m119, when_locked=True)
+        ctx.register_sync("home", self._home_sync)
+        ctx.register_code(119, self._m119, query=True)
         ctx.subscribe("state", self._on_state)
 
     def _resolve_axes(self) -> list[_Axis]:
-        core = self.machine.core
+        core = self.ctx.core
         names = core.axis_names
         problems = [f"[endstops.axes.{key}]: no such axis (axes: {', '.join(names)})"
                     for key in self.config.axes if key.upper() not in names]
@@ -127,24 +125,18 @@ class Endstops(Module):
         return axes
 
     # -- switches --------------------------------------------------------------------------
-    def _physical_mm(self) -> Sequence[float]:
-        """Where the tool really is: the sim's step counts, else the motion state."""
-        position = getattr(self.machine.backend, "position_mm", None)
-        return position() if callable(position) else self.ctx.motion().position_mm
-
     def triggered(self, axes: Sequence[_Axis] | None = None) -> list[_Axis]:
         """The axes (of ``axes``, default all) whose switch is active now."""
-        position = self._physical_mm()
-        backend = self.machine.backend
-        return [a for a in axes or self.axes if backend.switch_triggered(a.switch, position)]
+        inputs = self.ctx.inputs
+        return [a for a in axes or self.axes if inputs.switch_triggered(a.switch)]
 
     def report_pins(self) -> str:
         return "".join(axis.name for axis in self.triggered())
 
-    def _m119(self, command: Command) -> list[str]:
+    def _m119(self, call: CodeCall) -> list[Output]:
         active = {axis.name for axis in self.triggered()}
-        return [" ".join(f"{a.name}_{a.cfg.direction}:{int(a.name in active)}"
-                         for a in self.axes)]
+        line = " ".join(f"{a.name}_{a.cfg.direction}:{int(a.name in active)}" for a in self.axes)
+        return [Sync("message", {"lines": [line]})]
 
     async def run(self) -> None:
         """Watch the switches at ``check_hz``: a switch becoming active while moving is ALARM:1."""
@@ -171,9 +163,17 @@ class Endstops(Module):
 
     # -- homing ----------------------------------------------------------------------------
     async def _home_command(self, command: Command) -> list[str]:
-        axes = self._axes_for(command)
+        """``$H`` or ``$HX``."""
+        return await self._home_axes(self._axes_named(set(command.name[2:])))
+
+    async def _home_sync(self, params: dict[str, Any]) -> list[str]:
+        """``G28.2 [X Y Z]``, from the interpreter (axis indices; none: every axis)."""
+        names = self.ctx.core.axis_names
+        return await self._home_axes(self._axes_named({names[i] for i in params["axes"]}))
+
+    async def _home_axes(self, axes: list[_Axis]) -> list[str]:
         if self._state in (MachineState.IDLE, MachineState.RUN):
-            await self.machine.wait_idle()  # a streamed G28.2 runs after the moves before it
+            await self.ctx.moves.wait_idle()  # a streamed G28.2 runs after the moves before it
         if self._state not in (MachineState.IDLE, MachineState.ALARM):
             raise CommandError(NOT_IDLE, f"homing needs an idle machine, not {self._state.value}")
         try:
@@ -183,11 +183,8 @@ class Endstops(Module):
             raise CommandError(LOCKED, f"homing failed: ALARM:{exc.code}") from exc
         return [f"[MSG:Homed {''.join(axis.name for axis in axes)}]"]
 
-    def _axes_for(self, command: Command) -> list[_Axis]:
-        if command.line is not None:  # G28.2 X0 Y0: the named axes
-            letters = {letter for letter, _ in command.line.words if letter in AXIS_LETTERS}
-        else:  # $H or $HX
-            letters = set(command.name[2:])
+    def _axes_named(self, letters: set[str]) -> list[_Axis]:
+        """The endstop axes named (none named: all of them)."""
         unknown = letters - {axis.name for axis in self.axes}
         if unknown:
             raise CommandError(3, f"no endstop configured for {''.join(sorted(unknown))}")
@@ -195,7 +192,6 @@ class Endstops(Module):
 
     async def home(self, axes: Sequence[_Axis]) -> None:
         """Home ``axes`` group by group; raise :class:`HomingFailed` with the Grbl alarm code."""
-        core = _CoreAccess(self.machine)
         if self._state is MachineState.ALARM:
             self.ctx.clear_alarm()
         self._abort = None
@@ -203,14 +199,14 @@ class Endstops(Module):
         self.homing = True
         try:
             for order in sorted({axis.cfg.order for axis in axes}):
-                await self._home_group([axis for axis in axes if axis.cfg.order == order], core)
+                await self._home_group([axis for axis in axes if axis.cfg.order == order])
         finally:
             self.homing = False
             self._active = {axis.switch for axis in self.triggered()}
             if self._state is MachineState.HOME:
                 self.ctx.set_state(MachineState.IDLE)
 
-    async def _home_group(self, group: list[_Axis], core: _CoreAccess) -> None:
+    async def _home_group(self, group: list[_Axis]) -> None:
         seek = min(axis.cfg.seek_mm_s for axis in group)
         feed = min(axis.cfg.feed_mm_s for axis in group)
         await self._seek(group, seek, lambda a: a.travel_mm * SEEK_SCALE)
@@ -221,7 +217,7 @@ class Endstops(Module):
         for axis in group:
             position[axis.index] = axis.home_mm
             self.homed.add(axis.name)
-        core.set_position(tuple(position))
+        self.ctx.moves.set_position(tuple(position))
 
     async def _seek(self, group: list[_Axis], speed: float,
                     distance: Callable[[_Axis], float]) -> None:
@@ -248,19 +244,19 @@ class Endstops(Module):
 
     async def _move(self, target: Position, speed: float, watch: list[_Axis]) -> list[_Axis]:
         """Move to ``target``; stop at once when a switch of ``watch`` triggers (returned)."""
-        machine, clock = self.machine, self.ctx.clock
+        moves, clock = self.ctx.moves, self.ctx.clock
         hit = self.triggered(watch) if watch else []
         if hit:
             return hit
-        await machine.queue_move(Move(target, speed, MoveKind.HOMING))
-        waiter = asyncio.create_task(machine.wait_idle())
+        await moves.queue_move(Move(target, speed, MoveKind.HOMING))
+        waiter = asyncio.create_task(moves.wait_idle())
         try:
             next_s = clock.now_s()
             while not waiter.done():
                 self._check_abort()
                 hit = self.triggered(watch) if watch else []
                 if hit:
-                    machine.stop_now()
+                    moves.stop_now()
                     break
                 next_s += 1.0 / self.config.check_hz
                 await clock.sleep_until(next_s)
@@ -275,7 +271,7 @@ class Endstops(Module):
         The ticks also clear the generator's stale time into the stopped block, which
         ``StepGenerator.stop_now`` leaves behind (see the report: core fix needed).
         """
-        tick_s = 1.0 / self.machine.core.stepgen.tick_hz
+        tick_s = self.ctx.moves.tick_s
         clock = self.ctx.clock
         await clock.sleep_until(clock.now_s() + max(self.config.debounce_s, 3 * tick_s))
         self._check_abort()
@@ -287,18 +283,3 @@ class Endstops(Module):
     def status(self) -> dict[str, Any]:
         return {"homing": self.homing, "homed": sorted(self.homed),
                 "triggered": [axis.switch for axis in self.triggered()]}
-
-
-class _CoreAccess:
-    """The core operations homing needs that the module contract does not offer yet.
-
-    Each method stands for a proposed kernel/machine hook (see the report); they are kept here,
-    in one place, so that replacing them touches nothing else.
-    """
-
-    def __init__(self, machine: Any) -> None:
-        self.machine = machine
-
-    def set_position(self, position_mm: Position) -> None:
-        """Redefine the machine position without moving."""
-        self.machine.set_machine_position(position_mm)

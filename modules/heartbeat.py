@@ -32,7 +32,7 @@ class Heartbeat(Module):
         self.beats = 0
         self.started_s = ctx.clock.now_s()
         ctx.subscribe("second", self._on_second)
-        ctx.register_command("heartbeat", self._command, when_locked=True)
+        ctx.register_command("heartbeat", self._command, when_locked=True, query=True)
 
     def _on_second(self, now_s: float) -> None:
         self.beats += 1

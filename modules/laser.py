@@ -37,11 +37,12 @@ from typing import Any
 
 from pydantic import Field, model_validator
 
+from server.codes import CodeCall
 from server.dispatcher import Command
 from server.errors import BUSY, CommandError
 from server.events import MachineState
 from server.module import Module, ModuleConfig, ModuleContext
-from server.moves import Action, MoveKind, ToolMode
+from server.moves import Action, MoveKind, Output, Sync, ToolMode
 from server.stepgen import HoldState, MotionState
 
 PIN_PATTERN = r"^[A-Za-z0-9_.\-]+$"
@@ -109,10 +110,9 @@ class Laser(Module):
         self.override_percent = 100.0
         self._state = MachineState.IDLE
         self._fire_until_s: float | None = None
-        self._fire_epoch = 0
         ctx.register_command("fire", self._fire)
-        ctx.register_command("M221", self._m221)
-        for event in ("halt", "hold", "shutdown"):
+        ctx.register_code(221, self._m221, uses="S", query=True)
+        for event in ("halt", "hold", "shutdown", "reset"):
             ctx.subscribe(event, self._off_now)
         ctx.subscribe("state", self._on_state)
         ctx.subscribe("override", self._on_override)
@@ -146,29 +146,25 @@ class Laser(Module):
 
     def _sample(self, now_s: float) -> None:
         if self._fire_until_s is not None:
-            if now_s < self._fire_until_s and self._machine.epoch == self._fire_epoch:
+            if now_s < self._fire_until_s:
                 return
-            self._fire_until_s = None  # expired, or a soft reset (Ctrl-X) happened
+            self._fire_until_s = None  # expired (halt, hold and reset end it at once)
             self.ctx.log.info("fire: stopped")
-        self._apply(laser_power(self.config, self.ctx.motion(), self.scale), now_s)
+        self._apply(laser_power(self.config, self.ctx.motion(), self.scale))
 
-    @property
-    def _machine(self) -> Any:
-        return self.ctx.machine
-
-    def _apply(self, power: float, now_s: float) -> None:
+    def _apply(self, power: float) -> None:
         if power == self.power:
             return
-        backend = self._machine.backend
-        backend.set_output(self.config.pin, power, now_s)
+        outputs = self.ctx.outputs
+        outputs.set(self.config.pin, power)
         if self.config.ttl_pin is not None and (power > 0.0) != (self.power > 0.0):
-            backend.set_output(self.config.ttl_pin, 1.0 if power > 0.0 else 0.0, now_s)
+            outputs.set(self.config.ttl_pin, 1.0 if power > 0.0 else 0.0)
         self.power = power
 
     # -- events (synchronous: the laser is off before emit() returns) ----------------------
     def _off_now(self, *_: Any) -> None:
         self._fire_until_s = None
-        self._apply(0.0, self.ctx.clock.now_s())
+        self._apply(0.0)
 
     def _on_state(self, state: MachineState) -> None:
         self._state = state
@@ -185,15 +181,14 @@ class Laser(Module):
             self.m221_percent = float(action.params["scale_percent"])
 
     # -- commands --------------------------------------------------------------------------
-    async def _m221(self, command: Command) -> list[str]:
+    def _m221(self, call: CodeCall) -> list[Output]:
         """``M221 S<percent>``: power scale, applied in order with motion; bare M221 reports."""
-        percent = command.line.get("S") if command.line is not None else None
+        percent = call.values.get("S")
         if percent is None:
-            return [f"[MSG:laser power scale {self.m221_percent:g}%]"]
+            return [Sync("message", {"lines": [f"[MSG:laser power scale {self.m221_percent:g}%]"]})]
         if not 0.0 <= percent <= 1000.0:
             raise CommandError(BAD_NUMBER, "M221 S must be a percentage between 0 and 1000")
-        await self.ctx.queue_action(Action("laser", {"scale_percent": percent}))
-        return []
+        return [Action("laser", {"scale_percent": percent})]
 
     def _fire(self, command: Command) -> list[str]:
         """``fire <percent> [seconds]`` while idle, ``fire off`` at any time."""
@@ -216,8 +211,7 @@ class Laser(Module):
         duration_s = min(rest[0], limit_s) if rest and rest[0] > 0 else limit_s
         now_s = self.ctx.clock.now_s()
         self._fire_until_s = now_s + duration_s
-        self._fire_epoch = self._machine.epoch
-        self._apply(min(1.0, percent / 100.0) * self.config.maximum_power, now_s)
+        self._apply(min(1.0, percent / 100.0) * self.config.maximum_power)
         return [f"[MSG:fire {percent:g}% for at most {duration_s:g}s]"]
 
     def status(self) -> dict[str, Any]:

@@ -11,10 +11,9 @@ it keeps
 turning through a feed hold unless the spindle-stop realtime byte (0x9E) is sent during the
 hold; it then restarts on resume.
 
-``spin_up_delay_s``: the module claims the lines that hold M3, M4 or M5, runs them through the
-machine's G-code handler as usual and, when an M3/M4 starts the spindle from off, queues a
-lead dwell right after it, so motion waits for the spindle. A line that also moves (``G1 X10
-M3``) gets no wait: put the spindle start on its own line, as CAM post-processors do.
+``spin_up_delay_s``: when an M3/M4 starts the spindle from off, the interpreter queues a lead
+dwell right after the spindle action (grblHAL's ``$340``), so motion waits for the spindle,
+also when the same line moves (``G1 X10 M3 S12000`` spins up, waits, then moves).
 
 A machine may configure both ``[laser]`` and ``[spindle]`` (a laser head on a CNC): both then
 follow M3/M4/M5 and S, each on its own output; normally configure only the tool you have.
@@ -33,13 +32,11 @@ from typing import Any
 
 from pydantic import Field, model_validator
 
-from server.dispatcher import Command
 from server.events import MachineState
 from server.module import Module, ModuleConfig, ModuleContext
 from server.moves import Action, ToolMode
 
 PIN_PATTERN = r"^[A-Za-z0-9_.\-]+$"
-MOTION_WORDS = frozenset("XYZABCIJKR")
 
 
 class SpindleConfig(ModuleConfig):
@@ -89,7 +86,6 @@ class Spindle(Module):
         self.override_percent = 100.0
         self.stopped_in_hold = False
         self._state = MachineState.IDLE
-        self._queued_on = False  # M3/M4 seen by this module's handler and not yet undone
         ctx.subscribe("action", self._on_action)
         ctx.subscribe("override", self._on_override)
         ctx.subscribe("halt", self._halt)
@@ -98,10 +94,8 @@ class Spindle(Module):
         ctx.subscribe("state", self._on_state)
         ctx.subscribe("spindle_stop", self._spindle_stop)
         ctx.subscribe("resume", self._resume)
-        ctx.subscribe("program_end", self._forget_queued)
         if config.spin_up_delay_s > 0:
-            for code in ("M3", "M4", "M5"):
-                ctx.register_command(code, self._spindle_line)
+            ctx.set_spin_up_delay(config.spin_up_delay_s)
 
     # -- ordered actions -------------------------------------------------------------------
     def _on_action(self, action: Action) -> None:
@@ -120,18 +114,16 @@ class Spindle(Module):
         self._set(spindle_pwm(self.config, self.mode, rpm) if on else 0.0)
 
     def _set(self, pwm: float) -> None:
-        backend = self.ctx.machine.backend
-        now_s = self.ctx.clock.now_s()
+        outputs = self.ctx.outputs
         if pwm != self.pwm:
-            backend.set_output(self.config.pin, pwm, now_s)
+            outputs.set(self.config.pin, pwm)
             self.pwm = pwm
         if self.config.dir_pin is not None:
-            backend.set_output(self.config.dir_pin, float(self.mode is ToolMode.CCW), now_s)
+            outputs.set(self.config.dir_pin, float(self.mode is ToolMode.CCW))
 
     # -- safety ----------------------------------------------------------------------------
     def _halt(self, *_: Any) -> None:
         self.mode, self.rpm, self.stopped_in_hold = ToolMode.OFF, 0.0, False
-        self._queued_on = False
         self._set(0.0)
 
     def _on_state(self, state: MachineState) -> None:
@@ -149,30 +141,6 @@ class Spindle(Module):
         if self.stopped_in_hold:
             self.stopped_in_hold = False
             self._output()
-
-    def _forget_queued(self) -> None:
-        self._queued_on = False
-
-    # -- spin-up delay ---------------------------------------------------------------------
-    async def _spindle_line(self, command: Command) -> list[str]:
-        """Run an M3/M4/M5 line as usual, then make motion wait for a spindle starting up."""
-        line = command.line
-        assert line is not None
-        messages = await self.ctx.machine.handle_gcode(command)
-        codes = {value for letter, value in line.words if letter == "M"}
-        if 5 in codes:
-            self._queued_on = False
-            return messages
-        starting = not self._queued_on and line.get("S") != 0
-        self._queued_on = True
-        moves = any(letter in MOTION_WORDS for letter, _ in line.words)
-        if starting and moves:
-            self.ctx.log.warning("spin-up delay skipped: M3/M4 on a line that moves")
-        elif starting:
-            delay_s = self.config.spin_up_delay_s
-            await self.ctx.queue_action(Action("dwell", {"seconds": delay_s, "reason": "spin-up"},
-                                               lead_s=delay_s, stops_motion=True))
-        return messages
 
     def status(self) -> dict[str, Any]:
         direction = {ToolMode.CW: "cw", ToolMode.CCW: "ccw"}.get(self.mode, "off")

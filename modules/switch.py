@@ -1,7 +1,8 @@
 """``[switch.NAME]``: a named output (fan, air assist, coolant, light) driven by M-codes.
 
-Every switch command executes IN ORDER WITH MOTION: the handler of ``on_mcode`` (M106 S...),
-``off_mcode`` (M107) and ``M42 P<pin> S<value>`` queues an ``Action("switch")`` and the output
+Every switch command executes IN ORDER WITH MOTION: the switch claims ``on_mcode`` (M106 S...),
+``off_mcode`` (M107) and ``M42 P<pin> S<value>`` with the interpreter, which turns them into an
+``Action("switch")`` on the line they are on (``G1 X10 M106`` moves and switches); the output
 changes when the kernel's ``action`` event delivers it, never when the line is received. The
 value is ``S / max_s`` (S defaults to ``max_s``: full on), or 0/1 with ``pwm = false``.
 
@@ -29,17 +30,15 @@ from typing import Any, ClassVar
 
 from pydantic import Field, model_validator
 
-from server.dispatcher import Command
+from server.codes import CodeCall
 from server.errors import CommandError
 from server.modal import M_GROUPS
 from server.module import Module, ModuleConfig, ModuleContext
-from server.moves import Action
+from server.moves import Action, Output
 
 PIN_PATTERN = r"^[A-Za-z0-9_.\-]+$"
 COOLANT_CODES = {7: "mist", 8: "flood"}
-M42_QUERY = "switch.m42_owner"  # event: (pin text, list to append owners to)
-BAD_NUMBER = 2
-VALUE_MISSING = 31
+VALUE_WORD_MISSING = 28
 
 
 class SwitchConfig(ModuleConfig):
@@ -81,61 +80,40 @@ class Switch(Module):
         self.value = 0.0
         self.coolant = COOLANT_CODES.get(config.on_mcode or -1)
         if self.coolant is None:
-            for code in (config.on_mcode, config.off_mcode):
-                if code is not None:
-                    ctx.register_command(f"M{code}", self._mcode)
+            if config.on_mcode is not None:
+                ctx.register_code(config.on_mcode, self._on_code)
+            if config.off_mcode is not None:
+                ctx.register_code(config.off_mcode, self._off_code)
         else:
             ctx.subscribe("toggle_coolant", self._toggle)
-        ctx.register_command("M42", self._m42)
-        ctx.subscribe(M42_QUERY, self._answer_m42_query)
+        ctx.register_code(42, self._m42, group="M42", uses="P", key=("P", self.pin))
         ctx.subscribe("action", self._on_action)
         if config.off_on_halt:
             ctx.subscribe("halt", self._off_now)
             ctx.subscribe("reset", self._off_now)
         ctx.subscribe("shutdown", self._off_now)
 
-    # -- commands: queue, never apply ------------------------------------------------------
-    async def _mcode(self, command: Command) -> None:
-        line = command.line
-        assert line is not None
-        codes = {int(value) for letter, value in line.words if letter == "M"}
-        if self.config.on_mcode in codes:
-            await self._queue(self._value_from_s(line.get("S")))
-        elif self.config.off_mcode in codes:
-            await self._queue(0.0)
+    # -- codes: the interpreter queues the action, in order with motion ----------------------
+    def _on_code(self, call: CodeCall) -> list[Output]:
+        return [self._action(self._value_from_s(call.values.get("S")))]
 
-    async def _m42(self, command: Command) -> None:
-        line = command.line
-        assert line is not None
-        pin, s = line.get("P"), line.get("S")
-        if pin is None or s is None:
-            raise CommandError(VALUE_MISSING, "M42 needs P<pin> and S<value>")
-        pin_text = f"{pin:g}"
-        if self._owns(pin_text):
-            await self._queue(self._value_from_s(s))
-            return
-        owners: list[str] = []
-        self.ctx.emit(M42_QUERY, pin_text, owners)
-        if not owners:
-            raise CommandError(BAD_NUMBER, f"M42: no [switch] has pin {pin_text}")
+    def _off_code(self, call: CodeCall) -> list[Output]:
+        return [self._action(0.0)]
 
-    def _owns(self, pin_text: str) -> bool:
-        return self.pin.upper() in (pin_text, f"P{pin_text}")
-
-    def _answer_m42_query(self, pin_text: str, owners: list[str]) -> None:
-        if self._owns(pin_text):
-            owners.append(self.ctx.name)
+    def _m42(self, call: CodeCall) -> list[Output]:
+        s = call.values.get("S")
+        if s is None:
+            raise CommandError(VALUE_WORD_MISSING, "M42 needs P<pin> and S<value>")
+        return [self._action(self._value_from_s(s))]
 
     def _value_from_s(self, s: float | None) -> float:
         if s is None:
             return 1.0
-        if s < 0:
-            raise CommandError(BAD_NUMBER, "S must not be negative")
-        value = min(1.0, s / self.config.max_s)
+        value = min(1.0, s / self.config.max_s)  # the interpreter refuses a negative S
         return value if self.config.pwm else float(value > 0.0)
 
-    async def _queue(self, value: float) -> None:
-        await self.ctx.queue_action(Action("switch", {"section": self.ctx.name, "value": value}))
+    def _action(self, value: float) -> Action:
+        return Action("switch", {"section": self.ctx.name, "value": value})
 
     # -- applied when motion reaches the action ---------------------------------------------
     def _on_action(self, action: Action) -> None:
@@ -155,8 +133,7 @@ class Switch(Module):
 
     def _set(self, value: float) -> None:
         if value != self.value:
-            backend = self.ctx.machine.backend
-            backend.set_output(self.pin, value, self.ctx.clock.now_s())
+            self.ctx.outputs.set(self.pin, value)
             self.value = value
 
     def status(self) -> dict[str, Any]:

@@ -126,8 +126,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def check_config(path: Path) -> int:
+    from server.offline import machine_interpreter
+
     try:
         config = load_config(path)
+        machine_interpreter(config)  # builds the modules: codes claimed twice are errors too
     except ConfigError as exc:
         for problem in exc.problems:
             print(problem, file=sys.stderr)

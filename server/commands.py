@@ -10,10 +10,12 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from server import __version__
+from server.codes import CodeCall
 from server.dispatcher import Command, Dispatcher
 from server.errors import CommandError
 from server.events import MachineState
 from server.gcode import parse_line
+from server.moves import Output, Sync
 from server.reports import format_build_info, format_help, format_settings
 
 if TYPE_CHECKING:
@@ -33,32 +35,37 @@ class CoreCommands:
         self.startup_lines: dict[int, str] = {}
 
     def register(self, dispatcher: Dispatcher) -> None:
-        locked_ok = {
+        queries = {
             "$": self.help,
             "$$": self.settings,
-            "$=": self.write_setting,
             "$#": self.offsets,
             "$G": self.modal,
             "$I": self.build_info,
             "$N": self.startup,
+            "version": self.version,
+        }
+        for name, handler in queries.items():
+            dispatcher.register(name, handler, when_locked=True, query=True)
+        locked_ok = {
+            "$=": self.write_setting,
             "$N0=": self.startup_set,
             "$N1=": self.startup_set,
             "$C": self.check_mode,
             "$X": self.unlock,
             "$RST=": self.restore,
             "$SLP": self.sleep,
-            "version": self.version,
-            "M112": self.emergency,
-            "M999": self.unlock,
-            "M105": self.temperature,
-            "M115": self.firmware_info,
         }
         for name, handler in locked_ok.items():
             dispatcher.register(name, handler, when_locked=True)
         dispatcher.register("$J=", self.jog)
-        for name in ("$H", "G28.2"):
-            if name not in dispatcher.names():
-                dispatcher.register(name, self.no_homing, when_locked=True)
+        codes = self.machine.codes
+        codes.register("core", 105, self.temperature, query=True)
+        codes.register("core", 115, self.firmware_info, query=True)
+
+    def register_fallbacks(self, dispatcher: Dispatcher) -> None:
+        """Answers for what no module took: ``$H`` without an ``[endstops]`` section."""
+        if "$H" not in dispatcher.names():
+            dispatcher.register("$H", self.no_homing, when_locked=True)
 
     def no_homing(self, command: Command) -> None:
         raise CommandError(5, "homing is not configured: add an [endstops] section")
@@ -111,9 +118,6 @@ class CoreCommands:
     def unlock(self, command: Command) -> None:
         self.kernel.clear_alarm()
 
-    def emergency(self, command: Command) -> None:
-        self.machine.emergency_stop()
-
     def restore(self, command: Command) -> None:
         target = command.args.strip()
         if target not in ("$", "#", "*"):
@@ -149,11 +153,14 @@ class CoreCommands:
             f"System Clock: -, Grbl {BANNER_VERSION} compatible, machine: {name}"
         ]
 
-    def temperature(self, command: Command) -> list[str]:
-        return ["T:0.0 /0.0 B:0.0 /0.0"]
+    def temperature(self, call: CodeCall) -> list[Output]:
+        """M105 (RepRap hosts poll it): no heaters here."""
+        return [Sync("message", {"lines": ["T:0.0 /0.0 B:0.0 /0.0"]})]
 
-    def firmware_info(self, command: Command) -> list[str]:
-        return [
+    def firmware_info(self, call: CodeCall) -> list[Output]:
+        """M115."""
+        text = (
             f"FIRMWARE_NAME:motiond {__version__} (Grbl {BANNER_VERSION} compatible) "
             "PROTOCOL_VERSION:1.0 MACHINE_TYPE:laser/cnc EXTRUDER_COUNT:0"
-        ]
+        )
+        return [Sync("message", {"lines": [text]})]

@@ -7,8 +7,14 @@ line waiting for planner room holds back the lines behind it (that is the back-p
 Lines are routed by their form:
   * ``$...`` to the ``$`` command handlers (``$H``, ``$J``, ``$$``, ``$=`` for ``$100=80``);
   * a leading word of two or more letters (``version``, ``fire 50``) to named commands;
-  * everything else is parsed as G-code: a G/M code with a registered handler (``M106``)
-    goes to that handler, the rest to the G-code interpreter handler.
+  * everything else is G-code, interpreted once, whole, by the G-code handler (the machine's
+    interpreter, where modules register the M-codes they own: see :mod:`server.codes`).
+
+Whether a line may run is decided from all of it: a ``$`` or named command is a query when
+registered as one, a G-code line when the interpreter classifies every word of it as a report
+(:meth:`Interpreter.classify`). A read-only source runs queries only. While the machine runs
+motion that one source queued (a job, or a stream), other sources may query but not change
+anything (error 45); realtime hold and reset stay open to every controlling connection.
 
 A handler returns the message lines to send before ``ok`` (or None) and raises
 :class:`CommandError` to answer ``error:N``. Several handlers may share a name; all run, in
@@ -25,13 +31,16 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
-from server.errors import BUSY, UNKNOWN_COMMAND, CommandError
+from server.errors import AUTH_REQUIRED, BUSY, UNKNOWN_COMMAND, CommandError
 from server.gcode import Line, parse_line
+from server.interpreter import LineKind
 
 HandlerResult = list[str] | None
 Handler = Callable[["Command"], Awaitable[HandlerResult] | HandlerResult]
+Classifier = Callable[[Line], LineKind]
 
 _NAMED = re.compile(r"([A-Za-z][A-Za-z_\-]+)(?:\s+(.*))?$", re.S)
+_GM_NAME = re.compile(r"[GMgm]\d")
 _DOLLAR = re.compile(r"\$([$#]|[A-Za-z]*)\s*(.*)$", re.S)
 _SETTING = re.compile(r"\$(\d+)\s*=\s*(.*)$")
 _STARTUP = re.compile(r"\$[Nn](\d)\s*=(.*)$", re.S)
@@ -77,31 +86,53 @@ class Command:
 class _Entry:
     handlers: list[Handler] = field(default_factory=list)
     when_locked: bool = False
+    query: bool = False
 
 
 class Dispatcher:
-    """Routes lines to handlers, one at a time, in order."""
+    """Routes lines to handlers, one at a time, in order.
 
-    def __init__(self, is_locked: Callable[[], bool] = lambda: False) -> None:
+    ``is_locked`` says whether the machine is locked out (ALARM, Sleep); ``is_busy`` whether
+    queued motion is still running (the source that queued it owns the machine until then).
+    """
+
+    def __init__(
+        self,
+        is_locked: Callable[[], bool] = lambda: False,
+        is_busy: Callable[[], bool] = lambda: False,
+    ) -> None:
         self._entries: defaultdict[str, _Entry] = defaultdict(_Entry)
         self._gcode: Handler | None = None
+        self._classify: Classifier = lambda line: LineKind.EFFECT
         self._lock = asyncio.Lock()
         self._is_locked = is_locked
+        self._is_busy = is_busy
+        self._owner: Source | None = None
         self._closed = False
         self._immediate: set[str] = set()
 
-    def register(self, name: str, handler: Handler, *, when_locked: bool = False) -> None:
-        """Add a handler for ``name`` (``M106``, ``$H``, ``fire``).
+    def register(
+        self, name: str, handler: Handler, *, when_locked: bool = False, query: bool = False
+    ) -> None:
+        """Add a handler for a ``$`` command (``$H``) or a named command (``fire``).
 
-        ``when_locked`` lets it run while the machine is in ALARM.
+        ``when_locked`` lets it run while the machine is in ALARM; ``query`` marks a command
+        that only reports, which read-only sources may run. G and M codes belong to the
+        interpreter (modules claim M-codes with :meth:`CodeTable.register`).
         """
+        if _GM_NAME.match(name):
+            raise ValueError(f"{name}: G and M codes are registered with the interpreter")
         entry = self._entries[_key(name)]
         entry.handlers.append(handler)
         entry.when_locked = entry.when_locked or when_locked
+        entry.query = entry.query or query
 
-    def set_gcode_handler(self, handler: Handler) -> None:
-        """The handler for G-code lines no registered G/M handler claims (the interpreter)."""
+    def set_gcode_handler(self, handler: Handler, classify: Classifier | None = None) -> None:
+        """The handler of every G-code line (the machine) and what decides what a line does
+        (without it, every line is an effect: read-only sources may run none)."""
         self._gcode = handler
+        if classify is not None:
+            self._classify = classify
 
     def names(self) -> list[str]:
         """Every registered command name."""
@@ -111,10 +142,10 @@ class Dispatcher:
         """Shutdown: refuse every line from now on."""
         self._closed = True
 
-    def register_immediate(self, name: str, handler: Handler) -> None:
+    def register_immediate(self, name: str, handler: Handler, *, query: bool = False) -> None:
         """A named command that runs at once, outside the ordered stream (job control:
         ``suspend``, ``resume``, ``abort`` must work while a held job waits for room)."""
-        self.register(name, handler, when_locked=True)
+        self.register(name, handler, when_locked=True, query=query)
         self._immediate.add(_key(name))
 
     async def submit(
@@ -142,50 +173,24 @@ class Dispatcher:
         stripped = text.strip()
         if not stripped:
             return []
-        if not source.can_control and not _is_query(stripped):
-            raise CommandError(46, "this connection is read-only")
         if stripped.startswith("$"):
-            return await self._dollar(stripped, text, source)
+            name, args = _dollar_name(stripped)
+            return await self._run(name, Command(name, text, args, source))
         named = _NAMED.match(stripped)
         if named and _key(named.group(1)) in self._entries:
-            return await self._run(
-                _key(named.group(1)),
-                Command(_key(named.group(1)), text, named.group(2) or "", source),
-            )
+            name = _key(named.group(1))
+            return await self._run(name, Command(name, text, named.group(2) or "", source))
         return await self._gcode_line(text, source)
-
-    async def _dollar(self, stripped: str, text: str, source: Source) -> list[str]:
-        setting = _SETTING.match(stripped)
-        if setting:
-            return await self._run("$=", Command("$=", text, stripped[1:], source))
-        startup = _STARTUP.match(stripped)
-        if startup:
-            name = f"$N{startup.group(1)}="
-            return await self._run(name, Command(name, text, startup.group(2), source))
-        match = _DOLLAR.match(stripped)
-        if match is None:
-            raise CommandError(3, f"invalid $ statement {stripped!r}")
-        word, rest = match.group(1).upper(), match.group(2)
-        if "=" in word or rest.startswith("="):
-            name, args = f"${word}=", rest.lstrip("=")
-        else:
-            name, args = f"${word}", rest
-        if name not in self._entries:
-            raise CommandError(3, f"unknown $ command {name}")
-        return await self._run(name, Command(name, text, args, source))
 
     async def _gcode_line(self, text: str, source: Source) -> list[str]:
         line = parse_line(text)
         if line.error is not None:
             raise line.error
-        for letter, value in zip(line.letters, line.values):  # noqa: B905 - parallel lists
-            if letter in "GM":
-                name = f"{letter}{value:g}"
-                if name in self._entries:
-                    return await self._run(name, Command(name, text, "", source, line))
         if not line.letters:
             return []
-        if self._is_locked():
+        kind = self._classify(line)
+        self._check_source(source, query=kind is LineKind.QUERY)
+        if kind is LineKind.EFFECT and self._is_locked():
             raise CommandError(LOCKED_OUT, "G-code locked out during alarm: $X or M999 to unlock")
         if self._gcode is None:
             raise CommandError(20, "no G-code interpreter")
@@ -196,12 +201,48 @@ class Dispatcher:
         if entry is None:
             code = INVALID_DOLLAR if name.startswith("$") else UNKNOWN_COMMAND
             raise CommandError(code, f"unknown command {name}")
+        self._check_source(command.source, query=entry.query, job_control=name in self._immediate)
         if self._is_locked() and not entry.when_locked:
             raise CommandError(LOCKED_OUT, f"{name} locked out during alarm: $X or M999 to unlock")
         messages: list[str] = []
         for handler in entry.handlers:
             messages += await _call(handler, command)
         return messages
+
+    def _check_source(self, source: Source, *, query: bool, job_control: bool = False) -> None:
+        """Queries run for anyone; anything else needs control, and (but to suspend, resume
+        or abort a job) the machine's owner."""
+        if query:
+            return
+        if not source.can_control:
+            raise CommandError(AUTH_REQUIRED, "this connection is read-only")
+        if job_control:
+            return
+        owner = self._owner
+        if owner is not None and owner is not source and self._is_busy():
+            raise CommandError(BUSY, f"the machine is running {owner.name}'s motion")
+        self._owner = source
+
+    def claim(self, source: Source) -> None:
+        """``source`` (a job just started) owns the machine from now on."""
+        self._owner = source
+
+
+def _dollar_name(stripped: str) -> tuple[str, str]:
+    """``$100=80`` -> (``$=``, ``100=80``); ``$J=G91 X1`` -> (``$J=``, ``G91 X1``)."""
+    setting = _SETTING.match(stripped)
+    if setting:
+        return "$=", stripped[1:]
+    startup = _STARTUP.match(stripped)
+    if startup:
+        return f"$N{startup.group(1)}=", startup.group(2)
+    match = _DOLLAR.match(stripped)
+    if match is None:
+        raise CommandError(INVALID_DOLLAR, f"invalid $ statement {stripped!r}")
+    word, rest = match.group(1).upper(), match.group(2)
+    if "=" in word or rest.startswith("="):
+        return f"${word}=", rest.lstrip("=")
+    return f"${word}", rest
 
 
 async def _call(handler: Handler, command: Command) -> list[str]:
@@ -218,27 +259,3 @@ def _key(name: str) -> str:
     if len(name) > 1 and name[0] in "GMgm" and name[1:].replace(".", "", 1).isdigit():
         return f"{name[0].upper()}{float(name[1:]):g}"
     return name.lower()
-
-
-_QUERIES = frozenset(
-    {
-        "$",
-        "$$",
-        "$#",
-        "$G",
-        "$I",
-        "$N",
-        "?",
-        "VERSION",
-        "M114",
-        "M119",
-        "M105",
-        "M115",
-        "PROGRESS",
-        "LS",
-    }
-)
-
-
-def _is_query(stripped: str) -> bool:
-    return stripped.upper().split(" ")[0] in _QUERIES

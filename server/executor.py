@@ -10,8 +10,10 @@ raises :class:`~server.errors.CommandError` and leaves nothing behind.
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 from server import arcs
+from server.codes import CodeCall
 from server.errors import CommandError, SoftLimitError
 from server.modal import (
     AXIS_COMMANDS,
@@ -40,6 +42,9 @@ from server.modal import (
 from server.moves import Action, Move, MoveKind, Output, Position, Sync, ToolMode
 from server.nonmodal import NonModal
 
+if TYPE_CHECKING:
+    from server.codes import CodeTable
+
 PLANE_AXES = {17: ("X", "Y"), 18: ("Z", "X"), 19: ("Y", "Z")}
 PLANE_OFFSETS = {17: ("I", "J"), 18: ("K", "I"), 19: ("J", "K")}
 ALWAYS_USED = frozenset("FST")
@@ -57,8 +62,10 @@ class LineExecutor(NonModal):
         position: Position,
         words: Words,
         line_number: int | None,
+        codes: CodeTable | None = None,
     ) -> None:
         self.geo = geometry
+        self.codes = codes
         self.words = words
         self.start = modal
         self.modal = modal.copy()
@@ -78,6 +85,7 @@ class LineExecutor(NonModal):
         self._modes()
         self._feed()
         self._tools()
+        self._module_codes()
         self._m_commands()
         self._dwell()
         self._tool_length()
@@ -126,10 +134,31 @@ class LineExecutor(NonModal):
             m.tool_mode = ToolMode(code)
         if code is not None or m.s != self.start.s:
             self.before.append(Action("spindle", {"mode": m.tool_mode, "s": m.s}))
+            self._spin_up()
         if (code := g("m_coolant")) is not None:
             m.mist = code == 7 or (m.mist and code == 8)
             m.flood = code == 8 or (m.flood and code == 7)
             self.before.append(Action("coolant", {"mist": m.mist, "flood": m.flood}))
+
+    def _spin_up(self) -> None:
+        """A spindle starting from off makes motion wait ``spin_up_delay_s`` (grblHAL's $340)."""
+        delay_s, m = self.geo.settings.spin_up_delay_s, self.modal
+        was_on = self.start.tool_mode is not ToolMode.OFF and self.start.s > 0
+        if delay_s > 0 and not was_on and m.tool_mode is not ToolMode.OFF and m.s > 0:
+            self.before.append(Action("dwell", {"seconds": delay_s, "reason": "spin-up"},
+                                      lead_s=delay_s, stops_motion=True))
+
+    def _module_codes(self) -> None:
+        """M-codes that modules own, after coolant (see :mod:`server.codes`)."""
+        if not self.words.module_codes:
+            return
+        assert self.codes is not None
+        values = self.words.values
+        for code in self.words.module_codes:
+            spec = self.codes.lookup(code, values)
+            self.values_used |= spec.uses
+            for output in spec.factory(CodeCall(code, values, self.line_number)):
+                (self.after if isinstance(output, Sync) else self.before).append(output)
 
     def _m_commands(self) -> None:
         g = self.words.g

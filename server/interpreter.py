@@ -30,9 +30,11 @@ few LinuxCNC/Smoothieware additions. Conventions worth knowing:
 
 from __future__ import annotations
 
+import enum
 import math
 from typing import Any
 
+from server.codes import CodeTable
 from server.errors import CommandError
 from server.executor import LineExecutor
 from server.gcode import Line
@@ -67,14 +69,33 @@ MOTION_NAMES = {
 }
 
 
+CORE_QUERIES = frozenset({114})  # M114: reports the position, changes nothing
+UNLOCKING = frozenset({112, 999})  # M112 halts, M999 clears the halt: both run in ALARM
+
+
+class LineKind(enum.Enum):
+    """What a line may do, decided from all of its words (not its first one).
+
+    ``QUERY`` lines only report: read-only connections and a locked machine may run them.
+    ``UNLOCK`` lines (M112, M999, G28.2 homing) run while the machine is locked, but only from
+    a connection that may control it. Every other line is an ``EFFECT``.
+    """
+
+    QUERY = "query"
+    UNLOCK = "unlock"
+    EFFECT = "effect"
+
+
 class Interpreter:
     """Modal G-code state and the conversion of lines to machine moves; see the module doc.
 
     Attributes:
         position: the last commanded machine position (mm, one value per axis).
+        codes: the M-codes modules own (shared with every interpreter of this machine).
     """
 
-    def __init__(self, settings: InterpreterSettings) -> None:
+    def __init__(self, settings: InterpreterSettings, codes: CodeTable | None = None) -> None:
+        self.codes = codes if codes is not None else CodeTable()
         self._geo = Geometry.of(settings)
         self._modal = ModalState()
         self._offsets = Offsets.zero(len(settings.axis_names))
@@ -114,10 +135,27 @@ class Interpreter:
             outputs = self._general_line(line)
         return outputs
 
+    def classify(self, line: Line) -> LineKind:
+        """What ``line`` may do (see :class:`LineKind`); unknown words count as effects."""
+        letters = set(line.letters) - {"N"}
+        codes = [int(v) for letter, v in line.words if letter == "M" and v == int(v)]
+        if letters == {"M"} and all(self._is_query(code) for code in codes):
+            return LineKind.QUERY
+        if letters <= {"M"} and codes and all(c in UNLOCKING or self._is_query(c) for c in codes):
+            return LineKind.UNLOCK
+        g_words = [v for letter, v in line.words if letter == "G"]
+        if g_words == [28.2] and letters - {"G"} <= set(self._geo.axis_index):
+            return LineKind.UNLOCK
+        return LineKind.EFFECT
+
+    def _is_query(self, code: int) -> bool:
+        return code in CORE_QUERIES or self.codes.is_query(code)
+
     def _general_line(self, line: Line) -> list[Output]:
-        words = read_words(line.words, self._geo.axis_index)
+        words = read_words(line.words, self._geo.axis_index, self.codes)
         executor = LineExecutor(
-            self._geo, self._modal, self._offsets, self.position, words, line.line_number
+            self._geo, self._modal, self._offsets, self.position, words, line.line_number,
+            self.codes,
         )
         outputs = executor.run()
         self._modal, self._offsets = executor.modal, executor.offsets

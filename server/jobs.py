@@ -72,10 +72,11 @@ class Jobs:
         self._task: asyncio.Task[None] | None = None
         self._progress: JobProgress | None = None
         dispatcher = kernel.dispatcher
-        dispatcher.register("ls", self._ls, when_locked=True)
+        dispatcher.register("ls", self._ls, when_locked=True, query=True)
         dispatcher.register("play", self._play)
-        for name, handler in (("progress", self._status), ("abort", self._abort),
-                              ("suspend", self._suspend), ("resume", self._resume)):
+        dispatcher.register_immediate("progress", self._status, query=True)
+        for name, handler in (("abort", self._abort), ("suspend", self._suspend),
+                              ("resume", self._resume)):
             dispatcher.register_immediate(name, handler)  # a held job holds the stream
 
     # -- files ------------------------------------------------------------------------------
@@ -150,6 +151,12 @@ class Jobs:
     def running(self) -> bool:
         return self._task is not None and not self._task.done()
 
+    @property
+    def active(self) -> bool:
+        """A job is running or paused (not yet done, failed or aborted)."""
+        progress = self._progress
+        return progress is not None and progress.state in ("running", "paused")
+
     def play(self, name: str) -> None:
         """Start playing a stored file."""
         if self.running:
@@ -160,8 +167,10 @@ class Jobs:
         if not path.is_file():
             raise CommandError(FILE_ERROR, f"no job file {path.name}")
         self._progress = JobProgress(path.name, "running", started_s=self.kernel.clock.now_s())
+        source = _JobSource(f"job:{path.name}")
+        self.kernel.dispatcher.claim(source)  # other connections may query, hold and stop
         self._task = asyncio.get_running_loop().create_task(
-            self._run(path, self._progress), name=f"job:{path.name}"
+            self._run(path, self._progress, source), name=f"job:{path.name}"
         )
         self._announce()
 
@@ -206,19 +215,21 @@ class Jobs:
             with contextlib.suppress(asyncio.CancelledError):
                 await self._task
 
-    async def _run(self, path: Path, progress: JobProgress) -> None:
+    async def _run(self, path: Path, progress: JobProgress, source: _JobSource) -> None:
         try:
             lines = await asyncio.to_thread(_read_lines, path)
             progress.lines_total = len(lines)
             core = self.kernel.config.core
-            stats = await asyncio.to_thread(estimate, lines, core.model_copy(deep=True))
+            interpreter = self.kernel.machine.new_interpreter()
+            stats = await asyncio.to_thread(
+                estimate, lines, core.model_copy(deep=True), None, interpreter
+            )
             progress.estimate_s = stats.duration_s
-            await self._stream(lines, progress)
+            await self._stream(lines, progress, source)
         except OSError as exc:
             self._fail(progress, f"cannot read {path.name}: {exc.strerror}")
 
-    async def _stream(self, lines: list[str], progress: JobProgress) -> None:
-        source = _JobSource(f"job:{progress.name}")
+    async def _stream(self, lines: list[str], progress: JobProgress, source: _JobSource) -> None:
         dispatcher, machine = self.kernel.dispatcher, self.kernel.machine
         loop = asyncio.get_running_loop()
         turn_s = loop.time()

@@ -14,18 +14,66 @@ from collections.abc import Callable
 from typing import Any
 
 from server.clock import Clock
+from server.codes import CodeConflict, CodeFactory
 from server.commands import CoreCommands
 from server.config import Config, ModuleSpec
-from server.dispatcher import Dispatcher, Handler
+from server.dispatcher import Dispatcher, Handler, SystemSource
+from server.errors import ConfigError
 from server.events import EventBus, MachineState
 from server.jobs import Jobs
-from server.machine import Machine
+from server.machine import Machine, SyncHandler
 from server.module import Module
-from server.moves import Action
+from server.moves import Action, Move, Position
 from server.reports import ALARM_MODULE_FAILED
 from server.stepgen import MotionState
 
 log = logging.getLogger("motiond.kernel")
+
+
+class _Outputs:
+    """Output pins, set at the kernel clock's now (implements server.module.Outputs)."""
+
+    def __init__(self, machine: Machine, clock: Clock) -> None:
+        self._machine, self._clock = machine, clock
+
+    def set(self, pin: str, value: float) -> None:
+        self._machine.backend.set_output(pin, value, self._clock.now_s())
+
+    def value(self, pin: str) -> float:
+        return self._machine.backend.output(pin)
+
+
+class _Inputs:
+    """Switch inputs (implements server.module.Inputs)."""
+
+    def __init__(self, machine: Machine) -> None:
+        self._machine = machine
+
+    def switch_triggered(self, name: str) -> bool:
+        return self._machine.backend.switch_triggered(name)
+
+    def place_switch(self, name: str, at_mm: float) -> None:
+        self._machine.backend.place_switch(name, at_mm)
+
+
+class _Motion:
+    """Moves outside G-code and motion controls (implements server.module.Motion)."""
+
+    def __init__(self, machine: Machine) -> None:
+        self._machine = machine
+        self.tick_s = 1.0 / machine.core.stepgen.tick_hz
+
+    async def queue_move(self, move: Move) -> None:
+        await self._machine.queue_move(move)
+
+    async def wait_idle(self) -> None:
+        await self._machine.wait_idle()
+
+    def stop_now(self) -> None:
+        self._machine.stop_now()
+
+    def set_position(self, position_mm: Position) -> None:
+        self._machine.set_machine_position(position_mm)
 
 
 class _Context:
@@ -36,9 +84,39 @@ class _Context:
         self.name = name
         self.log = logging.getLogger(f"motiond.module.{name}")
         self.clock = kernel.clock
+        self.core = kernel.config.core
+        self.outputs = _Outputs(kernel.machine, kernel.clock)
+        self.inputs = _Inputs(kernel.machine)
+        self.moves = _Motion(kernel.machine)
+        self._source = SystemSource(f"module {name}")
 
-    def register_command(self, name: str, handler: Handler, *, when_locked: bool = False) -> None:
-        self._kernel.dispatcher.register(name, handler, when_locked=when_locked)
+    def register_command(
+        self, name: str, handler: Handler, *, when_locked: bool = False, query: bool = False
+    ) -> None:
+        self._kernel.dispatcher.register(name, handler, when_locked=when_locked, query=query)
+
+    def register_code(
+        self,
+        code: int,
+        factory: CodeFactory,
+        *,
+        group: str | None = None,
+        uses: str = "",
+        query: bool = False,
+        key: tuple[str, str] | None = None,
+    ) -> None:
+        self._kernel.machine.codes.register(
+            self.name, code, factory, group=group, uses=uses, query=query, key=key
+        )
+
+    def register_sync(self, kind: str, handler: SyncHandler) -> None:
+        self._kernel.machine.sync_handlers[kind] = handler
+
+    def set_spin_up_delay(self, seconds: float) -> None:
+        self._kernel.machine.set_spin_up_delay(seconds)
+
+    async def run_gcode(self, text: str) -> list[str]:
+        return await self._kernel.dispatcher.submit(text, self._source)
 
     def subscribe(self, event: str, callback: Callable[..., None]) -> None:
         self._kernel.events.subscribe(event, callback)
@@ -63,10 +141,6 @@ class _Context:
 
     def clear_alarm(self) -> None:
         self._kernel.clear_alarm()
-
-    @property
-    def machine(self) -> Machine:
-        return self._kernel.machine
 
 
 LOCKED_STATES = frozenset({MachineState.ALARM, MachineState.SLEEP})  # $X / Ctrl-X to leave
@@ -106,19 +180,34 @@ class Kernel:
         self.state = MachineState.IDLE
         self.alarm_code = 0
         self.alarm_message = ""
-        self.dispatcher = Dispatcher(is_locked=lambda: self.state in LOCKED_STATES)
+        self.dispatcher = Dispatcher(
+            is_locked=lambda: self.state in LOCKED_STATES,
+            is_busy=lambda: not self.machine.stepgen.idle or self.jobs.active,
+        )
         self.machine = Machine(self)
         self.jobs = Jobs(self)
         self.modules: dict[str, Module] = {}
         self._specs: dict[str, ModuleSpec] = {}
-        for spec in config.modules:
-            self.modules[spec.section] = spec.cls(_Context(self, spec.section), spec.config)
-            self._specs[spec.section] = spec
-        CoreCommands(self).register(self.dispatcher)
+        commands = CoreCommands(self)
+        commands.register(self.dispatcher)
+        self._load_modules(config)
+        commands.register_fallbacks(self.dispatcher)
         self.loop_monitor = LoopMonitor()
         self._stop = asyncio.Event()
         self.started = asyncio.Event()
         self.stopped = False
+
+    def _load_modules(self, config: Config) -> None:
+        """Instantiate every configured module; claims of one code by two are config errors."""
+        problems: list[str] = []
+        for spec in config.modules:
+            try:
+                self.modules[spec.section] = spec.cls(_Context(self, spec.section), spec.config)
+            except CodeConflict as exc:
+                problems.append(f"{_label(config)}: [{spec.section}]: {exc}")
+            self._specs[spec.section] = spec
+        if problems:
+            raise ConfigError(problems)
 
     # -- machine state ---------------------------------------------------------------------
     def set_state(self, state: MachineState) -> None:
@@ -191,3 +280,7 @@ class Kernel:
             await self.clock.sleep_until(next_s)
             self.events.emit("second", next_s)
             next_s += 1.0
+
+
+def _label(config: Config) -> str:
+    return str(config.path) if config.path else "<default config>"

@@ -11,13 +11,15 @@ from __future__ import annotations
 import asyncio
 import copy
 import logging
-from dataclasses import dataclass
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from server.backends.base import Backend
 from server.backends.null import NullBackend
 from server.backends.sim import SimBackend
+from server.codes import CodeTable
 from server.config import CoreConfig
 from server.dispatcher import Command
 from server.errors import BUSY, CommandError, SoftLimitError
@@ -72,7 +74,7 @@ def build_backend(core: CoreConfig) -> Backend:
     )
 
 
-def interpreter_settings(core: CoreConfig) -> InterpreterSettings:
+def interpreter_settings(core: CoreConfig, spin_up_delay_s: float = 0.0) -> InterpreterSettings:
     axes = list(core.axes.values())
     return InterpreterSettings(
         axis_names=core.axis_names,
@@ -80,7 +82,11 @@ def interpreter_settings(core: CoreConfig) -> InterpreterSettings:
         max_mm=tuple(axis.max_mm for axis in axes),
         soft_limits=core.machine.soft_limits,
         arc_tolerance_mm=core.planner.arc_tolerance_mm,
+        spin_up_delay_s=spin_up_delay_s,
     )
+
+
+SyncHandler = Callable[[dict[str, Any]], Awaitable[list[str]]]
 
 
 class Machine:
@@ -91,7 +97,10 @@ class Machine:
         self.kernel = kernel
         self.core = core
         self.backend = build_backend(core)
-        self.interpreter = Interpreter(interpreter_settings(core))
+        self.codes = CodeTable()
+        self.spin_up_delay_s = 0.0
+        self.sync_handlers: dict[str, SyncHandler] = {}
+        self.interpreter = Interpreter(interpreter_settings(core), self.codes)
         origin = tuple(0.0 for _ in core.axis_names)
         self.interpreter.set_position(origin)
         self.planner = Planner(PlannerSettings.from_config(core), origin)
@@ -114,7 +123,9 @@ class Machine:
         self.feed_override = 100
         self.rapid_override = 100
         self.spindle_override = 100
-        kernel.dispatcher.set_gcode_handler(self.handle_gcode)
+        kernel.dispatcher.set_gcode_handler(
+            self.handle_gcode, lambda line: self.interpreter.classify(line)
+        )
         self.settings = Settings(self, settings_path(kernel))  # last: it applies saved values
 
     # -- the G-code handler -----------------------------------------------------------------
@@ -176,6 +187,18 @@ class Machine:
             self.stepgen.request_start()
             await self.idle_event.wait()
 
+    def new_interpreter(self) -> Interpreter:
+        """A fresh interpreter at the origin that reads G-code exactly as this machine does
+        (same settings, same module codes): what ``estimate`` and ``render`` run."""
+        interpreter = Interpreter(self.interpreter.settings, self.codes)
+        interpreter.set_position(tuple(0.0 for _ in self.core.axis_names))
+        return interpreter
+
+    def set_spin_up_delay(self, seconds: float) -> None:
+        """Motion waits ``seconds`` after M3/M4 starts a stopped spindle."""
+        self.spin_up_delay_s = seconds
+        self.interpreter.settings = replace(self.interpreter.settings, spin_up_delay_s=seconds)
+
     async def sync(self, request: Sync) -> list[str]:
         """Carry out an interpreter request that needs the machine."""
         kind = request.kind
@@ -185,14 +208,18 @@ class Machine:
         if kind == "clear_halt":
             self.kernel.clear_alarm()
             return []
+        if kind == "message":
+            return list(request.params["lines"])
+        handler = self.sync_handlers.get(kind)
+        if handler is not None:
+            return await handler(request.params)
         await self.wait_idle()
         if kind == "report_position":
             return [self.position_report()]
         if kind == "probe":
             return self._finish_probe(request)
         if kind == "home":
-            self.kernel.events.emit("home_request", request.params.get("axes"))
-            return []
+            raise CommandError(5, "homing is not configured: add an [endstops] section")
         if kind == "wait_idle":
             return []
         raise CommandError(20, f"unsupported request {kind}")
@@ -356,7 +383,7 @@ class Machine:
     def apply_settings(self) -> None:
         """Push the live config (after ``$x=value``) into the interpreter, planner and stepgen."""
         core = self.core
-        self.interpreter.settings = interpreter_settings(core)
+        self.interpreter.settings = interpreter_settings(core, self.spin_up_delay_s)
         self.planner.settings = PlannerSettings.from_config(core)
         self.planner.set_overrides(self.feed_override / 100, self.rapid_override / 100)
         steps_per_mm = tuple(axis.steps_per_mm for axis in core.axes.values())
@@ -367,7 +394,7 @@ class Machine:
     def clear_offsets(self) -> None:
         """``$RST=#``: work offsets and stored positions back to zero (modal state too)."""
         position = self.interpreter.position
-        self.interpreter = Interpreter(interpreter_settings(self.core))
+        self.interpreter = Interpreter(self.interpreter.settings, self.codes)
         self.interpreter.set_position(position)
 
     def restore_settings(self) -> None:

@@ -12,9 +12,13 @@ G codes are identified by ten times their number, an ``int``: ``G1`` is 10, ``G3
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from server.errors import CommandError
 from server.moves import Position, ToolMode
+
+if TYPE_CHECKING:
+    from server.codes import CodeTable
 
 MM_PER_INCH = 25.4
 MAX_TOOL_NUMBER = 255
@@ -159,25 +163,29 @@ class Words:
         groups: modal group name -> G code x10 (``"motion": 10``) or M code (``"m_stop": 30``).
         values: the F S T P L R I J K words.
         axes: axis index -> value as written (program units).
+        module_codes: M-codes owned by modules (:mod:`server.codes`), in line order.
     """
 
     groups: dict[str, int] = field(default_factory=dict)
     values: dict[str, float] = field(default_factory=dict)
     axes: dict[int, float] = field(default_factory=dict)
+    module_codes: list[int] = field(default_factory=list)
 
     def g(self, group: str) -> int | None:
         """The code of ``group`` on this line, or None."""
         return self.groups.get(group)
 
 
-def read_words(words: list[tuple[str, float]], axis_index: dict[str, int]) -> Words:
+def read_words(
+    words: list[tuple[str, float]], axis_index: dict[str, int], codes: CodeTable | None = None
+) -> Words:
     """Classify a line's words; raise the word-level errors (20, 21, 23, 24, 25, 4, 38)."""
     block = Words()
     for letter, value in words:
         if letter == "G":
             _add_group(block, "g", _g_code(value))
         elif letter == "M":
-            _add_group(block, "m", _m_code(value))
+            _add_m_code(block, value, codes)
         elif letter in axis_index:
             index = axis_index[letter]
             if index in block.axes:
@@ -228,13 +236,17 @@ def _g_code(value: float) -> tuple[str, int]:
     raise CommandError(UNSUPPORTED, f"unsupported G code G{value:g}")
 
 
-def _m_code(value: float) -> tuple[str, int]:
+def _add_m_code(block: Words, value: float, codes: CodeTable | None) -> None:
     if value != int(value):
         raise CommandError(INTEGER_REQUIRED, f"M{value:g}: M codes are integers")
     code = int(value)
-    if code not in M_GROUPS:
+    if code in M_GROUPS:
+        _add_group(block, "m", (M_GROUPS[code], code))
+    elif codes is not None and codes.owns(code):
+        _add_group(block, "m", (f"module:{codes.group(code)}", code))
+        block.module_codes.append(code)
+    else:
         raise CommandError(UNSUPPORTED, f"unsupported M code M{code}")
-    return M_GROUPS[code], code
 
 
 def _add_value(block: Words, letter: str, value: float) -> None:
@@ -259,6 +271,7 @@ class InterpreterSettings:
         soft_limits: refuse targets outside the travel (Grbl ``$20``).
         arc_tolerance_mm: largest distance between a chord and its arc (Grbl ``$12``).
         report_inches: ``$13``; reports of positions (``$#``) in inches.
+        spin_up_delay_s: motion waits this long after M3/M4 starts a stopped spindle.
     """
 
     axis_names: tuple[str, ...]
@@ -267,6 +280,7 @@ class InterpreterSettings:
     soft_limits: bool = True
     arc_tolerance_mm: float = 0.002
     report_inches: bool = False
+    spin_up_delay_s: float = 0.0
 
     def __post_init__(self) -> None:
         names = self.axis_names

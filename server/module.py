@@ -23,10 +23,12 @@ from pydantic import BaseModel, ConfigDict
 
 if TYPE_CHECKING:
     from server.clock import Clock
+    from server.codes import CodeFactory
+    from server.config import CoreConfig
     from server.dispatcher import Handler
     from server.events import MachineState
-    from server.machine import Machine
-    from server.moves import Action
+    from server.machine import SyncHandler
+    from server.moves import Action, Move, Position
     from server.stepgen import MotionState
 
 ENTRY_POINT_GROUP = "motiond.modules"
@@ -38,15 +40,86 @@ class ModuleConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
 
+class Outputs(Protocol):
+    """The machine's output pins (laser PWM, spindle, fan): duty cycles in [0, 1], set now."""
+
+    def set(self, pin: str, value: float) -> None: ...
+
+    def value(self, pin: str) -> float: ...
+
+
+class Inputs(Protocol):
+    """The machine's switch inputs, read where the tool physically is."""
+
+    def switch_triggered(self, name: str) -> bool: ...
+
+    def place_switch(self, name: str, at_mm: float) -> None:
+        """Simulated machines: where a switch sits on its axis (real machines ignore it)."""
+        ...
+
+
+class Motion(Protocol):
+    """Moves outside G-code (homing), and the motion pipeline's controls. Units: mm, mm/s."""
+
+    tick_s: float  # the step generator's tick period
+
+    async def queue_move(self, move: Move) -> None:
+        """Append a move; waits while the planner is full."""
+        ...
+
+    async def wait_idle(self) -> None:
+        """Wait until every queued move has run."""
+        ...
+
+    def stop_now(self) -> None:
+        """Stop motion at once, discarding what is queued (tools stay as they are)."""
+        ...
+
+    def set_position(self, position_mm: Position) -> None:
+        """Redefine the machine position without moving (homing)."""
+        ...
+
+
 class ModuleContext(Protocol):
-    """What a module may use of the kernel (DESIGN.md rule 2)."""
+    """What a module may use of the core (DESIGN.md rule 2): narrow ports, not the machine."""
 
     name: str  # the section: "laser" or "switch.fan"
     log: logging.Logger
     clock: Clock
+    core: CoreConfig  # the machine's config, read-only
+    outputs: Outputs
+    inputs: Inputs
+    moves: Motion
 
-    def register_command(self, name: str, handler: Handler, *, when_locked: bool = False) -> None:
-        """Handle a G/M code ("M106"), a $ command ("$H") or a named command ("fire")."""
+    def register_command(
+        self, name: str, handler: Handler, *, when_locked: bool = False, query: bool = False
+    ) -> None:
+        """Handle a ``$`` command ("$H") or a named command ("fire")."""
+        ...
+
+    def register_code(
+        self,
+        code: int,
+        factory: CodeFactory,
+        *,
+        group: str | None = None,
+        uses: str = "",
+        query: bool = False,
+        key: tuple[str, str] | None = None,
+    ) -> None:
+        """Claim ``M<code>`` with the interpreter (see :mod:`server.codes`)."""
+        ...
+
+    def register_sync(self, kind: str, handler: SyncHandler) -> None:
+        """Carry out the interpreter's ``Sync(kind)`` requests (``home`` for G28.2)."""
+        ...
+
+    def set_spin_up_delay(self, seconds: float) -> None:
+        """Motion waits ``seconds`` after M3/M4 starts a stopped spindle."""
+        ...
+
+    async def run_gcode(self, text: str) -> list[str]:
+        """Run one line in order with every other source, as the module."""
         ...
 
     def subscribe(self, event: str, callback: Callable[..., None]) -> None:
@@ -75,11 +148,6 @@ class ModuleContext(Protocol):
 
     def set_state(self, state: MachineState) -> None:
         """Set the machine state (homing shows ``Home``)."""
-        ...
-
-    @property
-    def machine(self) -> Machine:
-        """The motion pipeline: its backend (outputs, switches), G-code handler, positions."""
         ...
 
     def clear_alarm(self) -> None:

@@ -83,6 +83,7 @@ class Sync:
         ``error_on_fail``: bool).
       * ``home`` (G28.2 / $H): run the homing cycle, params ``axes``: list of axis indices.
       * ``wait_idle`` (used before anything that needs the machine position to be exact).
+      * ``message``: report ``params["lines"]`` before ``ok`` (a module code's answer).
     """
 
     kind: str

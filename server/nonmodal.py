@@ -118,8 +118,8 @@ class NonModal:
         self.emit(final, MoveKind.RAPID, math.inf)
 
     def _home(self) -> None:
-        """G28.2 (Smoothieware): home the named axes, or all of them."""
-        axes = sorted(self.words.axes) or list(range(len(self.position)))
+        """G28.2 (Smoothieware): home the named axes (axis indices), or all (an empty list)."""
+        axes = sorted(self.words.axes)
         self.axes_used = True
         self.moves.append(Sync("home", {"axes": axes}))
 

@@ -135,10 +135,13 @@ class _Feeder:
         core: CoreConfig,
         stats: JobStats,
         on_line: Callable[[int], None] | None,
+        interpreter: Interpreter | None = None,
     ) -> None:
-        self.interpreter = Interpreter(interpreter_settings(core))
         origin = tuple(0.0 for _ in core.axis_names)
-        self.interpreter.set_position(origin)
+        if interpreter is None:
+            interpreter = Interpreter(interpreter_settings(core))
+            interpreter.set_position(origin)
+        self.interpreter = interpreter
         self.planner = Planner(PlannerSettings.from_config(core), origin)
         self.stats = stats
         self._lines = enumerate(lines, 1)
@@ -198,8 +201,9 @@ def _pipeline(
     backend: Backend,
     stats: JobStats,
     on_line: Callable[[int], None] | None,
+    interpreter: Interpreter | None = None,
 ) -> tuple[_Feeder, StepGenerator]:
-    feeder = _Feeder(lines, core, stats, on_line)
+    feeder = _Feeder(lines, core, stats, on_line, interpreter)
     steps_per_mm = tuple(axis.steps_per_mm for axis in core.axes.values())
     stepgen = StepGenerator(
         feeder.planner, backend, steps_per_mm, _Listener(), tick_hz=core.stepgen.tick_hz
@@ -213,9 +217,13 @@ def iterate_blocks(
     core: CoreConfig,
     stats: JobStats,
     on_line: Callable[[int], None] | None = None,
+    interpreter: Interpreter | None = None,
 ) -> Iterator[Block]:
-    """Every block of the job in execution order, planned exactly as the server plans them."""
-    feeder, stepgen = _pipeline(lines, core, NullBackend(), stats, on_line)
+    """Every block of the job in execution order, planned exactly as the server plans them.
+
+    ``interpreter`` reads the job (default: a plain one for ``core``, without module codes;
+    :func:`machine_interpreter` gives the one a configured machine uses)."""
+    feeder, stepgen = _pipeline(lines, core, NullBackend(), stats, on_line, interpreter)
     while True:
         block = stepgen.pop_block()
         if block is None:
@@ -228,7 +236,10 @@ def iterate_blocks(
 
 
 def estimate(
-    lines: Iterable[str], core: CoreConfig, on_line: Callable[[int], None] | None = None
+    lines: Iterable[str],
+    core: CoreConfig,
+    on_line: Callable[[int], None] | None = None,
+    interpreter: Interpreter | None = None,
 ) -> JobStats:
     """Job time and extent without ticking (fast).
 
@@ -236,7 +247,7 @@ def estimate(
     (:meth:`Planner.pop_settled`) and summed with numpy instead of one :class:`Block` at a time.
     """
     stats = JobStats()
-    feeder = _Feeder(lines, core, stats, on_line)
+    feeder = _Feeder(lines, core, stats, on_line, interpreter)
     planner = feeder.planner
     while True:
         feeder.refill()
@@ -252,10 +263,15 @@ def estimate(
             return stats
 
 
-def execute(lines: Iterable[str], core: CoreConfig, backend: Backend | None = None) -> JobStats:
+def execute(
+    lines: Iterable[str],
+    core: CoreConfig,
+    backend: Backend | None = None,
+    interpreter: Interpreter | None = None,
+) -> JobStats:
     """Run the job through the step generator tick by tick on virtual time."""
     stats = JobStats()
-    feeder, stepgen = _pipeline(lines, core, backend or NullBackend(), stats, None)
+    feeder, stepgen = _pipeline(lines, core, backend or NullBackend(), stats, None, interpreter)
     tick_s = stepgen.tick_s
     ticks = 0
     stepgen.tick(0.0)
@@ -286,6 +302,19 @@ def format_duration(seconds: float) -> str:
     if minutes:
         return f"{int(minutes)}m {secs:04.1f}s"
     return f"{secs:.2f}s"
+
+
+def machine_interpreter(config: Config) -> Interpreter:
+    """The interpreter the configured machine would read a job with: its settings and the
+    M-codes its modules claim (the modules are built, never started).
+
+    Raises:
+        ConfigError: the config is invalid, or two modules claim one code.
+    """
+    from server.clock import VirtualClock
+    from server.kernel import Kernel
+
+    return Kernel(config, VirtualClock()).machine.new_interpreter()
 
 
 # -- the CLI commands -----------------------------------------------------------------------
@@ -319,7 +348,7 @@ def estimate_command(args: Any, config: Config) -> int:
         return 1
     show = not args.no_progress and not args.json and sys.stderr.isatty() and len(lines) > 5000
     update, bar = _progress(len(lines), path.name, show)
-    stats = estimate(lines, config.core, update)
+    stats = estimate(lines, config.core, update, machine_interpreter(config))
     bar.close()
     if args.json:
         print(json.dumps({"file": str(path), **_public(asdict(stats))}, indent=2))
@@ -374,7 +403,8 @@ def render_command(args: Any, config: Config) -> int:
         print(f"motiond: cannot read {path}: {exc.strerror}", file=sys.stderr)
         return 1
     stats = JobStats()
-    toolpath = collect(iterate_blocks(lines, config.core, stats), config.core.machine.laser_mode)
+    blocks = iterate_blocks(lines, config.core, stats, interpreter=machine_interpreter(config))
+    toolpath = collect(blocks, config.core.machine.laser_mode)
     title = f"{path.name} — {format_duration(stats.duration_s)}, {stats.cut_mm:,.0f} mm cut"
     if stats.error:
         title += f" (stopped at line {stats.error_line})"

@@ -95,7 +95,7 @@ async def test_homing_with_a_missing_switch_raises_alarm_9() -> None:
 async def test_a_switch_that_does_not_clear_on_pull_off_raises_alarm_8() -> None:
     async with running(make_config(endstops=endstops())) as app:
         backend = sim(app)
-        backend.switch_triggered = lambda name, position: name == "z_max"  # type: ignore
+        backend.switch_triggered = lambda name: name == "z_max"  # type: ignore
         with pytest.raises(CommandError):
             await submit_all(app, ["$H"])
         assert app.kernel.alarm_code == 8

@@ -63,7 +63,7 @@ class Pump(Module):
 
     def _set(self, on: bool) -> None:
         self.on = on
-        self.ctx.machine.backend.set_output(self.config.pin, float(on), self.ctx.clock.now_s())
+        self.ctx.outputs.set(self.config.pin, float(on))
 
 
 REGISTRY = {"boom": Boom, "pump": Pump, **available_modules()}

@@ -149,7 +149,7 @@ async def test_m42_drives_the_switch_whose_pin_matches() -> None:
         assert sim(app).output("P7") == 1.0
         with pytest.raises(CommandError) as info:
             await submit_all(app, ["M42 P3 S255"])
-        assert "no [switch] has pin 3" in info.value.message
+        assert "nothing is configured for P3" in info.value.message
 
 
 async def test_switches_go_off_at_once_on_halt_and_refuse_commands_until_unlocked() -> None:

@@ -34,8 +34,12 @@ class Backend(Protocol):
         """Whether the probe input is active with the tool at ``position_mm``."""
         ...
 
-    def switch_triggered(self, name: str, position_mm: Sequence[float]) -> bool:
-        """Whether the named switch (``x_min``...) is active with the tool at ``position_mm``."""
+    def switch_triggered(self, name: str) -> bool:
+        """Whether the named switch (``x_min``...) is active now, where the tool really is."""
+        ...
+
+    def place_switch(self, name: str, at_mm: float) -> None:
+        """Simulated machines: put the named switch at ``at_mm`` on its axis (others ignore)."""
         ...
 
     def close(self) -> None:

@@ -26,8 +26,11 @@ class NullBackend:
     def probe_triggered(self, position_mm: Sequence[float]) -> bool:
         return False
 
-    def switch_triggered(self, name: str, position_mm: Sequence[float]) -> bool:
+    def switch_triggered(self, name: str) -> bool:
         return False
+
+    def place_switch(self, name: str, at_mm: float) -> None:
+        pass
 
     def close(self) -> None:
         pass

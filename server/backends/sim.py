@@ -80,10 +80,14 @@ class SimBackend:
     def probe_triggered(self, position_mm: Sequence[float]) -> bool:
         return any(position_mm[axis] <= at_mm + 1e-9 for axis, at_mm in self._probe.items())
 
-    def switch_triggered(self, name: str, position_mm: Sequence[float]) -> bool:
+    def place_switch(self, name: str, at_mm: float) -> None:
+        self.switches_at_mm[name] = at_mm
+
+    def switch_triggered(self, name: str) -> bool:
         at_mm = self.switches_at_mm.get(name)
         if at_mm is None:
             return False
+        position_mm = self.position_mm()
         axis = self.axis_names.index(name[0].upper())
         if name.endswith("_min"):
             return position_mm[axis] <= at_mm + 1e-9
