@@ -38,7 +38,7 @@ from server.dispatcher import Command
 from server.errors import CommandError, ConfigError
 from server.events import MachineState
 from server.module import Module, ModuleConfig, ModuleContext
-from server.moves import Move, MoveKind, Output, Position, Sync
+from server.moves import Move, MoveKind, Output, Position, Sync, SyncKind
 
 ALARM_HARD_LIMIT = 1
 ALARM_HOMING_RESET = 6
@@ -106,7 +106,7 @@ class Endstops(Module):
         self._active: set[str] = set()
         for name in ("$H", *(f"$H{axis.name}" for axis in self.axes)):
             ctx.register_command(name, self._home_command, when_locked=True)
-        ctx.register_sync("home", self._home_sync)
+        ctx.register_sync(SyncKind.HOME, self._home_sync)
         ctx.register_code(119, self._m119, query=True)
         ctx.subscribe("state", self._on_state)
 
@@ -136,7 +136,7 @@ class Endstops(Module):
     def _m119(self, call: CodeCall) -> list[Output]:
         active = {axis.name for axis in self.triggered()}
         line = " ".join(f"{a.name}_{a.cfg.direction}:{int(a.name in active)}" for a in self.axes)
-        return [Sync("message", {"lines": [line]})]
+        return [Sync(SyncKind.MESSAGE, {"lines": [line]})]
 
     async def run(self) -> None:
         """Watch the switches at ``check_hz``: a switch becoming active while moving is ALARM:1."""

@@ -42,7 +42,7 @@ from server.dispatcher import Command
 from server.errors import BUSY, CommandError
 from server.events import MachineState
 from server.module import Module, ModuleConfig, ModuleContext
-from server.moves import Action, MoveKind, Output, Sync, ToolMode
+from server.moves import Action, MoveKind, Output, Sync, SyncKind, ToolMode
 from server.stepgen import HoldState, MotionState
 
 PIN_PATTERN = r"^[A-Za-z0-9_.\-]+$"
@@ -185,7 +185,8 @@ class Laser(Module):
         """``M221 S<percent>``: power scale, applied in order with motion; bare M221 reports."""
         percent = call.values.get("S")
         if percent is None:
-            return [Sync("message", {"lines": [f"[MSG:laser power scale {self.m221_percent:g}%]"]})]
+            report = f"[MSG:laser power scale {self.m221_percent:g}%]"
+            return [Sync(SyncKind.MESSAGE, {"lines": [report]})]
         if not 0.0 <= percent <= 1000.0:
             raise CommandError(BAD_NUMBER, "M221 S must be a percentage between 0 and 1000")
         return [Action("laser", {"scale_percent": percent})]

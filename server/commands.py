@@ -11,11 +11,11 @@ from typing import TYPE_CHECKING
 
 from server import __version__
 from server.codes import CodeCall
-from server.dispatcher import Command, Dispatcher
+from server.dispatcher import Command, Dispatcher, Handler
 from server.errors import CommandError
 from server.events import MachineState
 from server.gcode import parse_line
-from server.moves import Output, Sync
+from server.moves import Output, Sync, SyncKind
 from server.reports import format_build_info, format_help, format_settings
 
 if TYPE_CHECKING:
@@ -35,7 +35,7 @@ class CoreCommands:
         self.startup_lines: dict[int, str] = {}
 
     def register(self, dispatcher: Dispatcher) -> None:
-        queries = {
+        queries: dict[str, Handler] = {
             "$": self.help,
             "$$": self.settings,
             "$#": self.offsets,
@@ -46,7 +46,7 @@ class CoreCommands:
         }
         for name, handler in queries.items():
             dispatcher.register(name, handler, when_locked=True, query=True)
-        locked_ok = {
+        locked_ok: dict[str, Handler] = {
             "$=": self.write_setting,
             "$N0=": self.startup_set,
             "$N1=": self.startup_set,
@@ -155,7 +155,7 @@ class CoreCommands:
 
     def temperature(self, call: CodeCall) -> list[Output]:
         """M105 (RepRap hosts poll it): no heaters here."""
-        return [Sync("message", {"lines": ["T:0.0 /0.0 B:0.0 /0.0"]})]
+        return [Sync(SyncKind.MESSAGE, {"lines": ["T:0.0 /0.0 B:0.0 /0.0"]})]
 
     def firmware_info(self, call: CodeCall) -> list[Output]:
         """M115."""
@@ -163,4 +163,4 @@ class CoreCommands:
             f"FIRMWARE_NAME:motiond {__version__} (Grbl {BANNER_VERSION} compatible) "
             "PROTOCOL_VERSION:1.0 MACHINE_TYPE:laser/cnc EXTRUDER_COUNT:0"
         )
-        return [Sync("message", {"lines": [text]})]
+        return [Sync(SyncKind.MESSAGE, {"lines": [text]})]

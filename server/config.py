@@ -59,7 +59,6 @@ class PlannerConfig(Strict):
     max_blocks: int = Field(4096, ge=2, le=1_000_000)
     max_planned_s: float = Field(0.5, gt=0, le=60)
     min_feed_mm_s: float = Field(0.01, gt=0)
-    default_feed_mm_s: float = Field(0.0, ge=0)
 
 
 class StepgenConfig(Strict):

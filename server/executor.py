@@ -39,7 +39,7 @@ from server.modal import (
     Offsets,
     Words,
 )
-from server.moves import Action, Move, MoveKind, Output, Position, Sync, ToolMode
+from server.moves import Action, Move, MoveKind, Output, Position, Sync, SyncKind, ToolMode
 from server.nonmodal import NonModal
 
 if TYPE_CHECKING:
@@ -169,11 +169,11 @@ class LineExecutor(NonModal):
                 self.after.append(Action("motors", {"enabled": False}, stops_motion=True))
         code = g("m_sync")
         if code == 112:
-            self.first.append(Sync("halt"))
+            self.first.append(Sync(SyncKind.HALT))
         elif code == 999:
-            self.first.append(Sync("clear_halt"))
+            self.first.append(Sync(SyncKind.CLEAR_HALT))
         elif code == 114:
-            self.after.append(Sync("report_position"))
+            self.after.append(Sync(SyncKind.REPORT_POSITION))
 
     def _dwell(self) -> None:
         if self.words.g("non_modal") != 40:
@@ -274,9 +274,8 @@ class LineExecutor(NonModal):
         if target == self.position:
             raise CommandError(INVALID_TARGET, "probe target equals the current position")
         self.emit(target, MoveKind.PROBE, self._feed_mm_s(math.dist(target, self.position)))
-        self.moves.append(
-            Sync("probe", {"towards": mode in (382, 383), "error_on_fail": mode in (382, 384)})
-        )
+        params = {"towards": mode in (382, 383), "error_on_fail": mode in (382, 384)}
+        self.moves.append(Sync(SyncKind.PROBE, params))
 
     # -- arcs --------------------------------------------------------------------------------
     def _plane(self) -> tuple[int, int]:

@@ -23,7 +23,7 @@ from server.events import EventBus, MachineState
 from server.jobs import Jobs
 from server.machine import Machine, SyncHandler
 from server.module import Module
-from server.moves import Action, Move, Position
+from server.moves import Action, Move, Position, SyncKind
 from server.reports import ALARM_MODULE_FAILED
 from server.stepgen import MotionState
 
@@ -109,7 +109,7 @@ class _Context:
             self.name, code, factory, group=group, uses=uses, query=query, key=key
         )
 
-    def register_sync(self, kind: str, handler: SyncHandler) -> None:
+    def register_sync(self, kind: SyncKind, handler: SyncHandler) -> None:
         self._kernel.machine.sync_handlers[kind] = handler
 
     def set_spin_up_delay(self, seconds: float) -> None:

@@ -25,7 +25,7 @@ from server.dispatcher import Command
 from server.errors import BUSY, CommandError, SoftLimitError
 from server.events import MachineState
 from server.interpreter import Interpreter, InterpreterSettings
-from server.moves import Action, Move, MoveKind, Position, Sync, ToolMode
+from server.moves import Action, Move, MoveKind, Position, Sync, SyncKind, ToolMode
 from server.planner import Planner, PlannerSettings
 from server.protocol import Realtime
 from server.reports import (
@@ -94,12 +94,12 @@ class Machine:
 
     def __init__(self, kernel: Kernel) -> None:
         core = kernel.config.core
-        self.kernel = kernel
+        self.kernel: Kernel = kernel
         self.core = core
         self.backend = build_backend(core)
         self.codes = CodeTable()
         self.spin_up_delay_s = 0.0
-        self.sync_handlers: dict[str, SyncHandler] = {}
+        self.sync_handlers: dict[SyncKind, SyncHandler] = {}
         self.interpreter = Interpreter(interpreter_settings(core), self.codes)
         origin = tuple(0.0 for _ in core.axis_names)
         self.interpreter.set_position(origin)
@@ -138,7 +138,7 @@ class Machine:
             raise
         messages: list[str] = []
         for output in outputs:
-            if isinstance(output, Sync) and output.kind == "probe":
+            if isinstance(output, Sync) and output.kind is SyncKind.PROBE:
                 self.stepgen.probe_towards = bool(output.params.get("towards", True))
                 self.stepgen.probe_hit = False
         for output in outputs:
@@ -202,27 +202,23 @@ class Machine:
     async def sync(self, request: Sync) -> list[str]:
         """Carry out an interpreter request that needs the machine."""
         kind = request.kind
-        if kind == "halt":
+        if kind is SyncKind.HALT:
             self.emergency_stop()
             return []
-        if kind == "clear_halt":
+        if kind is SyncKind.CLEAR_HALT:
             self.kernel.clear_alarm()
             return []
-        if kind == "message":
+        if kind is SyncKind.MESSAGE:
             return list(request.params["lines"])
         handler = self.sync_handlers.get(kind)
         if handler is not None:
             return await handler(request.params)
-        await self.wait_idle()
-        if kind == "report_position":
-            return [self.position_report()]
-        if kind == "probe":
-            return self._finish_probe(request)
-        if kind == "home":
+        if kind is SyncKind.HOME:  # no module carries it out
             raise CommandError(5, "homing is not configured: add an [endstops] section")
-        if kind == "wait_idle":
-            return []
-        raise CommandError(20, f"unsupported request {kind}")
+        await self.wait_idle()
+        if kind is SyncKind.REPORT_POSITION:
+            return [self.position_report()]
+        return self._finish_probe(request)
 
     def _finish_probe(self, request: Sync) -> list[str]:
         position = self.stepgen.state.position_mm
@@ -273,6 +269,10 @@ class Machine:
         self.kernel.events.emit("hold_stopped")
 
     # -- realtime commands ------------------------------------------------------------------
+    def spindle_stop(self) -> None:
+        """Grbl's spindle stop override (0x9E): the spindle module toggles during a hold."""
+        self.kernel.events.emit("spindle_stop")
+
     def realtime(self, command: Realtime) -> None:
         """Act on a realtime byte at once (status and reset are the session's)."""
         action = _REALTIME_ACTIONS.get(command)
@@ -441,12 +441,12 @@ class Machine:
             self.room.set()
 
 
-_REALTIME_ACTIONS = {
+_REALTIME_ACTIONS: dict[Realtime, Callable[[Machine], None]] = {
     Realtime.HOLD: Machine.feed_hold,
     Realtime.DOOR: Machine.feed_hold,
     Realtime.RESUME: Machine.cycle_start,
     Realtime.JOG_CANCEL: Machine.cancel_jog,
-    Realtime.SPINDLE_STOP: lambda m: m.kernel.events.emit("spindle_stop"),
+    Realtime.SPINDLE_STOP: Machine.spindle_stop,
     Realtime.FLOOD: lambda m: m.toggle_coolant("flood"),
     Realtime.MIST: lambda m: m.toggle_coolant("mist"),
 }

@@ -28,7 +28,7 @@ if TYPE_CHECKING:
     from server.dispatcher import Handler
     from server.events import MachineState
     from server.machine import SyncHandler
-    from server.moves import Action, Move, Position
+    from server.moves import Action, Move, Position, SyncKind
     from server.stepgen import MotionState
 
 ENTRY_POINT_GROUP = "motiond.modules"
@@ -87,9 +87,15 @@ class ModuleContext(Protocol):
     log: logging.Logger
     clock: Clock
     core: CoreConfig  # the machine's config, read-only
-    outputs: Outputs
-    inputs: Inputs
-    moves: Motion
+
+    @property
+    def outputs(self) -> Outputs: ...
+
+    @property
+    def inputs(self) -> Inputs: ...
+
+    @property
+    def moves(self) -> Motion: ...
 
     def register_command(
         self, name: str, handler: Handler, *, when_locked: bool = False, query: bool = False
@@ -110,7 +116,7 @@ class ModuleContext(Protocol):
         """Claim ``M<code>`` with the interpreter (see :mod:`server.codes`)."""
         ...
 
-    def register_sync(self, kind: str, handler: SyncHandler) -> None:
+    def register_sync(self, kind: SyncKind, handler: SyncHandler) -> None:
         """Carry out the interpreter's ``Sync(kind)`` requests (``home`` for G28.2)."""
         ...
 

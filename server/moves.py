@@ -71,23 +71,31 @@ class Move:
     actions: list[Action] = field(default_factory=list)
 
 
+class SyncKind(enum.StrEnum):
+    """What a :class:`Sync` asks of the machine."""
+
+    REPORT_POSITION = "report_position"  # M114: answer with the current position
+    HALT = "halt"  # M112
+    CLEAR_HALT = "clear_halt"  # M999
+    PROBE = "probe"  # G38.x: wait for the probe move, resynchronise, report
+    HOME = "home"  # G28.2: run the homing cycle (a module's sync handler)
+    MESSAGE = "message"  # report params["lines"] before ok (a module code's answer)
+
+
 @dataclass(slots=True)
 class Sync:
-    """A request the interpreter cannot fulfil alone; the dispatcher carries it out in order.
+    """A request the interpreter cannot fulfil alone; the machine carries it out in order.
 
-    ``kind`` is one of:
-      * ``report_position`` (M114): the dispatcher answers with the current position.
-      * ``halt`` (M112) and ``clear_halt`` (M999).
-      * ``probe`` (G38.2-G38.5): after the preceding PROBE move, wait for motion to stop and
-        resynchronise the interpreter to the stopped position (params ``towards``: bool,
-        ``error_on_fail``: bool).
-      * ``home`` (G28.2 / $H): run the homing cycle, params ``axes``: list of axis indices.
-      * ``wait_idle`` (used before anything that needs the machine position to be exact).
-      * ``message``: report ``params["lines"]`` before ``ok`` (a module code's answer).
+    Params by kind: ``probe``: ``towards``, ``error_on_fail`` (bool); ``home``: ``axes``
+    (axis indices; empty: all); ``message``: ``lines``. A plain string equal to a kind's value
+    is accepted and turned into the :class:`SyncKind`.
     """
 
-    kind: str
+    kind: SyncKind
     params: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.kind = SyncKind(self.kind)
 
 
 Output = Move | Action | Sync

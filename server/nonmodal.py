@@ -26,7 +26,7 @@ from server.modal import (
     Offsets,
     Words,
 )
-from server.moves import MoveKind, Output, Position, Sync
+from server.moves import MoveKind, Output, Position, Sync, SyncKind
 
 
 class NonModal:
@@ -121,7 +121,7 @@ class NonModal:
         """G28.2 (Smoothieware): home the named axes (axis indices), or all (an empty list)."""
         axes = sorted(self.words.axes)
         self.axes_used = True
-        self.moves.append(Sync("home", {"axes": axes}))
+        self.moves.append(Sync(SyncKind.HOME, {"axes": axes}))
 
     def _g92(self, code: int) -> None:
         offsets, zero = self.offsets, (0.0,) * len(self.position)

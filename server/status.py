@@ -21,7 +21,7 @@ def state_text(kernel: Kernel) -> str:
         return "Hold:1" if decelerating else "Hold:0"
     if state is MachineState.DOOR:
         return "Door:0"
-    return state.value
+    return str(state.value)
 
 
 def snapshot(kernel: Kernel, rx_free_bytes: int) -> StatusSnapshot:

@@ -78,7 +78,8 @@ def axis_limits(unit: FloatArray, inverse_limits: FloatArray) -> FloatArray:
     """
     worst = np.maximum.reduce(np.abs(unit) * inverse_limits, axis=1)
     np.maximum(worst, 1.0 / STILL_LIMIT, out=worst)
-    return np.divide(1.0, worst, out=worst)
+    limits: FloatArray = np.divide(1.0, worst, out=worst)
+    return limits
 
 
 def junction_speeds_sq(
@@ -144,7 +145,7 @@ def plan_window(
     np.minimum(speed_sq, limit, out=speed_sq)
     np.maximum(speed_sq, 0.0, out=speed_sq)
     _trapezoids(length_mm, accel_mm_s2, nominal_mm_s, lead_s, two_ad, speed_sq, out)
-    return settled
+    return int(settled)
 
 
 def _trapezoids(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import os
+import shutil
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -29,11 +30,19 @@ BASE: dict[str, Any] = {
 }
 
 
+# Every data directory of a run lives under one folder, removed when the run ends.
+DATA_ROOT = Path(tempfile.mkdtemp(prefix="motiond-tests-"))
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    shutil.rmtree(DATA_ROOT, ignore_errors=True)
+
+
 def make_config(extra: dict[str, Any] | None = None, **sections: Any) -> Config:
     """A small XYZ machine, with extra sections merged in; its data directory is a fresh
     temporary folder, so tests never read or write the user's settings and jobs."""
     data = copy.deepcopy(BASE)
-    data["jobs"] = {"data_dir": tempfile.mkdtemp(prefix="motiond-test-")}
+    data["jobs"] = {"data_dir": tempfile.mkdtemp(prefix="data-", dir=DATA_ROOT)}
     for key, value in {**(extra or {}), **sections}.items():
         if isinstance(value, dict) and isinstance(data.get(key), dict):
             data[key].update(value)
