@@ -7,7 +7,8 @@
 * pipeline: append + pop per block through a window kept full, re-planning whenever the last
   plan's look-ahead runs short (as the step generator does), in blocks/s.
 
-Run: ``python -m benchmarks.bench_planner [--blocks N] [--rounds R]``.
+Run: ``python -m benchmarks planner [--quick] [--json]``, or with a window size and round
+count of your own: ``python -m benchmarks.bench_planner [--blocks N] [--rounds R]``.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import sys
 from dataclasses import replace
 from functools import partial
 
-from benchmarks.common import side_by_side
+from benchmarks.common import BenchResult, add_run_options, execute, side_by_side
 from server.moves import Move, MoveKind
 from server.planner import (
     ACCEL,
@@ -38,6 +39,9 @@ MACHINE = PlannerSettings(
     max_blocks=4096,
     max_planned_s=1e9,  # bound the window by count only
 )
+BLOCKS = 4096
+ROUNDS, QUICK_ROUNDS = 7, 3
+PIPELINE_BLOCKS, QUICK_PIPELINE_BLOCKS = 100_000, 25_000
 
 
 def raster(count: int) -> list[Move]:
@@ -106,13 +110,8 @@ def pipeline(machine: PlannerSettings, moves: list[Move]) -> int:
     return popped
 
 
-def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--blocks", type=int, default=4096)
-    parser.add_argument("--rounds", type=int, default=7)
-    args = parser.parse_args()
-    blocks, rounds = args.blocks, args.rounds
-
+def measure_replan(result: BenchResult, blocks: int, rounds: int) -> None:
+    """Re-plans of a full window against the plain-Python loops, side by side."""
     planner = full_window(blocks)
     inputs = reference_inputs(planner)
     ours_times, reference_times = 50, 2
@@ -123,6 +122,7 @@ def main() -> int:
     )
     ours_us = ours_s / ours_times * 1e6
     reference_us = reference_s / reference_times * 1e6
+    difference_s = check_same_plan(planner, inputs)
     print(f"re-plan of {blocks:,} queued blocks (best of {rounds} interleaved rounds, CPU time)")
     ours_rate = blocks / ours_us * 1e6
     print(f"  numpy prefix scans   {ours_us:10,.0f} µs/re-plan  {ours_rate:14,.0f} blocks/s")
@@ -131,9 +131,17 @@ def main() -> int:
         f"{blocks / reference_us * 1e6:14,.0f} blocks/s"
     )
     print(f"  ratio                {reference_us / ours_us:10,.1f}x faster")
-    print(f"  same plan: largest duration difference {check_same_plan(planner, inputs):.2e} s")
+    print(f"  same plan: largest duration difference {difference_s:.2e} s")
+    result.add("replan", "numpy prefix scans", blocks=(blocks, "blocks"),
+               replan=(ours_us, "µs/re-plan"), rate=(ours_rate, "blocks/s"))
+    result.add("replan", "plain-Python loops", blocks=(blocks, "blocks"),
+               replan=(reference_us, "µs/re-plan"), rate=(blocks / reference_us * 1e6, "blocks/s"))
+    result.add("replan", "ratio", ratio=(reference_us / ours_us, "x"),
+               largest_duration_difference=(difference_s, "s"))
 
-    moves = raster(100_000)
+
+def measure_pipeline(result: BenchResult, moves: list[Move], rounds: int) -> None:
+    """Append + pop through a window bounded by count, then by time (the default)."""
     print(f"append + pop of {len(moves):,} blocks through a full window, re-planning as the step "
           "generator does")
     for label, machine in (
@@ -146,7 +154,28 @@ def main() -> int:
             f"  {label:24} {len(moves) / pipeline_s:12,.0f} blocks/s  "
             f"{pipeline_s / len(moves) * 1e6:6.2f} µs/block"
         )
-    return 0
+        result.add("pipeline", label, blocks=(len(moves), "blocks"),
+                   rate=(len(moves) / pipeline_s, "blocks/s"),
+                   per_block=(pipeline_s / len(moves) * 1e6, "µs/block"))
+
+
+def run(quick: bool, blocks: int = BLOCKS, rounds: int | None = None) -> BenchResult:
+    """Quick: 3 rounds instead of 7, and 25,000 blocks through the pipeline instead of 100,000."""
+    result = BenchResult("planner", quick)
+    rounds = rounds or (QUICK_ROUNDS if quick else ROUNDS)
+    measure_replan(result, blocks, rounds)
+    measure_pipeline(result, raster(QUICK_PIPELINE_BLOCKS if quick else PIPELINE_BLOCKS), rounds)
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--blocks", type=int, default=BLOCKS)
+    parser.add_argument("--rounds", type=int, default=None)
+    add_run_options(parser)
+    options = parser.parse_args(argv)
+    measure = partial(run, options.quick, options.blocks, options.rounds)
+    return execute([measure], options.json)
 
 
 if __name__ == "__main__":

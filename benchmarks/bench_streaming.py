@@ -11,40 +11,38 @@
    more than 2 % longer, the stream can no longer feed the machine (starvation). Prints
    segments/s per feed and the fastest sustained (target: 10,000 segments/s).
 
-The streaming client runs in a subprocess (the server's event loop is not shared with it),
-with a blocking socket and TCP_NODELAY; the same client drives both servers.
+The streaming client (:mod:`benchmarks.stream_client`) runs in a subprocess (the server's
+event loop is not shared with it), with a blocking socket and TCP_NODELAY; the same client
+drives both servers.
 
-Run: ``python benchmarks/bench_streaming.py [--quick]``.
+Run: ``python -m benchmarks streaming [--quick] [--json]`` (quick: 1 s of motion per feed,
+fewer repeats).
 """
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import json
-import os
-import socket
 import sys
+import tempfile
 import time
-from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-REPO = Path(__file__).resolve().parent.parent
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
+if not __package__:  # run as a script (python benchmarks/bench_streaming.py): find the repo
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from benchmarks.common import CORPUS, BenchResult, standalone  # noqa: E402
+from benchmarks.stream_client import HOST, WINDOW  # noqa: E402
 from server.app import App  # noqa: E402
 from server.clock import RealClock  # noqa: E402
 from server.config import Config, build_config  # noqa: E402
 from server.offline import estimate  # noqa: E402
 from server.transports.tcp import TcpTransport  # noqa: E402
 
-CORPUS = Path(os.environ.get("MOTIOND_CORPUS", REPO.parent / "shared" / "corpus"))
+CLIENT = Path(__file__).resolve().with_name("stream_client.py")
 RASTER_FILE = "laser-raster-tree.nc"
-WINDOW = 128
-HOST = "127.0.0.1"
 STARVED = 1.02  # execution longer than the estimate by more than 2 %: the planner ran dry
 SEGMENT_MM = 0.1
 
@@ -61,60 +59,9 @@ def bench_config() -> Config:
     }, "bench_streaming")
 
 
-# -- the client (runs in a subprocess) ------------------------------------------------------------
-def client_main(port: int, path: Path, banner: bool, check: bool) -> None:
-    """Stream ``path`` with character counting; print a JSON line with the figures."""
-    lines = [line.encode() + b"\n" for line in path.read_text().splitlines()]
-    sock = socket.create_connection((HOST, port))
-    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-    pending = b""
-
-    def read_lines() -> list[bytes]:
-        nonlocal pending
-        data = sock.recv(65536)
-        if not data:
-            raise ConnectionError("server closed the connection")
-        pending += data
-        *complete, pending = pending.split(b"\n")
-        return [line.strip() for line in complete]
-
-    def command(text: bytes) -> None:
-        sock.sendall(text + b"\n")
-        while not any(line == b"ok" or line.startswith(b"error") for line in read_lines()):
-            pass
-
-    if banner:
-        while not any(line.startswith(b"Grbl ") for line in read_lines()):
-            pass
-    if check:
-        command(b"$C")
-    unacked: deque[int] = deque()
-    used = errors = answered = 0
-    started = time.perf_counter()
-    index = 0
-    while answered < len(lines):
-        batch = []
-        while index < len(lines) and used + len(lines[index]) <= WINDOW:
-            batch.append(lines[index])
-            unacked.append(len(lines[index]))
-            used += len(lines[index])
-            index += 1
-        if batch:
-            sock.sendall(b"".join(batch))
-        for line in read_lines():
-            if line == b"ok" or line.startswith(b"error"):
-                errors += line.startswith(b"error")
-                answered += 1
-                used -= unacked.popleft()
-    elapsed_s = time.perf_counter() - started
-    if check:
-        command(b"$C")
-    sock.close()
-    print(json.dumps({"lines": len(lines), "elapsed_s": elapsed_s, "errors": errors}))
-
-
+# -- the client (stream_client.py, run as a script in a subprocess) -----------------------------
 async def run_client(port: int, path: Path, *, banner: bool, check: bool = False) -> dict[str, Any]:
-    args = [sys.executable, __file__, "--client", str(port), str(path)]
+    args = [sys.executable, str(CLIENT), str(port), str(path)]
     args += ["--banner"] * banner + ["--check"] * check
     process = await asyncio.create_subprocess_exec(*args, stdout=asyncio.subprocess.PIPE)
     stdout, _ = await process.communicate()
@@ -160,11 +107,9 @@ async def bare_run(path: Path, per_line: bool, repeat: int) -> dict[str, Any]:
     return fastest(runs)
 
 
-async def throughput(repeat: int) -> None:
-    path = CORPUS / RASTER_FILE
-    bare_lines = await bare_run(path, True, repeat)
-    bare_chunks = await bare_run(path, False, repeat)
-
+async def motiond_runs(path: Path, repeat: int) -> tuple[list[dict[str, Any]], float]:
+    """Stream ``path`` to motiond in check mode ``repeat`` times: each run with its worst
+    event-loop stall, and the worst stall of the same server idle for 1 s before."""
     app = App(bench_config(), clock=RealClock(), transports=[TcpTransport])
     task = asyncio.create_task(app.run())
     await app.ready.wait()
@@ -180,6 +125,14 @@ async def throughput(repeat: int) -> None:
         runs.append({**run, "stall_s": app.kernel.loop_monitor.worst_stall_s})
     app.request_stop()
     await task
+    return runs, idle_stall_s
+
+
+async def throughput(result: BenchResult, repeat: int) -> None:
+    path = CORPUS / RASTER_FILE
+    bare_lines = await bare_run(path, True, repeat)
+    bare_chunks = await bare_run(path, False, repeat)
+    runs, idle_stall_s = await motiond_runs(path, repeat)
     motiond = fastest(runs)
     stall_s = motiond["stall_s"]
 
@@ -193,6 +146,9 @@ async def throughput(repeat: int) -> None:
         rate = run["lines"] / run["elapsed_s"]
         print(f"   {label:36} {run['elapsed_s']:8.2f} {rate:9,.0f} {run['errors']:7} "
               f"{rate_motiond / rate:11.2f}x")
+        result.add("throughput", label, lines=(run["lines"], "lines"),
+                   elapsed=(run["elapsed_s"], "s"), rate=(rate, "lines/s"),
+                   errors=(run["errors"], "lines"), motiond_ratio=(rate_motiond / rate, "x"))
     ratio = rate_motiond / (bare_lines["lines"] / bare_lines["elapsed_s"])
     print(f"   ratio motiond / bare (ok per line): {ratio:.2f}x (target >= 0.30x) "
           f"{'OK' if ratio >= 0.3 else 'BELOW TARGET'}")
@@ -202,6 +158,9 @@ async def throughput(repeat: int) -> None:
     print(f"   the same server idle for 1 s before: worst stall {idle_stall_s * 1000:.2f} ms "
           "(the machine's own noise)")
     print(f"   (best of {repeat} runs each; the client runs in its own process)")
+    result.add("throughput", "summary", ratio_to_bare_per_line=(ratio, "x"),
+               stall_streaming=(stall_s * 1000, "ms"), stall_idle=(idle_stall_s * 1000, "ms"),
+               repeat=(repeat, "runs"))
 
 
 # -- 2. the fastest raster sustained in real time ------------------------------------------------
@@ -265,7 +224,7 @@ async def raster_run(feed_mm_min: float, seconds: float, workdir: Path) -> Raste
                      stall_s)
 
 
-async def realtime_raster(quick: bool, workdir: Path, repeat: int) -> None:
+async def realtime_raster(result: BenchResult, quick: bool, workdir: Path, repeat: int) -> None:
     feeds = [12_000, 30_000, 60_000, 90_000, 120_000, 180_000, 240_000, 300_000, 360_000,
              480_000]
     seconds = 1.0 if quick else 2.0
@@ -281,6 +240,7 @@ async def realtime_raster(quick: bool, workdir: Path, repeat: int) -> None:
         print(f"   {feed:11,} {run.segments:9,} {run.estimate_s:10.3f} {run.execution_s:10.3f} "
               f"{run.ratio:8.3f} {run.segments_per_s:10,.0f} {run.stall_s * 1000:8.2f}ms"
               + ("  starved" if starved else ""))
+        record_raster(result, run, starved)
         if starved:
             break
         best = run
@@ -290,27 +250,31 @@ async def realtime_raster(quick: bool, workdir: Path, repeat: int) -> None:
         verdict = "OK" if best.segments_per_s >= 10_000 else "BELOW TARGET"
         print(f"   fastest sustained without starvation: {best.segments_per_s:,.0f} segments/s "
               f"at F{best.feed_mm_min:,.0f} (target 10,000) {verdict}")
+        result.add("raster", "fastest sustained", feed=(best.feed_mm_min, "mm/min"),
+                   rate=(best.segments_per_s, "segments/s"))
 
 
-async def main(quick: bool) -> None:
-    import tempfile
+def record_raster(result: BenchResult, run: RasterRun, starved: bool) -> None:
+    result.add("raster", f"F{run.feed_mm_min:g}", note="starved" if starved else "",
+               feed=(run.feed_mm_min, "mm/min"), segments=(run.segments, "segments"),
+               estimate=(run.estimate_s, "s"), executed=(run.execution_s, "s"),
+               executed_to_estimate=(run.ratio, "x"), rate=(run.segments_per_s, "segments/s"),
+               stall=(run.stall_s * 1000, "ms"))
 
+
+async def measure(quick: bool) -> BenchResult:
+    result = BenchResult("streaming", quick)
     started = time.perf_counter()
-    await throughput(repeat=2 if quick else 3)
+    await throughput(result, repeat=2 if quick else 3)
     with tempfile.TemporaryDirectory() as workdir:
-        await realtime_raster(quick, Path(workdir), repeat=1 if quick else 2)
+        await realtime_raster(result, quick, Path(workdir), repeat=1 if quick else 2)
     print(f"\n(total {time.perf_counter() - started:.0f} s)")
+    return result
+
+
+def run(quick: bool) -> BenchResult:
+    return asyncio.run(measure(quick))
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--quick", action="store_true", help="1 s of motion per feed")
-    parser.add_argument("--client", nargs=2, metavar=("PORT", "FILE"), help=argparse.SUPPRESS)
-    parser.add_argument("--banner", action="store_true", help=argparse.SUPPRESS)
-    parser.add_argument("--check", action="store_true", help=argparse.SUPPRESS)
-    options = parser.parse_args()
-    if options.client:
-        client_main(int(options.client[0]), Path(options.client[1]), options.banner,
-                    options.check)
-    else:
-        asyncio.run(main(options.quick))
+    sys.exit(standalone(run, __doc__.splitlines()[0]))
