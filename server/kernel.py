@@ -25,6 +25,7 @@ from server.machine import Machine, SyncHandler
 from server.module import Module
 from server.moves import Action, Move, Position, SyncKind
 from server.reports import ALARM_MODULE_FAILED
+from server.state import MachineStatus
 from server.stepgen import MotionState
 
 log = logging.getLogger("motiond.kernel")
@@ -177,14 +178,15 @@ class Kernel:
         self.config = config
         self.clock = clock
         self.events = EventBus()
-        self.state = MachineState.IDLE
-        self.alarm_code = 0
-        self.alarm_message = ""
+        self.status = MachineStatus(self.events)
+        self.machine = Machine(config, clock, self.events, self.status)
         self.dispatcher = Dispatcher(
-            is_locked=lambda: self.state in LOCKED_STATES,
+            is_locked=lambda: self.status.state in LOCKED_STATES,
             is_busy=lambda: not self.machine.stepgen.idle or self.jobs.active,
         )
-        self.machine = Machine(self)
+        self.dispatcher.set_gcode_handler(
+            self.machine.handle_gcode, lambda line: self.machine.interpreter.classify(line)
+        )
         self.jobs = Jobs(self)
         self.modules: dict[str, Module] = {}
         self._specs: dict[str, ModuleSpec] = {}
@@ -209,34 +211,33 @@ class Kernel:
         if problems:
             raise ConfigError(problems)
 
-    # -- machine state ---------------------------------------------------------------------
+    # -- machine state (owned by self.status) ---------------------------------------------
+    @property
+    def state(self) -> MachineState:
+        return self.status.state
+
+    @property
+    def alarm_code(self) -> int:
+        return self.status.alarm_code
+
+    @property
+    def alarm_message(self) -> str:
+        return self.status.alarm_message
+
     def set_state(self, state: MachineState) -> None:
-        if state is not self.state:
-            self.state = state
-            self.events.emit("state", state)
+        self.status.set_state(state)
 
     def push(self, message: str) -> None:
         """Send an unsolicited line (``ALARM:2``, ``[MSG:...]``) to every connection."""
-        self.events.emit("push", message)
+        self.status.push(message)
 
     def alarm(self, code: int, message: str) -> None:
         """Stop motion and tools at once, lock G-code out, tell everyone why."""
-        log.error("ALARM:%d %s", code, message)
-        self.alarm_code, self.alarm_message = code, message
-        self.machine.stop_now()
-        self.set_state(MachineState.ALARM)
-        self.events.emit("halt", message)
-        self.push(f"ALARM:{code}")
-        self.push(f"[MSG:{message}]")
+        self.status.alarm(code, message)
 
     def clear_alarm(self) -> None:
         """``$X`` / ``M999``: unlock after an alarm."""
-        if self.state is MachineState.ALARM:
-            self.alarm_code, self.alarm_message = 0, ""
-            self.machine.leave_check_mode()
-            self.set_state(MachineState.IDLE)
-            self.events.emit("clear_halt")
-            self.push("[MSG:Caution: Unlocked]")
+        self.status.clear_alarm()
 
     # -- tasks -----------------------------------------------------------------------------
     async def run(self) -> None:

@@ -14,16 +14,17 @@ import logging
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from server.backends.base import Backend
 from server.backends.null import NullBackend
 from server.backends.sim import SimBackend
+from server.clock import Clock
 from server.codes import CodeTable
-from server.config import CoreConfig
+from server.config import Config, CoreConfig
 from server.dispatcher import Command
 from server.errors import BUSY, CommandError, SoftLimitError
-from server.events import MachineState
+from server.events import EventBus, MachineState
 from server.interpreter import Interpreter, InterpreterSettings
 from server.moves import Action, Move, MoveKind, Position, Sync, SyncKind, ToolMode
 from server.planner import Planner, PlannerSettings
@@ -35,10 +36,8 @@ from server.reports import (
     ALARM_SOFT_LIMIT,
 )
 from server.settings import Settings
+from server.state import MachineStatus
 from server.stepgen import HoldState, StepGenerator
-
-if TYPE_CHECKING:
-    from server.kernel import Kernel
 
 log = logging.getLogger("motiond.machine")
 
@@ -53,12 +52,12 @@ class ToolState:
     mist: bool = False
 
 
-def settings_path(kernel: Kernel) -> Path:
+def settings_path(config: Config) -> Path:
     """Where ``$x=value`` settings persist: beside the config file, else in the data dir."""
-    path = kernel.config.path
+    path = config.path
     if path is not None:
         return path.with_name(path.stem + ".settings.toml")
-    return kernel.config.core.jobs.data_dir.expanduser() / ".settings.toml"  # not a job
+    return config.core.jobs.data_dir.expanduser() / ".settings.toml"  # not a job
 
 
 def build_backend(core: CoreConfig) -> Backend:
@@ -92,9 +91,12 @@ SyncHandler = Callable[[dict[str, Any]], Awaitable[list[str]]]
 class Machine:
     """Owns the motion pipeline; see the module docstring."""
 
-    def __init__(self, kernel: Kernel) -> None:
-        core = kernel.config.core
-        self.kernel: Kernel = kernel
+    def __init__(
+        self, config: Config, clock: Clock, events: EventBus, status: MachineStatus
+    ) -> None:
+        core = config.core
+        self.clock, self.events, self.status = clock, events, status
+        status.stop_motion, status.before_unlock = self.stop_now, self.leave_check_mode
         self.core = core
         self.backend = build_backend(core)
         self.codes = CodeTable()
@@ -123,10 +125,7 @@ class Machine:
         self.feed_override = 100
         self.rapid_override = 100
         self.spindle_override = 100
-        kernel.dispatcher.set_gcode_handler(
-            self.handle_gcode, lambda line: self.interpreter.classify(line)
-        )
-        self.settings = Settings(self, settings_path(kernel))  # last: it applies saved values
+        self.settings = Settings(self, settings_path(config))  # last: it applies saved values
 
     # -- the G-code handler -----------------------------------------------------------------
     async def handle_gcode(self, command: Command) -> list[str]:
@@ -134,7 +133,7 @@ class Machine:
         try:
             outputs = self.interpreter.execute(command.line)
         except SoftLimitError as exc:
-            self.kernel.alarm(ALARM_SOFT_LIMIT, f"soft limit: {exc.message}")
+            self.status.alarm(ALARM_SOFT_LIMIT, f"soft limit: {exc.message}")
             raise
         messages: list[str] = []
         for output in outputs:
@@ -176,9 +175,9 @@ class Machine:
 
     def _note_input(self, state: MachineState) -> None:
         self.idle_event.clear()
-        self.stepgen.note_input(self.kernel.clock.now_s())
-        if self.kernel.state is MachineState.IDLE:
-            self.kernel.set_state(state)
+        self.stepgen.note_input(self.clock.now_s())
+        if self.status.state is MachineState.IDLE:
+            self.status.set_state(state)
 
     async def wait_idle(self) -> None:
         """Wait until every queued move has been executed."""
@@ -206,7 +205,7 @@ class Machine:
             self.emergency_stop()
             return []
         if kind is SyncKind.CLEAR_HALT:
-            self.kernel.clear_alarm()
+            self.status.clear_alarm()
             return []
         if kind is SyncKind.MESSAGE:
             return list(request.params["lines"])
@@ -229,7 +228,7 @@ class Machine:
         coords = ",".join(f"{v:.3f}" for v in position)
         report = f"[PRB:{coords}:{int(success)}]"
         if not success and request.params.get("error_on_fail", True):
-            self.kernel.alarm(5, "probe fail: the probe did not change state within the move")
+            self.status.alarm(5, "probe fail: the probe did not change state within the move")
         return [report]
 
     def position_report(self) -> str:
@@ -243,35 +242,35 @@ class Machine:
 
     # -- motion listener (called by the step generator) --------------------------------------
     def on_action(self, action: Action) -> None:
-        events = self.kernel.events
+        events = self.status.events
         if action.name == "spindle":
             self.tool.mode, self.tool.s = action.params["mode"], action.params["s"]
         elif action.name == "coolant":
             self.tool.flood, self.tool.mist = action.params["flood"], action.params["mist"]
         elif action.name == "pause":
             self.stepgen.hold()
-            self.kernel.set_state(MachineState.HOLD)
+            self.status.set_state(MachineState.HOLD)
         elif action.name == "program_end":
             events.emit("program_end")
-            self.kernel.push("[MSG:Pgm End]")
+            self.status.push("[MSG:Pgm End]")
         elif action.name == "motors":
             events.emit("motors_enable" if action.params.get("enabled") else "motors_disable")
         events.emit("action", action)
 
     def on_idle(self) -> None:
         self.idle_event.set()
-        if self.kernel.state in (MachineState.RUN, MachineState.JOG):
-            self.kernel.set_state(MachineState.IDLE)
+        if self.status.state in (MachineState.RUN, MachineState.JOG):
+            self.status.set_state(MachineState.IDLE)
 
     def on_hold_stopped(self) -> None:
         if self._cancelling_jog:
             self._finish_jog_cancel()
-        self.kernel.events.emit("hold_stopped")
+        self.events.emit("hold_stopped")
 
     # -- realtime commands ------------------------------------------------------------------
     def spindle_stop(self) -> None:
         """Grbl's spindle stop override (0x9E): the spindle module toggles during a hold."""
-        self.kernel.events.emit("spindle_stop")
+        self.events.emit("spindle_stop")
 
     def realtime(self, command: Realtime) -> None:
         """Act on a realtime byte at once (status and reset are the session's)."""
@@ -294,36 +293,36 @@ class Machine:
             self.tool.flood = not self.tool.flood
         else:
             self.tool.mist = not self.tool.mist
-        self.kernel.events.emit("toggle_coolant", which)
+        self.events.emit("toggle_coolant", which)
 
     def emergency_stop(self) -> None:
         """M112: halt at once, before the lines queued ahead of it run."""
-        if self.kernel.state is not MachineState.ALARM:
-            self.kernel.alarm(ALARM_HALT, "emergency stop (M112): $X or M999 to unlock")
+        if self.status.state is not MachineState.ALARM:
+            self.status.alarm(ALARM_HALT, "emergency stop (M112): $X or M999 to unlock")
 
     def feed_hold(self) -> None:
-        if self.kernel.state is MachineState.HOME:  # as in Grbl: homing ignores feed hold
+        if self.status.state is MachineState.HOME:  # as in Grbl: homing ignores feed hold
             return
-        if self.stepgen.idle and self.kernel.state is MachineState.IDLE:
-            self.kernel.events.emit("hold")  # nothing moves, but a focusing `fire` stops
+        if self.stepgen.idle and self.status.state is MachineState.IDLE:
+            self.events.emit("hold")  # nothing moves, but a focusing `fire` stops
             return
-        if self.kernel.state in (MachineState.RUN, MachineState.JOG) or not self.stepgen.idle:
-            if self.kernel.state is MachineState.JOG:
+        if self.status.state in (MachineState.RUN, MachineState.JOG) or not self.stepgen.idle:
+            if self.status.state is MachineState.JOG:
                 self.cancel_jog()
                 return
             self.stepgen.hold()
-            self.kernel.set_state(MachineState.HOLD)
-            self.kernel.events.emit("hold")
+            self.status.set_state(MachineState.HOLD)
+            self.events.emit("hold")
 
     def cycle_start(self) -> None:
-        if self.kernel.state is MachineState.HOLD:
+        if self.status.state is MachineState.HOLD:
             self.stepgen.resume()
-            self.kernel.set_state(MachineState.IDLE if self.stepgen.idle else MachineState.RUN)
-            self.kernel.events.emit("resume")
+            self.status.set_state(MachineState.IDLE if self.stepgen.idle else MachineState.RUN)
+            self.events.emit("resume")
 
     def cancel_jog(self) -> None:
         """Jog cancel: decelerate to a stop, then drop the remaining jog moves."""
-        if self.kernel.state is not MachineState.JOG:
+        if self.status.state is not MachineState.JOG:
             return
         self._cancelling_jog = True
         self.stepgen.hold()
@@ -333,7 +332,7 @@ class Machine:
     def _finish_jog_cancel(self) -> None:
         self._cancelling_jog = False
         self.stop_now()
-        self.kernel.set_state(MachineState.IDLE)
+        self.status.set_state(MachineState.IDLE)
 
     def soft_reset(self) -> None:
         """Ctrl-X: stop at once, flush, keep the position; ALARM:3 if it was moving."""
@@ -341,13 +340,13 @@ class Machine:
         self.stop_now()
         self.leave_check_mode()
         self.interpreter.reset()
-        self.kernel.events.emit("reset")
+        self.events.emit("reset")
         if moving:
-            self.kernel.alarm(
+            self.status.alarm(
                 ALARM_ABORT_CYCLE, "reset while in motion: position may be lost, re-home"
             )
-        elif self.kernel.state not in (MachineState.ALARM,):
-            self.kernel.set_state(MachineState.IDLE)
+        elif self.status.state not in (MachineState.ALARM,):
+            self.status.set_state(MachineState.IDLE)
 
     def stop_now(self) -> None:
         """Halt motion at once and resynchronise everything to where the steps are."""
@@ -375,7 +374,7 @@ class Machine:
         if spindle is not None:
             self.spindle_override = max(10, min(200, spindle))
         self.planner.set_overrides(self.feed_override / 100, self.rapid_override / 100)
-        self.kernel.events.emit(
+        self.events.emit(
             "override", self.feed_override, self.rapid_override, self.spindle_override
         )
 
@@ -404,7 +403,7 @@ class Machine:
         """``$C``: run lines through the interpreter without moving."""
         self._check_saved = copy.deepcopy(self.interpreter)
         self.check_mode = True
-        self.kernel.set_state(MachineState.CHECK)
+        self.status.set_state(MachineState.CHECK)
 
     def leave_check_mode(self) -> None:
         """Leave check mode with the modal state it had before (Grbl resets here)."""
@@ -414,7 +413,7 @@ class Machine:
             self.interpreter = self._check_saved
             self._check_saved = None
         self.check_mode = False
-        self.kernel.set_state(MachineState.IDLE)
+        self.status.set_state(MachineState.IDLE)
 
     @property
     def hold_state(self) -> HoldState:
@@ -424,17 +423,17 @@ class Machine:
     async def run(self) -> None:
         """The step generator task; also wakes writers waiting for planner room."""
         try:
-            await self.stepgen.run(self.kernel.clock, self._after_tick, self._backend_fault)
+            await self.stepgen.run(self.clock, self._after_tick, self._backend_fault)
         finally:
             self.backend.close()
 
     def _backend_fault(self, exc: Exception) -> None:
         """A tick raised: stop everything and alarm once (later failures are only logged)."""
-        if self.kernel.alarm_code == ALARM_BACKEND_FAILED:
+        if self.status.alarm_code == ALARM_BACKEND_FAILED:
             log.debug("backend still failing: %r", exc)
             return
         log.error("backend failed: %r", exc, exc_info=exc)
-        self.kernel.alarm(ALARM_BACKEND_FAILED, f"backend failed: {exc!r}")
+        self.status.alarm(ALARM_BACKEND_FAILED, f"backend failed: {exc!r}")
 
     def _after_tick(self) -> None:
         if not self.room.is_set() and not self.planner.is_full():
