@@ -1,0 +1,100 @@
+"""A motiond server and a latency probe, each in a process of its own (real sockets)."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import os
+import socket
+import sys
+from collections.abc import AsyncIterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
+AXES_TOML = "".join(
+    f"[axes.{axis}]\nsteps_per_mm = 80\nmax_rate_mm_s = 500\naccel_mm_s2 = 3000\nmax_mm = 300\n"
+    for axis in "xy"
+)
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+@dataclass
+class Served:
+    """A running ``motiond`` process and where it listens."""
+
+    process: asyncio.subprocess.Process
+    tcp_port: int
+    http_port: int
+    data_dir: Path
+    log: list[str] = field(default_factory=list)
+
+    @property
+    def http(self) -> str:
+        return f"127.0.0.1:{self.http_port}"
+
+
+async def _wait_listening(port: int, process: asyncio.subprocess.Process) -> None:
+    for _ in range(200):
+        if process.returncode is not None:
+            raise RuntimeError(f"motiond exited with {process.returncode}")
+        with contextlib.suppress(OSError):
+            _, writer = await asyncio.open_connection("127.0.0.1", port)
+            writer.close()
+            return
+        await asyncio.sleep(0.05)
+    raise TimeoutError(f"motiond did not listen on {port}")
+
+
+@contextlib.asynccontextmanager
+async def motiond(tmp_path: Path, extra_toml: str = "") -> AsyncIterator[Served]:
+    """``motiond --config`` on free ports with ``extra_toml`` appended to a small XY machine."""
+    data_dir = tmp_path / "data"
+    data_dir.mkdir(exist_ok=True)
+    config = tmp_path / "machine.toml"
+    config.write_text(AXES_TOML + f"[jobs]\ndata_dir = '{data_dir}'\n" + extra_toml)
+    tcp_port, http_port = free_port(), free_port()
+    process = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "server.cli", "--config", str(config), "--host", "127.0.0.1",
+        "--tcp-port", str(tcp_port), "--http-port", str(http_port), "--log-level", "warning",
+        cwd=REPO, env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.DEVNULL,
+    )
+    try:
+        await _wait_listening(tcp_port, process)
+        await _wait_listening(http_port, process)
+        yield Served(process, tcp_port, http_port, data_dir)
+    finally:
+        if process.returncode is None:
+            process.terminate()
+            try:
+                await asyncio.wait_for(process.wait(), 10)
+            except TimeoutError:
+                process.kill()
+                await process.wait()
+
+
+@contextlib.asynccontextmanager
+async def latency_probe(port: int, period_ms: float = 10.0) -> AsyncIterator[dict[str, float]]:
+    """Poll ``?`` from another process while the block runs; the dict holds its summary
+    (``count``, ``p50_ms``, ``p99_ms``, ``max_ms``, ``missed``) once the block has ended."""
+    process = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "tests.support.latency_probe", "127.0.0.1", str(port),
+        "--period-ms", str(period_ms), cwd=REPO,
+        stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE,
+    )
+    result: dict[str, float] = {}
+    try:
+        await asyncio.sleep(0.3)  # connected and polling before the attack starts
+        yield result
+    finally:
+        assert process.stdin is not None
+        process.stdin.close()
+        out, _ = await asyncio.wait_for(process.communicate(), 30)
+        result.update(json.loads(out.decode().strip().splitlines()[-1]))
