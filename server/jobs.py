@@ -151,6 +151,13 @@ class Jobs:
     def running(self) -> bool:
         return self._task is not None and not self._task.done()
 
+    def is_playing(self) -> bool:
+        """A job is streaming (not paused)."""
+        return self.running and self._progress is not None and self._progress.state == "running"
+
+    def is_paused(self) -> bool:
+        return self._progress is not None and self._progress.state == "paused"
+
     @property
     def active(self) -> bool:
         """A job is running or paused (not yet done, failed or aborted)."""

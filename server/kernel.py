@@ -17,6 +17,7 @@ from server.clock import Clock
 from server.codes import CodeConflict, CodeFactory
 from server.commands import CoreCommands
 from server.config import Config, ModuleSpec
+from server.control import MachineControl
 from server.dispatcher import Dispatcher, Handler, SystemSource
 from server.errors import ConfigError
 from server.events import EventBus, MachineState
@@ -188,6 +189,7 @@ class Kernel:
             self.machine.handle_gcode, lambda line: self.machine.interpreter.classify(line)
         )
         self.jobs = Jobs(self)
+        self.control = MachineControl(self.machine, self.jobs)
         self.modules: dict[str, Module] = {}
         self._specs: dict[str, ModuleSpec] = {}
         commands = CoreCommands(self)
