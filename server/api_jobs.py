@@ -9,19 +9,24 @@ import asyncio
 import base64
 import binascii
 from dataclasses import asdict
+from decimal import Decimal
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from pydantic import Field
 
 from server.api_methods import INVALID_PARAMS, Methods, Params, RpcError, method
 from server.errors import FILE_ERROR, CommandError
+from server.interpreter import Interpreter
+from server.offline import file_lines
 from server.telemetry import job_dict
 from server.toolpath import plan_toolpath
 
 if TYPE_CHECKING:
     from server.api import Connection
+    from server.config import CoreConfig
 
-TOOLPATH_CACHE = 4
+TOOLPATH_CACHE = 2  # results kept (each at most max_segments long): the latest file versions
 
 
 # -- settings ---------------------------------------------------------------------------------
@@ -42,12 +47,13 @@ def settings_list(m: Methods, connection: Connection, params: Params) -> list[di
 
 class SettingParams(Params):
     number: int = Field(ge=0)
-    value: float
+    value: float  # finite: Params refuses NaN and infinities
 
 
 @method("settings.set", SettingParams, control=True)
 async def settings_set(m: Methods, connection: Connection, params: SettingParams) -> dict[str, Any]:
-    await m.submit(connection, f"${params.number}={params.value:g}")
+    value = format(Decimal(repr(params.value)), "f")  # every digit, never an exponent
+    await m.submit(connection, f"${params.number}={value}")
     return {"number": params.number, "value": m.machine.settings.values()[params.number]}
 
 
@@ -137,16 +143,24 @@ async def job_toolpath(
         if cached is None:
             core = m.kernel.config.core.model_copy(deep=True)
             core.machine.soft_limits = False  # preview in work coordinates, whatever the WCS
-            lines = await asyncio.to_thread(_read_lines, path)
-            cached = await asyncio.to_thread(plan_toolpath, lines, core, params.max_segments)
+            interpreter = m.machine.new_interpreter(soft_limits=False)
+            cached = await asyncio.to_thread(
+                _plan_file, path, core, params.max_segments, interpreter
+            )
             m.toolpaths[key] = cached
             while len(m.toolpaths) > TOOLPATH_CACHE:
                 m.toolpaths.popitem(last=False)
+        m.toolpaths.move_to_end(key)
     return {"name": path.name, **cached}
 
 
-def _read_lines(path: Any) -> list[str]:
+def _plan_file(
+    path: Path, core: CoreConfig, max_segments: int, interpreter: Interpreter
+) -> dict[str, Any]:
+    """plan_toolpath on the file's lines, read as the planning goes (in this thread)."""
     try:
-        return path.read_text(errors="replace").splitlines()
+        with path.open(errors="replace") as handle:
+            lines = file_lines(handle, core.protocol.line_limit)
+            return plan_toolpath(lines, core, max_segments, interpreter)
     except OSError as exc:
         raise CommandError(FILE_ERROR, f"cannot read {path.name}: {exc.strerror}") from exc

@@ -23,6 +23,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from server import __version__
 from server.errors import AUTH_REQUIRED, CommandError
+from server.gcode import check_length
 from server.reports import ERROR_MESSAGES, StatusScheduler
 from server.status import snapshot, state_text
 from server.telemetry import TOPICS, build_status
@@ -54,7 +55,10 @@ def command_error(exc: CommandError) -> tuple[int, str, dict[str, Any]]:
 
 
 class Params(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    """Named parameters: unknown names are refused, and so are NaN and infinities (JSON
+    ``NaN``, ``Infinity`` or ``1e400``) in every number."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 Handler = Callable[["Methods", "Connection", Any], Any]
@@ -225,6 +229,11 @@ _REALTIME = {"!": "hold", "~": "resume", "\x18": "reset", "\x85": "jog_cancel"}
 
 
 async def _one_line(m: Methods, connection: Connection, line: str) -> dict[str, Any]:
+    limit = m.kernel.config.core.protocol.line_limit
+    try:
+        check_length(line, limit)  # error 11, as on every stream; nothing parsed
+    except CommandError as exc:
+        return _refused(line[:limit] + "...", exc)  # not echoed whole
     text = line.strip()
     if text == "?":
         report = StatusScheduler().report(
@@ -242,14 +251,18 @@ async def _one_line(m: Methods, connection: Connection, line: str) -> dict[str, 
                 m.machine.emergency_stop()
             messages = await m.submit(connection, line)
     except CommandError as exc:
-        code, message, data = command_error(exc)
-        return {
-            "line": line,
-            "reply": f"error:{code}",
-            "messages": [],
-            "error": {"code": code, "message": message, "meaning": data["meaning"]},
-        }
+        return _refused(line, exc)
     return {"line": line, "reply": "ok", "messages": messages}
+
+
+def _refused(line: str, exc: CommandError) -> dict[str, Any]:
+    code, message, data = command_error(exc)
+    return {
+        "line": line,
+        "reply": f"error:{code}",
+        "messages": [],
+        "error": {"code": code, "message": message, "meaning": data["meaning"]},
+    }
 
 
 # -- realtime control -------------------------------------------------------------------------

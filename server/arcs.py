@@ -3,6 +3,11 @@
 Pure functions in machine millimetres. A plane is given by the indices of its two axes
 ``(a0, a1)`` in the order of G17 (X, Y), G18 (Z, X) and G19 (Y, Z); "clockwise" is seen looking
 down the third axis, as in Grbl and LinuxCNC. Every other axis moves linearly (helix).
+
+Hostile numbers end in error 33 (invalid target), never in an exception or an endless loop:
+an R-form arc so flat that its sweep rounds to nothing (it would become a full circle), a
+centre or radius that is not finite, and an arc needing more than :data:`MAX_CHORDS` chords
+(about 30 ms of interpreter work; a full circle of 2 m radius at the finest ``$12``).
 """
 
 from __future__ import annotations
@@ -16,7 +21,7 @@ INVALID_TARGET = 33
 ARC_RADIUS_ERROR = 34
 FULL_CIRCLE_EPSILON_RAD = 5e-7  # Grbl's ARC_ANGULAR_TRAVEL_EPSILON
 MAX_SEGMENT_RAD = math.pi / 2
-MAX_CHORDS = 1_000_000
+MAX_CHORDS = 10_000
 
 
 def radius_form_centre(
@@ -25,14 +30,38 @@ def radius_form_centre(
     """The centre of an R-form arc (Grbl's construction); a negative R takes the long way.
 
     Raises:
-        CommandError: 33 when the end equals the start in the plane, 34 when no circle of
-            radius R passes through both points.
+        CommandError: 33 when the end equals the start in the plane or the arc is too flat to
+            have a direction (its sweep rounds to zero), 34 when no circle of radius R passes
+            through both points.
     """
     a0, a1 = plane
     dx, dy = end[a0] - start[a0], end[a1] - start[a1]
     chord = math.hypot(dx, dy)
     if chord == 0.0:
         raise CommandError(INVALID_TARGET, "R-form arc: end point equals start point")
+    if not math.isfinite(chord * r_mm):
+        raise CommandError(INVALID_TARGET, "R-form arc: radius or end point out of range")
+    centre = _radius_centre(start, plane, dx, dy, chord, r_mm, clockwise)
+    travel = _raw_travel(start, end, plane, centre)
+    if abs(travel) <= FULL_CIRCLE_EPSILON_RAD:
+        raise CommandError(
+            INVALID_TARGET,
+            f"R-form arc: radius {abs(r_mm):g} mm is too large for a chord of {chord:g} mm "
+            "(the arc is a straight line: use G1)",
+        )
+    return centre
+
+
+def _radius_centre(
+    start: Position,
+    plane: tuple[int, int],
+    dx: float,
+    dy: float,
+    chord: float,
+    r_mm: float,
+    clockwise: bool,
+) -> tuple[float, float]:
+    a0, a1 = plane
     h_squared_x4 = 4.0 * r_mm * r_mm - chord * chord
     if h_squared_x4 < 0.0:
         if h_squared_x4 < -1e-9 * chord * chord:
@@ -47,6 +76,16 @@ def radius_form_centre(
     if r_mm < 0.0:
         h_x2_div_d = -h_x2_div_d
     return (start[a0] + 0.5 * (dx - dy * h_x2_div_d), start[a1] + 0.5 * (dy + dx * h_x2_div_d))
+
+
+def _raw_travel(
+    start: Position, end: Position, plane: tuple[int, int], centre: tuple[float, float]
+) -> float:
+    """The signed angle from start to end around ``centre``, in (-pi, pi]."""
+    a0, a1 = plane
+    r0, r1 = start[a0] - centre[0], start[a1] - centre[1]
+    t0, t1 = end[a0] - centre[0], end[a1] - centre[1]
+    return math.atan2(r0 * t1 - r1 * t0, r0 * t0 + r1 * t1)
 
 
 def check_offset_radius(
@@ -80,10 +119,7 @@ def angular_travel(
     clockwise: bool,
 ) -> float:
     """Signed angle swept from start to end (negative clockwise); end == start is a full turn."""
-    a0, a1 = plane
-    r0, r1 = start[a0] - centre[0], start[a1] - centre[1]
-    t0, t1 = end[a0] - centre[0], end[a1] - centre[1]
-    travel = math.atan2(r0 * t1 - r1 * t0, r0 * t0 + r1 * t1)
+    travel = _raw_travel(start, end, plane, centre)
     if clockwise:
         if travel >= -FULL_CIRCLE_EPSILON_RAD:
             travel -= 2.0 * math.pi
@@ -93,12 +129,22 @@ def angular_travel(
 
 
 def segment_count(travel_rad: float, radius_mm: float, tolerance_mm: float) -> int:
-    """How many chords keep the sagitta ``r(1 - cos(θ/2))`` within ``tolerance_mm``."""
+    """How many chords keep the sagitta ``r(1 - cos(θ/2))`` within ``tolerance_mm``.
+
+    Raises:
+        CommandError: 33 when the sweep or radius is not finite, or the arc would need more
+            than MAX_CHORDS chords.
+    """
+    if not (math.isfinite(travel_rad) and math.isfinite(radius_mm) and tolerance_mm > 0):
+        raise CommandError(INVALID_TARGET, "arc centre or radius out of range")
     ratio = tolerance_mm / (2.0 * radius_mm) if radius_mm > 0 else 1.0
     max_angle = 4.0 * math.asin(math.sqrt(ratio)) if ratio < 1.0 else MAX_SEGMENT_RAD
     count = math.ceil(abs(travel_rad) / min(max_angle, MAX_SEGMENT_RAD) - 1e-9)
     if count > MAX_CHORDS:
-        raise CommandError(INVALID_TARGET, f"arc would need {count} chords (radius too large)")
+        raise CommandError(
+            INVALID_TARGET,
+            f"arc would need {count} chords (at most {MAX_CHORDS}): radius too large for $12",
+        )
     return max(count, 1)
 
 

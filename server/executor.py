@@ -48,6 +48,10 @@ if TYPE_CHECKING:
 PLANE_AXES = {17: ("X", "Y"), 18: ("Z", "X"), 19: ("Y", "Z")}
 PLANE_OFFSETS = {17: ("I", "J"), 18: ("K", "I"), 19: ("J", "K")}
 ALWAYS_USED = frozenset("FST")
+# Grbl counts a dwell in 50 ms steps in a uint16, so it cannot dwell past 3276.75 s; an hour
+# refuses no dwell Grbl can perform and catches P written in milliseconds (Marlin's unit).
+MAX_DWELL_S = 3600.0
+BAD_NUMBER_FORMAT = 2
 
 
 class LineExecutor(NonModal):
@@ -181,6 +185,8 @@ class LineExecutor(NonModal):
         seconds = self.words.values.get("P")
         if seconds is None:
             raise CommandError(VALUE_WORD_MISSING, "G4 needs a P word (seconds)")
+        if seconds > MAX_DWELL_S:
+            raise CommandError(BAD_NUMBER_FORMAT, f"G4 P{seconds:g}: over {MAX_DWELL_S:g} s")
         self.values_used.add("P")
         self.before.append(Action("dwell", {"seconds": seconds}, lead_s=seconds, stops_motion=True))
 

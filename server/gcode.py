@@ -9,21 +9,31 @@ Accepted syntax: words are a letter and a number with optional spaces anywhere
 ``;`` comments to the end of the line and ``( ... )`` comments (kept in ``comments``);
 ``%`` program markers; ``/`` block delete at the start; RepRap/Smoothie framing
 ``N123 G1 X5*101`` where the checksum is the XOR of every byte before ``*``.
+
+Every value is finite and at most :data:`MAX_MAGNITUDE` in size: a number too long to be a
+float (``F1`` and 400 zeros, which float() turns into infinity) or too large for any machine
+quantity is a bad number format (error 2), on the fast path as on the general one.
 """
 
 from __future__ import annotations
 
 import re
 from functools import reduce
+from math import hypot
 from operator import xor
 
 from server.errors import CHECKSUM, CommandError
 
 EXPECTED_COMMAND_LETTER = 1
 BAD_NUMBER_FORMAT = 2
+LINE_OVERFLOW = 11
 REPEATED_WORD = 25
 INVALID_LINE_NUMBER = 27
 MAX_LINE_NUMBER = 10_000_000
+# No G-code quantity is larger: 1e9 mm is 1000 km, 1e9 mm/min is 17 km/s. The bound keeps every
+# step count (at most 1e6 steps/mm, see AxisConfig) exactly representable in a float, and
+# keeps unit scaling (x 25.4) and squares (v^2, 2 a d) far from overflowing.
+MAX_MAGNITUDE = 1e9
 
 _NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)"
 _WORD = re.compile(rf"([A-Z])({_NUMBER})")
@@ -105,7 +115,9 @@ def parse_line(text: str) -> Line:
     # a letter or lies in the number piece after one, and float() must accept each piece:
     # a comment, a checksum, "_" or any stray character fails float(), a letter without a
     # number makes the counts differ, and such lines go to the general path, which also
-    # finds the error. (Exponents cannot occur: E is a letter.)
+    # finds the error. (Exponents cannot occur: E is a letter.) A number too large (an overflow
+    # to infinity included) makes the numbers' Euclidean norm, one C call, exceed the bound; the
+    # general path then checks each number on its own.
     if text.isascii():
         raw = text.encode()
         separated = raw.translate(_NUMBERS_ONLY, b" ")
@@ -113,14 +125,30 @@ def parse_line(text: str) -> Line:
         letters = raw.translate(_TO_UPPER, _NOT_LETTERS).decode()
         if len(numbers) == len(letters) == len(set(letters)) and separated[:1] == b" ":
             try:
-                line = Line(text, letters, list(map(float, numbers)))
+                values = list(map(float, numbers))
             except ValueError:
                 pass
             else:
-                if "N" in letters:
-                    _take_line_number(line)
-                return line
+                if hypot(*values) <= MAX_MAGNITUDE:
+                    line = Line(text, letters, values)
+                    if "N" in letters:
+                        _take_line_number(line)
+                    return line
     return _parse_framed_or_commented(text)
+
+
+def too_long(text: str, limit_bytes: int) -> bool:
+    """Whether ``text`` (a line without its ending) is over ``limit_bytes`` in UTF-8."""
+    return len(text) > limit_bytes or (
+        4 * len(text) > limit_bytes and len(text.encode("utf-8", "replace")) > limit_bytes
+    )
+
+
+def check_length(text: str, limit_bytes: int) -> None:
+    """Refuse a line over the limit as the line protocol does (Grbl's ``error:11``), for the
+    entry paths that do not go through it (the API's ``gcode.send``, job files)."""
+    if too_long(text, limit_bytes):
+        raise CommandError(LINE_OVERFLOW, f"line longer than {limit_bytes} bytes")
 
 
 def _parse_framed_or_commented(text: str) -> Line:
@@ -156,6 +184,10 @@ def _parse_body(line: Line, body: str) -> Line:
     except ValueError:
         line.error = _diagnose(compact)
         return line
+    if not hypot(*values) <= MAX_MAGNITUDE:
+        line.error = _out_of_range(letters, values)
+        if line.error is not None:
+            return line
     line.letters, line.values = letters, values
     if "N" in letters:
         _take_line_number(line)
@@ -211,6 +243,14 @@ def _diagnose(compact: str) -> CommandError:
             return CommandError(BAD_NUMBER_FORMAT, f"bad number after '{char}'")
         return CommandError(EXPECTED_COMMAND_LETTER, f"expected a command letter, got {char!r}")
     return CommandError(EXPECTED_COMMAND_LETTER, "unparseable line")
+
+
+def _out_of_range(letters: str, values: list[float]) -> CommandError | None:
+    """Error 2 for the first value that is not finite or is larger than MAX_MAGNITUDE."""
+    for letter, value in zip(letters, values, strict=True):
+        if not -MAX_MAGNITUDE <= value <= MAX_MAGNITUDE:  # also false for NaN
+            return CommandError(BAD_NUMBER_FORMAT, f"number after '{letter}' out of range")
+    return None
 
 
 def _take_line_number(line: Line) -> None:

@@ -23,7 +23,8 @@ from typing import TYPE_CHECKING, BinaryIO
 from server.dispatcher import Command
 from server.errors import BUSY, FILE_ERROR, CommandError
 from server.events import MachineState
-from server.offline import estimate, format_duration
+from server.gcode import check_length
+from server.offline import estimate, format_duration, read_file_lines
 
 if TYPE_CHECKING:
     from server.kernel import Kernel
@@ -224,9 +225,9 @@ class Jobs:
 
     async def _run(self, path: Path, progress: JobProgress, source: _JobSource) -> None:
         try:
-            lines = await asyncio.to_thread(_read_lines, path)
-            progress.lines_total = len(lines)
             core = self.kernel.config.core
+            lines = await asyncio.to_thread(read_file_lines, path, core.protocol.line_limit)
+            progress.lines_total = len(lines)
             interpreter = self.kernel.machine.new_interpreter()
             stats = await asyncio.to_thread(
                 estimate, lines, core.model_copy(deep=True), None, interpreter
@@ -240,8 +241,10 @@ class Jobs:
         dispatcher, machine = self.kernel.dispatcher, self.kernel.machine
         loop = asyncio.get_running_loop()
         turn_s = loop.time()
+        limit = self.kernel.config.core.protocol.line_limit
         for number, line in enumerate(lines, 1):
             try:
+                check_length(line, limit)  # error 11, as a stream refuses it
                 await dispatcher.submit(line, source)
             except CommandError as exc:
                 self._fail(progress, f"line {number}: error:{exc.code} {exc.message}")
@@ -310,10 +313,6 @@ def _clock(seconds: float) -> str:
     minutes, secs = divmod(int(seconds), 60)
     hours, minutes = divmod(minutes, 60)
     return f"{hours:02d}:{minutes:02d}:{secs:02d}"
-
-
-def _read_lines(path: Path) -> list[str]:
-    return path.read_text(errors="replace").splitlines()
 
 
 def _temp_file(folder: Path) -> tuple[BinaryIO, Path]:

@@ -186,10 +186,14 @@ class Machine:
             self.stepgen.request_start()
             await self.idle_event.wait()
 
-    def new_interpreter(self) -> Interpreter:
+    def new_interpreter(self, *, soft_limits: bool = True) -> Interpreter:
         """A fresh interpreter at the origin that reads G-code exactly as this machine does
-        (same settings, same module codes): what ``estimate`` and ``render`` run."""
-        interpreter = Interpreter(self.interpreter.settings, self.codes)
+        (same settings, same module codes): what ``estimate`` and ``render`` run.
+        ``soft_limits=False`` previews a job whatever the travel (the toolpath)."""
+        settings = self.interpreter.settings
+        if not soft_limits:
+            settings = replace(settings, soft_limits=False)
+        interpreter = Interpreter(settings, self.codes)
         interpreter.set_position(tuple(0.0 for _ in self.core.axis_names))
         return interpreter
 

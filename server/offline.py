@@ -15,7 +15,7 @@ import sys
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 import numpy as np
 
@@ -23,7 +23,7 @@ from server.backends.base import Backend
 from server.backends.null import NullBackend
 from server.config import Config, CoreConfig
 from server.errors import CommandError
-from server.gcode import parse_line
+from server.gcode import check_length, parse_line
 from server.interpreter import Interpreter
 from server.machine import interpreter_settings
 from server.moves import Action, Move, MoveKind, Output
@@ -42,6 +42,7 @@ from server.stepgen import StepGenerator
 
 CUTTING = (MoveKind.FEED, MoveKind.ARC, MoveKind.PROBE)
 BBOX_BATCH = 4096
+SKIP_CHUNK_CHARS = 1 << 16
 
 
 @dataclass(slots=True)
@@ -145,6 +146,7 @@ class _Feeder:
         self.planner = Planner(PlannerSettings.from_config(core), origin)
         self.stats = stats
         self._lines = enumerate(lines, 1)
+        self._line_limit = core.protocol.line_limit
         self._on_line = on_line
         self._waiting: list[Output] = []  # outputs of the current line not yet queued
         self.done = False
@@ -188,6 +190,8 @@ class _Feeder:
         if self._on_line is not None:
             self._on_line(number)
         try:
+            if 4 * len(text) > self._line_limit:  # only such a line may be too long
+                check_length(text, self._line_limit)  # error 11, as the server refuses it
             return self.interpreter.execute(parse_line(text))
         except CommandError as exc:
             self.stats.error, self.stats.error_line = f"error:{exc.code} {exc.message}", number
@@ -315,6 +319,29 @@ def machine_interpreter(config: Config) -> Interpreter:
     from server.kernel import Kernel
 
     return Kernel(config, VirtualClock()).machine.new_interpreter()
+
+
+def file_lines(handle: TextIO, limit_chars: int) -> Iterator[str]:
+    """The lines of a text file opened with universal newlines (``\\n``, ``\\r``, ``\\r\\n``),
+    without their endings, read in small pieces: no single call holds the GIL for long, and a
+    line longer than ``limit_chars`` comes out cut to ``limit_chars + 1`` characters (enough
+    for the line-length check to refuse it) while the rest of it is skipped, never held."""
+    while line := handle.readline(limit_chars + 2):  # room for the ending and one more
+        if line.endswith("\n"):
+            yield line[:-1]
+        elif len(line) <= limit_chars:
+            yield line  # the last line, without an ending
+        else:
+            rest = line
+            while rest and not rest.endswith("\n"):
+                rest = handle.readline(SKIP_CHUNK_CHARS)
+            yield line[: limit_chars + 1]
+
+
+def read_file_lines(path: Path, limit_chars: int) -> list[str]:
+    """Every line of a job file (see :func:`file_lines`); call it in a thread."""
+    with path.open(errors="replace") as handle:
+        return list(file_lines(handle, limit_chars))
 
 
 # -- the CLI commands -----------------------------------------------------------------------

@@ -4,12 +4,23 @@ Each number reads and writes one value of the running configuration; a write is 
 the same pydantic model as the config file, applied at once where that is safe (junction
 deviation, arc tolerance, rates, accelerations, soft limits, report units) and persisted to
 a small TOML settings file next to the config, which is read again at start-up. Settings that
-change the machine's geometry (steps/mm, travel) are refused while motion is queued (error 8).
+change the machine's geometry (steps/mm, travel), and ``$RST=$``, are refused while motion is
+queued (error 8).
+
+Values are checked as Grbl does, in its order: a value that is not a plain finite number is
+error 2 (bad number format), a negative one error 4, an unknown setting error 3, a fixed one
+error 5; a value outside the setting's range (:attr:`Setting.low`..:attr:`Setting.high`) is
+error 3. The settings file is replaced atomically (temporary file, fsync, rename, fsync of the
+folder), so a crash while writing leaves the old or the new file, never an empty one; a file
+that cannot be read or parsed is reported with a warning naming it, never silently ignored.
 """
 
 from __future__ import annotations
 
 import logging
+import math
+import os
+import re
 import tomllib
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -27,9 +38,19 @@ if TYPE_CHECKING:
 log = logging.getLogger("motiond.settings")
 NOT_IDLE = 8
 SETTING_DISABLED = 5
+BAD_NUMBER_FORMAT = 2
 INVALID_STATEMENT = 3
 NEGATIVE_VALUE = 4
 MM_PER_MIN = 60.0
+_VALUE = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)")  # Grbl's read_float: no exponent, inf or nan
+# Ranges beyond the config models' own bounds (which still apply). The arc tolerance's floor
+# keeps a circle of 1 m radius under 7,100 chords (0.1 µm, ten times finer than a 1000 steps/mm
+# axis resolves); rates, accelerations and travels are bounded far above any real machine so
+# that a typo like $110=1e30 cannot make a move last no time at all.
+ARC_TOLERANCE_MIN_MM = 0.0001
+MAX_RATE_MM_MIN = 1_000_000.0
+MAX_ACCEL_MM_S2 = 1_000_000.0
+MAX_TRAVEL_MM = 1_000_000.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -41,6 +62,8 @@ class Setting:
     read: Callable[[CoreConfig], float]
     write: Callable[[CoreConfig, float], None] | None = None
     geometry: bool = False  # changes steps or travel: only while idle
+    low: float = 0.0  # inclusive bounds; the config model may exclude 0 itself
+    high: float = math.inf
 
 
 def _fixed(value: float, description: str) -> Callable[[int], Setting]:
@@ -89,22 +112,33 @@ def setting_table(core: CoreConfig) -> dict[int, Setting]:
         table[number] = _fixed(value, text)(number)
     table[10] = Setting(10, "status report mask", *_attr("machine", "status_report_mask"))
     table[11] = Setting(11, "junction deviation, mm", *_attr("planner", "junction_deviation_mm"))
-    table[12] = Setting(12, "arc tolerance, mm", *_attr("planner", "arc_tolerance_mm"))
+    table[12] = Setting(
+        12, "arc tolerance, mm", *_attr("planner", "arc_tolerance_mm"), low=ARC_TOLERANCE_MIN_MM
+    )
     table[13] = Setting(13, "report inches", *_bool("machine", "report_inches"))
     table[20] = Setting(20, "soft limits", *_bool("machine", "soft_limits"))
     table[32] = Setting(32, "laser mode", *_bool("machine", "laser_mode"))
     for index, _ in enumerate(core.axes):
-        table[100 + index] = Setting(
-            100 + index, "steps/mm", *_axis(index, "steps_per_mm"), geometry=True
-        )
-        table[110 + index] = Setting(
-            110 + index, "max rate, mm/min", *_axis(index, "max_rate_mm_s", MM_PER_MIN)
-        )
-        table[120 + index] = Setting(
-            120 + index, "acceleration, mm/s^2", *_axis(index, "accel_mm_s2")
-        )
-        table[130 + index] = Setting(130 + index, "max travel, mm", *_travel(index), geometry=True)
+        _axis_settings(table, index)
     return table
+
+
+def _axis_settings(table: dict[int, Setting], index: int) -> None:
+    table[100 + index] = Setting(
+        100 + index, "steps/mm", *_axis(index, "steps_per_mm"), geometry=True
+    )
+    table[110 + index] = Setting(
+        110 + index,
+        "max rate, mm/min",
+        *_axis(index, "max_rate_mm_s", MM_PER_MIN),
+        high=MAX_RATE_MM_MIN,
+    )
+    table[120 + index] = Setting(
+        120 + index, "acceleration, mm/s^2", *_axis(index, "accel_mm_s2"), high=MAX_ACCEL_MM_S2
+    )
+    table[130 + index] = Setting(
+        130 + index, "max travel, mm", *_travel(index), geometry=True, high=MAX_TRAVEL_MM
+    )
 
 
 def _bool(section: str, key: str) -> Accessors:
@@ -159,26 +193,23 @@ class Settings:
 
     def write(self, statement: str) -> None:
         """Apply ``N=value`` (the text after ``$``); raise CommandError with Grbl's codes."""
-        number_text, _, value_text = statement.partition("=")
+        number_text, equals, value_text = statement.partition("=")
         try:
-            number, value = int(number_text.strip()), float(value_text.strip())
+            number = int(number_text.strip())
         except ValueError as exc:
             raise CommandError(INVALID_STATEMENT, f"invalid statement ${statement}") from exc
-        self.set(number, value)
+        if not equals:
+            raise CommandError(INVALID_STATEMENT, f"invalid statement ${statement}")
+        if _VALUE.fullmatch(value_text.strip()) is None:
+            raise CommandError(BAD_NUMBER_FORMAT, f"${number}: bad number {value_text.strip()!r}")
+        self.set(number, float(value_text))
         self._save()
 
     def set(self, number: int, value: float) -> None:
-        setting = self.table.get(number)
-        if setting is None:
-            raise CommandError(INVALID_STATEMENT, f"no setting ${number}")
+        """Check ``value`` as Grbl does (see the module docstring), then apply it live."""
+        setting = self._checked(number, value)
         if setting.write is None:
-            if value != setting.read(self.core):
-                raise CommandError(SETTING_DISABLED, f"${number} ({setting.description}) is fixed")
             return
-        if value < 0 and number >= 100:
-            raise CommandError(NEGATIVE_VALUE, f"${number} must not be negative")
-        if setting.geometry and not self.machine.stepgen.idle:
-            raise CommandError(NOT_IDLE, f"${number} can only change while idle")
         try:
             setting.write(self.core, int(value) if number == 10 else value)
         except ValidationError as exc:
@@ -186,8 +217,33 @@ class Settings:
             raise CommandError(INVALID_STATEMENT, f"${number}: {message}") from exc
         self.machine.apply_settings()
 
+    def _checked(self, number: int, value: float) -> Setting:
+        if not math.isfinite(value):
+            raise CommandError(BAD_NUMBER_FORMAT, f"${number}: {value} is not a finite number")
+        if value < 0:
+            raise CommandError(NEGATIVE_VALUE, f"${number} must not be negative")
+        setting = self.table.get(number)
+        if setting is None:
+            raise CommandError(INVALID_STATEMENT, f"no setting ${number}")
+        if setting.write is None:
+            if value != setting.read(self.core):
+                raise CommandError(SETTING_DISABLED, f"${number} ({setting.description}) is fixed")
+            return setting
+        if not setting.low <= value <= setting.high:
+            raise CommandError(
+                INVALID_STATEMENT,
+                f"${number} ({setting.description}) must be between {setting.low:g} "
+                f"and {setting.high:g}",
+            )
+        if setting.geometry and not self.machine.stepgen.idle:
+            raise CommandError(NOT_IDLE, f"${number} can only change while idle")
+        return setting
+
     def restore_defaults(self, defaults: CoreConfig) -> None:
-        """``$RST=$``: every writable setting back to the config file's value."""
+        """``$RST=$``: every writable setting back to the config file's value (only while idle:
+        steps/mm and travel must not change under a moving machine)."""
+        if not self.machine.stepgen.idle:
+            raise CommandError(NOT_IDLE, "$RST=$ can only run while idle")
         for setting in self.table.values():
             if setting.write is not None:
                 setting.write(self.core, setting.read(defaults))
@@ -196,14 +252,19 @@ class Settings:
             self.path.unlink()
 
     def _load(self, path: Path) -> None:
-        try:
-            data: dict[str, Any] = tomllib.loads(path.read_text())
-            for key, value in data.get("settings", {}).items():
+        saved = _read_saved(path)
+        if saved is None:
+            return
+        for key, value in saved.items():
+            try:
                 self.set(int(key), float(value))
-        except (OSError, ValueError, tomllib.TOMLDecodeError, CommandError) as exc:
-            log.warning("%s: ignored saved settings: %s", path, exc)
+            except (ValueError, TypeError, CommandError) as exc:
+                log.warning("%s: ignored the saved value $%s = %r: %s", path, key, value, exc)
 
     def _save(self) -> None:
+        """Persist every writable value. Synchronous, on the loop: a few milliseconds for this
+        small file, settings are written rarely, and the ok then means the value is on disk,
+        as in Grbl (whose handler cannot await: see ``CoreCommands.write_setting``)."""
         if self.path is None:
             return
         lines = [
@@ -214,7 +275,46 @@ class Settings:
             if setting.write is not None:
                 lines.append(f'"{number}" = {setting.read(self.core)!r}')
         try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            self.path.write_text("\n".join(lines) + "\n")
+            write_atomically(self.path, "\n".join(lines) + "\n")
         except OSError as exc:
             log.warning("could not save settings to %s: %s", self.path, exc)
+
+
+def _read_saved(path: Path) -> dict[str, Any] | None:
+    """The ``[settings]`` table of a settings file, or None (with a warning saying why)."""
+    fallback = "the config file's values are used instead"
+    try:
+        data: dict[str, Any] = tomllib.loads(path.read_text())
+    except OSError as exc:
+        log.warning("%s: cannot read the saved settings (%s): %s", path, exc, fallback)
+        return None
+    except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        log.warning("%s: the saved settings are not valid TOML (%s): %s", path, exc, fallback)
+        return None
+    saved = data.get("settings")
+    if not isinstance(saved, dict) or not saved:
+        log.warning(
+            "%s: no [settings] values in the saved settings (an empty or truncated file?): %s",
+            path,
+            fallback,
+        )
+        return None
+    return saved
+
+
+def write_atomically(path: Path, text: str) -> None:
+    """Replace ``path`` with ``text`` so that a crash at any point leaves the old or the new
+    file: write a temporary file in the same folder, fsync it, rename it over ``path``, then
+    fsync the folder so the rename itself is durable."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temp = path.with_name(path.name + ".tmp")
+    with temp.open("w", encoding="utf-8") as handle:
+        handle.write(text)
+        handle.flush()
+        os.fsync(handle.fileno())
+    os.replace(temp, path)
+    folder = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(folder)
+    finally:
+        os.close(folder)

@@ -34,7 +34,7 @@ async def test_settings_read_in_grbl_format_and_apply_live() -> None:
 
 
 @pytest.mark.parametrize("line, code", [("$999=1", 3), ("$110=-5", 4), ("$0=3", 5),
-                                        ("$110=abc", 3), ("$N5=G0", 3)])
+                                        ("$110=abc", 2), ("$N5=G0", 3)])
 async def test_bad_settings_are_refused_with_grbl_codes_and_change_nothing(
     line: str, code: int
 ) -> None:

@@ -136,3 +136,41 @@ def test_the_fast_path_agrees_with_the_general_path(text: str) -> None:
         general.letters, general.values, general.line_number, general.comments,
         general.block_delete)
     assert (fast.error and fast.error.code) == (general.error and general.error.code)
+
+
+HUGE = "1" + "0" * 400  # float() turns it into infinity
+
+
+@pytest.mark.parametrize(
+    "text, letter",
+    [
+        (f"G1 X1 F{HUGE}", "F"),  # the fast path
+        (f"G1 X1 F{HUGE} (comment)", "F"),  # the general path
+        (f"N5 G4 P-{HUGE}*0", None),  # framed: the checksum is checked first (error 41)
+        ("G1 X1000000000.001", "X"),
+        ("G1 X-2000000000 Y1", "X"),
+        (f"G2 X10 R1{'0' * 200}", "R"),
+    ],
+)
+def test_numbers_that_are_not_finite_or_too_large_are_a_bad_number_format(
+    text: str, letter: str | None
+) -> None:
+    line = parse_line(text)
+    assert line.error is not None and line.letters == "" and line.values == []
+    if letter is None:
+        assert line.error.code == 41
+        return
+    assert line.error.code == 2 and f"'{letter}'" in line.error.message
+    assert _parse_framed_or_commented(text).error.code == 2
+
+
+def test_numbers_up_to_the_bound_parse_even_when_their_sum_is_larger() -> None:
+    line = parse_line("G1 X1000000000 Y-1000000000 F999999999.5")
+    assert line.error is None and line.values == [1.0, 1e9, -1e9, 999999999.5]
+
+
+@pytest.mark.parametrize("text", ["G1 Xinf", "G1 Xnan", "G1 X-Infinity", "G1 X1e400 Y0"])
+def test_words_spelling_infinities_never_become_numbers(text: str) -> None:
+    line = parse_line(text)
+    assert line.error is not None or (line.values == [1.0, 1.0, 400.0, 0.0] and "E" in line.letters)
+    assert all(abs(value) <= 1e9 for value in line.values)

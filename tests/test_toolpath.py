@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import itertools
+import random
 
 import pytest
 
-from server.toolpath import CUT, RAPID, Decimator, Segment, plan_toolpath
+from server.toolpath import CUT, GAP, RAPID, Decimator, Segment, plan_toolpath
 from tests.conftest import CORPUS, make_config
 
 
@@ -41,3 +42,35 @@ def test_a_raster_job_is_decimated_under_the_cap_and_ends_where_the_file_ends() 
     last_x = next(line for line in reversed(lines) if line.startswith("X")).split()[0]
     assert path["end"][0] == pytest.approx(float(last_x[1:]), abs=1e-3)
     assert path["bounds"]["max"][0] == pytest.approx(100.0, abs=0.01)
+
+
+def decimate(points: list[tuple[float, float]], cap: int, kinds: list[int] | None = None) -> list:
+    decimator = Decimator(cap=cap)
+    for index, ((x0, y0), (x1, y1)) in enumerate(itertools.pairwise(points)):
+        kind = kinds[index % len(kinds)] if kinds else CUT
+        decimator.add(Segment(x0, y0, x1, y1, kind, 600.0 + index % 7 * 900, float(index % 100)))
+    return decimator.finish()
+
+
+def test_a_back_and_forth_raster_folds_under_the_cap_and_keeps_its_extent() -> None:
+    points = [(0.0, 0.0)]
+    for row in range(50_000):  # 100 mm lines, 0.01 mm apart, power changing along the way
+        x = 100.0 * ((row + 1) % 2)
+        points += [(x, row * 0.01), (x, (row + 1) * 0.01)]
+    kept = decimate(points, 1000)
+    assert 100 < len(kept) <= 1000
+    xs = [x for s in kept for x in (s.x0, s.x1)]
+    ys = [y for s in kept for y in (s.y0, s.y1)]
+    assert min(xs) == pytest.approx(0.0, abs=1) and max(xs) == pytest.approx(100.0, abs=1)
+    assert (kept[0].x0, kept[0].y0) == (0.0, 0.0) and max(ys) == pytest.approx(500.0)
+    assert all(a.x1 == b.x0 and a.y1 == b.y0 for a, b in itertools.pairwise(kept)), "connected"
+
+
+@pytest.mark.parametrize("shape", ["random walk", "huge jumps", "gaps"])
+def test_no_path_shape_outgrows_the_cap(shape: str) -> None:
+    rng = random.Random(5)
+    scale = 1e9 if shape == "huge jumps" else 1.0
+    points = [(rng.uniform(-scale, scale), rng.uniform(-scale, scale)) for _ in range(20_000)]
+    kinds = [CUT, GAP] if shape == "gaps" else None
+    for cap in (100, 1000):
+        assert 0 < len(decimate(points, cap, kinds)) <= cap
