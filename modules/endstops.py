@@ -35,16 +35,11 @@ from pydantic import Field
 
 from server.codes import CodeCall
 from server.dispatcher import Command
-from server.errors import CommandError, ConfigError
+from server.errors import Alarm, CommandError, ConfigError, Error
 from server.events import MachineState
 from server.module import Module, ModuleConfig, ModuleContext
 from server.moves import Move, MoveKind, Output, Position, Sync, SyncKind
 
-ALARM_HARD_LIMIT = 1
-ALARM_HOMING_RESET = 6
-ALARM_PULL_OFF = 8
-ALARM_NOT_FOUND = 9
-NOT_IDLE = 8
 LOCKED = 9
 SEEK_SCALE = 1.5  # Grbl: search up to 1.5 x the travel
 LOCATE_SCALE = 5.0  # Grbl: locate within 5 x the pull-off
@@ -154,7 +149,7 @@ class Endstops(Module):
             self._active = active
             if new and self.config.hard_limits and self.ctx.motion().moving:
                 self.ctx.alarm(f"hard limit: {', '.join(sorted(new))} triggered",
-                               ALARM_HARD_LIMIT)
+                               Alarm.HARD_LIMIT)
 
     def _on_state(self, state: MachineState) -> None:
         self._state = state
@@ -175,7 +170,9 @@ class Endstops(Module):
         if self._state in (MachineState.IDLE, MachineState.RUN):
             await self.ctx.moves.wait_idle()  # a streamed G28.2 runs after the moves before it
         if self._state not in (MachineState.IDLE, MachineState.ALARM):
-            raise CommandError(NOT_IDLE, f"homing needs an idle machine, not {self._state.value}")
+            raise CommandError(
+                Error.NOT_IDLE, f"homing needs an idle machine, not {self._state.value}"
+            )
         try:
             await self.home(axes)
         except HomingFailed as exc:
@@ -187,7 +184,9 @@ class Endstops(Module):
         """The endstop axes named (none named: all of them)."""
         unknown = letters - {axis.name for axis in self.axes}
         if unknown:
-            raise CommandError(3, f"no endstop configured for {''.join(sorted(unknown))}")
+            raise CommandError(
+                Error.INVALID_STATEMENT, f"no endstop configured for {''.join(sorted(unknown))}"
+            )
         return [axis for axis in self.axes if axis.name in letters or not letters]
 
     async def home(self, axes: Sequence[_Axis]) -> None:
@@ -229,7 +228,7 @@ class Endstops(Module):
             hit = await self._move(tuple(target), speed, remaining)
             if not hit:
                 names = ", ".join(axis.switch for axis in remaining)
-                raise HomingFailed(ALARM_NOT_FOUND, f"homing: {names} switch not found")
+                raise HomingFailed(Alarm.HOMING_NOT_FOUND, f"homing: {names} switch not found")
             remaining = [axis for axis in remaining if axis not in hit]
 
     async def _pull_off(self, group: list[_Axis], speed: float) -> None:
@@ -240,7 +239,7 @@ class Endstops(Module):
         still = self.triggered(group)
         if still:
             names = ", ".join(axis.switch for axis in still)
-            raise HomingFailed(ALARM_PULL_OFF, f"homing: pull-off did not clear {names}")
+            raise HomingFailed(Alarm.HOMING_PULL_OFF, f"homing: pull-off did not clear {names}")
 
     async def _move(self, target: Position, speed: float, watch: list[_Axis]) -> list[_Axis]:
         """Move to ``target``; stop at once when a switch of ``watch`` triggers (returned)."""
@@ -278,7 +277,7 @@ class Endstops(Module):
 
     def _check_abort(self) -> None:
         if self._abort is not None:
-            raise HomingFailed(ALARM_HOMING_RESET, self._abort)
+            raise HomingFailed(Alarm.HOMING_RESET, self._abort)
 
     def status(self) -> dict[str, Any]:
         return {"homing": self.homing, "homed": sorted(self.homed),

@@ -39,7 +39,7 @@ from pydantic import Field, model_validator
 
 from server.codes import CodeCall
 from server.dispatcher import Command
-from server.errors import BUSY, CommandError
+from server.errors import CommandError, Error
 from server.events import MachineState
 from server.module import Module, ModuleConfig, ModuleContext
 from server.moves import Action, MoveKind, Output, Sync, SyncKind, ToolMode
@@ -49,8 +49,6 @@ PIN_PATTERN = r"^[A-Za-z0-9_.\-]+$"
 CUTTING_KINDS = frozenset({MoveKind.FEED, MoveKind.ARC})
 OFF_STATES = frozenset({MachineState.ALARM, MachineState.HOLD, MachineState.SLEEP,
                         MachineState.DOOR})
-BAD_NUMBER = 2
-BAD_STATEMENT = 3
 
 
 class LaserConfig(ModuleConfig):
@@ -188,7 +186,9 @@ class Laser(Module):
             report = f"[MSG:laser power scale {self.m221_percent:g}%]"
             return [Sync(SyncKind.MESSAGE, {"lines": [report]})]
         if not 0.0 <= percent <= 1000.0:
-            raise CommandError(BAD_NUMBER, "M221 S must be a percentage between 0 and 1000")
+            raise CommandError(
+                Error.BAD_NUMBER_FORMAT, "M221 S must be a percentage between 0 and 1000"
+            )
         return [Action("laser", {"scale_percent": percent})]
 
     def _fire(self, command: Command) -> list[str]:
@@ -198,16 +198,22 @@ class Laser(Module):
             self._off_now()
             return ["[MSG:fire off]"]
         if not 1 <= len(args) <= 2:
-            raise CommandError(BAD_STATEMENT, "usage: fire <percent> [seconds] | fire off")
+            raise CommandError(
+                Error.INVALID_STATEMENT, "usage: fire <percent> [seconds] | fire off"
+            )
         try:
             percent, *rest = (float(arg) for arg in args)
         except ValueError as exc:
-            raise CommandError(BAD_NUMBER, f"fire: not a number: {command.args!r}") from exc
+            raise CommandError(
+                Error.BAD_NUMBER_FORMAT, f"fire: not a number: {command.args!r}"
+            ) from exc
         if not 0.0 <= percent <= 100.0:
-            raise CommandError(BAD_NUMBER, "fire: the power is a percentage from 0 to 100")
+            raise CommandError(
+                Error.BAD_NUMBER_FORMAT, "fire: the power is a percentage from 0 to 100"
+            )
         motion = self.ctx.motion()
         if self._state is not MachineState.IDLE or motion.moving or motion.queue_depth:
-            raise CommandError(BUSY, "fire only works while the machine is idle")
+            raise CommandError(Error.BUSY, "fire only works while the machine is idle")
         limit_s = self.config.fire_max_duration_s
         duration_s = min(rest[0], limit_s) if rest and rest[0] > 0 else limit_s
         now_s = self.ctx.clock.now_s()

@@ -31,14 +31,13 @@ from typing import Any, ClassVar
 from pydantic import Field, model_validator
 
 from server.codes import CodeCall
-from server.errors import CommandError
+from server.errors import CommandError, Error
 from server.modal import M_GROUPS
 from server.module import Module, ModuleConfig, ModuleContext
 from server.moves import Action, Output
 
 PIN_PATTERN = r"^[A-Za-z0-9_.\-]+$"
 COOLANT_CODES = {7: "mist", 8: "flood"}
-VALUE_WORD_MISSING = 28
 
 
 class SwitchConfig(ModuleConfig):
@@ -103,7 +102,7 @@ class Switch(Module):
     def _m42(self, call: CodeCall) -> list[Output]:
         s = call.values.get("S")
         if s is None:
-            raise CommandError(VALUE_WORD_MISSING, "M42 needs P<pin> and S<value>")
+            raise CommandError(Error.VALUE_WORD_MISSING, "M42 needs P<pin> and S<value>")
         return [self._action(self._value_from_s(s))]
 
     def _value_from_s(self, s: float | None) -> float:

@@ -14,11 +14,9 @@ from __future__ import annotations
 
 import math
 
-from server.errors import CommandError
+from server.errors import CommandError, Error
 from server.moves import Position
 
-INVALID_TARGET = 33
-ARC_RADIUS_ERROR = 34
 FULL_CIRCLE_EPSILON_RAD = 5e-7  # Grbl's ARC_ANGULAR_TRAVEL_EPSILON
 MAX_SEGMENT_RAD = math.pi / 2
 MAX_CHORDS = 10_000
@@ -38,14 +36,14 @@ def radius_form_centre(
     dx, dy = end[a0] - start[a0], end[a1] - start[a1]
     chord = math.hypot(dx, dy)
     if chord == 0.0:
-        raise CommandError(INVALID_TARGET, "R-form arc: end point equals start point")
+        raise CommandError(Error.INVALID_TARGET, "R-form arc: end point equals start point")
     if not math.isfinite(chord * r_mm):
-        raise CommandError(INVALID_TARGET, "R-form arc: radius or end point out of range")
+        raise CommandError(Error.INVALID_TARGET, "R-form arc: radius or end point out of range")
     centre = _radius_centre(start, plane, dx, dy, chord, r_mm, clockwise)
     travel = _raw_travel(start, end, plane, centre)
     if abs(travel) <= FULL_CIRCLE_EPSILON_RAD:
         raise CommandError(
-            INVALID_TARGET,
+            Error.INVALID_TARGET,
             f"R-form arc: radius {abs(r_mm):g} mm is too large for a chord of {chord:g} mm "
             "(the arc is a straight line: use G1)",
         )
@@ -66,7 +64,7 @@ def _radius_centre(
     if h_squared_x4 < 0.0:
         if h_squared_x4 < -1e-9 * chord * chord:
             raise CommandError(
-                ARC_RADIUS_ERROR,
+                Error.ARC_RADIUS_ERROR,
                 f"arc radius {abs(r_mm):g} mm is too small for a chord of {chord:g} mm",
             )
         h_squared_x4 = 0.0  # a half circle whose R was rounded when written
@@ -103,12 +101,12 @@ def check_offset_radius(
     delta = abs(r_end - r_start)
     if delta > 0.005 and (delta > 0.5 or delta > 0.001 * r_start):
         raise CommandError(
-            INVALID_TARGET,
+            Error.INVALID_TARGET,
             f"arc end point is {delta:.4f} mm off the circle "
             f"(radius {r_start:.4f} mm at the start, {r_end:.4f} mm at the end)",
         )
     if r_start == 0.0:
-        raise CommandError(INVALID_TARGET, "arc centre equals the start point")
+        raise CommandError(Error.INVALID_TARGET, "arc centre equals the start point")
 
 
 def angular_travel(
@@ -136,13 +134,13 @@ def segment_count(travel_rad: float, radius_mm: float, tolerance_mm: float) -> i
             than MAX_CHORDS chords.
     """
     if not (math.isfinite(travel_rad) and math.isfinite(radius_mm) and tolerance_mm > 0):
-        raise CommandError(INVALID_TARGET, "arc centre or radius out of range")
+        raise CommandError(Error.INVALID_TARGET, "arc centre or radius out of range")
     ratio = tolerance_mm / (2.0 * radius_mm) if radius_mm > 0 else 1.0
     max_angle = 4.0 * math.asin(math.sqrt(ratio)) if ratio < 1.0 else MAX_SEGMENT_RAD
     count = math.ceil(abs(travel_rad) / min(max_angle, MAX_SEGMENT_RAD) - 1e-9)
     if count > MAX_CHORDS:
         raise CommandError(
-            INVALID_TARGET,
+            Error.INVALID_TARGET,
             f"arc would need {count} chords (at most {MAX_CHORDS}): radius too large for $12",
         )
     return max(count, 1)

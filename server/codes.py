@@ -19,12 +19,9 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
-from server.errors import CommandError
+from server.errors import CommandError, Error
 from server.modal import M_GROUPS, VALUE_LETTERS
 from server.moves import Output
-
-VALUE_WORD_MISSING = 28
-BAD_NUMBER = 2
 
 
 @dataclass(frozen=True, slots=True)
@@ -156,11 +153,13 @@ class CodeTable:
         letter, owners = self._mux[code]
         value = values.get(letter)
         if value is None:
-            raise CommandError(VALUE_WORD_MISSING, f"M{code} needs a {letter} word")
+            raise CommandError(Error.VALUE_WORD_MISSING, f"M{code} needs a {letter} word")
         text = f"{value:g}"
         found = owners.get(text) or owners.get(f"{letter}{text}")
         if found is None:
-            raise CommandError(BAD_NUMBER, f"M{code}: nothing is configured for {letter}{text}")
+            raise CommandError(
+                Error.BAD_NUMBER_FORMAT, f"M{code}: nothing is configured for {letter}{text}"
+            )
         return found
 
     def claims(self) -> list[str]:

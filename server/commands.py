@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 from server import __version__
 from server.codes import CodeCall
 from server.dispatcher import Command, Dispatcher, Handler
-from server.errors import CommandError
+from server.errors import CommandError, Error
 from server.events import MachineState
 from server.gcode import parse_line
 from server.moves import Output, Sync, SyncKind
@@ -22,8 +22,6 @@ if TYPE_CHECKING:
     from server.kernel import Kernel
 
 BANNER_VERSION = "1.1h"
-NOT_IDLE = 8
-JOG_INVALID = 16
 
 
 class CoreCommands:
@@ -68,7 +66,9 @@ class CoreCommands:
             dispatcher.register("$H", self.no_homing, when_locked=True)
 
     def no_homing(self, command: Command) -> None:
-        raise CommandError(5, "homing is not configured: add an [endstops] section")
+        raise CommandError(
+            Error.SETTING_DISABLED, "homing is not configured: add an [endstops] section"
+        )
 
     def help(self, command: Command) -> list[str]:
         return [format_help()]
@@ -111,7 +111,7 @@ class CoreCommands:
             self.machine.leave_check_mode()
             return ["[MSG:Disabled]"]
         if kernel.state is not MachineState.IDLE or not self.machine.stepgen.idle:
-            raise CommandError(NOT_IDLE, "check mode needs an idle machine")
+            raise CommandError(Error.NOT_IDLE, "check mode needs an idle machine")
         self.machine.enter_check_mode()
         return ["[MSG:Enabled]"]
 
@@ -121,7 +121,7 @@ class CoreCommands:
     def restore(self, command: Command) -> None:
         target = command.args.strip()
         if target not in ("$", "#", "*"):
-            raise CommandError(3, "use $RST=$, $RST=# or $RST=*")
+            raise CommandError(Error.INVALID_STATEMENT, "use $RST=$, $RST=# or $RST=*")
         if target in ("$", "*"):
             self.machine.restore_settings()
         if target in ("#", "*"):
@@ -129,7 +129,7 @@ class CoreCommands:
 
     def sleep(self, command: Command) -> None:
         if not self.machine.stepgen.idle:
-            raise CommandError(NOT_IDLE, "sleep needs an idle machine")
+            raise CommandError(Error.NOT_IDLE, "sleep needs an idle machine")
         self.machine.stop_now()
         self.kernel.events.emit("motors_disable")
         self.kernel.set_state(MachineState.SLEEP)
@@ -138,10 +138,10 @@ class CoreCommands:
     async def jog(self, command: Command) -> None:
         state = self.kernel.state
         if state not in (MachineState.IDLE, MachineState.JOG):
-            raise CommandError(NOT_IDLE, "jog needs an idle machine")
+            raise CommandError(Error.NOT_IDLE, "jog needs an idle machine")
         line = parse_line(command.args)
         if line.error is not None:
-            raise CommandError(JOG_INVALID, f"invalid jog: {line.error.message}")
+            raise CommandError(Error.INVALID_JOG, f"invalid jog: {line.error.message}")
         for move in self.machine.interpreter.jog(line):
             await self.machine.queue_move(move)
         self.machine.stepgen.request_start()

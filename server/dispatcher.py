@@ -31,7 +31,7 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
-from server.errors import AUTH_REQUIRED, BUSY, UNKNOWN_COMMAND, CommandError
+from server.errors import CommandError, Error
 from server.gcode import Line, parse_line
 from server.interpreter import LineKind
 
@@ -44,8 +44,6 @@ _GM_NAME = re.compile(r"[GMgm]\d")
 _DOLLAR = re.compile(r"\$([$#]|[A-Za-z]*)\s*(.*)$", re.S)
 _SETTING = re.compile(r"\$(\d+)\s*=\s*(.*)$")
 _STARTUP = re.compile(r"\$[Nn](\d)\s*=(.*)$", re.S)
-LOCKED_OUT = 9
-INVALID_DOLLAR = 3
 
 
 class Source(Protocol):
@@ -154,18 +152,18 @@ class Dispatcher:
         """Execute one line in order with every other source; returns messages for the reply.
 
         ``still_valid`` is checked once the line's turn comes: a line overtaken by a reset of
-        its connection while it waited is dropped (CommandError BUSY), never run late.
+        its connection while it waited is dropped (CommandError Error.BUSY), never run late.
         """
         if self._closed:
-            raise CommandError(BUSY, "shutting down")
+            raise CommandError(Error.BUSY, "shutting down")
         named = _NAMED.match(text.strip())
         if named and _key(named.group(1)) in self._immediate:
             return await self.execute(text, source)
         async with self._lock:
             if self._closed:
-                raise CommandError(BUSY, "shutting down")
+                raise CommandError(Error.BUSY, "shutting down")
             if still_valid is not None and not still_valid():
-                raise CommandError(BUSY, "overtaken by a reset")
+                raise CommandError(Error.BUSY, "overtaken by a reset")
             return await self.execute(text, source)
 
     async def execute(self, text: str, source: Source) -> list[str]:
@@ -191,19 +189,23 @@ class Dispatcher:
         kind = self._classify(line)
         self._check_source(source, query=kind is LineKind.QUERY)
         if kind is LineKind.EFFECT and self._is_locked():
-            raise CommandError(LOCKED_OUT, "G-code locked out during alarm: $X or M999 to unlock")
+            raise CommandError(
+                Error.LOCKED_OUT, "G-code locked out during alarm: $X or M999 to unlock"
+            )
         if self._gcode is None:
-            raise CommandError(20, "no G-code interpreter")
+            raise CommandError(Error.UNSUPPORTED, "no G-code interpreter")
         return await _call(self._gcode, Command("G", text, "", source, line))
 
     async def _run(self, name: str, command: Command) -> list[str]:
         entry = self._entries.get(name)
         if entry is None:
-            code = INVALID_DOLLAR if name.startswith("$") else UNKNOWN_COMMAND
+            code = Error.INVALID_STATEMENT if name.startswith("$") else Error.UNKNOWN_COMMAND
             raise CommandError(code, f"unknown command {name}")
         self._check_source(command.source, query=entry.query, job_control=name in self._immediate)
         if self._is_locked() and not entry.when_locked:
-            raise CommandError(LOCKED_OUT, f"{name} locked out during alarm: $X or M999 to unlock")
+            raise CommandError(
+                Error.LOCKED_OUT, f"{name} locked out during alarm: $X or M999 to unlock"
+            )
         messages: list[str] = []
         for handler in entry.handlers:
             messages += await _call(handler, command)
@@ -215,12 +217,12 @@ class Dispatcher:
         if query:
             return
         if not source.can_control:
-            raise CommandError(AUTH_REQUIRED, "this connection is read-only")
+            raise CommandError(Error.AUTH_REQUIRED, "this connection is read-only")
         if job_control:
             return
         owner = self._owner
         if owner is not None and owner is not source and self._is_busy():
-            raise CommandError(BUSY, f"the machine is running {owner.name}'s motion")
+            raise CommandError(Error.BUSY, f"the machine is running {owner.name}'s motion")
         self._owner = source
 
     def claim(self, source: Source) -> None:
@@ -238,7 +240,7 @@ def _dollar_name(stripped: str) -> tuple[str, str]:
         return f"$N{startup.group(1)}=", startup.group(2)
     match = _DOLLAR.match(stripped)
     if match is None:
-        raise CommandError(INVALID_DOLLAR, f"invalid $ statement {stripped!r}")
+        raise CommandError(Error.INVALID_STATEMENT, f"invalid $ statement {stripped!r}")
     word, rest = match.group(1).upper(), match.group(2)
     if "=" in word or rest.startswith("="):
         return f"${word}=", rest.lstrip("=")

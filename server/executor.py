@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 
 from server import arcs
 from server.codes import CodeCall
-from server.errors import CommandError, SoftLimitError
+from server.errors import CommandError, Error, SoftLimitError
 from server.modal import (
     AXIS_COMMANDS,
     G0,
@@ -22,17 +22,7 @@ from server.modal import (
     G2,
     G3,
     G80,
-    INVALID_TARGET,
     MM_PER_INCH,
-    NO_AXIS_WORDS,
-    NO_AXIS_WORDS_IN_PLANE,
-    NO_OFFSETS_IN_PLANE,
-    TLO_AXIS,
-    UNDEFINED_FEED,
-    UNSUPPORTED,
-    UNUSED_AXIS_WORDS,
-    UNUSED_VALUE_WORDS,
-    VALUE_WORD_MISSING,
     WCS_CODES,
     Geometry,
     ModalState,
@@ -51,7 +41,6 @@ ALWAYS_USED = frozenset("FST")
 # Grbl counts a dwell in 50 ms steps in a uint16, so it cannot dwell past 3276.75 s; an hour
 # refuses no dwell Grbl can perform and catches P written in milliseconds (Marlin's unit).
 MAX_DWELL_S = 3600.0
-BAD_NUMBER_FORMAT = 2
 
 
 class LineExecutor(NonModal):
@@ -184,9 +173,9 @@ class LineExecutor(NonModal):
             return
         seconds = self.words.values.get("P")
         if seconds is None:
-            raise CommandError(VALUE_WORD_MISSING, "G4 needs a P word (seconds)")
+            raise CommandError(Error.VALUE_WORD_MISSING, "G4 needs a P word (seconds)")
         if seconds > MAX_DWELL_S:
-            raise CommandError(BAD_NUMBER_FORMAT, f"G4 P{seconds:g}: over {MAX_DWELL_S:g} s")
+            raise CommandError(Error.BAD_NUMBER_FORMAT, f"G4 P{seconds:g}: over {MAX_DWELL_S:g} s")
         self.values_used.add("P")
         self.before.append(Action("dwell", {"seconds": seconds}, lead_s=seconds, stops_motion=True))
 
@@ -197,7 +186,7 @@ class LineExecutor(NonModal):
         elif code == 431:
             z, axes = self.geo.z_axis, self.words.axes
             if z is None or set(axes) != {z}:
-                raise CommandError(TLO_AXIS, "G43.1 takes exactly one Z word")
+                raise CommandError(Error.TLO_AXIS, "G43.1 takes exactly one Z word")
             self.offsets.tlo_mm = axes[z] * (MM_PER_INCH if self.modal.inches else 1.0)
             self.axes_used = True
 
@@ -227,9 +216,9 @@ class LineExecutor(NonModal):
 
     def _require_feed(self) -> None:
         if self.modal.inverse_time and "F" not in self.words.values:
-            raise CommandError(UNDEFINED_FEED, "G93 inverse time: F is required on each move")
+            raise CommandError(Error.UNDEFINED_FEED, "G93 inverse time: F is required on each move")
         if self.modal.feed <= 0.0:
-            raise CommandError(UNDEFINED_FEED, "feed rate undefined: give an F word")
+            raise CommandError(Error.UNDEFINED_FEED, "feed rate undefined: give an F word")
 
     def target(self) -> list[float]:
         """The line's axis words as a machine target (units, G90/G91, G53, offsets applied)."""
@@ -275,10 +264,10 @@ class LineExecutor(NonModal):
 
     def _probe(self, mode: int) -> None:
         if not self.words.axes:
-            raise CommandError(NO_AXIS_WORDS, f"G{mode / 10:g} needs axis words")
+            raise CommandError(Error.NO_AXIS_WORDS, f"G{mode / 10:g} needs axis words")
         target = tuple(self.target())
         if target == self.position:
-            raise CommandError(INVALID_TARGET, "probe target equals the current position")
+            raise CommandError(Error.INVALID_TARGET, "probe target equals the current position")
         self.emit(target, MoveKind.PROBE, self._feed_mm_s(math.dist(target, self.position)))
         params = {"towards": mode in (382, 383), "error_on_fail": mode in (382, 384)}
         self.moves.append(Sync(SyncKind.PROBE, params))
@@ -288,7 +277,7 @@ class LineExecutor(NonModal):
         names, index = PLANE_AXES[self.modal.plane], self.geo.axis_index
         if names[0] not in index or names[1] not in index:
             raise CommandError(
-                UNSUPPORTED, f"G{self.modal.plane} arcs need axes {names[0]} and {names[1]}"
+                Error.UNSUPPORTED, f"G{self.modal.plane} arcs need axes {names[0]} and {names[1]}"
             )
         return index[names[0]], index[names[1]]
 
@@ -304,7 +293,9 @@ class LineExecutor(NonModal):
         else:
             if not any(letter in values for letter in PLANE_OFFSETS[self.modal.plane]):
                 self._need_plane_words(plane)
-                raise CommandError(NO_OFFSETS_IN_PLANE, "G2/G3 needs an in-plane I/J/K offset")
+                raise CommandError(
+                    Error.NO_OFFSETS_IN_PLANE, "G2/G3 needs an in-plane I/J/K offset"
+                )
             self.values_used.update(set("IJK") & values.keys())
             centre = self._offset_centre(plane)
             arcs.check_offset_radius(start, end, plane, centre)
@@ -316,9 +307,11 @@ class LineExecutor(NonModal):
     def _need_plane_words(self, plane: tuple[int, int]) -> None:
         axes = self.words.axes
         if not axes:
-            raise CommandError(NO_AXIS_WORDS, "G2/G3 needs axis words")
+            raise CommandError(Error.NO_AXIS_WORDS, "G2/G3 needs axis words")
         if plane[0] not in axes and plane[1] not in axes:
-            raise CommandError(NO_AXIS_WORDS_IN_PLANE, "G2/G3 needs an axis word in the plane")
+            raise CommandError(
+                Error.NO_AXIS_WORDS_IN_PLANE, "G2/G3 needs an axis word in the plane"
+            )
 
     def _offset_centre(self, plane: tuple[int, int]) -> tuple[float, float]:
         values, unit = self.words.values, MM_PER_INCH if self.modal.inches else 1.0
@@ -347,10 +340,10 @@ class LineExecutor(NonModal):
     # -- the end of the line -----------------------------------------------------------------
     def _check_unused(self) -> None:
         if self.words.axes and not self.axes_used:
-            raise CommandError(UNUSED_AXIS_WORDS, "axis words with no command to use them")
+            raise CommandError(Error.UNUSED_AXIS_WORDS, "axis words with no command to use them")
         unused = self.words.values.keys() - self.values_used - ALWAYS_USED
         if unused:
-            raise CommandError(UNUSED_VALUE_WORDS, f"unused words {' '.join(sorted(unused))}")
+            raise CommandError(Error.UNUSED_VALUE_WORDS, f"unused words {' '.join(sorted(unused))}")
 
     def _program_flow(self) -> None:
         code, m = self.words.g("m_stop"), self.modal

@@ -22,13 +22,8 @@ from functools import reduce
 from math import hypot
 from operator import xor
 
-from server.errors import CHECKSUM, CommandError
+from server.errors import CommandError, Error
 
-EXPECTED_COMMAND_LETTER = 1
-BAD_NUMBER_FORMAT = 2
-LINE_OVERFLOW = 11
-REPEATED_WORD = 25
-INVALID_LINE_NUMBER = 27
 MAX_LINE_NUMBER = 10_000_000
 # No G-code quantity is larger: 1e9 mm is 1000 km, 1e9 mm/min is 17 km/s. The bound keeps every
 # step count (at most 1e6 steps/mm, see AxisConfig) exactly representable in a float, and
@@ -148,7 +143,7 @@ def check_length(text: str, limit_bytes: int) -> None:
     """Refuse a line over the limit as the line protocol does (Grbl's ``error:11``), for the
     entry paths that do not go through it (the API's ``gcode.send``, job files)."""
     if too_long(text, limit_bytes):
-        raise CommandError(LINE_OVERFLOW, f"line longer than {limit_bytes} bytes")
+        raise CommandError(Error.LINE_OVERFLOW, f"line longer than {limit_bytes} bytes")
 
 
 def _parse_framed_or_commented(text: str) -> Line:
@@ -200,12 +195,14 @@ def _split_checksum(line: Line, body: str) -> str:
     before, _, after = body.rpartition("*")
     match = _CHECKSUM.fullmatch(after)
     if match is None:
-        line.error = CommandError(CHECKSUM, f"bad checksum field '*{after}'")
+        line.error = CommandError(Error.CHECKSUM, f"bad checksum field '*{after}'")
         return before
     line.checksum = int(match.group(1))
     expected = checksum_of(before)
     if line.checksum != expected:
-        line.error = CommandError(CHECKSUM, f"checksum {line.checksum} != computed {expected}")
+        line.error = CommandError(
+            Error.CHECKSUM, f"checksum {line.checksum} != computed {expected}"
+        )
     return before
 
 
@@ -226,7 +223,7 @@ def _strip_comments(line: Line, body: str) -> str:
     rest = "".join(kept)
     line.comments = tuple(comments)
     if "(" in rest:
-        line.error = CommandError(EXPECTED_COMMAND_LETTER, "unclosed '(' comment")
+        line.error = CommandError(Error.EXPECTED_COMMAND_LETTER, "unclosed '(' comment")
     return rest
 
 
@@ -240,23 +237,25 @@ def _diagnose(compact: str) -> CommandError:
             continue
         char = compact[position]
         if "A" <= char <= "Z":
-            return CommandError(BAD_NUMBER_FORMAT, f"bad number after '{char}'")
-        return CommandError(EXPECTED_COMMAND_LETTER, f"expected a command letter, got {char!r}")
-    return CommandError(EXPECTED_COMMAND_LETTER, "unparseable line")
+            return CommandError(Error.BAD_NUMBER_FORMAT, f"bad number after '{char}'")
+        return CommandError(
+            Error.EXPECTED_COMMAND_LETTER, f"expected a command letter, got {char!r}"
+        )
+    return CommandError(Error.EXPECTED_COMMAND_LETTER, "unparseable line")
 
 
 def _out_of_range(letters: str, values: list[float]) -> CommandError | None:
     """Error 2 for the first value that is not finite or is larger than MAX_MAGNITUDE."""
     for letter, value in zip(letters, values, strict=True):
         if not -MAX_MAGNITUDE <= value <= MAX_MAGNITUDE:  # also false for NaN
-            return CommandError(BAD_NUMBER_FORMAT, f"number after '{letter}' out of range")
+            return CommandError(Error.BAD_NUMBER_FORMAT, f"number after '{letter}' out of range")
     return None
 
 
 def _take_line_number(line: Line) -> None:
     value = line.values[0]
     if line.letters[0] != "N" or value != int(value) or not 0 <= value < MAX_LINE_NUMBER:
-        line.error = CommandError(INVALID_LINE_NUMBER, "invalid line number")
+        line.error = CommandError(Error.INVALID_LINE_NUMBER, "invalid line number")
         return
     line.line_number = int(value)
     line.letters, line.values = line.letters[1:], line.values[1:]
@@ -266,6 +265,6 @@ def _repeated_word(letters: str) -> CommandError | None:
     seen: set[str] = set()
     for letter in letters:
         if letter in seen and letter not in _REPEATABLE:
-            return CommandError(REPEATED_WORD, f"repeated {letter} word")
+            return CommandError(Error.REPEATED_WORD, f"repeated {letter} word")
         seen.add(letter)
     return None

@@ -35,7 +35,7 @@ import math
 from typing import Any
 
 from server.codes import CodeTable
-from server.errors import CommandError
+from server.errors import CommandError, Error
 from server.executor import LineExecutor
 from server.gcode import Line
 from server.modal import (
@@ -53,8 +53,6 @@ from server.moves import Action, Move, MoveKind, Output, Position
 
 __all__ = ["Interpreter", "InterpreterSettings"]
 
-INVALID_JOG = 16
-JOG_TRAVEL_EXCEEDED = 15
 JOG_G_CODES = {200: "units", 210: "units", 900: "distance", 910: "distance", 530: "machine"}
 MOTION_NAMES = {
     0: "G0",
@@ -231,7 +229,7 @@ class Interpreter:
                 target[i] = target[i] + mm if incremental else mm + self._wco[i]
         why = self._geo.outside(tuple(target))
         if why is not None:
-            raise CommandError(JOG_TRAVEL_EXCEEDED, f"jog target exceeds the travel: {why}")
+            raise CommandError(Error.JOG_TRAVEL_EXCEEDED, f"jog target exceeds the travel: {why}")
         if tuple(target) == self.position:
             return []
         self.position = tuple(target)
@@ -248,19 +246,21 @@ class Interpreter:
                 axes[self._geo.axis_index[letter]] = value
             elif letter == "F" and feed is None:
                 if value < 0:
-                    raise CommandError(4, "negative F value")
+                    raise CommandError(Error.NEGATIVE_VALUE, "negative F value")
                 feed = value
             elif (
                 letter == "G" and (code := round(value * 10)) in JOG_G_CODES and code == value * 10
             ):
                 group = JOG_G_CODES[code]
                 if group in modes:
-                    raise CommandError(21, f"two {group} commands in a jog")
+                    raise CommandError(
+                        Error.MODAL_GROUP_VIOLATION, f"two {group} commands in a jog"
+                    )
                 modes[group] = code
             else:
-                raise CommandError(INVALID_JOG, f"{letter}{value:g} is not allowed in a jog")
+                raise CommandError(Error.INVALID_JOG, f"{letter}{value:g} is not allowed in a jog")
         if not axes or not feed:
-            raise CommandError(INVALID_JOG, "a jog needs axis words and a positive F")
+            raise CommandError(Error.INVALID_JOG, "a jog needs axis words and a positive F")
         return modes, axes, feed
 
     # -- position, offsets and probing -------------------------------------------------------

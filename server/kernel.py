@@ -19,13 +19,12 @@ from server.commands import CoreCommands
 from server.config import Config, ModuleSpec
 from server.control import MachineControl
 from server.dispatcher import Dispatcher, Handler, SystemSource
-from server.errors import ConfigError
+from server.errors import Alarm, ConfigError
 from server.events import EventBus, MachineState
 from server.jobs import Jobs
 from server.machine import Machine, SyncHandler
 from server.module import Module
 from server.moves import Action, Move, Position, SyncKind
-from server.reports import ALARM_MODULE_FAILED
 from server.state import MachineStatus
 from server.stepgen import MotionState
 
@@ -132,7 +131,7 @@ class _Context:
     async def queue_action(self, action: Action) -> None:
         await self._kernel.machine.queue_action(action)
 
-    def alarm(self, message: str, code: int = ALARM_MODULE_FAILED) -> None:
+    def alarm(self, message: str, code: int = Alarm.MODULE_FAILED) -> None:
         self._kernel.alarm(code, f"{self.name}: {message}")
 
     def emit(self, event: str, *args: Any) -> None:
@@ -275,7 +274,7 @@ class Kernel:
             raise
         except Exception as exc:  # noqa: BLE001 - supervision: any failure alarms the machine
             log.exception("module [%s] crashed", section)
-            self.alarm(ALARM_MODULE_FAILED, f"module [{section}] failed: {exc!r}")
+            self.alarm(Alarm.MODULE_FAILED, f"module [{section}] failed: {exc!r}")
 
     async def _second_ticker(self) -> None:
         next_s = self.clock.now_s() + 1.0

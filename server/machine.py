@@ -23,18 +23,12 @@ from server.clock import Clock
 from server.codes import CodeTable
 from server.config import Config, CoreConfig
 from server.dispatcher import Command
-from server.errors import BUSY, CommandError, SoftLimitError
+from server.errors import Alarm, CommandError, Error, SoftLimitError
 from server.events import EventBus, MachineState
 from server.interpreter import Interpreter, InterpreterSettings
 from server.moves import Action, Move, MoveKind, Position, Sync, SyncKind, ToolMode
 from server.planner import Planner, PlannerSettings
 from server.protocol import Realtime
-from server.reports import (
-    ALARM_ABORT_CYCLE,
-    ALARM_BACKEND_FAILED,
-    ALARM_HALT,
-    ALARM_SOFT_LIMIT,
-)
 from server.settings import Settings
 from server.state import MachineStatus
 from server.stepgen import HoldState, StepGenerator
@@ -133,7 +127,7 @@ class Machine:
         try:
             outputs = self.interpreter.execute(command.line)
         except SoftLimitError as exc:
-            self.status.alarm(ALARM_SOFT_LIMIT, f"soft limit: {exc.message}")
+            self.status.alarm(Alarm.SOFT_LIMIT, f"soft limit: {exc.message}")
             raise
         messages: list[str] = []
         for output in outputs:
@@ -171,7 +165,9 @@ class Machine:
             self.room.clear()
             await self.room.wait()
         if epoch != self.epoch:
-            raise CommandError(BUSY, "motion was reset while this line waited; it was not run")
+            raise CommandError(
+                Error.BUSY, "motion was reset while this line waited; it was not run"
+            )
 
     def _note_input(self, state: MachineState) -> None:
         self.idle_event.clear()
@@ -217,7 +213,9 @@ class Machine:
         if handler is not None:
             return await handler(request.params)
         if kind is SyncKind.HOME:  # no module carries it out
-            raise CommandError(5, "homing is not configured: add an [endstops] section")
+            raise CommandError(
+                Error.SETTING_DISABLED, "homing is not configured: add an [endstops] section"
+            )
         await self.wait_idle()
         if kind is SyncKind.REPORT_POSITION:
             return [self.position_report()]
@@ -302,7 +300,7 @@ class Machine:
     def emergency_stop(self) -> None:
         """M112: halt at once, before the lines queued ahead of it run."""
         if self.status.state is not MachineState.ALARM:
-            self.status.alarm(ALARM_HALT, "emergency stop (M112): $X or M999 to unlock")
+            self.status.alarm(Alarm.HALT, "emergency stop (M112): $X or M999 to unlock")
 
     def feed_hold(self) -> None:
         if self.status.state is MachineState.HOME:  # as in Grbl: homing ignores feed hold
@@ -347,7 +345,7 @@ class Machine:
         self.events.emit("reset")
         if moving:
             self.status.alarm(
-                ALARM_ABORT_CYCLE, "reset while in motion: position may be lost, re-home"
+                Alarm.ABORT_CYCLE, "reset while in motion: position may be lost, re-home"
             )
         elif self.status.state not in (MachineState.ALARM,):
             self.status.set_state(MachineState.IDLE)
@@ -433,11 +431,11 @@ class Machine:
 
     def _backend_fault(self, exc: Exception) -> None:
         """A tick raised: stop everything and alarm once (later failures are only logged)."""
-        if self.status.alarm_code == ALARM_BACKEND_FAILED:
+        if self.status.alarm_code == Alarm.BACKEND_FAILED:
             log.debug("backend still failing: %r", exc)
             return
         log.error("backend failed: %r", exc, exc_info=exc)
-        self.status.alarm(ALARM_BACKEND_FAILED, f"backend failed: {exc!r}")
+        self.status.alarm(Alarm.BACKEND_FAILED, f"backend failed: {exc!r}")
 
     def _after_tick(self) -> None:
         if not self.room.is_set() and not self.planner.is_full():

@@ -14,7 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
-from server.errors import CommandError
+from server.errors import CommandError, Error
 from server.moves import Position, ToolMode
 
 if TYPE_CHECKING:
@@ -24,25 +24,6 @@ MM_PER_INCH = 25.4
 MAX_TOOL_NUMBER = 255
 WCS_COUNT = 9  # G54..G59, G59.1..G59.3
 
-UNSUPPORTED = 20
-MODAL_GROUP_VIOLATION = 21
-UNDEFINED_FEED = 22
-INTEGER_REQUIRED = 23
-AXIS_COMMAND_CONFLICT = 24
-REPEATED_WORD = 25
-NO_AXIS_WORDS = 26
-VALUE_WORD_MISSING = 28
-UNSUPPORTED_WCS = 29
-G53_MOTION_MODE = 30
-UNUSED_AXIS_WORDS = 31
-NO_AXIS_WORDS_IN_PLANE = 32
-INVALID_TARGET = 33
-ARC_RADIUS_ERROR = 34
-NO_OFFSETS_IN_PLANE = 35
-UNUSED_VALUE_WORDS = 36
-TLO_AXIS = 37
-TOOL_NUMBER = 38
-NEGATIVE_VALUE = 4
 
 G0, G1, G2, G3, G80 = 0, 10, 20, 30, 800
 PROBES = (382, 383, 384, 385)
@@ -189,19 +170,19 @@ def read_words(
         elif letter in axis_index:
             index = axis_index[letter]
             if index in block.axes:
-                raise CommandError(REPEATED_WORD, f"repeated {letter} word")
+                raise CommandError(Error.REPEATED_WORD, f"repeated {letter} word")
             block.axes[index] = value
         elif letter in VALUE_LETTERS:
             _add_value(block, letter, value)
         else:
-            raise CommandError(UNSUPPORTED, _unknown_letter(letter))
+            raise CommandError(Error.UNSUPPORTED, _unknown_letter(letter))
     commands = [
         code
         for name, code in block.groups.items()
         if not name.startswith("m_") and code in AXIS_COMMANDS
     ]
     if len(commands) > 1:
-        raise CommandError(AXIS_COMMAND_CONFLICT, "two commands on one line use axis words")
+        raise CommandError(Error.AXIS_COMMAND_CONFLICT, "two commands on one line use axis words")
     return block
 
 
@@ -221,7 +202,9 @@ def _add_group(block: Words, kind: str, code: tuple[str, int]) -> None:
     group, number = code
     key = group if kind == "g" else f"m_{group}"
     if key in block.groups:
-        raise CommandError(MODAL_GROUP_VIOLATION, f"two commands of the {group} group on a line")
+        raise CommandError(
+            Error.MODAL_GROUP_VIOLATION, f"two commands of the {group} group on a line"
+        )
     block.groups[key] = number
 
 
@@ -230,15 +213,17 @@ def _g_code(value: float) -> tuple[str, int]:
     if abs(value * 10 - code) < 1e-6 and code in G_GROUPS:
         return G_GROUPS[code], code
     if value in (41, 42):
-        raise CommandError(UNSUPPORTED, f"G{value:g} cutter radius compensation is not supported")
+        raise CommandError(
+            Error.UNSUPPORTED, f"G{value:g} cutter radius compensation is not supported"
+        )
     if value == 73 or 81 <= value <= 89:
-        raise CommandError(UNSUPPORTED, f"G{value:g} canned cycles are not supported")
-    raise CommandError(UNSUPPORTED, f"unsupported G code G{value:g}")
+        raise CommandError(Error.UNSUPPORTED, f"G{value:g} canned cycles are not supported")
+    raise CommandError(Error.UNSUPPORTED, f"unsupported G code G{value:g}")
 
 
 def _add_m_code(block: Words, value: float, codes: CodeTable | None) -> None:
     if value != int(value):
-        raise CommandError(INTEGER_REQUIRED, f"M{value:g}: M codes are integers")
+        raise CommandError(Error.INTEGER_REQUIRED, f"M{value:g}: M codes are integers")
     code = int(value)
     if code in M_GROUPS:
         _add_group(block, "m", (M_GROUPS[code], code))
@@ -246,18 +231,20 @@ def _add_m_code(block: Words, value: float, codes: CodeTable | None) -> None:
         _add_group(block, "m", (f"module:{codes.group(code)}", code))
         block.module_codes.append(code)
     else:
-        raise CommandError(UNSUPPORTED, f"unsupported M code M{code}")
+        raise CommandError(Error.UNSUPPORTED, f"unsupported M code M{code}")
 
 
 def _add_value(block: Words, letter: str, value: float) -> None:
     if letter in block.values:
-        raise CommandError(REPEATED_WORD, f"repeated {letter} word")
+        raise CommandError(Error.REPEATED_WORD, f"repeated {letter} word")
     if letter in NEGATIVE_FORBIDDEN and value < 0:
-        raise CommandError(NEGATIVE_VALUE, f"negative {letter} value")
+        raise CommandError(Error.NEGATIVE_VALUE, f"negative {letter} value")
     if letter in "TL" and value != int(value):
-        raise CommandError(INTEGER_REQUIRED, f"{letter}{value:g}: an integer is required")
+        raise CommandError(Error.INTEGER_REQUIRED, f"{letter}{value:g}: an integer is required")
     if letter == "T" and value > MAX_TOOL_NUMBER:
-        raise CommandError(TOOL_NUMBER, f"T{value:g}: tool numbers go up to {MAX_TOOL_NUMBER}")
+        raise CommandError(
+            Error.TOOL_NUMBER, f"T{value:g}: tool numbers go up to {MAX_TOOL_NUMBER}"
+        )
     block.values[letter] = value + 0.0  # -0.0 -> 0.0
 
 

@@ -10,22 +10,8 @@ from __future__ import annotations
 
 import math
 
-from server.errors import CommandError
-from server.modal import (
-    G0,
-    G1,
-    G53_MOTION_MODE,
-    INTEGER_REQUIRED,
-    NO_AXIS_WORDS,
-    UNSUPPORTED,
-    UNSUPPORTED_WCS,
-    VALUE_WORD_MISSING,
-    WCS_COUNT,
-    Geometry,
-    ModalState,
-    Offsets,
-    Words,
-)
+from server.errors import CommandError, Error
+from server.modal import G0, G1, WCS_COUNT, Geometry, ModalState, Offsets, Words
 from server.moves import MoveKind, Output, Position, Sync, SyncKind
 
 
@@ -63,7 +49,7 @@ class NonModal:
         elif code in (920, 921, 922, 923):
             self._g92(code)
         elif code == 530 and self.modal.motion not in (G0, G1):
-            raise CommandError(G53_MOTION_MODE, "G53 works only with G0 or G1")
+            raise CommandError(Error.G53_MOTION_MODE, "G53 works only with G0 or G1")
 
     def _scaled(self, index: int, value: float) -> float:
         return value * self.geo.inch_scale[index] if self.modal.inches else value
@@ -71,19 +57,19 @@ class NonModal:
     def _g10(self) -> None:
         values = self.words.values
         if not self.words.axes:
-            raise CommandError(NO_AXIS_WORDS, "G10 needs axis words")
+            raise CommandError(Error.NO_AXIS_WORDS, "G10 needs axis words")
         if "L" not in values or "P" not in values:
-            raise CommandError(VALUE_WORD_MISSING, "G10 needs L and P words")
+            raise CommandError(Error.VALUE_WORD_MISSING, "G10 needs L and P words")
         self.values_used.update("LP")
         number, kind = values["P"], int(values["L"])
         if kind not in (2, 20):
-            raise CommandError(UNSUPPORTED, f"G10 L{kind} is not supported (only L2 and L20)")
+            raise CommandError(Error.UNSUPPORTED, f"G10 L{kind} is not supported (only L2 and L20)")
         if kind == 2 and "R" in values:
-            raise CommandError(UNSUPPORTED, "G10 L2 R (coordinate rotation) is not supported")
+            raise CommandError(Error.UNSUPPORTED, "G10 L2 R (coordinate rotation) is not supported")
         if number != int(number):
-            raise CommandError(INTEGER_REQUIRED, "G10 P must be an integer")
+            raise CommandError(Error.INTEGER_REQUIRED, "G10 P must be an integer")
         if number > WCS_COUNT:
-            raise CommandError(UNSUPPORTED_WCS, f"G10 P{number:g}: P goes up to {WCS_COUNT}")
+            raise CommandError(Error.UNSUPPORTED_WCS, f"G10 P{number:g}: P goes up to {WCS_COUNT}")
         index = int(number) - 1 if number else self.modal.wcs
         self._set_wcs(index, kind == 20)
         self.axes_used = True
@@ -137,7 +123,7 @@ class NonModal:
     def _set_g92(self) -> None:
         """G92: the current position reads as the given values in the active system."""
         if not self.words.axes:
-            raise CommandError(NO_AXIS_WORDS, "G92 needs axis words")
+            raise CommandError(Error.NO_AXIS_WORDS, "G92 needs axis words")
         offsets, z = self.offsets, self.geo.z_axis
         wcs, g92 = offsets.wcs[self.modal.wcs], list(offsets.g92)
         for i, value in self.words.axes.items():

@@ -39,8 +39,7 @@ from functools import reduce
 from operator import xor
 from typing import TypeAlias
 
-from server.errors import CHECKSUM, LINE_NUMBER_SEQUENCE, CommandError
-from server.gcode import EXPECTED_COMMAND_LETTER
+from server.errors import CHECKSUM, LINE_NUMBER_SEQUENCE, CommandError, Error
 from server.reports import GRBL_VERSION, format_reprap_error
 
 LINE_OVERFLOW = 11
@@ -388,7 +387,7 @@ class LineProtocol:
         stripped = raw.lstrip()
         if stripped[:1] in (b"N", b"n") and b"*" in stripped:
             return LineRejected(ResendError(CHECKSUM, reason, self._last_line))
-        return LineRejected(CommandError(EXPECTED_COMMAND_LETTER, reason))
+        return LineRejected(CommandError(Error.EXPECTED_COMMAND_LETTER, reason))
 
     def _detect_dialect(self, text: str, *, framed: bool) -> None:
         if not self._detecting:

@@ -20,14 +20,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
-from server.errors import (
-    AUTH_REQUIRED,
-    CHECKSUM,
-    LINE_NUMBER_SEQUENCE,
-    MOTIOND_ERRORS,
-    SOFT_LIMIT,
-    UNKNOWN_COMMAND,
-)
+from server.errors import ALARM_MEANINGS, ERROR_MEANINGS, Alarm, Error
 
 GRBL_VERSION = "1.1h"
 MM_PER_INCH = 25.4
@@ -43,72 +36,14 @@ OV_REFRESH_BUSY = 20
 OV_REFRESH_IDLE = 10
 BUSY_STATES = frozenset({"Run", "Hold", "Jog", "Home", "Door"})
 
-ALARM_HARD_LIMIT = 1
-ALARM_SOFT_LIMIT = 2
-ALARM_ABORT_CYCLE = 3
-ALARM_HALT = 40
-ALARM_MODULE_FAILED = 41
-ALARM_BACKEND_FAILED = 42
-
-ALARM_MESSAGES: dict[int, str] = {
-    1: "Hard limit triggered; position may be lost, home again",
-    2: "Soft limit: the motion target exceeds the machine travel; position kept",
-    3: "Reset while in motion; position may be lost, home again",
-    4: "Probe fail: the probe is not in the expected initial state",
-    5: "Probe fail: the probe did not contact within the search distance",
-    6: "Homing fail: reset during the homing cycle",
-    7: "Homing fail: safety door opened during homing",
-    8: "Homing fail: pull-off did not clear the limit switch",
-    9: "Homing fail: limit switch not found within the search distance",
-    10: "Homing fail: second switch of a dual axis not found",
-    # motiond's own alarm numbers (above 38, like its error numbers).
-    ALARM_HALT: "Halt (M112 or emergency stop): motion stopped, tools off",
-    ALARM_MODULE_FAILED: "A module failed: motion stopped, tools off",
-    ALARM_BACKEND_FAILED: "The machine backend failed: motion stopped, tools off",
-}
-
-ERROR_MESSAGES: dict[int, str] = {
-    1: "Expected command letter",
-    2: "Bad number format",
-    3: "Invalid $ statement",
-    4: "Negative value",
-    5: "Setting disabled",
-    8: "Not idle",
-    9: "G-code locked out during alarm or jog",
-    10: "Soft limits need homing enabled",
-    11: "Line overflow",
-    15: "Jog target exceeds machine travel",
-    16: "Invalid jog command",
-    20: "Unsupported or invalid G-code command",
-    21: "Modal group violation",
-    22: "Undefined feed rate",
-    23: "Integer value required",
-    24: "Two commands need axis words",
-    25: "Repeated word",
-    26: "No axis words",
-    27: "Invalid line number",
-    28: "Missing P or L value",
-    29: "Unsupported work coordinate system",
-    30: "G53 only with G0 or G1",
-    31: "Unused axis words",
-    32: "G2/G3 need an in-plane axis word",
-    33: "Invalid motion target",
-    34: "Arc radius error",
-    35: "G2/G3 offset form needs an in-plane IJK word",
-    36: "Unused value words",
-    37: "Tool length offset not on the tool axis",
-    38: "Tool number too large",
-    **MOTIOND_ERRORS,
-}
-
 # Marlin's wording of communication errors: OctoPrint recognises these and resends.
 REPRAP_RESEND_TEXT: dict[int, str] = {
-    CHECKSUM: "checksum mismatch",
-    LINE_NUMBER_SEQUENCE: "Line Number is not Last Line Number+1",
+    Error.CHECKSUM: "checksum mismatch",
+    Error.LINE_NUMBER_SEQUENCE: "Line Number is not Last Line Number+1",
 }
 # Errors after which a job cannot go on: OctoPrint stops the job on an ``Error:`` line.
-REPRAP_FATAL_ERRORS = frozenset({9, SOFT_LIMIT, AUTH_REQUIRED})
-REPRAP_UNKNOWN_COMMAND_ERRORS = frozenset({20, UNKNOWN_COMMAND})
+REPRAP_FATAL_ERRORS = frozenset({Error.LOCKED_OUT, Error.SOFT_LIMIT, Error.AUTH_REQUIRED})
+REPRAP_UNKNOWN_COMMAND_ERRORS = frozenset({Error.UNSUPPORTED, Error.UNKNOWN_COMMAND})
 
 
 @dataclass(frozen=True, slots=True)
@@ -301,7 +236,7 @@ def format_reprap_error(code: int, message: str, last_line: int) -> list[str]:
 
 
 def format_alarm(code: int) -> str:
-    """The pushed alarm line, ``ALARM:<code>``; :data:`ALARM_MESSAGES` explains the code."""
+    """The pushed alarm line, ``ALARM:<code>``; :data:`ALARM_MEANINGS` explains the code."""
     return f"ALARM:{code}"
 
 
@@ -347,7 +282,7 @@ def _setting_value(value: float | int) -> str:
 
 
 def _describe(code: int, message: str) -> str:
-    return f"{_one_line(message or ERROR_MESSAGES.get(code, 'Command refused'))} (code {code})"
+    return f"{_one_line(message or ERROR_MEANINGS.get(code, 'Command refused'))} (code {code})"
 
 
 def _one_line(text: str) -> str:
@@ -358,3 +293,10 @@ def _fixed(value: float, decimals: int) -> str:
     """``value`` with ``decimals`` decimals; a value that rounds to zero prints without sign."""
     rounded = round(value, decimals) + 0.0
     return f"{rounded:.{decimals}f}"
+
+
+# Transitional names, removed once every module reads server.errors.
+ALARM_MESSAGES, ERROR_MESSAGES = ALARM_MEANINGS, ERROR_MEANINGS
+ALARM_HARD_LIMIT, ALARM_SOFT_LIMIT = Alarm.HARD_LIMIT, Alarm.SOFT_LIMIT
+ALARM_ABORT_CYCLE, ALARM_HALT = Alarm.ABORT_CYCLE, Alarm.HALT
+ALARM_MODULE_FAILED, ALARM_BACKEND_FAILED = Alarm.MODULE_FAILED, Alarm.BACKEND_FAILED

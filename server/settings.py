@@ -29,18 +29,13 @@ from typing import TYPE_CHECKING, Any
 
 from pydantic import ValidationError
 
-from server.errors import CommandError
+from server.errors import CommandError, Error
 
 if TYPE_CHECKING:
     from server.config import CoreConfig
     from server.machine import Machine
 
 log = logging.getLogger("motiond.settings")
-NOT_IDLE = 8
-SETTING_DISABLED = 5
-BAD_NUMBER_FORMAT = 2
-INVALID_STATEMENT = 3
-NEGATIVE_VALUE = 4
 MM_PER_MIN = 60.0
 _VALUE = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)")  # Grbl's read_float: no exponent, inf or nan
 # Ranges beyond the config models' own bounds (which still apply). The arc tolerance's floor
@@ -197,11 +192,13 @@ class Settings:
         try:
             number = int(number_text.strip())
         except ValueError as exc:
-            raise CommandError(INVALID_STATEMENT, f"invalid statement ${statement}") from exc
+            raise CommandError(Error.INVALID_STATEMENT, f"invalid statement ${statement}") from exc
         if not equals:
-            raise CommandError(INVALID_STATEMENT, f"invalid statement ${statement}")
+            raise CommandError(Error.INVALID_STATEMENT, f"invalid statement ${statement}")
         if _VALUE.fullmatch(value_text.strip()) is None:
-            raise CommandError(BAD_NUMBER_FORMAT, f"${number}: bad number {value_text.strip()!r}")
+            raise CommandError(
+                Error.BAD_NUMBER_FORMAT, f"${number}: bad number {value_text.strip()!r}"
+            )
         self.set(number, float(value_text))
         self._save()
 
@@ -214,36 +211,40 @@ class Settings:
             setting.write(self.core, int(value) if number == 10 else value)
         except ValidationError as exc:
             message = exc.errors()[0]["msg"]
-            raise CommandError(INVALID_STATEMENT, f"${number}: {message}") from exc
+            raise CommandError(Error.INVALID_STATEMENT, f"${number}: {message}") from exc
         self.machine.apply_settings()
 
     def _checked(self, number: int, value: float) -> Setting:
         if not math.isfinite(value):
-            raise CommandError(BAD_NUMBER_FORMAT, f"${number}: {value} is not a finite number")
+            raise CommandError(
+                Error.BAD_NUMBER_FORMAT, f"${number}: {value} is not a finite number"
+            )
         if value < 0:
-            raise CommandError(NEGATIVE_VALUE, f"${number} must not be negative")
+            raise CommandError(Error.NEGATIVE_VALUE, f"${number} must not be negative")
         setting = self.table.get(number)
         if setting is None:
-            raise CommandError(INVALID_STATEMENT, f"no setting ${number}")
+            raise CommandError(Error.INVALID_STATEMENT, f"no setting ${number}")
         if setting.write is None:
             if value != setting.read(self.core):
-                raise CommandError(SETTING_DISABLED, f"${number} ({setting.description}) is fixed")
+                raise CommandError(
+                    Error.SETTING_DISABLED, f"${number} ({setting.description}) is fixed"
+                )
             return setting
         if not setting.low <= value <= setting.high:
             raise CommandError(
-                INVALID_STATEMENT,
+                Error.INVALID_STATEMENT,
                 f"${number} ({setting.description}) must be between {setting.low:g} "
                 f"and {setting.high:g}",
             )
         if setting.geometry and not self.machine.stepgen.idle:
-            raise CommandError(NOT_IDLE, f"${number} can only change while idle")
+            raise CommandError(Error.NOT_IDLE, f"${number} can only change while idle")
         return setting
 
     def restore_defaults(self, defaults: CoreConfig) -> None:
         """``$RST=$``: every writable setting back to the config file's value (only while idle:
         steps/mm and travel must not change under a moving machine)."""
         if not self.machine.stepgen.idle:
-            raise CommandError(NOT_IDLE, "$RST=$ can only run while idle")
+            raise CommandError(Error.NOT_IDLE, "$RST=$ can only run while idle")
         for setting in self.table.values():
             if setting.write is not None:
                 setting.write(self.core, setting.read(defaults))

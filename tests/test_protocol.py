@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from server.errors import CommandError
+from server.errors import CommandError, Error
 from server.protocol import (
     Dialect,
     FramedLine,
@@ -456,7 +456,7 @@ def test_reprap_errors_are_worded_like_marlin(error: CommandError, expected: byt
 
 def test_reprap_error_replies_never_use_grbl_error_prefix_and_always_end_with_ok() -> None:
     protocol = reprap()
-    for code in range(1, 50):
+    for code in Error:
         reply = protocol.reply_error(CommandError(code, "x"))
         assert not reply.lower().startswith(b"error:") or reply.startswith(b"Error:")
         assert reply.endswith(b"\r\nok\r\n")

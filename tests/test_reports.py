@@ -268,3 +268,11 @@ def test_m114_subcodes_give_work_and_machine_positions() -> None:
 def test_m114_in_inches_and_with_more_axes() -> None:
     text = format_position_m114((0.0,) * 4, (25.4, 0.0, 0.0, 12.7), "XYZA", inches=True)
     assert text == "C: X:1.0000 Y:0.0000 Z:0.0000 A:0.5000"
+
+
+def test_every_error_and_alarm_number_has_one_meaning_in_the_one_table() -> None:
+    from server.errors import ALARM_MEANINGS, ERROR_MEANINGS, Alarm, CommandError, Error
+
+    assert set(ERROR_MEANINGS) == set(Error) and set(ALARM_MEANINGS) == set(Alarm)
+    with pytest.raises(ValueError):
+        CommandError(39, "a number outside the table is a bug")
