@@ -8,46 +8,42 @@ Replies and notifications share one bounded :class:`~server.telemetry.Channel` p
 a client that stops reading is disconnected, never waited for. Methods are listed in
 :mod:`server.api_methods` and documented in ``docs/API.md``.
 
-Access: a browser page from another origin is refused unless ``[http] allowed_origins`` names
-it; with ``[http] token`` set, a connection may only query until it presents the token
-(``/api?token=...`` or the ``server.auth`` method), and uploads need it too.
+Access: a request naming a host not in ``[http] allowed_hosts`` is refused (403), and so is a
+browser page from another origin unless ``[http] allowed_origins`` names it; with
+``[http] token`` set, a connection may only query until it presents the token
+(``/api?token=...``, an ``X-Motiond-Token`` header or the ``server.auth`` method; an observer,
+``?mode=observe``, never controls), and uploads need it too. Before the token a connection has
+its own, smaller, connection limit and message size and is closed once idle; frames are decoded
+by :mod:`server.jsonrpc`, which refuses deep nesting and non-finite numbers.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import hmac
 import itertools
-import json
 import logging
 import os
 import time
 from collections.abc import AsyncIterator
 from typing import TYPE_CHECKING, Any
 
-from aiohttp import WSMsgType, web
+from aiohttp import WSCloseCode, WSMsgType, web
 
 import server.api_jobs  # noqa: F401 - registers the settings.* and job.* methods
 from server.api_methods import Methods, RpcError, command_error
 from server.errors import AUTH_REQUIRED, CommandError
+from server.jsonrpc import INTERNAL, INVALID_REQUEST, BadRequest, decode_request
 from server.telemetry import Channel, Publisher, encode
-from server.transports.websocket import HttpTransport, origin_allowed
+from server.transports.access import tokens_equal
+from server.transports.websocket import HEARTBEAT_S, HttpTransport, presented_token
 
 if TYPE_CHECKING:
     from server.kernel import Kernel
 
 log = logging.getLogger("motiond.api")
 MAX_IN_FLIGHT = 64
-MAX_MESSAGE_BYTES = 64 << 20
 UPLOAD_CHUNK_BYTES = 1 << 16
-PARSE_ERROR, INVALID_REQUEST, METHOD_NOT_FOUND, INVALID_PARAMS, INTERNAL = (
-    -32700,
-    -32600,
-    -32601,
-    -32602,
-    -32603,
-)
 TOO_BUSY = -32000
 RATE_LIMITED = -32001
 
@@ -72,12 +68,20 @@ class Connection:
     """One ``/api`` client: its channel, its request tasks and its right to control."""
 
     def __init__(
-        self, api: JsonApi, socket: web.WebSocketResponse, name: str, can_control: bool
+        self,
+        api: JsonApi,
+        socket: web.WebSocketResponse,
+        name: str,
+        authenticated: bool,
+        observer: bool,
     ) -> None:
         self.api = api
         self.socket = socket
         self.name = name
-        self.can_control = can_control
+        self.authenticated = authenticated  # presented the token (or none is needed)
+        self.observer = observer  # ?mode=observe: watches, never controls
+        self.can_control = authenticated and not observer
+        self.idle: asyncio.Timeout | None = None
         self.channel = Channel()
         self.gcode_lock = asyncio.Lock()
         self.closing = False
@@ -85,38 +89,34 @@ class Connection:
         rate = api.http.max_requests_per_s
         self._bucket = TokenBucket(rate, burst=max(1.0, rate))
 
-    def receive(self, text: str) -> None:
-        """A text frame: one JSON-RPC request or notification."""
+    def authenticate(self) -> None:
+        """The token was presented: control (unless an observer), the limits of a trusted
+        connection, no idle timeout."""
+        if not self.authenticated:
+            self.authenticated = True
+            self.api.transport.slots.promote()
+        self.can_control = not self.observer
+        if self.idle is not None:
+            self.idle.reschedule(None)
+
+    def receive(self, text: str) -> bool:
+        """A text frame: one JSON-RPC request or notification. Whether it was one."""
         try:
-            message = json.loads(text)
-        except ValueError:
-            self.reply(None, error=(PARSE_ERROR, "parse error: not JSON", None))
-            return
-        if (
-            not isinstance(message, dict)
-            or message.get("jsonrpc") != "2.0"
-            or not isinstance(message.get("method"), str)
-        ):
-            request_id = message.get("id") if isinstance(message, dict) else None
-            self.reply(
-                request_id,
-                error=(
-                    INVALID_REQUEST,
-                    "not a JSON-RPC 2.0 request (batches are not supported)",
-                    None,
-                ),
-            )
-            return
+            message = decode_request(text)
+        except BadRequest as exc:
+            self.reply(exc.request_id, error=(exc.code, exc.message, None))
+            return False
         if len(self._tasks) >= MAX_IN_FLIGHT:
             self.reply(message.get("id"), error=(TOO_BUSY, "too many requests in flight", None))
-            return
+            return False
         if not self._bucket.take(time.monotonic()):
             error = (RATE_LIMITED, "too many requests per second", None)
             self.reply(message.get("id"), error=error)
-            return
+            return False
         task = asyncio.get_running_loop().create_task(self._run(message), name=self.name)
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
+        return True
 
     def reply(
         self, request_id: Any, result: Any = None, error: tuple[int, str, Any] | None = None
@@ -197,54 +197,69 @@ class JsonApi:
                 await connection.socket.close(code=1001, message=b"server shutting down")
 
     # -- access -----------------------------------------------------------------------------
-    def origin_allowed(self, request: web.Request) -> bool:
-        """Same-origin pages, listed origins and non-browser clients (no Origin header)."""
-        return origin_allowed(request, self.http.allowed_origins)
-
     def token_ok(self, token: str | None) -> bool:
         expected = self.http.token or os.environ.get("MOTIOND_TOKEN") or None
-        return expected is None or (token is not None and hmac.compare_digest(token, expected))
+        return expected is None or tokens_equal(token, expected)
 
     # -- /api -------------------------------------------------------------------------------
     async def socket(self, request: web.Request) -> web.StreamResponse:
-        self.transport.admit(request)
+        authenticated = self.token_ok(presented_token(request))
+        self.transport.admit(request, authenticated)
         socket = web.WebSocketResponse(
-            heartbeat=20, max_msg_size=MAX_MESSAGE_BYTES, compress=False
+            heartbeat=HEARTBEAT_S, max_msg_size=self.http.api_max_message_bytes, compress=False
         )  # frames are encoded once for all
-        await socket.prepare(request)
-        connection = Connection(
-            self,
-            socket,
-            f"api-{next(self._ids)}",
-            self.token_ok(request.query.get("token")) and request.query.get("mode") != "observe",
-        )
+        observer = request.query.get("mode") == "observe"
+        connection = Connection(self, socket, f"api-{next(self._ids)}", authenticated, observer)
+        try:
+            await socket.prepare(request)
+            await self._serve(request, connection)
+        finally:
+            self.transport.slots.release(connection.authenticated)
+        return socket
+
+    async def _serve(self, request: web.Request, connection: Connection) -> None:
         if request.transport is not None:
             connection.channel.on_overflow = request.transport.abort
         self.connections.add(connection)
-        self.transport.open_sockets += 1
         writer = asyncio.get_running_loop().create_task(_write(connection), name="api-writer")
+        idle_limit = self.transport.idle_limit(connection.socket, connection.authenticated)
         try:
-            async for message in socket:
-                if message.type is WSMsgType.TEXT:
-                    connection.receive(message.data)
-                elif message.type is WSMsgType.BINARY:
-                    connection.reply(None, error=(INVALID_REQUEST, "send JSON as text", None))
+            async with idle_limit as idle:
+                connection.idle = idle
+                await self._receive(connection)
         finally:
             self.connections.discard(connection)
-            self.transport.open_sockets -= 1
             await connection.close()
             writer.cancel()
             with contextlib.suppress(asyncio.CancelledError, ConnectionError):
                 await writer
-        return socket
+
+    async def _receive(self, connection: Connection) -> None:
+        """Requests until the socket closes; before the token, messages are smaller and only
+        a well-formed request puts off the idle timeout."""
+        socket = connection.socket
+        async for message in socket:
+            if message.type is WSMsgType.BINARY:
+                connection.reply(None, error=(INVALID_REQUEST, "send JSON as text", None))
+            if message.type is not WSMsgType.TEXT:
+                continue
+            if not connection.authenticated and self._too_big(message.data):
+                too_big = b"too big without the token"
+                await socket.close(code=WSCloseCode.MESSAGE_TOO_BIG, message=too_big)
+                return
+            if connection.receive(message.data) and connection.idle is not None:
+                connection.idle.reschedule(self.transport.idle_deadline(connection.authenticated))
+
+    def _too_big(self, text: str) -> bool:
+        limit = self.http.unauthenticated_max_message_bytes
+        return len(text) > limit or len(text.encode("utf-8", "surrogatepass")) > limit
 
     # -- /upload ----------------------------------------------------------------------------
     async def upload(self, request: web.Request) -> web.Response:
         """``POST /upload?name=NAME``: the body, streamed into the job folder."""
-        if not self.origin_allowed(request):
+        if not self.transport.origin_allowed(request):
             return _json_error(403, AUTH_REQUIRED, "origin not allowed")
-        token = request.query.get("token") or request.headers.get("X-Motiond-Token")
-        if not self.token_ok(token):
+        if not self.token_ok(presented_token(request)):
             return _json_error(401, AUTH_REQUIRED, "a token is required to upload")
         name = request.query.get("name", "")
         limit = self.kernel.config.core.jobs.max_upload_bytes

@@ -171,10 +171,14 @@ class AuthParams(Params):
 
 @method("server.auth", AuthParams)
 def server_auth(m: Methods, connection: Connection, params: AuthParams) -> dict[str, Any]:
+    """Present the token: control from now on. An observer connection (``?mode=observe``)
+    never controls, whatever it presents: open another connection to control."""
+    if connection.observer:
+        raise CommandError(AUTH_REQUIRED, "an observer connection never controls the machine")
     if not m.api.token_ok(params.token):
         raise CommandError(AUTH_REQUIRED, "wrong token")
-    connection.can_control = True
-    return {"can_control": True}
+    connection.authenticate()
+    return {"can_control": connection.can_control}
 
 
 # -- status -----------------------------------------------------------------------------------

@@ -3,6 +3,9 @@
 Shutdown (SIGINT/SIGTERM, or :meth:`App.request_stop`) first stops motion and turns every tool
 off (the kernel's ``shutdown`` event), then closes the transports, then cancels the kernel's
 tasks; it is bounded by ``shutdown_timeout_s`` and calling it twice is harmless.
+
+While it runs, a listener that cannot accept (out of descriptors) is logged once per burst, not
+once a second with a traceback (:class:`~server.accept_errors.AcceptErrorLog`).
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ import logging
 from collections.abc import Callable
 from typing import Protocol
 
+from server.accept_errors import AcceptErrorLog
 from server.clock import Clock, RealClock, VirtualClock
 from server.config import Config
 from server.kernel import Kernel
@@ -64,6 +68,14 @@ class App:
 
     async def run(self) -> None:
         """Serve until :meth:`request_stop`."""
+        accept_errors = AcceptErrorLog(asyncio.get_running_loop())
+        accept_errors.install()
+        try:
+            await self._serve()
+        finally:
+            accept_errors.uninstall()
+
+    async def _serve(self) -> None:
         async with asyncio.TaskGroup() as group:
             clock_task = None
             if isinstance(self.clock, VirtualClock):

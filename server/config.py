@@ -84,9 +84,35 @@ class HttpConfig(Strict):
     host: str = "127.0.0.1"
     port: int = Field(8080, ge=0, le=65535)
     allowed_origins: list[str] = Field(default_factory=list)
+    allowed_hosts: list[str] | None = Field(
+        None,
+        min_length=1,
+        description="names a request's Host (and a page's Origin) may carry; default: localhost"
+        " names, the bound address and this machine's names; '*' allows any",
+    )
     token: str | None = None
-    max_connections: int = Field(32, ge=1, description="WebSocket connections, /ws and /api")
+    max_connections: int = Field(
+        32, ge=1, description="WebSocket connections (/ws and /api) that presented the token"
+    )
+    max_unauthenticated_connections: int = Field(
+        8, ge=0, le=10_000, description="WebSocket connections without the token (when one is set)"
+    )
     max_requests_per_s: float = Field(200.0, gt=0, description="per /api connection")
+    ws_max_message_bytes: int = Field(
+        64 << 10, ge=1024, le=16 << 20, description="largest /ws message, once decompressed"
+    )
+    api_max_message_bytes: int = Field(
+        1 << 20, ge=4096, le=64 << 20, description="largest /api message, once decompressed"
+    )
+    unauthenticated_max_message_bytes: int = Field(
+        16 << 10, ge=1024, le=64 << 20, description="largest /api message before the token"
+    )
+    idle_timeout_s: float = Field(
+        300.0, gt=0, le=86_400, description="closes a socket without the token sending nothing"
+    )
+    request_timeout_s: float = Field(
+        15.0, gt=0, le=3600, description="for a request's headers, and idle keep-alive"
+    )
 
 
 class SerialConfig(Strict):

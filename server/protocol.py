@@ -178,16 +178,21 @@ class LineProtocol:
 
     # -- input -------------------------------------------------------------------------------
 
-    def receive_data(self, data: bytes) -> list[Event]:
-        """Feed received bytes; return the events they complete, in stream order."""
+    def receive_data(self, data: bytes, *, final: bool = True) -> list[Event]:
+        """Feed received bytes; return the events they complete, in stream order.
+
+        ``final=False`` (WebSocket only): more of the same message follows, so its end does
+        not end a line yet; a transport feeds a large message in slices this way.
+        """
         events: list[Event] = []
         self._feed(data, events)
-        if self._websocket:
+        if self._websocket and final:
             self._end_message(events)
         return events
 
-    def receive_text(self, text: str) -> list[Event]:
-        """Feed one WebSocket text frame: a whole message (a last line needs no newline).
+    def receive_text(self, text: str, *, final: bool = True) -> list[Event]:
+        """Feed one WebSocket text frame: a whole message (a last line needs no newline), or
+        with ``final=False`` a slice of one that more slices complete.
 
         A character whose code point is a realtime byte (``U+0091``...) is that realtime command.
         """
@@ -197,7 +202,8 @@ class LineProtocol:
                 self._realtime(ord(piece), events)
             elif piece:
                 self._feed(piece.encode("utf-8"), events)
-        self._end_message(events)
+        if final:
+            self._end_message(events)
         return events
 
     def reset(self) -> None:

@@ -3,6 +3,13 @@
 ``/ws`` speaks exactly what TCP speaks: one or more lines per text frame in (realtime bytes
 also UTF-8 encoded), one text frame per reply or pushed line out. Other routes (the JSON API,
 uploads) are added by :func:`add_routes` hooks.
+
+Every request must name an allowed host (:mod:`server.transports.access`), or gets 403, static
+files included. WebSockets also need an allowed origin and a free slot: those that presented
+the token and those that did not are counted apart, and the latter are closed after
+``[http] idle_timeout_s`` without a message. A message is bounded once decompressed
+(``ws_max_message_bytes``: close 1009) and fed to the session a slice at a time, so one large
+message never holds the loop. A request's headers must arrive within ``request_timeout_s``.
 """
 
 from __future__ import annotations
@@ -11,31 +18,32 @@ import asyncio
 import contextlib
 import itertools
 import logging
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Awaitable, Callable
 from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING
-from urllib.parse import urlsplit
 
-from aiohttp import WSMsgType, web
+from aiohttp import WSCloseCode, WSMsgType, web
 
-from server.session import Session
+from server.session import Session, line_token
+from server.transports.access import (
+    ConnectionSlots,
+    HostPolicy,
+    default_hosts,
+    machine_names,
+    origin_allowed,
+    tokens_equal,
+    usable_token,
+)
 
 if TYPE_CHECKING:
     from server.kernel import Kernel
 
 log = logging.getLogger("motiond.http")
 RouteHook = Callable[["HttpTransport", web.Application], None]
-
-
-def origin_allowed(request: web.Request, allowed_origins: list[str]) -> bool:
-    """Whether a request may act on the machine: no Origin (not a browser), the page's own
-    origin, or one listed in ``[http] allowed_origins`` ("*" allows any). A page on another
-    site must not drive the machine through the user's browser."""
-    origin = request.headers.get("Origin")
-    if origin is None or origin in allowed_origins or "*" in allowed_origins:
-        return True
-    return urlsplit(origin).netloc.lower() == request.host.lower()
+Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
+HEARTBEAT_S = 20.0
+SLICE_CHARS = 1024  # of one /ws message per loop turn (TCP reads 4096 bytes a turn)
 
 
 def _browsable(host: str) -> str:
@@ -48,6 +56,22 @@ def web_root() -> Path:
     return Path(str(resources.files("web")))
 
 
+def presented_token(request: web.Request) -> str | None:
+    """``?token=`` or the ``X-Motiond-Token`` header, if it is text at all."""
+    return usable_token(request.query.get("token") or request.headers.get("X-Motiond-Token"))
+
+
+class LineSocketSession(Session):
+    """A session fed a WebSocket message a slice at a time."""
+
+    def receive_slice(self, piece: str | bytes, *, final: bool) -> None:
+        """Part of one message; ``final`` for its last part (which ends its last line)."""
+        if isinstance(piece, str):
+            self._handle(self.protocol.receive_text(piece, final=final))
+        else:
+            self._handle(self.protocol.receive_data(piece, final=final))
+
+
 class HttpTransport:
     """Serves ``[http] host:port``."""
 
@@ -58,7 +82,13 @@ class HttpTransport:
         self.kernel = kernel
         self.config = kernel.config.core.http
         self.port = self.config.port
-        self.app = web.Application(client_max_size=kernel.config.core.jobs.max_upload_bytes)
+        self.hosts = HostPolicy(self.config.allowed_hosts or default_hosts(self.config.host, []))
+        self.slots = ConnectionSlots(
+            self.config.max_connections, self.config.max_unauthenticated_connections
+        )
+        self.app = web.Application(
+            client_max_size=kernel.config.core.jobs.max_upload_bytes, middlewares=[self._guard]
+        )
         self.app.router.add_get("/ws", self._line_socket)
         for hook in self.route_hooks:
             hook(self, self.app)
@@ -66,12 +96,18 @@ class HttpTransport:
         self.app.router.add_static("/", web_root(), show_index=False)
         self._runner: web.AppRunner | None = None
         self._sockets: set[web.WebSocketResponse] = set()
-        self.open_sockets = 0  # /ws and /api together
         self._ids = itertools.count(1)
 
     async def start(self) -> None:
+        if self.config.allowed_hosts is None:
+            names = await machine_names()
+            self.hosts = HostPolicy(default_hosts(self.config.host, names))
         self._runner = web.AppRunner(
-            self.app, access_log=None, handle_signals=False, shutdown_timeout=0.5
+            self.app,
+            access_log=None,
+            handle_signals=False,
+            shutdown_timeout=0.5,
+            keepalive_timeout=self.config.request_timeout_s,
         )
         await self._runner.setup()
         site = web.TCPSite(self._runner, self.config.host, self.config.port)
@@ -90,49 +126,130 @@ class HttpTransport:
             await self._runner.cleanup()
             self._runner = None
 
+    @web.middleware
+    async def _guard(self, request: web.Request, handler: Handler) -> web.StreamResponse:
+        """Every route: a ``Host`` this server does not answer to is a rebinding page: 403."""
+        host = request.headers.get("Host")
+        if not self.hosts.allows(host):
+            self.hosts.note_refused(str(host), request.path)
+            raise web.HTTPForbidden(text="host not allowed")
+        return await handler(request)
+
     async def _index(self, request: web.Request) -> web.StreamResponse:
         return web.FileResponse(web_root() / "index.html")
 
-    def admit(self, request: web.Request) -> None:
-        """Refuse a WebSocket from a foreign origin (403) or beyond ``max_connections`` (503)."""
-        if not origin_allowed(request, self.config.allowed_origins):
+    def origin_allowed(self, request: web.Request) -> bool:
+        """Same-origin pages on an allowed host, listed origins, non-browser clients."""
+        return origin_allowed(
+            request.headers.get("Origin"),
+            request.headers.get("Host"),
+            self.config.allowed_origins,
+            self.hosts,
+        )
+
+    def admit(self, request: web.Request, authenticated: bool) -> None:
+        """Refuse a WebSocket from a foreign origin (403), or beyond the connection limit for
+        those with (``max_connections``) or without the token (503); else take a slot."""
+        if not self.origin_allowed(request):
             log.warning("refused %s from origin %s", request.path, request.headers.get("Origin"))
             raise web.HTTPForbidden(text="origin not allowed")
-        if self.open_sockets >= self.config.max_connections:
-            log.warning("refused %s: %d connections open", request.path, self.open_sockets)
-            raise web.HTTPServiceUnavailable(text="too many connections")
+        if not self.slots.take(authenticated):
+            kind = "with" if authenticated else "without"
+            log.warning("refused %s: %d connections %s the token open", request.path,
+                        self.slots.open[authenticated], kind)
+            raise web.HTTPServiceUnavailable(text=f"too many connections {kind} the token")
+
+    def idle_deadline(self, authenticated: bool) -> float | None:
+        """When a socket without the token that keeps quiet is closed (None: never)."""
+        if authenticated:
+            return None
+        return asyncio.get_running_loop().time() + self.config.idle_timeout_s
+
+    @contextlib.asynccontextmanager
+    async def idle_limit(
+        self, socket: web.WebSocketResponse, authenticated: bool
+    ) -> AsyncIterator[asyncio.Timeout]:
+        """Run a socket's receive loop; close the socket once the deadline passes."""
+        idle = asyncio.timeout_at(self.idle_deadline(authenticated))
+        try:
+            async with idle:
+                yield idle
+        except TimeoutError:
+            if not idle.expired():
+                raise
+            log.info("closing a socket without the token: idle for %gs",
+                     self.config.idle_timeout_s)
+            await socket.close(code=WSCloseCode.POLICY_VIOLATION, message=b"idle")
 
     async def _line_socket(self, request: web.Request) -> web.WebSocketResponse:
-        self.admit(request)
-        socket = web.WebSocketResponse(heartbeat=20)
-        await socket.prepare(request)
-        self._sockets.add(socket)
-        self.open_sockets += 1
-        token = request.query.get("token") or request.headers.get("X-Motiond-Token")
-        observer = request.query.get("mode") == "observe"
-        session = Session(self.kernel, f"ws-{next(self._ids)}", websocket=True, token=token,
-                          observer=observer)
-        transport = request.transport
-        if transport is not None:
-            session.outbox.on_overflow = transport.abort
+        token, expected = presented_token(request), line_token(self.kernel)
+        authenticated = expected is None or tokens_equal(token, expected)
+        self.admit(request, authenticated)
+        socket = web.WebSocketResponse(
+            heartbeat=HEARTBEAT_S, max_msg_size=self.config.ws_max_message_bytes
+        )
+        try:
+            await socket.prepare(request)
+            self._sockets.add(socket)
+            await self._serve_lines(request, socket, token, authenticated)
+        finally:
+            self._sockets.discard(socket)
+            self.slots.release(authenticated)
+        return socket
+
+    async def _serve_lines(
+        self,
+        request: web.Request,
+        socket: web.WebSocketResponse,
+        token: str | None,
+        authenticated: bool,
+    ) -> None:
+        session = LineSocketSession(self.kernel, f"ws-{next(self._ids)}", websocket=True,
+                                    token=token, observer=request.query.get("mode") == "observe")
+        if request.transport is not None:
+            session.outbox.on_overflow = request.transport.abort
         session.start()
         writer = asyncio.create_task(_write_lines(session, socket))
         try:
-            async for message in socket:
-                if message.type is WSMsgType.TEXT:
-                    session.receive_text(message.data)
-                elif message.type is WSMsgType.BINARY:
-                    session.receive_data(message.data)
-                await session.wait_room()
-                await asyncio.sleep(0)  # one message a turn: a flood must not hold the loop
+            async with self.idle_limit(socket, authenticated) as idle:
+                await self._pump(request, socket, session, idle, authenticated)
         finally:
-            self._sockets.discard(socket)
-            self.open_sockets -= 1
             await session.close()
             writer.cancel()
             with contextlib.suppress(asyncio.CancelledError, ConnectionError):
                 await writer
-        return socket
+
+    async def _pump(
+        self,
+        request: web.Request,
+        socket: web.WebSocketResponse,
+        session: LineSocketSession,
+        idle: asyncio.Timeout,
+        authenticated: bool,
+    ) -> None:
+        def gone() -> bool:
+            return session.closed or request.transport is None or request.transport.is_closing()
+
+        async for message in socket:
+            if message.type not in (WSMsgType.TEXT, WSMsgType.BINARY):
+                continue
+            idle.reschedule(self.idle_deadline(authenticated))
+            await _feed(session, message.data, gone)
+
+
+async def _feed(
+    session: LineSocketSession, data: str | bytes, gone: Callable[[], bool]
+) -> None:
+    """One message, a slice per loop turn, waiting while the session's line queue is full;
+    the rest is dropped once the client is gone."""
+    size = len(data)
+    for start in range(0, max(size, 1), SLICE_CHARS):
+        if gone():
+            return
+        end = start + SLICE_CHARS
+        session.receive_slice(data[start:end], final=end >= size)
+        await session.wait_room()
+        await asyncio.sleep(0)  # a large message must not hold the loop: one slice a turn
 
 
 async def _write_lines(session: Session, socket: web.WebSocketResponse) -> None:
