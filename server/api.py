@@ -32,7 +32,7 @@ from aiohttp import WSCloseCode, WSMsgType, web
 
 import server.api_jobs  # noqa: F401 - registers the settings.* and job.* methods
 from server.api_methods import Methods, RpcError, command_error
-from server.errors import AUTH_REQUIRED, CommandError
+from server.errors import CommandError, Error
 from server.jsonrpc import INTERNAL, INVALID_REQUEST, BadRequest, decode_request
 from server.telemetry import Channel, Publisher, encode
 from server.transports.access import tokens_equal
@@ -258,9 +258,9 @@ class JsonApi:
     async def upload(self, request: web.Request) -> web.Response:
         """``POST /upload?name=NAME``: the body, streamed into the job folder."""
         if not self.transport.origin_allowed(request):
-            return _json_error(403, AUTH_REQUIRED, "origin not allowed")
+            return _json_error(403, Error.AUTH_REQUIRED, "origin not allowed")
         if not self.token_ok(presented_token(request)):
-            return _json_error(401, AUTH_REQUIRED, "a token is required to upload")
+            return _json_error(401, Error.AUTH_REQUIRED, "a token is required to upload")
         name = request.query.get("name", "")
         limit = self.kernel.config.core.jobs.max_upload_bytes
         if request.content_length is not None and request.content_length > limit:

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 from pydantic import Field
 
 from server.api_methods import INVALID_PARAMS, Methods, Params, RpcError, method
-from server.errors import FILE_ERROR, CommandError
+from server.errors import CommandError, Error
 from server.interpreter import Interpreter
 from server.offline import file_lines
 from server.telemetry import job_dict
@@ -136,7 +136,7 @@ async def job_toolpath(
     try:
         info = await asyncio.to_thread(path.stat)
     except OSError as exc:
-        raise CommandError(FILE_ERROR, f"no job file {path.name}") from exc
+        raise CommandError(Error.FILE_ERROR, f"no job file {path.name}") from exc
     key = (path.name, info.st_size, info.st_mtime_ns, params.max_segments)
     async with m.toolpath_lock:  # one planning thread at a time
         cached = m.toolpaths.get(key)
@@ -163,4 +163,4 @@ def _plan_file(
             lines = file_lines(handle, core.protocol.line_limit)
             return plan_toolpath(lines, core, max_segments, interpreter)
     except OSError as exc:
-        raise CommandError(FILE_ERROR, f"cannot read {path.name}: {exc.strerror}") from exc
+        raise CommandError(Error.FILE_ERROR, f"cannot read {path.name}: {exc.strerror}") from exc

@@ -22,9 +22,9 @@ from typing import TYPE_CHECKING, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from server import __version__
-from server.errors import AUTH_REQUIRED, CommandError
+from server.errors import ERROR_MEANINGS, CommandError, Error
 from server.gcode import check_length
-from server.reports import ERROR_MESSAGES, StatusScheduler
+from server.reports import StatusScheduler
 from server.status import snapshot, state_text
 from server.telemetry import TOPICS, build_status
 
@@ -46,7 +46,7 @@ class RpcError(Exception):
 
 def command_error(exc: CommandError) -> tuple[int, str, dict[str, Any]]:
     """A refused command as a JSON-RPC error: the code is Grbl's (or motiond's) number."""
-    meaning = ERROR_MESSAGES.get(exc.code, "")
+    meaning = ERROR_MEANINGS.get(exc.code, "")
     return (
         exc.code,
         f"error:{exc.code} {exc.message or meaning}".strip(),
@@ -102,7 +102,7 @@ class Methods:
         if spec is None:
             raise RpcError(METHOD_NOT_FOUND, f"method not found: {name}")
         if spec.control and not connection.can_control:
-            raise CommandError(AUTH_REQUIRED, "this connection may not control the machine")
+            raise CommandError(Error.AUTH_REQUIRED, "this connection may not control the machine")
         if params is None:
             params = {}
         if not isinstance(params, dict):
@@ -174,9 +174,9 @@ def server_auth(m: Methods, connection: Connection, params: AuthParams) -> dict[
     """Present the token: control from now on. An observer connection (``?mode=observe``)
     never controls, whatever it presents: open another connection to control."""
     if connection.observer:
-        raise CommandError(AUTH_REQUIRED, "an observer connection never controls the machine")
+        raise CommandError(Error.AUTH_REQUIRED, "an observer connection never controls the machine")
     if not m.api.token_ok(params.token):
-        raise CommandError(AUTH_REQUIRED, "wrong token")
+        raise CommandError(Error.AUTH_REQUIRED, "wrong token")
     connection.authenticate()
     return {"can_control": connection.can_control}
 
@@ -247,7 +247,9 @@ async def _one_line(m: Methods, connection: Connection, line: str) -> dict[str, 
     try:
         if text in _REALTIME:
             if not connection.can_control:
-                raise CommandError(AUTH_REQUIRED, "this connection may not control the machine")
+                raise CommandError(
+                    Error.AUTH_REQUIRED, "this connection may not control the machine"
+                )
             REALTIME_ACTIONS[_REALTIME[text]](m)
             messages: list[str] = []
         else:

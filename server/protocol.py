@@ -39,10 +39,8 @@ from functools import reduce
 from operator import xor
 from typing import TypeAlias
 
-from server.errors import CHECKSUM, LINE_NUMBER_SEQUENCE, CommandError, Error
+from server.errors import CommandError, Error
 from server.reports import GRBL_VERSION, format_reprap_error
-
-LINE_OVERFLOW = 11
 
 GRBL_BANNER = f"Grbl {GRBL_VERSION} ['$' for help]"
 
@@ -367,7 +365,7 @@ class LineProtocol:
         self.reset()
         if overflow:
             message = f"line longer than {self._line_limit} bytes"
-            events.append(LineRejected(CommandError(LINE_OVERFLOW, message)))
+            events.append(LineRejected(CommandError(Error.LINE_OVERFLOW, message)))
         else:
             events.append(self._line_event(raw))
 
@@ -392,7 +390,7 @@ class LineProtocol:
     def _garbage(self, raw: bytes, reason: str) -> LineRejected:
         stripped = raw.lstrip()
         if stripped[:1] in (b"N", b"n") and b"*" in stripped:
-            return LineRejected(ResendError(CHECKSUM, reason, self._last_line))
+            return LineRejected(ResendError(Error.CHECKSUM, reason, self._last_line))
         return LineRejected(CommandError(Error.EXPECTED_COMMAND_LETTER, reason))
 
     def _detect_dialect(self, text: str, *, framed: bool) -> None:
@@ -408,10 +406,10 @@ class LineProtocol:
     def _framed_event(self, number_text: str, body: str, checksum_text: str, head: str) -> Event:
         field = _CHECKSUM_FIELD.fullmatch(checksum_text)
         if field is None:
-            return self._resend(CHECKSUM, f"bad checksum field '*{checksum_text}'")
+            return self._resend(Error.CHECKSUM, f"bad checksum field '*{checksum_text}'")
         computed = reduce(xor, head.encode("utf-8"), 0)
         if int(field.group(1)) != computed:
-            return self._resend(CHECKSUM, f"checksum {field.group(1)} != computed {computed}")
+            return self._resend(Error.CHECKSUM, f"checksum {field.group(1)} != computed {computed}")
         number = int(number_text)
         framed = FramedLine(number, body)
         if _M110.match(body):
@@ -419,7 +417,7 @@ class LineProtocol:
             return LineReceived(body, framed, handled=True)
         if self._sequence_known and number != self._last_line + 1:
             expected = self._last_line + 1
-            return self._resend(LINE_NUMBER_SEQUENCE, f"got N{number}, expected N{expected}")
+            return self._resend(Error.LINE_NUMBER_SEQUENCE, f"got N{number}, expected N{expected}")
         self._last_line = number
         self._sequence_known = True
         return LineReceived(body, framed)

@@ -22,10 +22,10 @@ import logging
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
+from server.errors import ALARM_MEANINGS
 from server.events import MachineState
 from server.moves import MoveKind, ToolMode
 from server.outbox import BoundedQueue
-from server.reports import ALARM_MESSAGES
 from server.status import state_text
 
 if TYPE_CHECKING:
@@ -194,7 +194,7 @@ def build_status(kernel: Kernel) -> dict[str, Any]:
         alarm = {
             "code": kernel.alarm_code,
             "message": kernel.alarm_message,
-            "meaning": ALARM_MESSAGES.get(kernel.alarm_code, ""),
+            "meaning": ALARM_MEANINGS.get(kernel.alarm_code, ""),
         }
     progress = kernel.jobs.progress()
     return {

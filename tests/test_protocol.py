@@ -364,7 +364,8 @@ def test_grbl_sender_stays_in_the_grbl_dialect() -> None:
     protocol = LineProtocol()
     protocol.receive_data(b"\x18?$$\n$#\nM105\n")
     assert protocol.dialect is Dialect.GRBL
-    assert protocol.reply_error(CommandError(20, "unsupported M105")) == b"error:20\r\n"
+    refused = CommandError(Error.UNSUPPORTED, "unsupported M105")
+    assert protocol.reply_error(refused) == b"error:20\r\n"
 
 
 @pytest.mark.parametrize(
@@ -442,12 +443,13 @@ def test_reply_messages_must_be_single_lines_that_do_not_read_as_ok(message: str
 @pytest.mark.parametrize(
     ("error", "expected"),
     [
-        (CommandError(20, "G81"), b'echo:Unknown command: "G81"\r\nok\r\n'),
-        (CommandError(43, "frobnicate"), b'echo:Unknown command: "frobnicate"\r\nok\r\n'),
+        (CommandError(Error.UNSUPPORTED, "G81"), b'echo:Unknown command: "G81"\r\nok\r\n'),
+        (CommandError(Error.UNKNOWN_COMMAND, "frobnicate"),
+         b'echo:Unknown command: "frobnicate"\r\nok\r\n'),
         (CommandError(22), b"echo:Undefined feed rate (code 22)\r\nok\r\n"),
-        (CommandError(33, "arc\nend"), b"echo:arc end (code 33)\r\nok\r\n"),
+        (CommandError(Error.INVALID_TARGET, "arc\nend"), b"echo:arc end (code 33)\r\nok\r\n"),
         (CommandError(9), b"Error:G-code locked out during alarm or jog (code 9)\r\nok\r\n"),
-        (CommandError(11, "too long"), b"echo:too long (code 11)\r\nok\r\n"),
+        (CommandError(Error.LINE_OVERFLOW, "too long"), b"echo:too long (code 11)\r\nok\r\n"),
     ],
 )
 def test_reprap_errors_are_worded_like_marlin(error: CommandError, expected: bytes) -> None:

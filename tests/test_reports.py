@@ -6,10 +6,9 @@ import dataclasses
 
 import pytest
 
+from server.errors import ALARM_MEANINGS, ERROR_MEANINGS
 from server.protocol import LineProtocol
 from server.reports import (
-    ALARM_MESSAGES,
-    ERROR_MESSAGES,
     StatusScheduler,
     StatusSnapshot,
     format_alarm,
@@ -121,7 +120,7 @@ def test_status_reports_and_alarms_are_pushable() -> None:
     protocol = LineProtocol()
     full = snap(state="Check", pins="P", accessories="S", line_number=3)
     protocol.push(format_status(full, report_mask=3, include_wco=True, include_ov=True))
-    for code in ALARM_MESSAGES:
+    for code in ALARM_MEANINGS:
         protocol.push(format_alarm(code))
 
 
@@ -221,13 +220,13 @@ def test_build_info_keeps_a_version_that_already_starts_with_the_grbl_version() 
 
 def test_alarms_are_numbered_lines_with_a_meaning_for_every_code() -> None:
     assert format_alarm(1) == "ALARM:1"
-    assert set(range(1, 11)) <= set(ALARM_MESSAGES)
-    assert all(text for text in ALARM_MESSAGES.values())
+    assert set(range(1, 11)) <= set(ALARM_MEANINGS)
+    assert all(text for text in ALARM_MEANINGS.values())
 
 
 def test_every_documented_error_code_has_a_meaning() -> None:
     documented = [1, 2, 3, 4, 5, 8, 9, 10, 11, 15, 16, *range(20, 39), *range(40, 47)]
-    assert all(ERROR_MESSAGES[code] for code in documented)
+    assert all(ERROR_MEANINGS[code] for code in documented)
 
 
 # -- RepRap error wording ------------------------------------------------------------------
