@@ -102,6 +102,7 @@ class Endstops(Module):
         for name in ("$H", *(f"$H{axis.name}" for axis in self.axes)):
             ctx.register_command(name, self._home_command, when_locked=True)
         ctx.register_sync(SyncKind.HOME, self._home_sync)
+        ctx.add_feature("homing")
         ctx.register_code(119, self._m119, query=True)
         ctx.subscribe("state", self._on_state)
 

@@ -41,7 +41,7 @@ from server.codes import CodeCall
 from server.dispatcher import Command
 from server.errors import CommandError, Error
 from server.events import MachineState
-from server.module import Module, ModuleConfig, ModuleContext
+from server.module import ApiCaller, ApiParams, Module, ModuleConfig, ModuleContext
 from server.moves import Action, MoveKind, Output, Sync, SyncKind, ToolMode
 from server.stepgen import HoldState, MotionState
 
@@ -94,6 +94,13 @@ def laser_power(config: LaserConfig, motion: MotionState, scale: float) -> float
     return min(high, max(0.0, low + (high - low) * ratio))
 
 
+class FireParams(ApiParams):
+    """``laser.fire``: power in percent, optional duration (capped by fire_max_duration_s)."""
+
+    percent: float = Field(ge=0, le=100)
+    duration_s: float | None = Field(None, gt=0)
+
+
 class Laser(Module):
     """Drives the laser PWM from the motion state; see the module docstring."""
 
@@ -109,6 +116,10 @@ class Laser(Module):
         self._state = MachineState.IDLE
         self._fire_until_s: float | None = None
         ctx.register_command("fire", self._fire)
+        ctx.register_api_method("laser.fire", self._api_fire, FireParams, control=True)
+        ctx.register_api_method("laser.off", self._api_off, control=True)
+        ctx.add_status_field("power_pct", lambda: round(100.0 * self.power, 1))
+        ctx.add_feature("laser")
         ctx.register_code(221, self._m221, uses="S", query=True)
         for event in ("halt", "hold", "shutdown", "reset"):
             ctx.subscribe(event, self._off_now)
@@ -220,6 +231,14 @@ class Laser(Module):
         self._fire_until_s = now_s + duration_s
         self._apply(min(1.0, percent / 100.0) * self.config.maximum_power)
         return [f"[MSG:fire {percent:g}% for at most {duration_s:g}s]"]
+
+    async def _api_fire(self, params: FireParams, caller: ApiCaller) -> dict[str, Any]:
+        """``laser.fire``: the ``fire`` command, as the calling connection."""
+        duration = "" if params.duration_s is None else f" {params.duration_s:g}"
+        return {"messages": await caller.submit(f"fire {params.percent:g}{duration}")}
+
+    async def _api_off(self, params: ApiParams, caller: ApiCaller) -> dict[str, Any]:
+        return {"messages": await caller.submit("fire off")}
 
     def status(self) -> dict[str, Any]:
         motion = self.ctx.motion()

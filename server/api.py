@@ -1,12 +1,13 @@
 """The JSON API: JSON-RPC 2.0 over WebSocket at ``/api`` and streamed uploads at ``/upload``.
 
-Registered on :class:`~server.transports.websocket.HttpTransport` through its ``route_hooks``
-when this module is imported. Every request runs in its own task owned by its connection, so a
+Composed explicitly: :func:`http_with_api` builds the HTTP transport with :func:`install` as a
+route hook, and the method table is composed from ``CORE_METHODS`` (:mod:`server.api_methods`),
+``JOB_METHODS`` (:mod:`server.api_jobs`) and the methods modules contribute (documented in
+``docs/API.md``). Every request runs in its own task owned by its connection, so a
 ``gcode.send`` waiting for planner room never delays a ``machine.hold``; G-code from one
 connection still executes in order (a per-connection lock, then the dispatcher's FIFO lock).
 Replies and notifications share one bounded :class:`~server.telemetry.Channel` per connection:
-a client that stops reading is disconnected, never waited for. Methods are listed in
-:mod:`server.api_methods` and documented in ``docs/API.md``.
+a client that stops reading is disconnected, never waited for.
 
 Access: a request naming a host not in ``[http] allowed_hosts`` is refused (403), and so is a
 browser page from another origin unless ``[http] allowed_origins`` names it; with
@@ -30,8 +31,8 @@ from typing import TYPE_CHECKING, Any
 
 from aiohttp import WSCloseCode, WSMsgType, web
 
-import server.api_jobs  # noqa: F401 - registers the settings.* and job.* methods
-from server.api_methods import Methods, RpcError, command_error
+from server.api_jobs import JOB_METHODS
+from server.api_methods import CORE_METHODS, Methods, RpcError, command_error, compose
 from server.errors import CommandError, Error
 from server.jsonrpc import INTERNAL, INVALID_REQUEST, BadRequest, decode_request
 from server.telemetry import Channel, Publisher, encode
@@ -175,7 +176,8 @@ class JsonApi:
         self.kernel: Kernel = transport.kernel
         self.http = transport.config
         self.publisher = Publisher(self.kernel)
-        self.methods = Methods(self)
+        table = compose(CORE_METHODS, JOB_METHODS, modules=self.kernel.api_methods.values())
+        self.methods = Methods(self, table)
         self.connections: set[Connection] = set()
         self._ids = itertools.count(1)
 
@@ -309,5 +311,6 @@ def install(transport: HttpTransport, app: web.Application) -> None:
     app.on_shutdown.append(api.on_shutdown)
 
 
-if install not in HttpTransport.route_hooks:
-    HttpTransport.route_hooks.append(install)
+def http_with_api(kernel: Kernel) -> HttpTransport:
+    """The HTTP transport with the JSON API's routes: what ``motiond`` serves."""
+    return HttpTransport(kernel, route_hooks=(install,))

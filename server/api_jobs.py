@@ -1,4 +1,4 @@
-"""The JSON API's settings and job methods (registered into :data:`server.api_methods.METHODS`).
+"""The JSON API's settings and job methods (:data:`JOB_METHODS`, composed by the API).
 
 Imported by :mod:`server.api`; see ``docs/API.md`` for the reference.
 """
@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 from pydantic import Field
 
-from server.api_methods import INVALID_PARAMS, Methods, Params, RpcError, method
+from server.api_methods import INVALID_PARAMS, Handler, Methods, MethodTable, Params, RpcError
 from server.errors import CommandError, Error
 from server.interpreter import Interpreter
 from server.offline import file_lines
@@ -26,6 +26,8 @@ if TYPE_CHECKING:
     from server.api import Connection
     from server.config import CoreConfig
 
+JOB_METHODS = MethodTable()  # settings.* and job.*
+method = JOB_METHODS.method
 TOOLPATH_CACHE = 2  # results kept (each at most max_segments long): the latest file versions
 
 
@@ -111,16 +113,16 @@ def job_start(m: Methods, connection: Connection, params: NameParams) -> dict[st
     return _progress(m)
 
 
-def _job_method(name: str, action: str) -> None:
+def _job_handler(action: str) -> Handler:
     def handler(m: Methods, connection: Connection, params: Params) -> dict[str, Any] | None:
         getattr(m.kernel.jobs, action)()
         return _progress(m)
 
-    method(f"job.{name}", control=True)(handler)
+    return handler
 
 
 for _name, _job_action in (("pause", "suspend"), ("resume", "resume"), ("abort", "abort")):
-    _job_method(_name, _job_action)
+    JOB_METHODS.add(f"job.{_name}", _job_handler(_job_action), control=True)
 
 
 @method("job.progress")

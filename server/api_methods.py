@@ -13,17 +13,19 @@ from __future__ import annotations
 
 import asyncio
 import inspect
-import re
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from server import __version__
+from server.control import MachineControl, halts_at_once
 from server.errors import ERROR_MEANINGS, CommandError, Error
 from server.gcode import check_length
+from server.module import ApiMethod
+from server.protocol import Realtime
 from server.reports import StatusScheduler
 from server.status import snapshot, state_text
 from server.telemetry import TOPICS, build_status
@@ -31,7 +33,6 @@ from server.telemetry import TOPICS, build_status
 if TYPE_CHECKING:
     from server.api import Connection, JsonApi
 
-_M112 = re.compile(r"^\s*(?:N\d+\s*)?M\s*0*112(?:\D|$)", re.I)
 INVALID_PARAMS, METHOD_NOT_FOUND = -32602, -32601
 MAX_LINES = 10_000
 
@@ -68,37 +69,53 @@ Handler = Callable[["Methods", "Connection", Any], Any]
 class MethodSpec:
     name: str
     handler: Handler
-    params: type[Params]
+    params: type[BaseModel]
     control: bool
 
 
-METHODS: dict[str, MethodSpec] = {}
+class MethodTable(dict[str, MethodSpec]):
+    """JSON-RPC methods by name; each API module fills its own and the API composes them."""
+
+    def method(
+        self, name: str, params: type[Params] = Params, control: bool = False
+    ) -> Callable[[Handler], Handler]:
+        """Decorator: ``handler`` answers the method ``name``."""
+
+        def add(handler: Handler) -> Handler:
+            self.add(name, handler, params, control)
+            return handler
+
+        return add
+
+    def add(
+        self,
+        name: str,
+        handler: Handler,
+        params: type[BaseModel] = Params,
+        control: bool = False,
+    ) -> None:
+        if name in self:
+            raise ValueError(f"JSON-RPC method {name} is defined twice")
+        self[name] = MethodSpec(name, handler, params, control)
 
 
-def method(
-    name: str, params: type[Params] = Params, control: bool = False
-) -> Callable[[Handler], Handler]:
-    """Register a handler under a JSON-RPC method name."""
-
-    def register(handler: Handler) -> Handler:
-        METHODS[name] = MethodSpec(name, handler, params, control)
-        return handler
-
-    return register
+CORE_METHODS = MethodTable()  # server.*, machine.*, gcode.*
+method = CORE_METHODS.method
 
 
 class Methods:
     """The API's view of one kernel; holds the toolpath cache."""
 
-    def __init__(self, api: JsonApi) -> None:
+    def __init__(self, api: JsonApi, table: MethodTable) -> None:
         self.api = api
+        self.table = table
         self.kernel = api.kernel
         self.machine = api.kernel.machine
         self.toolpaths: OrderedDict[tuple[Any, ...], dict[str, Any]] = OrderedDict()
         self.toolpath_lock = asyncio.Lock()
 
     async def call(self, connection: Connection, name: str, params: Any) -> Any:
-        spec = METHODS.get(name)
+        spec = self.table.get(name)
         if spec is None:
             raise RpcError(METHOD_NOT_FOUND, f"method not found: {name}")
         if spec.control and not connection.can_control:
@@ -151,8 +168,7 @@ def server_info(m: Methods, connection: Connection, params: Params) -> dict[str,
             for name, axis in core.axes.items()
         ],
         "laser_mode": core.machine.laser_mode,
-        "has_laser": "laser" in m.kernel.modules,
-        "has_homing": "endstops" in m.kernel.modules,
+        "features": sorted(m.kernel.features),
         "max_s": m.machine.settings.values().get(30, 1000.0),
         "modules": sorted(m.kernel.modules),
         "commands": m.kernel.dispatcher.names(),
@@ -160,7 +176,7 @@ def server_info(m: Methods, connection: Connection, params: Params) -> dict[str,
         "auth_required": m.api.http.token is not None,
         "status_rate_hz": round(1.0 / m.api.publisher.period_s, 3),
         "upload": {"url": "/upload", "max_bytes": core.jobs.max_upload_bytes},
-        "methods": sorted(METHODS),
+        "methods": sorted(m.table),
         "topics": sorted(TOPICS),
     }
 
@@ -229,7 +245,8 @@ async def gcode_send(m: Methods, connection: Connection, params: GcodeParams) ->
     return {"results": results, "skipped": len(lines) - len(results)}
 
 
-_REALTIME = {"!": "hold", "~": "resume", "\x18": "reset", "\x85": "jog_cancel"}
+_REALTIME = {"!": Realtime.HOLD, "~": Realtime.RESUME, "\x18": Realtime.RESET,
+             "\x85": Realtime.JOG_CANCEL}
 
 
 async def _one_line(m: Methods, connection: Connection, line: str) -> dict[str, Any]:
@@ -250,11 +267,11 @@ async def _one_line(m: Methods, connection: Connection, line: str) -> dict[str, 
                 raise CommandError(
                     Error.AUTH_REQUIRED, "this connection may not control the machine"
                 )
-            REALTIME_ACTIONS[_REALTIME[text]](m)
+            m.kernel.control.realtime(_REALTIME[text])
             messages: list[str] = []
         else:
-            if _M112.match(text) and connection.can_control:
-                m.machine.emergency_stop()
+            if halts_at_once(text) and connection.can_control:
+                m.kernel.control.emergency_stop()
             messages = await m.submit(connection, line)
     except CommandError as exc:
         return _refused(line, exc)
@@ -271,48 +288,26 @@ def _refused(line: str, exc: CommandError) -> dict[str, Any]:
     }
 
 
-# -- realtime control -------------------------------------------------------------------------
-def _hold(m: Methods) -> None:
-    progress = m.kernel.jobs.progress()
-    if m.kernel.jobs.running and progress is not None and progress.state == "running":
-        m.kernel.jobs.suspend()
-    else:
-        m.machine.feed_hold()
-
-
-def _resume(m: Methods) -> None:
-    progress = m.kernel.jobs.progress()
-    if progress is not None and progress.state == "paused":
-        m.kernel.jobs.resume()
-    else:
-        m.machine.cycle_start()
-
-
-def _reset(m: Methods) -> None:
-    m.machine.soft_reset()
-    if m.kernel.jobs.running:
-        m.kernel.jobs.abort()
-
-
-REALTIME_ACTIONS: dict[str, Callable[[Methods], None]] = {
-    "hold": _hold,
-    "resume": _resume,
-    "reset": _reset,
-    "jog_cancel": lambda m: m.machine.cancel_jog(),
-    "estop": lambda m: m.machine.emergency_stop(),
+# -- realtime control: the same MachineControl as every line session ----------------------
+REALTIME_METHODS: dict[str, Callable[[MachineControl], None]] = {
+    "hold": MachineControl.hold,
+    "resume": MachineControl.resume,
+    "reset": MachineControl.reset,
+    "jog_cancel": MachineControl.jog_cancel,
+    "estop": MachineControl.emergency_stop,
 }
 
 
-def _realtime_method(name: str, action: Callable[[Methods], None]) -> None:
+def _realtime_handler(action: Callable[[MachineControl], None]) -> Handler:
     def handler(m: Methods, connection: Connection, params: Params) -> dict[str, Any]:
-        action(m)
+        action(m.kernel.control)
         return m.state()
 
-    method(f"machine.{name}", control=True)(handler)
+    return handler
 
 
-for _name, _realtime_action in REALTIME_ACTIONS.items():
-    _realtime_method(_name, _realtime_action)
+for _name, _action in REALTIME_METHODS.items():
+    CORE_METHODS.add(f"machine.{_name}", _realtime_handler(_action), control=True)
 
 
 @method("machine.unlock", control=True)
@@ -372,17 +367,29 @@ def machine_override(m: Methods, connection: Connection, params: OverrideParams)
     }
 
 
-class FireParams(Params):
-    percent: float = Field(ge=0, le=100)
-    duration_s: float | None = Field(None, gt=0)
+class _Caller:
+    """A module method's view of the calling connection (implements ApiCaller)."""
+
+    def __init__(self, m: Methods, connection: Connection) -> None:
+        self._m, self._connection = m, connection
+
+    async def submit(self, line: str) -> list[str]:
+        return await self._m.submit(self._connection, line)
 
 
-@method("laser.fire", FireParams, control=True)
-async def laser_fire(m: Methods, connection: Connection, params: FireParams) -> dict[str, Any]:
-    duration = "" if params.duration_s is None else f" {params.duration_s:g}"
-    return {"messages": await m.submit(connection, f"fire {params.percent:g}{duration}")}
+def _module_handler(method: ApiMethod) -> Handler:
+    async def handler(m: Methods, connection: Connection, params: Any) -> Any:
+        return await method.handler(params, _Caller(m, connection))
+
+    return handler
 
 
-@method("laser.off", control=True)
-async def laser_off(m: Methods, connection: Connection, params: Params) -> dict[str, Any]:
-    return {"messages": await m.submit(connection, "fire off")}
+def compose(*tables: MethodTable, modules: Iterable[ApiMethod] = ()) -> MethodTable:
+    """The API's whole method table: the core tables, then what modules contribute."""
+    composed = MethodTable()
+    for table in tables:
+        for spec in table.values():
+            composed.add(spec.name, spec.handler, spec.params, spec.control)
+    for method in modules:
+        composed.add(method.name, _module_handler(method), method.params, method.control)
+    return composed

@@ -13,6 +13,8 @@ import logging
 from collections.abc import Callable
 from typing import Any
 
+from pydantic import BaseModel
+
 from server.clock import Clock
 from server.codes import CodeConflict, CodeFactory
 from server.commands import CoreCommands
@@ -23,7 +25,7 @@ from server.errors import Alarm, ConfigError
 from server.events import EventBus, MachineState
 from server.jobs import Jobs
 from server.machine import Machine, SyncHandler
-from server.module import Module
+from server.module import ApiHandler, ApiMethod, ApiParams, Module
 from server.moves import Action, Move, Position, SyncKind
 from server.state import MachineStatus
 from server.stepgen import MotionState
@@ -119,6 +121,24 @@ class _Context:
     async def run_gcode(self, text: str) -> list[str]:
         return await self._kernel.dispatcher.submit(text, self._source)
 
+    def register_api_method(
+        self,
+        name: str,
+        handler: ApiHandler,
+        params: type[BaseModel] = ApiParams,
+        *,
+        control: bool = False,
+    ) -> None:
+        if name in self._kernel.api_methods:
+            raise ValueError(f"[{self.name}]: JSON-RPC method {name} is defined twice")
+        self._kernel.api_methods[name] = ApiMethod(name, handler, params, control)
+
+    def add_status_field(self, name: str, read: Callable[[], Any]) -> None:
+        self._kernel.status_fields[name] = read
+
+    def add_feature(self, name: str) -> None:
+        self._kernel.features.add(name)
+
     def subscribe(self, event: str, callback: Callable[..., None]) -> None:
         self._kernel.events.subscribe(event, callback)
 
@@ -190,6 +210,9 @@ class Kernel:
         self.jobs = Jobs(self)
         self.control = MachineControl(self.machine, self.jobs)
         self.modules: dict[str, Module] = {}
+        self.api_methods: dict[str, ApiMethod] = {}  # contributed by modules
+        self.status_fields: dict[str, Callable[[], Any]] = {}
+        self.features: set[str] = set()
         self._specs: dict[str, ModuleSpec] = {}
         commands = CoreCommands(self)
         commands.register(self.dispatcher)

@@ -15,7 +15,8 @@ configured as ``[mymodule.NAME]`` with one instance per name. The module reads i
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
 from importlib.metadata import entry_points
 from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 
@@ -38,6 +39,34 @@ class ModuleConfig(BaseModel):
     """Base for module config models: unknown keys are errors."""
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class ApiParams(BaseModel):
+    """Base for the parameters of a module's JSON-RPC method: unknown keys, NaN and Infinity
+    are invalid params."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+class ApiCaller(Protocol):
+    """The connection calling a module's JSON-RPC method."""
+
+    async def submit(self, line: str) -> list[str]:
+        """Run one line as that connection (its rights, in order with its other lines)."""
+        ...
+
+
+ApiHandler = Callable[[Any, ApiCaller], Awaitable[Any]]
+
+
+@dataclass(frozen=True, slots=True)
+class ApiMethod:
+    """A JSON-RPC method a module contributes: ``handler(params, caller)``."""
+
+    name: str
+    handler: ApiHandler
+    params: type[BaseModel]
+    control: bool
 
 
 class Outputs(Protocol):
@@ -126,6 +155,26 @@ class ModuleContext(Protocol):
 
     async def run_gcode(self, text: str) -> list[str]:
         """Run one line in order with every other source, as the module."""
+        ...
+
+    def register_api_method(
+        self,
+        name: str,
+        handler: ApiHandler,
+        params: type[BaseModel] = ApiParams,
+        *,
+        control: bool = False,
+    ) -> None:
+        """Serve the JSON-RPC method ``name`` (``laser.fire``); ``control`` methods need a
+        connection that may control the machine."""
+        ...
+
+    def add_status_field(self, name: str, read: Callable[[], Any]) -> None:
+        """A top-level field of every status update (``power_pct``), read when it is sent."""
+        ...
+
+    def add_feature(self, name: str) -> None:
+        """Tell clients what this machine can do (``laser``, ``homing``): ``server.info``."""
         ...
 
     def subscribe(self, event: str, callback: Callable[..., None]) -> None:

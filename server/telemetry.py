@@ -204,7 +204,7 @@ def build_status(kernel: Kernel) -> dict[str, Any]:
         "wpos": _round(interpreter.work_position(mpos)),
         "wco": _round(interpreter.wco()),
         "speed_mm_min": round(motion.speed_mm_s * 60.0, 1),
-        "power_pct": round(laser_power_pct(kernel), 1),
+        "power_pct": round(tool_power_pct(kernel), 1),
         "tool": {
             "mode": f"M{int(machine.tool.mode)}",
             "s": machine.tool.s,
@@ -222,27 +222,28 @@ def build_status(kernel: Kernel) -> dict[str, Any]:
         "modal": interpreter.modal_snapshot(),
         "job": None if progress is None else job_dict(progress),
         "modules": {name: module.status() for name, module in kernel.modules.items()},
+        **{name: read() for name, read in kernel.status_fields.items()},
     }
 
 
 def telemetry_sample(kernel: Kernel) -> dict[str, Any]:
-    """One point for the live plots: machine time, speed and laser power."""
+    """One point for the live plots: machine time, speed and tool power."""
     motion = kernel.machine.stepgen.state
     return {
         "t_s": round(kernel.clock.now_s(), 4),
         "speed_mm_min": round(motion.speed_mm_s * 60.0, 1),
-        "power_pct": round(laser_power_pct(kernel), 1),
+        "power_pct": round(tool_power_pct(kernel), 1),
         "s": motion.s_value if motion.moving else kernel.machine.tool.s,
     }
 
 
-def laser_power_pct(kernel: Kernel) -> float:
-    """Laser power now, in percent: the ``[laser]`` module's duty when there is one, else what
-    Grbl's laser mode would fire (S over ``$30``, scaled by speed under M4)."""
-    laser = kernel.modules.get("laser")
-    power = getattr(laser, "power", None)
-    if isinstance(power, (int, float)):
-        return 100.0 * float(power)
+def tool_power_pct(kernel: Kernel) -> float:
+    """Tool power now, in percent: a module's ``power_pct`` status field when one gives it
+    (the laser's real duty), else what Grbl's laser mode would fire (S over ``$30``, scaled
+    by speed under M4)."""
+    contributed = kernel.status_fields.get("power_pct")
+    if contributed is not None:
+        return float(contributed())
     motion = kernel.machine.stepgen.state
     if not motion.moving or motion.kind not in CUTTING or motion.tool_mode is ToolMode.OFF:
         return 0.0

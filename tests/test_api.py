@@ -16,8 +16,7 @@ import pytest
 import websockets
 from websockets.asyncio.client import ClientConnection
 
-import server.api  # noqa: F401 - registers /api and /upload on HttpTransport
-from server.api import API_KEY, JsonApi
+from server.api import API_KEY, JsonApi, http_with_api
 from server.app import App
 from server.clock import RealClock
 from server.config import Config
@@ -102,7 +101,7 @@ def http_of(app: App) -> HttpTransport:
 @contextlib.asynccontextmanager
 async def serving(config: Config, clock: Any = None) -> AsyncIterator[tuple[App, str]]:
     """A running App with HTTP on a free port; yields it and ``http://127.0.0.1:PORT``."""
-    async with running(config, clock, transports=[HttpTransport]) as app:
+    async with running(config, clock, transports=[http_with_api]) as app:
         yield app, f"127.0.0.1:{http_of(app).port}"
 
 
@@ -268,7 +267,7 @@ async def test_home_runs_the_homing_cycle_and_is_refused_without_endstops(tmp_pa
         info = await rpc.call("server.info")
         await rpc.call("machine.estop")
         homed = await rpc.call("machine.home")
-    assert info["has_homing"] is True
+    assert "homing" in info["features"]
     assert homed == {"state": "Idle", "messages": ["[MSG:Homed XY]"]}
     async with serving(api_config(tmp_path)) as (app, address), client(address) as rpc:
         refused = await rpc.error("machine.home")

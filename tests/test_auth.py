@@ -7,10 +7,10 @@ import json
 
 import websockets
 
+from server.api import http_with_api
 from server.app import App
 from server.clock import VirtualClock
 from server.transports.tcp import TcpTransport
-from server.transports.websocket import HttpTransport
 from tests.conftest import make_config
 
 TOKEN = "s3cret-token"
@@ -31,7 +31,7 @@ async def exchange(port: int, data: bytes, replies: int) -> list[str]:
 
 async def serve(policy: str) -> App:
     config = make_config(protocol={"token": TOKEN, "unauthenticated": policy})
-    app = App(config, clock=VirtualClock(), transports=[TcpTransport, HttpTransport])
+    app = App(config, clock=VirtualClock(), transports=[TcpTransport, http_with_api])
     app.task = asyncio.create_task(app.run())  # type: ignore[attr-defined]
     await app.ready.wait()
     return app
@@ -98,7 +98,7 @@ async def test_a_page_on_another_site_cannot_open_the_line_socket() -> None:
 
 async def test_websocket_connections_beyond_the_limit_and_request_floods_get_clear_errors() -> None:
     config = make_config(http={"max_connections": 2, "max_requests_per_s": 20})
-    app = App(config, clock=VirtualClock(), transports=[HttpTransport])
+    app = App(config, clock=VirtualClock(), transports=[http_with_api])
     task = asyncio.create_task(app.run())
     await app.ready.wait()
     port = app.transports[0].port  # type: ignore[attr-defined]
@@ -120,7 +120,7 @@ async def test_websocket_connections_beyond_the_limit_and_request_floods_get_cle
 
 
 async def test_observer_connections_watch_but_never_control_even_without_a_token() -> None:
-    app = App(make_config(), clock=VirtualClock(), transports=[HttpTransport])
+    app = App(make_config(), clock=VirtualClock(), transports=[http_with_api])
     task = asyncio.create_task(app.run())
     await app.ready.wait()
     port = app.transports[0].port  # type: ignore[attr-defined]

@@ -15,10 +15,10 @@ import tracemalloc
 import pytest
 import websockets
 
+from server.api import http_with_api
 from server.app import App
 from server.clock import VirtualClock
 from server.transports.tcp import TcpTransport
-from server.transports.websocket import HttpTransport
 from tests.conftest import make_config
 
 SOAK_LINES = int(os.environ.get("MOTIOND_SOAK_LINES", "20000"))
@@ -26,7 +26,7 @@ SOAK_LINES = int(os.environ.get("MOTIOND_SOAK_LINES", "20000"))
 
 async def start_app() -> tuple[App, asyncio.Task[None], int, int]:
     app = App(make_config(tcp={"max_connections": 64}), clock=VirtualClock(),
-              transports=[TcpTransport, HttpTransport])
+              transports=[TcpTransport, http_with_api])
     task = asyncio.create_task(app.run())
     await app.ready.wait()
     tcp, http = app.transports

@@ -20,10 +20,9 @@ import aiohttp
 import pytest
 import websockets
 
-import server.api  # noqa: F401 - registers /api and /upload on HttpTransport
+from server.api import http_with_api
 from server.app import App
 from server.transports.tcp import TcpTransport
-from server.transports.websocket import HttpTransport
 from tests.conftest import REPO, make_config
 from tests.helpers import running
 
@@ -36,7 +35,7 @@ async def serve(**http: Any) -> AsyncIterator[tuple[App, int, int]]:
     """A server with the token on every port; yields it, its TCP port and its HTTP port."""
     config = make_config(protocol={"token": TOKEN, "unauthenticated": "read-only"},
                          http={"token": TOKEN, **http})
-    async with running(config, transports=[TcpTransport, HttpTransport]) as app:
+    async with running(config, transports=[TcpTransport, http_with_api]) as app:
         tcp, web = app.transports
         yield app, tcp.port, web.port  # type: ignore[attr-defined]
 
@@ -378,14 +377,13 @@ async def test_a_half_sent_request_is_closed_after_the_request_timeout() -> None
 ACCEPT_STARVED = r"""
 import asyncio, os, resource, sys
 import logging
-import server.api
+from server.api import http_with_api
 from server.app import App
-from server.transports.websocket import HttpTransport
 from tests.conftest import make_config
 
 async def main() -> None:
     logging.basicConfig(level=logging.INFO)
-    app = App(make_config(), transports=[HttpTransport])
+    app = App(make_config(), transports=[http_with_api])
     task = asyncio.create_task(app.run())
     await app.ready.wait()
     highest_fd = max(int(fd) for fd in os.listdir("/proc/self/fd"))

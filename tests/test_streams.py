@@ -12,11 +12,11 @@ from pathlib import Path
 import pytest
 import websockets
 
+from server.api import http_with_api
 from server.app import App
 from server.clock import RealClock
 from server.transports.serial import SerialTransport
 from server.transports.tcp import TcpTransport
-from server.transports.websocket import HttpTransport
 from tests.conftest import make_config
 
 BANNER = "Grbl 1.1h ['$' for help]"
@@ -129,7 +129,7 @@ async def connect(request: pytest.FixtureRequest, tmp_path: Path) -> AsyncIterat
     config = make_config(serial={"pty": str(tmp_path / "ttyMotiond")},
                          jobs={"data_dir": str(tmp_path / "jobs")})
     app = App(config, clock=RealClock(),
-              transports=[TcpTransport, HttpTransport, SerialTransport])
+              transports=[TcpTransport, http_with_api, SerialTransport])
     task = asyncio.create_task(app.run())
     await asyncio.wait_for(app.ready.wait(), 5)
     tcp, http, _ = app.transports

@@ -18,7 +18,7 @@ from typing import Any
 import pytest
 from playwright.async_api import Browser, Page, async_playwright, expect
 
-import server.api  # noqa: F401 - registers /api and /upload on HttpTransport
+from server.api import http_with_api
 from server.app import App
 from server.clock import Clock, RealClock, VirtualClock
 from server.config import Config
@@ -88,7 +88,7 @@ async def ui(
     if not Path(CHROMIUM).exists():
         pytest.fail(f"{CHROMIUM} is missing: apt-get install chromium (see .ci/run)")
     async with (
-        running(e2e_config(tmp_path, tick_hz), clock, transports=[HttpTransport]) as app,
+        running(e2e_config(tmp_path, tick_hz), clock, transports=[http_with_api]) as app,
         async_playwright() as playwright,
     ):
         browser: Browser = await playwright.chromium.launch(

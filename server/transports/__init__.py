@@ -8,17 +8,16 @@ from server.config import Config
 
 def default_transports(config: Config) -> list[TransportFactory]:
     """The transports the config enables, in start order."""
-    import server.api  # noqa: F401 - registers the JSON API's routes on HttpTransport
+    from server.api import http_with_api
     from server.transports.serial import SerialTransport
     from server.transports.tcp import TcpTransport
-    from server.transports.websocket import HttpTransport
 
     core = config.core
     factories: list[TransportFactory] = []
     if core.tcp.enabled:
         factories.append(TcpTransport)
     if core.http.enabled:
-        factories.append(HttpTransport)
+        factories.append(http_with_api)
     if core.serial.device or core.serial.pty:
         factories.append(SerialTransport)
     return factories

@@ -18,7 +18,7 @@ import asyncio
 import contextlib
 import itertools
 import logging
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
 from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -76,9 +76,9 @@ class HttpTransport:
     """Serves ``[http] host:port``."""
 
     name = "http"
-    route_hooks: list[RouteHook] = []
 
-    def __init__(self, kernel: Kernel) -> None:
+    def __init__(self, kernel: Kernel, route_hooks: Sequence[RouteHook] = ()) -> None:
+        """``route_hooks`` add routes (the JSON API's ``/api`` and ``/upload``)."""
         self.kernel = kernel
         self.config = kernel.config.core.http
         self.port = self.config.port
@@ -90,7 +90,7 @@ class HttpTransport:
             client_max_size=kernel.config.core.jobs.max_upload_bytes, middlewares=[self._guard]
         )
         self.app.router.add_get("/ws", self._line_socket)
-        for hook in self.route_hooks:
+        for hook in route_hooks:
             hook(self, self.app)
         self.app.router.add_get("/", self._index)
         self.app.router.add_static("/", web_root(), show_index=False)

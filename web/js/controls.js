@@ -8,8 +8,8 @@ const ENABLED = {
   hold: (s) => ["run", "jog", "home"].includes(s),
   resume: (s) => s === "hold",
   unlock: (s) => s === "alarm",
-  home: (s, info) => ["idle", "alarm"].includes(s) && info?.has_homing,
-  fire: (s, info) => s === "idle" && info?.has_laser,
+  home: (s, info) => ["idle", "alarm"].includes(s) && info?.features?.includes("homing"),
+  fire: (s, info) => s === "idle" && info?.features?.includes("laser"),
   control: () => true,
 };
 
@@ -33,12 +33,12 @@ export class Controls {
       const [, , z] = button.dataset.jog.split(",").map(Number);
       button.hidden = z !== 0 && !axes.has("Z");
     });
-    $("#btn-fire").title = info.has_laser ? "Fire the laser at low power for focusing"
+    $("#btn-fire").title = info.features.includes("laser") ? "Fire the laser at low power for focusing"
       : "No [laser] module is configured";
-    const homing = info.has_homing ? "Run the homing cycle ($H)" : "No [endstops] module is configured";
+    const homing = info.features.includes("homing") ? "Run the homing cycle ($H)" : "No [endstops] module is configured";
     $("#btn-home").title = homing;
     $("#alarm-home").title = homing;
-    $("#alarm-home").hidden = !info.has_homing;
+    $("#alarm-home").hidden = !info.features.includes("homing");
   }
 
   /** Run an API call; errors become toasts and console lines. */
