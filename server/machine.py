@@ -119,7 +119,10 @@ class Machine:
         self.feed_override = 100
         self.rapid_override = 100
         self.spindle_override = 100
-        self.settings = Settings(self, settings_path(config))  # last: it applies saved values
+        self.settings = Settings(  # last: it applies saved values
+            core, settings_path(config),
+            is_idle=lambda: self.stepgen.idle, apply=self.apply_settings,
+        )
 
     # -- the G-code handler -----------------------------------------------------------------
     async def handle_gcode(self, command: Command) -> list[str]:

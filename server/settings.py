@@ -33,7 +33,6 @@ from server.errors import CommandError, Error
 
 if TYPE_CHECKING:
     from server.config import CoreConfig
-    from server.machine import Machine
 
 log = logging.getLogger("motiond.settings")
 MM_PER_MIN = 60.0
@@ -171,9 +170,18 @@ def _typed(number: int, value: float) -> float | int:
 class Settings:
     """The numbered settings of one machine, with persistence."""
 
-    def __init__(self, machine: Machine, path: Path | None) -> None:
-        self.machine = machine
-        self.core = machine.core
+    def __init__(
+        self,
+        core: CoreConfig,
+        path: Path | None,
+        *,
+        is_idle: Callable[[], bool],
+        apply: Callable[[], None],
+    ) -> None:
+        """``core`` is changed in place; ``apply`` pushes it into the motion pipeline;
+        ``is_idle`` says whether motion is queued (geometry changes wait for idle)."""
+        self.core = core
+        self._is_idle, self._apply = is_idle, apply
         self.table = setting_table(self.core)
         self.path = path
         if path is not None and path.exists():
@@ -212,7 +220,7 @@ class Settings:
         except ValidationError as exc:
             message = exc.errors()[0]["msg"]
             raise CommandError(Error.INVALID_STATEMENT, f"${number}: {message}") from exc
-        self.machine.apply_settings()
+        self._apply()
 
     def _checked(self, number: int, value: float) -> Setting:
         if not math.isfinite(value):
@@ -236,19 +244,19 @@ class Settings:
                 f"${number} ({setting.description}) must be between {setting.low:g} "
                 f"and {setting.high:g}",
             )
-        if setting.geometry and not self.machine.stepgen.idle:
+        if setting.geometry and not self._is_idle():
             raise CommandError(Error.NOT_IDLE, f"${number} can only change while idle")
         return setting
 
     def restore_defaults(self, defaults: CoreConfig) -> None:
         """``$RST=$``: every writable setting back to the config file's value (only while idle:
         steps/mm and travel must not change under a moving machine)."""
-        if not self.machine.stepgen.idle:
+        if not self._is_idle():
             raise CommandError(Error.NOT_IDLE, "$RST=$ can only run while idle")
         for setting in self.table.values():
             if setting.write is not None:
                 setting.write(self.core, setting.read(defaults))
-        self.machine.apply_settings()
+        self._apply()
         if self.path is not None and self.path.exists():
             self.path.unlink()
 

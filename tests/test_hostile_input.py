@@ -38,14 +38,12 @@ HUGE = "1" + "0" * 400  # float() makes it infinity
 WRITER = """
 import sys
 from pathlib import Path
-from types import SimpleNamespace
 from server.config import build_config
 from server.settings import Settings
 
 axis = {"steps_per_mm": 80, "max_rate_mm_s": 500, "accel_mm_s2": 3000, "max_mm": 400}
 core = build_config({"axes": {"x": dict(axis), "y": dict(axis)}}).core
-machine = SimpleNamespace(core=core, stepgen=SimpleNamespace(idle=True), apply_settings=int)
-settings = Settings(machine, Path(sys.argv[1]))
+settings = Settings(core, Path(sys.argv[1]), is_idle=lambda: True, apply=lambda: None)
 value = 1
 settings.write(f"110={value}")  # the file exists from here on
 print("writing", flush=True)
@@ -206,7 +204,7 @@ async def test_non_finite_and_huge_words_are_refused_over_tcp_and_nothing_breaks
 
 
 async def test_the_api_refuses_non_finite_params_and_applies_the_line_limit(tmp_path: Path) -> None:
-    config = api_config(tmp_path, protocol={"line_limit": 1024})
+    config = api_config(tmp_path, protocol={"line_limit": 1024}, laser={"pin": "laser"})
     async with serving(config) as (app, address), client(address) as rpc:
         sent = await rpc.call(
             "gcode.send", lines=[f"G1 X1 F{HUGE}", "G1 X1 ;" + "x" * 1100, "$G"],
@@ -221,12 +219,24 @@ async def test_the_api_refuses_non_finite_params_and_applies_the_line_limit(tmp_
             await rpc.connection.send(
                 f'{{"jsonrpc": "2.0", "id": "{method}", "method": "{method}", "params": {params}}}'
             )
-            reply = await reply_to(rpc, method)
-            assert reply["error"]["code"] == -32602, reply
+        # Non-finite numbers are not JSON: refused as the frame is decoded (-32700, id null).
+        refused = await parse_errors(rpc, 4)
+        assert all(reply["error"]["code"] == -32700 for reply in refused), refused
         precise = await rpc.call("settings.set", number=120, value=1234.56789)
     assert [r["reply"] for r in sent["results"]] == ["error:2", "error:11", "ok"]
     assert sent["results"][2]["messages"][0].endswith("F0 S0]")
     assert precise["value"] == 1234.56789
+
+
+async def parse_errors(rpc: RpcClient, count: int, timeout_s: float = 10) -> list[dict[str, Any]]:
+    """The first ``count`` error replies without an id (frames refused before any method)."""
+    async with asyncio.timeout(timeout_s):
+        while True:
+            found = [m for m in rpc.notifications if m.get("id", "") is None and "error" in m]
+            if len(found) >= count:
+                return found
+            rpc.arrived.clear()
+            await rpc.arrived.wait()
 
 
 async def reply_to(rpc: RpcClient, request_id: str, timeout_s: float = 10) -> dict[str, Any]:
