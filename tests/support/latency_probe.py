@@ -16,9 +16,15 @@ import sys
 import time
 
 
-async def probe(host: str, port: int, period_s: float, stop: asyncio.Event) -> list[float]:
+async def probe(
+    host: str, port: int, period_s: float, stop: asyncio.Event, token: str | None
+) -> list[float]:
     reader, writer = await asyncio.open_connection(host, port)
     await reader.readline()  # the banner
+    if token is not None:  # an operator who logged in: never closed as idle nor capped
+        writer.write(f"$AUTH={token}\n".encode())
+        while (await reader.readline()).strip() != b"ok":
+            pass
     round_trips_s: list[float] = []
     while not stop.is_set():
         sent_s = time.perf_counter()
@@ -57,10 +63,11 @@ async def main() -> None:
     parser.add_argument("host")
     parser.add_argument("port", type=int)
     parser.add_argument("--period-ms", type=float, default=10.0)
+    parser.add_argument("--token", help="log in with $AUTH first")
     args = parser.parse_args()
     stop = asyncio.Event()
     watcher = asyncio.create_task(wait_for_eof(stop))
-    round_trips_s = await probe(args.host, args.port, args.period_ms / 1000.0, stop)
+    round_trips_s = await probe(args.host, args.port, args.period_ms / 1000.0, stop, args.token)
     await watcher
     print(json.dumps(summary(round_trips_s)), flush=True)
 

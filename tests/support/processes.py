@@ -81,12 +81,14 @@ async def motiond(tmp_path: Path, extra_toml: str = "") -> AsyncIterator[Served]
 
 
 @contextlib.asynccontextmanager
-async def latency_probe(port: int, period_ms: float = 10.0) -> AsyncIterator[dict[str, float]]:
+async def latency_probe(
+    port: int, period_ms: float = 10.0, token: str | None = None
+) -> AsyncIterator[dict[str, float]]:
     """Poll ``?`` from another process while the block runs; the dict holds its summary
     (``count``, ``p50_ms``, ``p99_ms``, ``max_ms``, ``missed``) once the block has ended."""
     process = await asyncio.create_subprocess_exec(
         sys.executable, "-m", "tests.support.latency_probe", "127.0.0.1", str(port),
-        "--period-ms", str(period_ms), cwd=REPO,
+        "--period-ms", str(period_ms), *(["--token", token] if token else []), cwd=REPO,
         stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE,
     )
     result: dict[str, float] = {}
