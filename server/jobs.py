@@ -1,7 +1,11 @@
 """Stored job files: upload, list, play through the dispatcher, progress, abort, suspend.
 
 Files live flat in the data directory (a Docker volume). A name is a plain file name: no
-folders, no ``..``, no leading dot, no NUL; Smoothie's ``/sd/`` prefix is accepted and dropped.
+folders, no ``..``, no leading dot, no control character and nothing ``str.splitlines`` splits
+on (a name is sent inside reply and pushed lines: ``\n``, ``\r``, U+2028... would break them
+into several lines, a bare ``ok`` among them); Smoothie's ``/sd/`` prefix is accepted and
+dropped. A file on disk whose name breaks these rules is never listed. Uploads are written to a
+hidden ``.upload-*`` file and renamed; such files left by a crash are removed at start-up.
 Playing a file streams its lines through the same dispatcher a sender uses, so the job is
 executed, flow-controlled and error-checked exactly like streamed G-code; the first line that
 is refused stops the job with a message naming the line. File I/O runs in a thread.
@@ -13,6 +17,7 @@ import asyncio
 import contextlib
 import logging
 import os
+import re
 import tempfile
 import time
 from collections.abc import AsyncIterator
@@ -30,6 +35,9 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("motiond.jobs")
 MAX_NAME = 200
+UPLOAD_PREFIX = ".upload-"
+# Control characters (C0, DEL, C1) and every line break str.splitlines knows.
+_BAD_NAME_CHARACTER = re.compile("[\x00-\x1f\x7f-\x9f\u2028\u2029]")
 YIELD_AFTER_S = 0.001
 
 
@@ -69,6 +77,7 @@ class Jobs:
         self.kernel = kernel
         self.data_dir = kernel.config.core.jobs.data_dir.expanduser()
         self.max_bytes = kernel.config.core.jobs.max_upload_bytes
+        remove_stale_uploads(self.data_dir)
         self._task: asyncio.Task[None] | None = None
         self._progress: JobProgress | None = None
         dispatcher = kernel.dispatcher
@@ -80,7 +89,11 @@ class Jobs:
 
     # -- files ------------------------------------------------------------------------------
     def path(self, name: str) -> Path:
-        """The file for ``name``, refusing anything that could leave the data directory."""
+        """The file for ``name``, refusing anything that could leave the data directory or
+        break a line of the protocol."""
+        if _BAD_NAME_CHARACTER.search(name):
+            raise CommandError(
+                FILE_ERROR, f"invalid job file name {name!r}: control characters or line breaks")
         name = name.strip().removeprefix("/sd/")
         bad = (
             not name
@@ -104,7 +117,7 @@ class Jobs:
             return []
         files = []
         for entry in os.scandir(self.data_dir):
-            if entry.is_file() and not entry.name.startswith("."):
+            if entry.is_file() and valid_name(entry.name):
                 info = entry.stat()
                 files.append(JobFile(entry.name, info.st_size, info.st_mtime))
         return sorted(files, key=lambda f: f.name)
@@ -298,8 +311,33 @@ def _read_lines(path: Path) -> list[str]:
     return path.read_text(errors="replace").splitlines()
 
 
+def valid_name(name: str) -> bool:
+    """Whether a file in the data directory may be listed and played under ``name``."""
+    return not name.startswith(".") and len(name) <= MAX_NAME and not (
+        _BAD_NAME_CHARACTER.search(name) or "\\" in name or name != name.strip())
+
+
+def remove_stale_uploads(folder: Path) -> None:
+    """Remove ``.upload-*`` files a crash left in the data directory (start-up, one server per
+    data directory)."""
+    try:
+        entries = list(os.scandir(folder))
+    except FileNotFoundError:
+        return
+    except OSError as exc:
+        log.warning("cannot look for stale uploads in %s: %s", folder, exc.strerror)
+        return
+    for entry in entries:
+        if entry.name.startswith(UPLOAD_PREFIX) and entry.is_file(follow_symlinks=False):
+            try:
+                os.unlink(entry.path)
+                log.info("removed %s, left by an interrupted upload", entry.name)
+            except OSError as exc:
+                log.warning("cannot remove %s: %s", entry.path, exc.strerror)
+
+
 def _temp_file(folder: Path) -> tuple[BinaryIO, Path]:
-    descriptor, name = tempfile.mkstemp(dir=folder, prefix=".upload-")
+    descriptor, name = tempfile.mkstemp(dir=folder, prefix=UPLOAD_PREFIX)
     return os.fdopen(descriptor, "wb"), Path(name)
 
 
