@@ -19,7 +19,7 @@ from urllib.parse import urlsplit
 
 from aiohttp import WSMsgType, web
 
-from server.session import Session
+from server.session import Session, login_guard
 
 if TYPE_CHECKING:
     from server.kernel import Kernel
@@ -68,6 +68,7 @@ class HttpTransport:
         self._sockets: set[web.WebSocketResponse] = set()
         self.open_sockets = 0  # /ws and /api together
         self._ids = itertools.count(1)
+        self._guard = login_guard(kernel)
 
     async def start(self) -> None:
         self._runner = web.AppRunner(
@@ -89,6 +90,7 @@ class HttpTransport:
         if self._runner is not None:
             await self._runner.cleanup()
             self._runner = None
+        self._guard.close()
 
     async def _index(self, request: web.Request) -> web.StreamResponse:
         return web.FileResponse(web_root() / "index.html")
@@ -111,7 +113,7 @@ class HttpTransport:
         token = request.query.get("token") or request.headers.get("X-Motiond-Token")
         observer = request.query.get("mode") == "observe"
         session = Session(self.kernel, f"ws-{next(self._ids)}", websocket=True, token=token,
-                          observer=observer)
+                          observer=observer, peer=request.remote or "?", guard=self._guard)
         transport = request.transport
         if transport is not None:
             session.outbox.on_overflow = transport.abort
@@ -139,6 +141,8 @@ async def _write_lines(session: Session, socket: web.WebSocketResponse) -> None:
     while True:
         data = await session.outbox.get()
         if data is None:
+            if not session.outbox.overflowed:
+                await socket.close()  # the session ended (it said why): hang up
             return
         for line in data.decode("utf-8", "replace").splitlines(keepends=True):
             if line.strip():
