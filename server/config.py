@@ -77,6 +77,14 @@ class TcpConfig(Strict):
     host: str = "127.0.0.1"
     port: int = Field(2323, ge=0, le=65535)
     max_connections: int = Field(16, ge=1)
+    reserved_connections: int = Field(
+        4, ge=0, description="with a token: slots only a connection that logs in may use")
+    idle_timeout_s: float = Field(
+        60.0, gt=0, le=86_400,
+        description="close a connection not logged in (token set) or that never sent a byte, "
+        "after this long without receiving a byte")
+    login_timeout_s: float = Field(
+        10.0, gt=0, le=3600, description="a connection in a reserved slot must log in this fast")
 
 
 class HttpConfig(Strict):
@@ -128,6 +136,20 @@ class ProtocolConfig(Strict):
     outgoing_limit_bytes: int = Field(1 << 20, ge=1024)
     token: str | None = Field(None, min_length=8, description="also $MOTIOND_TOKEN")
     unauthenticated: Literal["read-only", "none"] = "read-only"
+    backlog_bytes: int = Field(
+        2 << 20, ge=4096, le=1 << 30,
+        description="input held per connection while its line queue is full; realtime bytes "
+        "in it are acted on at once; beyond it the transport stops reading")
+    status_reports_per_s: float = Field(
+        200.0, gt=0, le=1000,
+        description="per connection (senders poll at 5-100 Hz); further '?' share the next report")
+    auth_failures_per_connection: int = Field(
+        3, ge=1, le=100, description="wrong $AUTH tokens before the connection is closed")
+    auth_delay_s: float = Field(
+        0.5, ge=0, le=10,
+        description="a wrong token is answered this late, doubling with each recent failure "
+        "from the same address")
+    auth_max_delay_s: float = Field(8.0, ge=0, le=300, description="cap of that delay")
 
 
 class JobsConfig(Strict):

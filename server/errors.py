@@ -156,9 +156,3 @@ class SoftLimitError(CommandError):
     def __init__(self, message: str) -> None:
         super().__init__(Error.SOFT_LIMIT, message)
 
-
-# Transitional names, removed once every module reads the table above.
-SOFT_LIMIT, CHECKSUM = Error.SOFT_LIMIT, Error.CHECKSUM
-LINE_NUMBER_SEQUENCE = Error.LINE_NUMBER_SEQUENCE
-UNKNOWN_COMMAND, FILE_ERROR, BUSY = Error.UNKNOWN_COMMAND, Error.FILE_ERROR, Error.BUSY
-AUTH_REQUIRED = Error.AUTH_REQUIRED

@@ -1,7 +1,11 @@
 """Stored job files: upload, list, play through the dispatcher, progress, abort, suspend.
 
 Files live flat in the data directory (a Docker volume). A name is a plain file name: no
-folders, no ``..``, no leading dot, no NUL; Smoothie's ``/sd/`` prefix is accepted and dropped.
+folders, no ``..``, no leading dot, no control character and nothing ``str.splitlines`` splits
+on (a name is sent inside reply and pushed lines: ``\n``, ``\r``, U+2028... would break them
+into several lines, a bare ``ok`` among them); Smoothie's ``/sd/`` prefix is accepted and
+dropped. A file on disk whose name breaks these rules is never listed. Uploads are written to a
+hidden ``.upload-*`` file and renamed; such files left by a crash are removed at start-up.
 Playing a file streams its lines through the same dispatcher a sender uses, so the job is
 executed, flow-controlled and error-checked exactly like streamed G-code; the first line that
 is refused stops the job with a message naming the line. File I/O runs in a thread.
@@ -13,6 +17,7 @@ import asyncio
 import contextlib
 import logging
 import os
+import re
 import tempfile
 import time
 from collections.abc import AsyncIterator
@@ -21,7 +26,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, BinaryIO
 
 from server.dispatcher import Command
-from server.errors import BUSY, FILE_ERROR, CommandError
+from server.errors import CommandError, Error
 from server.events import MachineState
 from server.gcode import check_length
 from server.offline import estimate, format_duration, read_file_lines
@@ -31,6 +36,9 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("motiond.jobs")
 MAX_NAME = 200
+UPLOAD_PREFIX = ".upload-"
+# Control characters (C0, DEL, C1) and every line break str.splitlines knows.
+_BAD_NAME_CHARACTER = re.compile("[\x00-\x1f\x7f-\x9f\u2028\u2029]")
 YIELD_AFTER_S = 0.001
 
 
@@ -70,6 +78,7 @@ class Jobs:
         self.kernel = kernel
         self.data_dir = kernel.config.core.jobs.data_dir.expanduser()
         self.max_bytes = kernel.config.core.jobs.max_upload_bytes
+        remove_stale_uploads(self.data_dir)
         self._task: asyncio.Task[None] | None = None
         self._progress: JobProgress | None = None
         dispatcher = kernel.dispatcher
@@ -82,7 +91,13 @@ class Jobs:
 
     # -- files ------------------------------------------------------------------------------
     def path(self, name: str) -> Path:
-        """The file for ``name``, refusing anything that could leave the data directory."""
+        """The file for ``name``, refusing anything that could leave the data directory or
+        break a line of the protocol."""
+        if _BAD_NAME_CHARACTER.search(name):
+            raise CommandError(
+                Error.FILE_ERROR,
+                f"invalid job file name {name!r}: control characters or line breaks",
+            )
         name = name.strip().removeprefix("/sd/")
         bad = (
             not name
@@ -94,10 +109,10 @@ class Jobs:
             or name in ("..", ".")
         )
         if bad:
-            raise CommandError(FILE_ERROR, f"invalid job file name {name!r}")
+            raise CommandError(Error.FILE_ERROR, f"invalid job file name {name!r}")
         path = (self.data_dir / name).resolve()
         if path.parent != self.data_dir.resolve():
-            raise CommandError(FILE_ERROR, f"invalid job file name {name!r}")
+            raise CommandError(Error.FILE_ERROR, f"invalid job file name {name!r}")
         return path
 
     def files(self) -> list[JobFile]:
@@ -106,7 +121,7 @@ class Jobs:
             return []
         files = []
         for entry in os.scandir(self.data_dir):
-            if entry.is_file() and not entry.name.startswith("."):
+            if entry.is_file() and valid_name(entry.name):
                 info = entry.stat()
                 files.append(JobFile(entry.name, info.st_size, info.st_mtime))
         return sorted(files, key=lambda f: f.name)
@@ -129,11 +144,11 @@ class Jobs:
             async for chunk in chunks:
                 size += len(chunk)
                 if size > limit_bytes:
-                    raise CommandError(FILE_ERROR, f"upload larger than {limit_bytes} bytes")
+                    raise CommandError(Error.FILE_ERROR, f"upload larger than {limit_bytes} bytes")
                 await asyncio.to_thread(handle.write, chunk)
             await asyncio.to_thread(_finish_file, handle, temp, path)
         except OSError as exc:
-            raise CommandError(FILE_ERROR, f"cannot store {name}: {exc.strerror}") from exc
+            raise CommandError(Error.FILE_ERROR, f"cannot store {name}: {exc.strerror}") from exc
         finally:
             handle.close()
             with contextlib.suppress(FileNotFoundError):
@@ -145,7 +160,7 @@ class Jobs:
         try:
             await asyncio.to_thread(path.unlink)
         except OSError as exc:
-            raise CommandError(FILE_ERROR, f"cannot delete {name}: {exc.strerror}") from exc
+            raise CommandError(Error.FILE_ERROR, f"cannot delete {name}: {exc.strerror}") from exc
 
     # -- playing ----------------------------------------------------------------------------
     @property
@@ -168,12 +183,12 @@ class Jobs:
     def play(self, name: str) -> None:
         """Start playing a stored file."""
         if self.running:
-            raise CommandError(BUSY, "a job is already running; abort it first")
+            raise CommandError(Error.BUSY, "a job is already running; abort it first")
         if self.kernel.state not in (MachineState.IDLE, MachineState.RUN):
-            raise CommandError(BUSY, f"cannot start a job in state {self.kernel.state.value}")
+            raise CommandError(Error.BUSY, f"cannot start a job in state {self.kernel.state.value}")
         path = self.path(name)
         if not path.is_file():
-            raise CommandError(FILE_ERROR, f"no job file {path.name}")
+            raise CommandError(Error.FILE_ERROR, f"no job file {path.name}")
         self._progress = JobProgress(path.name, "running", started_s=self.kernel.clock.now_s())
         source = _JobSource(f"job:{path.name}")
         self.kernel.dispatcher.claim(source)  # other connections may query, hold and stop
@@ -315,8 +330,33 @@ def _clock(seconds: float) -> str:
     return f"{hours:02d}:{minutes:02d}:{secs:02d}"
 
 
+def valid_name(name: str) -> bool:
+    """Whether a file in the data directory may be listed and played under ``name``."""
+    return not name.startswith(".") and len(name) <= MAX_NAME and not (
+        _BAD_NAME_CHARACTER.search(name) or "\\" in name or name != name.strip())
+
+
+def remove_stale_uploads(folder: Path) -> None:
+    """Remove ``.upload-*`` files a crash left in the data directory (start-up, one server per
+    data directory)."""
+    try:
+        entries = list(os.scandir(folder))
+    except FileNotFoundError:
+        return
+    except OSError as exc:
+        log.warning("cannot look for stale uploads in %s: %s", folder, exc.strerror)
+        return
+    for entry in entries:
+        if entry.name.startswith(UPLOAD_PREFIX) and entry.is_file(follow_symlinks=False):
+            try:
+                os.unlink(entry.path)
+                log.info("removed %s, left by an interrupted upload", entry.name)
+            except OSError as exc:
+                log.warning("cannot remove %s: %s", entry.path, exc.strerror)
+
+
 def _temp_file(folder: Path) -> tuple[BinaryIO, Path]:
-    descriptor, name = tempfile.mkstemp(dir=folder, prefix=".upload-")
+    descriptor, name = tempfile.mkstemp(dir=folder, prefix=UPLOAD_PREFIX)
     return os.fdopen(descriptor, "wb"), Path(name)
 
 

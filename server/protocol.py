@@ -31,6 +31,7 @@ Marlin (banner ``start``, ``ok T:..``, ``Error:``/``Resend:``/``echo:`` wording;
 
 from __future__ import annotations
 
+import copy
 import enum
 import re
 from collections.abc import Sequence
@@ -138,6 +139,7 @@ _SPECIAL_GRBL = re.compile(rb"[\r\n?!~\x18\x80-\xff]")
 _SPECIAL_REPRAP = re.compile(rb"[\r\n\x18\x80-\xff]")
 _STATUS_RUN = re.compile(rb"\?+")
 _TEXT_REALTIME = re.compile("([" + "".join(chr(v) for v in Realtime if v >= 0x80) + "])")
+_LINE_BREAK = re.compile("[\n\r\v\f\x1c-\x1e\x85\u2028\u2029]")  # what str.splitlines splits on
 _CONTROL = re.compile(r"[\x00-\x08\x0a-\x1f\x7f-\x9f]")
 _N_WORD = re.compile(r"[Nn]\s*(-?\d+)")
 _CHECKSUM_FIELD = re.compile(r"\s*(\d+)\s*")
@@ -203,6 +205,13 @@ class LineProtocol:
         if final:
             self._end_message(events)
         return events
+
+    def copy(self) -> LineProtocol:
+        """An independent twin in the same state: it sees bytes ahead of this one exactly as
+        this one will (the session uses it to find realtime bytes in held-back input)."""
+        twin = copy.copy(self)
+        twin._buffer = bytearray(self._buffer)
+        return twin
 
     def reset(self) -> None:
         """Forget a partial line (after a reset). Keeps the dialect and the line numbering.
@@ -449,7 +458,7 @@ def _split_frame(text: str) -> tuple[str, str, str, str] | None:
 
 
 def _checked_line(line: str) -> str:
-    if "\r" in line or "\n" in line:
+    if _LINE_BREAK.search(line):
         raise ValueError(f"one line per message, got {line!r}")
     if line.startswith("ok"):
         raise ValueError(f"a message line must not read as 'ok': {line!r}")

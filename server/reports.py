@@ -20,7 +20,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
-from server.errors import ERROR_MEANINGS, Alarm, Error
+from server.errors import ERROR_MEANINGS, Error
 
 GRBL_VERSION = "1.1h"
 MM_PER_INCH = 25.4
@@ -294,8 +294,3 @@ def _fixed(value: float, decimals: int) -> str:
     rounded = round(value, decimals) + 0.0
     return f"{rounded:.{decimals}f}"
 
-
-# Transitional names, removed once every module reads server.errors.
-ALARM_HARD_LIMIT, ALARM_SOFT_LIMIT = Alarm.HARD_LIMIT, Alarm.SOFT_LIMIT
-ALARM_ABORT_CYCLE, ALARM_HALT = Alarm.ABORT_CYCLE, Alarm.HALT
-ALARM_MODULE_FAILED, ALARM_BACKEND_FAILED = Alarm.MODULE_FAILED, Alarm.BACKEND_FAILED

@@ -5,6 +5,14 @@ does with /tmp/printer), so serial-only senders connect to it like a USB port. W
 has the terminal open, the master side reads EIO; the transport then polls until a client opens
 it, greets it with the banner, serves it, and goes back to waiting when it closes — so the same
 PATH can be opened again and again.
+
+motiond only ever replaces its own link: if PATH exists and is anything but a symbolic link to
+a pseudo-terminal device (``/dev/pts/N``) owned by this user — a stale link from an earlier
+run — it refuses to start rather than delete someone's file. It removes the link on close only
+if the link still points to its own terminal.
+
+Input is read in slices and fed to the session like TCP's (see :mod:`server.transports.tcp`):
+reading pauses only while the session's backlog is full.
 """
 
 from __future__ import annotations
@@ -14,13 +22,15 @@ import contextlib
 import errno
 import logging
 import os
+import re
 import termios
 import tty
 from collections.abc import Coroutine
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from server.session import Session
+from server.errors import ConfigError
+from server.session import Session, login_guard
 
 if TYPE_CHECKING:
     from server.kernel import Kernel
@@ -28,6 +38,7 @@ if TYPE_CHECKING:
 log = logging.getLogger("motiond.serial")
 POLL_S = 0.05
 READ_CHUNK = 4096
+_PTY_DEVICE = re.compile(r"/dev/(?:pts/\d+|ttys\d+)")  # Linux, macOS
 
 
 class SerialTransport:
@@ -40,6 +51,8 @@ class SerialTransport:
         self.config = kernel.config.core.serial
         self._tasks: set[asyncio.Task[None]] = set()
         self.pty: PtyPort | None = None
+        if self.config.pty:
+            stale_pty_link(Path(self.config.pty))  # refuse to start before anything runs
 
     async def start(self) -> None:
         if self.config.pty:
@@ -85,15 +98,20 @@ class PtyPort:
     def __init__(self, kernel: Kernel, link: Path) -> None:
         self.kernel = kernel
         self.link = link
+        if stale_pty_link(link):
+            link.unlink()
         self.master, slave = os.openpty()
         tty.setraw(slave)
         self.device = os.ttyname(slave)
         os.close(slave)
         os.set_blocking(self.master, False)
-        with contextlib.suppress(FileNotFoundError):
-            self.link.unlink()
-        self.link.symlink_to(self.device)
+        try:
+            self.link.symlink_to(self.device)
+        except OSError as exc:
+            os.close(self.master)
+            raise ConfigError([f"[serial] pty: cannot create {link}: {exc.strerror}"]) from exc
         self.sessions = 0
+        self._guard = login_guard(kernel)
         log.info("pseudo-terminal %s linked at %s", self.device, self.link)
 
     async def serve(self) -> None:
@@ -101,7 +119,8 @@ class PtyPort:
         while True:
             first = await self._wait_for_client()
             self.sessions += 1
-            session = Session(self.kernel, f"pty-{self.sessions}")
+            session = Session(self.kernel, f"pty-{self.sessions}", peer=f"pty {self.link}",
+                              guard=self._guard)
             await self._serve(session, first)
 
     async def _wait_for_client(self) -> bytes:
@@ -119,7 +138,7 @@ class PtyPort:
         loop = asyncio.get_running_loop()
         readable = asyncio.Event()
         session.start()
-        writer = loop.create_task(self._write_loop(session))
+        writer = loop.create_task(self._write_loop(session, readable))
         loop.add_reader(self.master, readable.set)
         try:
             if first:
@@ -131,7 +150,11 @@ class PtyPort:
                 if data is None:
                     break
                 session.receive_data(data)
-                await session.wait_room()
+                if session.backlog_full:  # stop reading (and watching) until there is room
+                    loop.remove_reader(self.master)
+                    await session.wait_input_room()
+                    loop.add_reader(self.master, readable.set)
+                await asyncio.sleep(0)  # one slice a turn
         finally:
             loop.remove_reader(self.master)
             with contextlib.suppress(termios.error):
@@ -149,10 +172,11 @@ class PtyPort:
         except OSError:  # EIO: the client closed the terminal
             return None
 
-    async def _write_loop(self, session: Session) -> None:
+    async def _write_loop(self, session: Session, readable: asyncio.Event) -> None:
         while True:
             data = await session.outbox.get()
             if data is None:
+                readable.set()  # the session ended: wake the reader so it sees that
                 return
             while data:
                 try:
@@ -167,8 +191,35 @@ class PtyPort:
                 data = data[written:]
 
     def close(self) -> None:
+        """Remove the link if it is still ours; close the terminal. Repeatable."""
+        self._guard.close()
         with contextlib.suppress(OSError):
-            if self.link.is_symlink():
+            if os.readlink(self.link) == self.device:
                 self.link.unlink()
         with contextlib.suppress(OSError):
             os.close(self.master)
+
+
+def stale_pty_link(link: Path) -> bool:
+    """Whether ``link`` is a link to a pseudo-terminal left by an earlier run (to replace);
+    False if nothing is there.
+
+    Raises:
+        ConfigError: something else is at ``link``: it must not be deleted.
+    """
+    try:
+        info = link.lstat()
+    except FileNotFoundError:
+        return False
+    except OSError as exc:
+        raise ConfigError([f"[serial] pty: cannot check {link}: {exc.strerror}"]) from exc
+    if (
+        link.is_symlink()
+        and info.st_uid == os.getuid()
+        and _PTY_DEVICE.fullmatch(os.readlink(link)) is not None
+    ):
+        return True
+    raise ConfigError([
+        f"[serial] pty: {link} exists and is not a link to a pseudo-terminal left by "
+        "motiond; refusing to replace it (remove it or choose another --pty path)"
+    ])

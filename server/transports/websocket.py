@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 
 from aiohttp import WSCloseCode, WSMsgType, web
 
-from server.session import Session, line_token
+from server.session import Session, line_token, login_guard
 from server.transports.access import (
     ConnectionSlots,
     HostPolicy,
@@ -97,6 +97,7 @@ class HttpTransport:
         self._runner: web.AppRunner | None = None
         self._sockets: set[web.WebSocketResponse] = set()
         self._ids = itertools.count(1)
+        self._login_guard = login_guard(kernel)
 
     async def start(self) -> None:
         if self.config.allowed_hosts is None:
@@ -125,6 +126,7 @@ class HttpTransport:
         if self._runner is not None:
             await self._runner.cleanup()
             self._runner = None
+        self._login_guard.close()
 
     @web.middleware
     async def _guard(self, request: web.Request, handler: Handler) -> web.StreamResponse:
@@ -204,8 +206,11 @@ class HttpTransport:
         token: str | None,
         authenticated: bool,
     ) -> None:
-        session = LineSocketSession(self.kernel, f"ws-{next(self._ids)}", websocket=True,
-                                    token=token, observer=request.query.get("mode") == "observe")
+        session = LineSocketSession(
+            self.kernel, f"ws-{next(self._ids)}", websocket=True, token=token,
+            observer=request.query.get("mode") == "observe", peer=request.remote or "?",
+            guard=self._login_guard,
+        )
         if request.transport is not None:
             session.outbox.on_overflow = request.transport.abort
         session.start()
@@ -256,6 +261,8 @@ async def _write_lines(session: Session, socket: web.WebSocketResponse) -> None:
     while True:
         data = await session.outbox.get()
         if data is None:
+            if not session.outbox.overflowed:
+                await socket.close()  # the session ended (it said why): hang up
             return
         for line in data.decode("utf-8", "replace").splitlines(keepends=True):
             if line.strip():

@@ -1,0 +1,25 @@
+"""A token bucket: at most ``rate_per_s`` events per second on average, bursts of ``burst``."""
+
+from __future__ import annotations
+
+
+class TokenBucket:
+    """Times are seconds on any monotonic clock, passed in by the caller (no clock inside)."""
+
+    def __init__(self, rate_per_s: float, burst: float, now_s: float) -> None:
+        if rate_per_s <= 0 or burst < 1:
+            raise ValueError("a token bucket needs rate_per_s > 0 and burst >= 1")
+        self.rate_per_s = rate_per_s
+        self.burst = burst
+        self._tokens = burst
+        self._last_s = now_s
+
+    def take(self, now_s: float) -> float:
+        """Take a token: 0.0 if one was free, else the seconds until one will be (none taken)."""
+        elapsed_s = max(0.0, now_s - self._last_s)
+        self._tokens = min(self.burst, self._tokens + elapsed_s * self.rate_per_s)
+        self._last_s = now_s
+        if self._tokens >= 1.0:
+            self._tokens -= 1.0
+            return 0.0
+        return (1.0 - self._tokens) / self.rate_per_s
