@@ -20,8 +20,8 @@ from pathlib import Path
 from benchmarks.common import BenchResult, corpus_files, side_by_side, standalone
 from server.backends.sim import SimBackend
 from server.config import CoreConfig, load_config
-from server.gcode import parse_line
-from server.offline import JobStats, estimate, execute
+from server.gcode.parser import parse_line
+from server.offline.estimate import JobStats, estimate, execute
 
 QUICK_MAX_BLOCKS = 20_000  # quick: files with more blocks are estimated, not executed
 

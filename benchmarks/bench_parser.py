@@ -16,7 +16,7 @@ from pathlib import Path
 from pygcode import Line as PygcodeLine
 
 from benchmarks.common import BenchResult, corpus_files, side_by_side, standalone
-from server.gcode import parse_line
+from server.gcode.parser import parse_line
 
 ROUNDS = 3
 QUICK_ROUNDS = 1

@@ -2,7 +2,7 @@
 
 * re-plan: :meth:`Planner.plan` over 4,096 queued blocks (a raster of short zig-zag segments),
   against the same backward/forward passes and trapezoids written as plain-Python loops
-  (:func:`server.trapezoid.plan_window_reference`) on the same window, side by side in this
+  (:func:`server.motion.trapezoid.plan_window_reference`) on the same window, side by side in this
   process (interleaved rounds, best CPU time of each);
 * pipeline: append + pop per block through a window kept full, re-planning whenever the last
   plan's look-ahead runs short (as the step generator does), in blocks/s.
@@ -19,8 +19,8 @@ from dataclasses import replace
 from functools import partial
 
 from benchmarks.common import BenchResult, add_run_options, execute, side_by_side
-from server.moves import Move, MoveKind
-from server.planner import (
+from server.motion.moves import Move, MoveKind
+from server.motion.planner import (
     ACCEL,
     DURATION,
     ENTRY,
@@ -31,7 +31,7 @@ from server.planner import (
     Planner,
     PlannerSettings,
 )
-from server.trapezoid import plan_window_reference
+from server.motion.trapezoid import plan_window_reference
 
 MACHINE = PlannerSettings(
     max_rate_mm_s=(500.0, 500.0, 10.0),

@@ -36,9 +36,9 @@ if not __package__:  # run as a script (python benchmarks/bench_streaming.py): f
 from benchmarks.common import CORPUS, BenchResult, standalone  # noqa: E402
 from benchmarks.stream_client import HOST, WINDOW  # noqa: E402
 from server.app import App  # noqa: E402
-from server.clock import RealClock  # noqa: E402
 from server.config import Config, build_config  # noqa: E402
-from server.offline import estimate  # noqa: E402
+from server.offline.estimate import estimate  # noqa: E402
+from server.runtime.clock import RealClock  # noqa: E402
 from server.transports.tcp import TcpTransport  # noqa: E402
 
 CLIENT = Path(__file__).resolve().with_name("stream_client.py")

@@ -33,12 +33,12 @@ from typing import Any, Literal
 
 from pydantic import Field
 
-from server.codes import CodeCall
-from server.dispatcher import Command
 from server.errors import Alarm, CommandError, ConfigError, Error
-from server.events import MachineState
-from server.module import Module, ModuleConfig, ModuleContext
-from server.moves import Move, MoveKind, Output, Position, Sync, SyncKind
+from server.gcode.codes import CodeCall
+from server.motion.moves import Move, MoveKind, Output, Position, Sync, SyncKind
+from server.runtime.dispatcher import Command
+from server.runtime.events import MachineState
+from server.runtime.module import Module, ModuleConfig, ModuleContext
 
 LOCKED = 9
 SEEK_SCALE = 1.5  # Grbl: search up to 1.5 x the travel

@@ -13,8 +13,8 @@ from typing import Any
 
 from pydantic import Field
 
-from server.dispatcher import Command
-from server.module import Module, ModuleConfig, ModuleContext
+from server.runtime.dispatcher import Command
+from server.runtime.module import Module, ModuleConfig, ModuleContext
 
 
 class HeartbeatConfig(ModuleConfig):

@@ -37,13 +37,13 @@ from typing import Any
 
 from pydantic import Field, model_validator
 
-from server.codes import CodeCall
-from server.dispatcher import Command
 from server.errors import CommandError, Error
-from server.events import MachineState
-from server.module import ApiCaller, ApiParams, Module, ModuleConfig, ModuleContext
-from server.moves import Action, MoveKind, Output, Sync, SyncKind, ToolMode
-from server.stepgen import HoldState, MotionState
+from server.gcode.codes import CodeCall
+from server.motion.moves import Action, MoveKind, Output, Sync, SyncKind, ToolMode
+from server.motion.stepgen import HoldState, MotionState
+from server.runtime.dispatcher import Command
+from server.runtime.events import MachineState
+from server.runtime.module import ApiCaller, ApiParams, Module, ModuleConfig, ModuleContext
 
 PIN_PATTERN = r"^[A-Za-z0-9_.\-]+$"
 CUTTING_KINDS = frozenset({MoveKind.FEED, MoveKind.ARC})

@@ -32,9 +32,9 @@ from typing import Any
 
 from pydantic import Field, model_validator
 
-from server.events import MachineState
-from server.module import Module, ModuleConfig, ModuleContext
-from server.moves import Action, ToolMode
+from server.motion.moves import Action, ToolMode
+from server.runtime.events import MachineState
+from server.runtime.module import Module, ModuleConfig, ModuleContext
 
 PIN_PATTERN = r"^[A-Za-z0-9_.\-]+$"
 

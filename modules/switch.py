@@ -30,11 +30,11 @@ from typing import Any, ClassVar
 
 from pydantic import Field, model_validator
 
-from server.codes import CodeCall
 from server.errors import CommandError, Error
-from server.modal import M_GROUPS
-from server.module import Module, ModuleConfig, ModuleContext
-from server.moves import Action, Output
+from server.gcode.codes import CodeCall
+from server.gcode.modal import M_GROUPS
+from server.motion.moves import Action, Output
+from server.runtime.module import Module, ModuleConfig, ModuleContext
 
 PIN_PATTERN = r"^[A-Za-z0-9_.\-]+$"
 COOLANT_CODES = {7: "mist", 8: "flood"}

@@ -5,7 +5,7 @@ off (the kernel's ``shutdown`` event), then closes the transports, then cancels 
 tasks; it is bounded by ``shutdown_timeout_s`` and calling it twice is harmless.
 
 While it runs, a listener that cannot accept (out of descriptors) is logged once per burst, not
-once a second with a traceback (:class:`~server.accept_errors.AcceptErrorLog`).
+once a second with a traceback (:class:`~server.transports.accept_errors.AcceptErrorLog`).
 """
 
 from __future__ import annotations
@@ -17,10 +17,10 @@ import logging
 from collections.abc import Callable
 from typing import Protocol
 
-from server.accept_errors import AcceptErrorLog
-from server.clock import Clock, RealClock, VirtualClock
 from server.config import Config
-from server.kernel import Kernel
+from server.runtime.clock import Clock, RealClock, VirtualClock
+from server.runtime.kernel import Kernel
+from server.transports.accept_errors import AcceptErrorLog
 
 log = logging.getLogger("motiond.app")
 

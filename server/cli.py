@@ -108,11 +108,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         if getattr(args, "no_limits", False):
             config.core.machine.soft_limits = False
         if args.command == "estimate":
-            from server.offline import estimate_command
+            from server.offline.estimate import estimate_command
 
             return estimate_command(args, config)
         if args.command == "render":
-            from server.offline import render_command
+            from server.offline.estimate import render_command
 
             return render_command(args, config)
         return serve(args, config)
@@ -126,7 +126,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def check_config(path: Path) -> int:
-    from server.offline import machine_interpreter
+    from server.offline.estimate import machine_interpreter
 
     try:
         config = load_config(path)

@@ -19,7 +19,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from server.errors import ConfigError
-from server.module import Module, available_modules
+from server.runtime.module import Module, available_modules
 
 AXIS_LETTERS = "XYZABC"
 

@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
-from server.app import TransportFactory
-from server.config import Config
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from server.app import TransportFactory
+    from server.config import Config
 
 
 def default_transports(config: Config) -> list[TransportFactory]:
     """The transports the config enables, in start order."""
-    from server.api import http_with_api
+    from server.api.server import http_with_api
     from server.transports.serial import SerialTransport
     from server.transports.tcp import TcpTransport
 

@@ -30,10 +30,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from server.errors import ConfigError
-from server.session import Session, login_guard
+from server.runtime.session import Session, login_guard
 
 if TYPE_CHECKING:
-    from server.kernel import Kernel
+    from server.runtime.kernel import Kernel
 
 log = logging.getLogger("motiond.serial")
 POLL_S = 0.05

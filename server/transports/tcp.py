@@ -1,4 +1,4 @@
-"""Raw TCP ("telnet") transport: one :class:`~server.session.Session` per client.
+"""Raw TCP ("telnet") transport: one :class:`~server.runtime.session.Session` per client.
 
 Reading: bytes are read in slices of :data:`READ_CHUNK` with a loop turn between slices, so a
 flood from one client never holds the loop; the session takes every slice (holding lines back
@@ -31,10 +31,10 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from server.session import Session, line_token, login_guard
+from server.runtime.session import Session, line_token, login_guard
 
 if TYPE_CHECKING:
-    from server.kernel import Kernel
+    from server.runtime.kernel import Kernel
 
 log = logging.getLogger("motiond.tcp")
 READ_CHUNK = 4096

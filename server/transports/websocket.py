@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 
 from aiohttp import WSCloseCode, WSMsgType, web
 
-from server.session import Session, line_token, login_guard
+from server.runtime.session import Session, line_token, login_guard
 from server.transports.access import (
     ConnectionSlots,
     HostPolicy,
@@ -37,7 +37,7 @@ from server.transports.access import (
 )
 
 if TYPE_CHECKING:
-    from server.kernel import Kernel
+    from server.runtime.kernel import Kernel
 
 log = logging.getLogger("motiond.http")
 RouteHook = Callable[["HttpTransport", web.Application], None]

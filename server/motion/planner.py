@@ -1,0 +1,462 @@
+"""The look-ahead planner: a bounded window of blocks, junction speeds and trapezoids.
+
+Pure computation (no asyncio, no I/O). Units are machine mm, mm/s, mm/s² and seconds.
+
+The interpreter side calls :meth:`Planner.append` / :meth:`Planner.append_action` and watches
+:meth:`Planner.is_full` for back-pressure; the step generator calls :meth:`Planner.pop` for the
+next block to run, and :meth:`Planner.plan` first whenever :meth:`Planner.lookahead_short`.
+Appending is O(1) plain Python: the block's length, feed and direction are staged. ``plan()``
+copies staged blocks into the columns of one growable numpy array, derives their limits
+(projected axis rates and accelerations, nominal speeds, junction limits) in a batch, and
+re-plans the whole waiting window with a handful of numpy operations
+(:mod:`server.motion.trapezoid`).
+:class:`~server.motion.block.Block` objects are only built at ``pop()``.
+
+Why ``pop()`` may use a plan made before more blocks were appended: appending only adds
+look-ahead, which can only raise the limits, so the old plan (which stops at the old end of the
+window) stays feasible; its exit speed becomes the fixed start speed of the next plan.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+from operator import mul, sub
+
+import numpy as np
+
+from server.motion.block import Block, BlockColumns, FloatArray, SettledBlocks
+from server.motion.moves import Action, Move, MoveKind, Position
+from server.motion.trapezoid import PROFILE_ROWS, axis_limits, junction_speeds_sq, plan_window
+
+__all__ = ["MIN_LENGTH_MM", "Block", "Planner", "PlannerSettings", "SettledBlocks"]
+
+MIN_LENGTH_MM = 1e-6
+"""Moves shorter than this are dropped; the next block starts where the last one ended, so
+the skipped displacement is not lost."""
+
+# Rows of the per-block column array. Given at append time: ...
+LENGTH, FEED, KIND, LEAD = range(4)
+# ... derived in batches when staged blocks are synced: ...
+ACCEL, RATE, NOMINAL, JUNCTION = range(4, 8)
+# ... written by plan(): ...
+ENTRY, CRUISE, EXIT, RAMP1, FLAT, RAMP2, DURATION = range(8, 8 + PROFILE_ROWS)
+# ... and the direction, one row per axis, from UNIT on.
+UNIT = DURATION + 1
+
+# KIND codes: which override scales a block's nominal speed.
+_NO_OVERRIDE, _FEED_OVERRIDE, _RAPID_OVERRIDE = 0.0, 1.0, 2.0
+CUTTING_CODE = _FEED_OVERRIDE
+"""The KIND of exactly the FEED, ARC and PROBE moves (jog and homing have no override)."""
+_RAPID, _JOG, _HOMING = MoveKind.RAPID, MoveKind.JOG, MoveKind.HOMING
+FEED_OVERRIDE_RANGE = (0.1, 2.0)
+RAPID_OVERRIDE_RANGE = (0.25, 1.0)
+
+
+@dataclass(frozen=True, slots=True)
+class PlannerSettings:
+    """Machine limits the planner needs; per-axis tuples follow the configuration's axis order.
+
+    ``max_rate_mm_s`` and ``accel_mm_s2`` are per axis; ``junction_deviation_mm`` is δ of the
+    junction model; the window is full at ``max_blocks`` blocks or ``max_planned_s`` seconds of
+    planned motion; nominal speeds never drop below ``min_feed_mm_s``.
+    """
+
+    max_rate_mm_s: tuple[float, ...]
+    accel_mm_s2: tuple[float, ...]
+    junction_deviation_mm: float = 0.01
+    max_blocks: int = 4096
+    max_planned_s: float = 0.5
+    min_feed_mm_s: float = 0.01
+
+    def __post_init__(self) -> None:
+        if len(self.max_rate_mm_s) != len(self.accel_mm_s2) or not self.max_rate_mm_s:
+            raise ValueError("max_rate_mm_s and accel_mm_s2 need one value per axis")
+        if min(self.max_rate_mm_s) <= 0 or min(self.accel_mm_s2) <= 0:
+            raise ValueError("axis rates and accelerations must be positive")
+        if self.junction_deviation_mm <= 0 or self.min_feed_mm_s <= 0:
+            raise ValueError("junction_deviation_mm and min_feed_mm_s must be positive")
+
+
+_Geometry = tuple[Move | None, list[Action], Position, Position, Position]
+_POP_ROWS = DURATION + 1
+
+
+class Planner:
+    """The waiting window of blocks, planned with look-ahead from the start speed to a stop.
+
+    ``position_mm`` is the target of the last appended move (machine mm).
+    """
+
+    def __init__(self, settings: PlannerSettings, position_mm: Position) -> None:
+        axes = len(settings.max_rate_mm_s)
+        self._zero: Position = (0.0,) * axes
+        self._units = slice(UNIT, UNIT + axes)
+        self._columns = BlockColumns(
+            UNIT + axes, [LENGTH, FEED, KIND, LEAD, *range(UNIT, UNIT + axes)], _POP_ROWS
+        )
+        self._planned = 0  # blocks from the head covered by the last plan
+        self._settled = 0  # ... of which appending more blocks cannot change the speeds
+        self._geometry: deque[_Geometry] = deque()
+        self._pending: list[Action] = []
+        self._start_mm_s = 0.0
+        self._feed_override = self._rapid_override = 1.0
+        self._dirty = self._head_dirty = False
+        self._time_planned_s = self._time_estimate_s = 0.0
+        self._use_settings(settings)
+        self.position_mm: Position = self._zero
+        self._chain_mm: Position = self._zero
+        self.set_position(position_mm)
+
+    @property
+    def settings(self) -> PlannerSettings:
+        """The machine limits; assigning new ones applies to blocks appended from then on."""
+        return self._settings
+
+    @settings.setter
+    def settings(self, settings: PlannerSettings) -> None:
+        self._sync()  # blocks already appended keep the limits they were appended with
+        self._use_settings(settings)
+
+    def _use_settings(self, settings: PlannerSettings) -> None:
+        if len(settings.max_rate_mm_s) != len(self._zero):
+            raise ValueError("new planner settings must keep the number of axes")
+        self._settings = settings
+        self._inv_rate = tuple(1.0 / rate for rate in settings.max_rate_mm_s)
+        # accelerations then rates, as the ACCEL and RATE rows
+        limits = np.array([settings.accel_mm_s2, settings.max_rate_mm_s])
+        self._inverse_limits = (1.0 / limits)[:, :, None]
+
+    # ------------------------------------------------------------------ appending
+
+    def append(self, move: Move) -> None:
+        """Queue a straight move from the end of the last one to ``move.target_mm``.
+
+        A move shorter than :data:`MIN_LENGTH_MM` is dropped; its actions ride on the next block.
+        O(1): the block is staged; its limits are derived in a batch at the next :meth:`plan`.
+        """
+        start, target = self._chain_mm, tuple(move.target_mm)
+        if len(target) != len(start):
+            raise ValueError(f"expected {len(start)} coordinates, got {len(target)}")
+        delta = list(map(sub, target, start))
+        length = math.hypot(*delta)
+        self.position_mm = target
+        if length < MIN_LENGTH_MM:
+            self._pending.extend(move.actions)
+            return
+        self._chain_mm = target
+        inverse = 1.0 / length
+        unit = tuple([x * inverse for x in delta])
+        kind = move.kind
+        if kind is _RAPID:
+            code, feed = _RAPID_OVERRIDE, math.inf
+            axis_s = max(map(mul, map(abs, delta), self._inv_rate))
+            self._time_estimate_s += axis_s / self._rapid_override
+        else:
+            feed = move.feed_mm_s if move.feed_mm_s > 0.0 else 0.0
+            code, scaled = _FEED_OVERRIDE, feed * self._feed_override
+            if kind is _JOG or kind is _HOMING:
+                code, scaled = _NO_OVERRIDE, feed
+            self._time_estimate_s += length / max(scaled, self._settings.min_feed_mm_s)
+        self._columns.push((length, feed, code, 0.0, *unit))
+        actions = self._take_pending(move.actions) if self._pending else move.actions
+        self._geometry.append((move, actions, start, target, unit))
+        self._dirty = True
+
+    def append_action(self, action: Action) -> None:
+        """Queue a non-motion action in order with motion.
+
+        A follow action rides on the next block; a lead action (``lead_s > 0`` or
+        ``stops_motion``) becomes a zero-length block where motion stops, carrying any pending
+        follow actions before it.
+        """
+        if action.lead_s <= 0.0 and not action.stops_motion:
+            self._pending.append(action)
+            return
+        lead_s = max(action.lead_s, 0.0)
+        self._columns.push((0.0, math.inf, _NO_OVERRIDE, lead_s, *self._zero))
+        here = self._chain_mm
+        self._geometry.append((None, self._take_pending([action]), here, here, self._zero))
+        self._time_estimate_s += lead_s
+        self._dirty = True
+
+    # ------------------------------------------------------------------ window state
+
+    def __len__(self) -> int:
+        """Blocks waiting, counting pending follow actions as one action-only block."""
+        return len(self._columns) + (1 if self._pending else 0)
+
+    def is_full(self) -> bool:
+        """True when the window holds ``max_blocks`` blocks or ``max_planned_s`` of motion.
+
+        Never full with fewer than two blocks, so a single very long move can always queue.
+        """
+        columns, limits = self._columns, self._settings
+        count = columns.tail - columns.head
+        if count < 2:
+            return False
+        planned_s = self._time_planned_s + self._time_estimate_s
+        return count >= limits.max_blocks or planned_s >= limits.max_planned_s
+
+    def planned_time_s(self) -> float:
+        """Seconds of queued motion: planned durations, plus a lower bound (the time at the
+        requested feed, or at the axes' rates for rapids) for blocks appended since the last
+        plan."""
+        return self._time_planned_s + self._time_estimate_s
+
+    def lookahead_short(self) -> bool:
+        """Whether the head may plan differently now that blocks were appended since the last
+        plan: the head is past the blocks that plan settled (see
+        :func:`~server.motion.trapezoid.plan_window`), or it is unplanned or changed. While
+        False the last plan is exactly what a new one would give for the head, so re-planning
+        can wait.
+        """
+        return self._dirty and (self._head_dirty or self._settled <= 0)
+
+    # ------------------------------------------------------------------ planning and popping
+
+    def plan(self) -> None:
+        """Re-plan the whole waiting window if anything changed since the last plan."""
+        if not self._dirty:
+            return
+        self._dirty = self._head_dirty = False
+        self._sync()
+        window = self._columns.window()
+        self._planned = window.shape[1]
+        if not self._planned:
+            return
+        rows = window[LENGTH], window[ACCEL], window[NOMINAL], window[JUNCTION], window[LEAD]
+        self._settled = plan_window(*rows, self._start_mm_s, window[ENTRY : DURATION + 1])
+        self._columns.invalidate()
+        self._time_planned_s = float(np.add.reduce(window[DURATION]))
+        self._time_estimate_s = 0.0
+
+    def pop(self) -> Block | None:
+        """Commit and remove the head block; its entry and exit speeds are final.
+
+        Plans first only when the head was never planned or the start speed, the overrides or
+        the head changed since the last plan; otherwise the last plan stands (it stays feasible,
+        see the module docstring; call :meth:`plan` first when :meth:`lookahead_short` to keep
+        full look-ahead). With no block waiting, returns an action-only block carrying the
+        pending follow actions, or None. The popped block's exit speed becomes the start speed.
+        """
+        columns = self._columns
+        if not len(columns):
+            return self._pop_pending()
+        if self._head_dirty or self._planned <= 0:
+            self._dirty = True
+            self.plan()
+        (length, _, _, lead, accel, _, nominal, _, entry, cruise, exit_, ramp1, flat, ramp2,
+         duration) = columns.pop_front()  # fmt: skip
+        move, actions, start, end, unit = self._geometry.popleft()
+        self._planned -= 1
+        self._settled -= 1
+        self._start_mm_s = exit_
+        self._time_planned_s -= duration
+        if not len(columns):
+            self._clear_window()
+        if move is None:
+            nominal = accel = 0.0
+        return Block(move, actions, start, end, unit, length, nominal, accel,
+                     entry, cruise, exit_, ramp1, flat, ramp2, lead, duration)  # fmt: skip
+
+    def pop_settled(self) -> SettledBlocks | None:
+        """Commit and remove the head and every block after it that the last plan settled, at
+        once; None with no block waiting (pending follow actions stay for :meth:`pop`).
+
+        Re-plans first when :meth:`lookahead_short`. The blocks are exactly what as many
+        :meth:`pop` calls would give, with or without appends in between: settled blocks never
+        need a re-plan. For offline runs, which need the numbers but no :class:`Block`.
+        """
+        columns = self._columns
+        if not len(columns):
+            return None
+        if self._head_dirty or self._planned <= 0 or self.lookahead_short():
+            self._dirty = True
+            self.plan()
+        count = max(self._settled, 1)
+        rows = columns.pop_front_many(count)
+        geometry = [self._geometry.popleft() for _ in range(count)]
+        self._planned -= count
+        self._settled -= count
+        self._start_mm_s = float(rows[EXIT, -1])
+        self._time_planned_s -= float(np.add.reduce(rows[DURATION]))
+        if not len(columns):
+            self._clear_window()
+        return SettledBlocks(rows, geometry)
+
+    def flush(self) -> list[Action]:
+        """Drop every waiting block and pending action (halt); return the dropped actions.
+
+        ``position_mm`` is stale afterwards: call :meth:`set_position` with where motion stopped.
+        """
+        dropped = [action for _, actions, _, _, _ in self._geometry for action in actions]
+        dropped += self._pending
+        self._geometry.clear()
+        self._pending = []
+        self._clear_window()
+        self._start_mm_s = 0.0
+        return dropped
+
+    def set_position(self, position_mm: Position) -> None:
+        """Set where the next move starts (machine mm); only with no block waiting."""
+        if len(self._columns):
+            raise RuntimeError("set_position while blocks are waiting; flush first")
+        if len(position_mm) != len(self._zero):
+            raise ValueError(f"expected {len(self._zero)} coordinates, got {len(position_mm)}")
+        self.position_mm = self._chain_mm = tuple(float(x) for x in position_mm)
+
+    def set_start_speed(self, speed_mm_s: float) -> None:
+        """Entry speed (mm/s) of the next popped block: the speed the executing block ends with.
+
+        ``pop()`` sets it to the popped block's exit speed; call this only to change that.
+        """
+        speed_mm_s = max(float(speed_mm_s), 0.0)
+        if speed_mm_s != self._start_mm_s:
+            self._start_mm_s = speed_mm_s
+            self._dirty = self._head_dirty = True
+
+    def set_overrides(self, feed: float = 1.0, rapid: float = 1.0) -> None:
+        """Scale nominal speeds: feed moves by ``feed`` (0.1-2.0, still capped by the axes'
+        max rates), rapids by ``rapid`` (0.25-1.0). Values are clamped to those ranges. Applies
+        to waiting and future blocks; jog and homing moves are not scaled."""
+        feed = min(max(feed, FEED_OVERRIDE_RANGE[0]), FEED_OVERRIDE_RANGE[1])
+        rapid = min(max(rapid, RAPID_OVERRIDE_RANGE[0]), RAPID_OVERRIDE_RANGE[1])
+        if (feed, rapid) == (self._feed_override, self._rapid_override):
+            return
+        self._sync()
+        self._feed_override, self._rapid_override = feed, rapid
+        window = self._columns.window()
+        window[NOMINAL] = self._nominals(window[FEED], window[RATE], window[KIND])
+        self._columns.invalidate()
+        self._dirty = self._head_dirty = True
+
+    # ------------------------------------------------------------------ feed-hold remainders
+
+    def make_block(
+        self, start_mm: Position, end_mm: Position, move: Move | None, actions: list[Action]
+    ) -> Block:
+        """Build an unplanned block from ``start_mm`` to ``end_mm`` (speeds and times zero)."""
+        start, end = tuple(start_mm), tuple(end_mm)
+        delta = [e - s for e, s in zip(end, start, strict=True)]
+        length = math.hypot(*delta)
+        if length < MIN_LENGTH_MM or move is None:
+            return _unplanned(move, actions, start, end, self._zero)
+        unit = tuple([x / length for x in delta])
+        accel, rate = axis_limits(np.array(unit)[:, None], self._inverse_limits)
+        kind, feed = _kind_and_feed(move)
+        nominal = self._nominals(np.array([feed]), rate, np.array([kind]))
+        return _unplanned(move, actions, start, end, unit, length, nominal.item(), accel.item())
+
+    def insert_front(self, block: Block) -> None:
+        """Put a block (a remainder after a feed hold) back at the head; it starts from rest.
+
+        A zero-length block keeps its ``lead_s``; motion stays at rest through it.
+        """
+        if block.move is None or block.length_mm < MIN_LENGTH_MM:
+            inputs = (0.0, math.inf, _NO_OVERRIDE, block.lead_s, *self._zero)
+        else:
+            kind, feed = _kind_and_feed(block.move)
+            inputs = (block.length_mm, feed, kind, 0.0, *block.unit)
+        self._sync()  # derive the limits of staged blocks first: push_front syncs raw inputs
+        columns = self._columns
+        head = columns.push_front(inputs)
+        self._derive(head, head + 1)
+        self._derive_junctions(head + 1, min(head + 2, columns.tail))
+        columns.invalidate()
+        geometry = (block.move, block.actions, block.start_mm, block.end_mm, block.unit)
+        self._geometry.appendleft(geometry)
+        self._start_mm_s = 0.0
+        self._dirty = self._head_dirty = True
+        self._time_estimate_s += block.lead_s + block.length_mm / columns.data[NOMINAL, head]
+
+    # ------------------------------------------------------------------ internals
+
+    def _sync(self) -> None:
+        """Copy staged blocks into the columns and derive their limits, all at once."""
+        columns = self._columns
+        first = columns.sync()
+        if first < columns.tail:
+            self._derive(first, columns.tail)
+
+    def _derive(self, first: int, stop: int) -> None:
+        """Axis limits, nominal speeds and junction limits of columns ``first .. stop-1``."""
+        data, new = self._columns.data, slice(first, stop)
+        data[ACCEL : RATE + 1, new] = axis_limits(data[self._units, new], self._inverse_limits)
+        self._nominals(data[FEED, new], data[RATE, new], data[KIND, new], out=data[NOMINAL, new])
+        self._derive_junctions(first, stop)
+
+    def _derive_junctions(self, first: int, stop: int) -> None:
+        """Junction limits of columns ``first .. stop-1`` against the column before each.
+
+        The head's own junction never counts (its entry is the start speed).
+        """
+        data, begin = self._columns.data, max(first, self._columns.head + 1)
+        data[JUNCTION, first:begin] = 0.0
+        if begin >= stop:
+            return
+        before, after = slice(begin - 1, stop - 1), slice(begin, stop)
+        accel = np.minimum(data[ACCEL, before], data[ACCEL, after])
+        deviation_mm = self._settings.junction_deviation_mm
+        units = self._units
+        limit = junction_speeds_sq(data[units, before], data[units, after], accel, deviation_mm)
+        limit[data[LENGTH, before] * data[LENGTH, after] == 0.0] = 0.0  # next to a still block
+        data[JUNCTION, after] = limit
+
+    def _nominals(
+        self, feed: FloatArray, rate: FloatArray, kind: FloatArray, out: FloatArray | None = None
+    ) -> FloatArray:
+        """Nominal speeds (mm/s): the feed scaled by its override, capped by the axis rate
+        limit (scaled by the rapid override for rapids), never under ``min_feed_mm_s``."""
+        if self._feed_override != 1.0:
+            feed = feed * np.where(kind == _FEED_OVERRIDE, self._feed_override, 1.0)
+        if self._rapid_override != 1.0:
+            rate = rate * np.where(kind == _RAPID_OVERRIDE, self._rapid_override, 1.0)
+        nominal = np.minimum(feed, rate, out=out)
+        return np.maximum(nominal, self._settings.min_feed_mm_s, out=nominal)
+
+    def _take_pending(self, more: list[Action]) -> list[Action]:
+        if not self._pending:
+            return list(more)
+        actions = self._pending
+        actions.extend(more)
+        self._pending = []
+        return actions
+
+    def _pop_pending(self) -> Block | None:
+        if not self._pending:
+            return None
+        here = self._chain_mm
+        actions, self._pending = self._pending, []
+        return _unplanned(None, actions, here, here, self._zero)
+
+    def _clear_window(self) -> None:
+        self._columns.clear()
+        self._planned = self._settled = 0
+        self._dirty = self._head_dirty = False
+        self._time_planned_s = self._time_estimate_s = 0.0
+
+
+def _kind_and_feed(move: Move) -> tuple[float, float]:
+    """The override code of a move and its requested feed (mm/s; inf for rapids)."""
+    if move.kind is _RAPID:
+        return _RAPID_OVERRIDE, math.inf
+    feed = move.feed_mm_s if move.feed_mm_s > 0.0 else 0.0
+    return (_NO_OVERRIDE if move.kind in (_JOG, _HOMING) else _FEED_OVERRIDE), feed
+
+
+def _unplanned(
+    move: Move | None,
+    actions: list[Action],
+    start_mm: Position,
+    end_mm: Position,
+    unit: Position,
+    length_mm: float = 0.0,
+    nominal_mm_s: float = 0.0,
+    accel_mm_s2: float = 0.0,
+) -> Block:
+    """A block with its geometry and limits but no speeds or times yet."""
+    zero = 0.0
+    return Block(move, actions, start_mm, end_mm, unit, length_mm, nominal_mm_s, accel_mm_s2,
+                 zero, zero, zero, zero, zero, zero, zero, zero)  # fmt: skip

@@ -1,0 +1,395 @@
+"""The step generator: advances planned blocks on a fixed-rate clock and emits whole steps.
+
+The core (:meth:`StepGenerator.tick`) is pure: given a time, it walks the analytic trapezoids
+of the blocks from the planner, computes where every axis must be, and emits the whole steps
+that take each axis there. A late tick only makes the next call cover more time: the path, the
+planned timing and the step count never depend on jitter, and at the end of every block the
+position is the block's exact end, so emitted steps always sum to the commanded position.
+
+Feed hold decelerates along the path (across block boundaries when needed) within the
+acceleration limit; resume re-plans the rest of the interrupted block from standstill.
+:meth:`run` is the thin asyncio task that calls :meth:`tick` at ``tick_hz``.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+from server.backends.base import Backend
+from server.motion.moves import Action, MoveKind, Position, ToolMode
+from server.motion.planner import Block, Planner
+
+
+class TickClock(Protocol):
+    """The time a step generator runs on (the runtime's RealClock or VirtualClock), seconds."""
+
+    def now_s(self) -> float: ...
+
+    async def sleep_until(self, time_s: float) -> None: ...
+
+
+class HoldState(enum.Enum):
+    NONE = "none"
+    DECELERATING = "decelerating"  # Grbl's Hold:1
+    STOPPED = "stopped"  # Grbl's Hold:0
+
+
+@dataclass(slots=True)
+class MotionState:
+    """What the step generator publishes at every tick (sampled by modules and status).
+
+    Units: mm, mm/s, seconds on the kernel's clock.
+    """
+
+    time_s: float = 0.0
+    position_mm: Position = ()
+    speed_mm_s: float = 0.0
+    nominal_mm_s: float = 0.0
+    kind: MoveKind | None = None
+    tool_mode: ToolMode = ToolMode.OFF
+    s_value: float = 0.0
+    line_number: int | None = None
+    queue_depth: int = 0
+    moving: bool = False
+    hold: HoldState = HoldState.NONE
+    blocks_done: int = 0
+    motion_time_s: float = 0.0  # planned time of all completed blocks and the current one so far
+
+
+class MotionListener(Protocol):
+    """What the step generator tells its owner."""
+
+    def on_action(self, action: Action) -> None:
+        """Motion reached an ordered action."""
+
+    def on_idle(self) -> None:
+        """The queue ran empty and motion stopped."""
+
+    def on_hold_stopped(self) -> None:
+        """A feed hold (or jog cancel) came to a stop."""
+
+
+@dataclass(slots=True)
+class _Cursor:
+    """Where the generator is: the current block and the time (or distance, in hold) into it."""
+
+    block: Block | None = None
+    time_s: float = 0.0
+    distance_mm: float = 0.0
+    hold_speed_mm_s: float = 0.0
+    hold_accel_mm_s2: float = 0.0
+    steps: list[int] = field(default_factory=list)
+
+
+class StepGenerator:
+    """Turns planned blocks into steps at fixed-rate ticks; see the module docstring."""
+
+    def __init__(
+        self,
+        planner: Planner,
+        backend: Backend,
+        steps_per_mm: tuple[float, ...],
+        listener: MotionListener,
+        *,
+        tick_hz: float = 1000.0,
+        start_delay_s: float = 0.05,
+    ) -> None:
+        self.planner = planner
+        self.backend = backend
+        self.steps_per_mm = steps_per_mm
+        self.listener = listener
+        self.tick_s = 1.0 / tick_hz
+        self.start_delay_s = start_delay_s
+        self.last_input_s = -math.inf
+        self.before_pop: Callable[[], None] | None = None  # offline feeders refill here
+        self.probe_towards = True  # G38.2/3 stop on contact; G38.4/5 on loss of contact
+        self.probe_hit = False
+        self.flush_requested = False
+        self.state = MotionState(position_mm=planner.position_mm)
+        self._cursor = _Cursor(
+            steps=[round(p * s) for p, s in zip(planner.position_mm, steps_per_mm, strict=True)]
+        )
+        self._running = False
+        self._last_tick_s: float | None = None
+        self._resume_when_stopped = False
+
+    # -- control (called by the machine) ----------------------------------------------------
+    @property
+    def idle(self) -> bool:
+        """Nothing executing, nothing queued."""
+        return self._cursor.block is None and len(self.planner) == 0
+
+    def note_input(self, now_s: float) -> None:
+        """A block was appended at ``now_s``: motion starts after a short settling delay."""
+        self.last_input_s = now_s
+
+    def request_start(self) -> None:
+        """Start executing queued blocks at the next tick, without waiting for more input."""
+        self.flush_requested = True
+
+    def hold(self) -> None:
+        """Feed hold: decelerate to a stop along the path."""
+        cursor = self._cursor
+        if self.state.hold is not HoldState.NONE:
+            return
+        if cursor.block is None:
+            if len(self.planner):
+                self._set_hold(HoldState.STOPPED)
+            return
+        cursor.distance_mm = cursor.block.distance_at(cursor.time_s)
+        cursor.hold_speed_mm_s = cursor.block.speed_at(cursor.time_s)
+        cursor.hold_accel_mm_s2 = cursor.block.accel_mm_s2 or math.inf
+        self._set_hold(HoldState.DECELERATING)
+
+    def resume(self) -> None:
+        """Cycle start: continue from exactly where the hold stopped."""
+        if self.state.hold is HoldState.DECELERATING:
+            self._resume_when_stopped = True
+            return
+        if self.state.hold is not HoldState.STOPPED:
+            return
+        cursor = self._cursor
+        block = cursor.block
+        if block is not None and cursor.distance_mm < block.length_mm - 1e-12:
+            rest = self.planner.make_block(self.state.position_mm, block.end_mm, block.move, [])
+            self.planner.insert_front(rest)
+        cursor.block = None
+        cursor.time_s = cursor.distance_mm = 0.0
+        self.planner.set_start_speed(0.0)
+        self._running = True
+        self._set_hold(HoldState.NONE)
+
+    def stop_now(self) -> list[Action]:
+        """Halt: stop at once where the steps are, drop everything queued."""
+        cursor = self._cursor
+        cursor.block = None
+        cursor.time_s = cursor.distance_mm = 0.0
+        self._running = False
+        self._resume_when_stopped = False
+        self.flush_requested = False
+        dropped = self.planner.flush()
+        self.planner.set_position(self.state.position_mm)
+        self.planner.set_start_speed(0.0)
+        self._set_hold(HoldState.NONE)
+        self._publish_still()
+        return dropped
+
+    # -- the tick ---------------------------------------------------------------------------
+    def tick(self, now_s: float) -> None:
+        """Advance motion to ``now_s`` and emit the steps that take every axis there."""
+        last = self._last_tick_s
+        self._last_tick_s = now_s
+        if last is None or now_s <= last:
+            return
+        dt = now_s - last
+        hold = self.state.hold
+        if hold is HoldState.NONE:
+            self._advance(dt, now_s)
+        elif hold is HoldState.DECELERATING:
+            self._decelerate(dt)
+        self._emit(now_s)
+
+    def _advance(self, dt: float, now_s: float) -> None:
+        cursor = self._cursor
+        t = cursor.time_s + dt
+        block = cursor.block
+        while True:
+            if block is None:
+                block = self._next_block(now_s)
+                if block is None:
+                    t = 0.0
+                    break
+                if self.state.hold is not HoldState.NONE:  # a pause action stopped us
+                    cursor.block, cursor.time_s, cursor.distance_mm = block, 0.0, 0.0
+                    return
+            if t < block.duration_s:
+                break
+            t -= block.duration_s
+            self._finish(block)
+            block = None
+        cursor.block, cursor.time_s = block, t
+        if block is not None:
+            self.state.motion_time_s += dt
+
+    def _next_block(self, now_s: float) -> Block | None:
+        planner = self.planner
+        if not self._running:
+            if len(planner) == 0:
+                return None
+            ready = (
+                planner.is_full()
+                or self.flush_requested
+                or now_s - self.last_input_s >= self.start_delay_s
+            )
+            if not ready:
+                return None
+            self._running = True
+        block = self.pop_block()
+        if block is None:
+            self._running = False
+            self.flush_requested = False
+            self.listener.on_idle()
+            return None
+        self.state.kind = block.move.kind if block.move else None
+        for action in block.actions:
+            self.listener.on_action(action)
+        return block
+
+    def pop_block(self) -> Block | None:
+        """The next block, re-planned first when the last plan's look-ahead ran short.
+
+        Only the popped block's speeds are ever used, so planning at pop time is enough; doing
+        it only when the last plan's window end could still shape the head (see
+        :meth:`Planner.lookahead_short`) batches re-planning without changing any speed, and
+        keeps it a function of the block sequence alone, identical for live execution and the
+        offline estimate.
+        """
+        planner = self.planner
+        if self.before_pop is not None:
+            self.before_pop()
+        if planner.lookahead_short():
+            planner.plan()
+        return planner.pop()
+
+    def _finish(self, block: Block) -> None:
+        self.state.position_mm = block.end_mm
+        self.state.blocks_done += 1
+
+    def _decelerate(self, dt: float) -> None:
+        cursor = self._cursor
+        v, a = cursor.hold_speed_mm_s, cursor.hold_accel_mm_s2
+        used_s = min(dt, v / a) if a != math.inf else 0.0
+        cursor.distance_mm += v * used_s - 0.5 * a * used_s * used_s if used_s else 0.0
+        cursor.hold_speed_mm_s = max(0.0, v - a * used_s) if used_s else 0.0
+        block = cursor.block
+        while block is not None and cursor.distance_mm > block.length_mm:
+            overflow = cursor.distance_mm - block.length_mm
+            self._finish(block)
+            block = self.pop_block()
+            cursor.block, cursor.distance_mm = block, overflow
+            if block is None:
+                cursor.hold_speed_mm_s = 0.0
+            else:
+                for action in block.actions:
+                    self.listener.on_action(action)
+                block.actions = []
+                cursor.hold_accel_mm_s2 = min(
+                    cursor.hold_accel_mm_s2, block.accel_mm_s2 or math.inf
+                )
+        if cursor.hold_speed_mm_s <= 0.0:
+            self._set_hold(HoldState.STOPPED)
+            self.listener.on_hold_stopped()
+            if self._resume_when_stopped:
+                self._resume_when_stopped = False
+                self.resume()
+
+    # -- output -----------------------------------------------------------------------------
+    def _emit(self, now_s: float) -> None:
+        cursor = self._cursor
+        state = self.state
+        block = cursor.block
+        if block is None:
+            self._publish_still()
+            position = state.position_mm
+        else:
+            if state.hold is HoldState.NONE:
+                distance = block.distance_at(cursor.time_s)
+                state.speed_mm_s = block.speed_at(cursor.time_s)
+            else:
+                distance = min(cursor.distance_mm, block.length_mm)
+                state.speed_mm_s = cursor.hold_speed_mm_s
+            position = tuple(
+                start + unit * distance
+                for start, unit in zip(block.start_mm, block.unit, strict=True)
+            )
+            state.position_mm = position
+            state.moving = True
+            move = block.move
+            state.nominal_mm_s = block.nominal_mm_s
+            if move is not None:
+                state.tool_mode, state.s_value = move.tool_mode, move.s_value
+                state.line_number = move.line_number
+        state.time_s = now_s
+        state.queue_depth = len(self.planner)
+        self._step_to(now_s, position)
+        self.backend.sample(now_s, position, state.speed_mm_s)
+        if block is not None and state.kind is MoveKind.PROBE:
+            self._check_probe(position)
+
+    def _check_probe(self, position: Position) -> None:
+        """A probing move stops where the probe input changes (G38.2/3 contact, G38.4/5 loss)."""
+        if self.backend.probe_triggered(position) == self.probe_towards:
+            self.probe_hit = True
+            self.stop_now()
+            self.listener.on_idle()
+
+    def _publish_still(self) -> None:
+        state = self.state
+        state.speed_mm_s = 0.0
+        state.moving = False
+
+    def _step_to(self, now_s: float, position: Position) -> None:
+        steps = self._cursor.steps
+        deltas = []
+        moved = False
+        for axis, (mm, per_mm) in enumerate(zip(position, self.steps_per_mm, strict=True)):
+            target = round(mm * per_mm)
+            delta = target - steps[axis]
+            if delta:
+                steps[axis] = target
+                moved = True
+            deltas.append(delta)
+        if moved:
+            self.backend.step(now_s, deltas)
+
+    def _set_hold(self, hold: HoldState) -> None:
+        self.state.hold = hold
+
+    def set_steps_per_mm(self, steps_per_mm: tuple[float, ...]) -> None:
+        """Change the resolution (only while idle): step counts are re-based on the position."""
+        self.steps_per_mm = steps_per_mm
+        self.rebase(self.state.position_mm)
+
+    def rebase(self, position_mm: Position) -> None:
+        """Declare the tool to be at ``position_mm`` without moving (homing); idle only."""
+        self.state.position_mm = position_mm
+        self._cursor.steps = [
+            round(p * s) for p, s in zip(position_mm, self.steps_per_mm, strict=True)
+        ]
+
+    @property
+    def steps(self) -> tuple[int, ...]:
+        """Steps emitted so far per axis (absolute)."""
+        return tuple(self._cursor.steps)
+
+    # -- the task ---------------------------------------------------------------------------
+    async def run(
+        self,
+        clock: TickClock,
+        after_tick: Callable[[], None] = lambda: None,
+        on_fault: Callable[[Exception], None] | None = None,
+    ) -> None:
+        """Tick at ``tick_hz`` on ``clock`` forever; late ticks catch up on the next call.
+
+        A tick that raises (a failing backend) is reported to ``on_fault``, which must stop
+        motion; the task keeps ticking, so the server stays up and answers.
+        """
+        next_s = clock.now_s()
+        self._last_tick_s = next_s
+        while True:
+            next_s += self.tick_s
+            await clock.sleep_until(next_s)
+            now_s = clock.now_s()
+            if now_s - next_s > 0.25:  # the loop was stalled for long: do not replay old ticks
+                next_s = now_s
+            try:
+                self.tick(now_s)
+            except Exception as exc:
+                if on_fault is None:
+                    raise
+                on_fault(exc)
+            after_tick()

@@ -1,0 +1,2 @@
+"""Offline runs of the live pipeline on virtual time: ``estimate``, ``render`` and the planned
+toolpath the web UI draws."""

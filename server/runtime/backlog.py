@@ -1,0 +1,60 @@
+"""Input held back while a connection's line queue is full, with its realtime bytes found at once.
+
+Grbl acts on ``!``, ``~``, ``?``, Ctrl-X and the extended bytes the moment they arrive, even
+when its serial buffer is full. A sender that streams ahead without character counting fills
+motiond's line queue; if the transport stopped reading then, a later ``!`` would wait behind
+the whole stream. So the session keeps taking bytes into a :class:`Backlog`, bounded in bytes:
+
+* the bytes are kept as they came, to be fed to the connection's protocol when lines drain;
+* a twin of the protocol (:meth:`LineProtocol.copy`, taken when the backlog starts) reads them
+  at once, so realtime bytes are recognised exactly as the protocol will later see them
+  (dialect, UTF-8 continuation bytes, ``C2``-prefixed commands), and the session acts on them;
+  when the held bytes are fed to the protocol later, their realtime events are ignored;
+* Ctrl-X never reaches the backlog: the session splits input at ``0x18`` (always a reset,
+  whatever precedes it) and drops everything held before it, as Grbl empties its buffer.
+
+Only when the backlog holds ``limit_bytes`` does the transport stop reading (the TCP window
+then fills); realtime bytes already received are still acted on.
+"""
+
+from __future__ import annotations
+
+from server.protocol.lines import Event, LineProtocol
+
+
+class Backlog:
+    """Bytes not yet fed to the protocol, and the twin protocol that has already read them."""
+
+    def __init__(self, limit_bytes: int) -> None:
+        self.limit_bytes = limit_bytes
+        self._data = bytearray()
+        self._twin: LineProtocol | None = None
+
+    def __len__(self) -> int:
+        return len(self._data)
+
+    @property
+    def full(self) -> bool:
+        return len(self._data) >= self.limit_bytes
+
+    def hold(self, protocol: LineProtocol, data: bytes) -> list[Event]:
+        """Keep ``data`` (no ``0x18`` in it) after what is held; return what the twin of
+        ``protocol`` finds in it: realtime commands to act on now, lines only to look at."""
+        if b"\x18" in data:
+            raise ValueError("Ctrl-X is never held back: split the input at it")
+        if self._twin is None:
+            self._twin = protocol.copy()
+        self._data += data
+        return self._twin.receive_data(data)
+
+    def take(self, size_bytes: int) -> bytes:
+        """The oldest held bytes, at most ``size_bytes``, for the protocol itself."""
+        piece = bytes(self._data[:size_bytes])
+        del self._data[:size_bytes]
+        if not self._data:
+            self._twin = None  # the protocol has caught up with its twin
+        return piece
+
+    def clear(self) -> None:
+        self._data.clear()
+        self._twin = None

@@ -1,0 +1,166 @@
+"""The core's command set: Grbl's ``$`` commands and Smoothie/RepRap named and M commands.
+
+Registered on the dispatcher by :func:`register_core_commands`. ``$J=`` jogs plan like any
+move in their own state; ``$C`` toggles check mode (lines run through the interpreter, nothing
+moves; leaving it resets the modal state as Grbl does).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from server import __version__
+from server.errors import CommandError, Error
+from server.gcode.codes import CodeCall
+from server.gcode.parser import parse_line
+from server.motion.moves import Output, Sync, SyncKind
+from server.protocol.reports import format_build_info, format_help, format_settings
+from server.runtime.dispatcher import Command, Dispatcher, Handler
+from server.runtime.events import MachineState
+
+if TYPE_CHECKING:
+    from server.runtime.kernel import Kernel
+
+BANNER_VERSION = "1.1h"
+
+
+class CoreCommands:
+    """Handlers bound to one kernel."""
+
+    def __init__(self, kernel: Kernel) -> None:
+        self.kernel = kernel
+        self.machine = kernel.machine
+        self.startup_lines: dict[int, str] = {}
+
+    def register(self, dispatcher: Dispatcher) -> None:
+        queries: dict[str, Handler] = {
+            "$": self.help,
+            "$$": self.settings,
+            "$#": self.offsets,
+            "$G": self.modal,
+            "$I": self.build_info,
+            "$N": self.startup,
+            "version": self.version,
+        }
+        for name, handler in queries.items():
+            dispatcher.register(name, handler, when_locked=True, query=True)
+        locked_ok: dict[str, Handler] = {
+            "$=": self.write_setting,
+            "$N0=": self.startup_set,
+            "$N1=": self.startup_set,
+            "$C": self.check_mode,
+            "$X": self.unlock,
+            "$RST=": self.restore,
+            "$SLP": self.sleep,
+        }
+        for name, handler in locked_ok.items():
+            dispatcher.register(name, handler, when_locked=True)
+        dispatcher.register("$J=", self.jog)
+        codes = self.machine.codes
+        codes.register("core", 105, self.temperature, query=True)
+        codes.register("core", 115, self.firmware_info, query=True)
+
+    def register_fallbacks(self, dispatcher: Dispatcher) -> None:
+        """Answers for what no module took: ``$H`` without an ``[endstops]`` section."""
+        if "$H" not in dispatcher.names():
+            dispatcher.register("$H", self.no_homing, when_locked=True)
+
+    def no_homing(self, command: Command) -> None:
+        raise CommandError(
+            Error.SETTING_DISABLED, "homing is not configured: add an [endstops] section"
+        )
+
+    def help(self, command: Command) -> list[str]:
+        return [format_help()]
+
+    def settings(self, command: Command) -> list[str]:
+        return format_settings(self.machine.settings.values())
+
+    def write_setting(self, command: Command) -> None:
+        self.machine.settings.write(command.args)
+
+    def offsets(self, command: Command) -> list[str]:
+        return self.machine.interpreter.offsets_report()
+
+    def modal(self, command: Command) -> list[str]:
+        return [self.machine.interpreter.gc_report()]
+
+    def build_info(self, command: Command) -> list[str]:
+        core = self.kernel.config.core
+        return format_build_info(
+            f"{BANNER_VERSION}.motiond-{__version__}",
+            core.planner.max_blocks,
+            core.protocol.rx_buffer_bytes,
+        )
+
+    def startup(self, command: Command) -> list[str]:
+        return [f"$N{n}={self.startup_lines.get(n, '')}" for n in (0, 1)]
+
+    def startup_set(self, command: Command) -> None:
+        index = int(command.name[2])
+        text = command.args.strip()
+        if text:
+            line = parse_line(text)
+            if line.error is not None:
+                raise line.error
+        self.startup_lines[index] = text
+
+    def check_mode(self, command: Command) -> list[str]:
+        kernel = self.kernel
+        if kernel.state is MachineState.CHECK:
+            self.machine.leave_check_mode()
+            return ["[MSG:Disabled]"]
+        if kernel.state is not MachineState.IDLE or not self.machine.stepgen.idle:
+            raise CommandError(Error.NOT_IDLE, "check mode needs an idle machine")
+        self.machine.enter_check_mode()
+        return ["[MSG:Enabled]"]
+
+    def unlock(self, command: Command) -> None:
+        self.kernel.clear_alarm()
+
+    def restore(self, command: Command) -> None:
+        target = command.args.strip()
+        if target not in ("$", "#", "*"):
+            raise CommandError(Error.INVALID_STATEMENT, "use $RST=$, $RST=# or $RST=*")
+        if target in ("$", "*"):
+            self.machine.restore_settings()
+        if target in ("#", "*"):
+            self.machine.clear_offsets()
+
+    def sleep(self, command: Command) -> None:
+        if not self.machine.stepgen.idle:
+            raise CommandError(Error.NOT_IDLE, "sleep needs an idle machine")
+        self.machine.stop_now()
+        self.kernel.events.emit("motors_disable")
+        self.kernel.set_state(MachineState.SLEEP)
+        self.kernel.push("[MSG:Sleeping]")
+
+    async def jog(self, command: Command) -> None:
+        state = self.kernel.state
+        if state not in (MachineState.IDLE, MachineState.JOG):
+            raise CommandError(Error.NOT_IDLE, "jog needs an idle machine")
+        line = parse_line(command.args)
+        if line.error is not None:
+            raise CommandError(Error.INVALID_JOG, f"invalid jog: {line.error.message}")
+        for move in self.machine.interpreter.jog(line):
+            await self.machine.queue_move(move)
+        self.machine.stepgen.request_start()
+
+    def version(self, command: Command) -> list[str]:
+        name = self.kernel.config.core.machine.name
+        return [
+            f"Build version: motiond-{__version__}, Build date: -, MCU: python, "
+            f"System Clock: -, Grbl {BANNER_VERSION} compatible, machine: {name}"
+        ]
+
+    def temperature(self, call: CodeCall) -> list[Output]:
+        """M105 (RepRap hosts poll it): no heaters here."""
+        return [Sync(SyncKind.MESSAGE, {"lines": ["T:0.0 /0.0 B:0.0 /0.0"]})]
+
+    def firmware_info(self, call: CodeCall) -> list[Output]:
+        """M115."""
+        text = (
+            f"FIRMWARE_NAME:motiond {__version__} (Grbl {BANNER_VERSION} compatible) "
+            "PROTOCOL_VERSION:1.0 MACHINE_TYPE:laser/cnc EXTRUDER_COUNT:0"
+        )
+        return [Sync(SyncKind.MESSAGE, {"lines": [text]})]

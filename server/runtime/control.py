@@ -1,0 +1,71 @@
+"""Realtime commands, soft reset and halt: one implementation for every entry point.
+
+A line session (TCP, pty, ``/ws``), the JSON API and a job's controls all call
+:class:`MachineControl`, so ``!``, ``~``, Ctrl-X and M112 mean exactly the same wherever they
+come from: a hold pauses a running job (and the motion), a resume continues it, a reset stops
+motion and ends the job, an emergency stop alarms the machine with the tools off.
+"""
+
+from __future__ import annotations
+
+import re
+from typing import TYPE_CHECKING
+
+from server.protocol.lines import Realtime
+
+if TYPE_CHECKING:
+    from server.runtime.jobs import Jobs
+    from server.runtime.machine import Machine
+
+_M112 = re.compile(r"^\s*(?:N\d+\s*)?M\s*0*112(?:\D|$)", re.I)
+
+
+def halts_at_once(text: str) -> bool:
+    """Whether a line is an M112 that acts the moment it arrives, ahead of queued lines."""
+    return _M112.match(text) is not None
+
+
+class MachineControl:
+    """Hold, resume, reset, jog cancel, overrides and emergency stop, acted on at once."""
+
+    def __init__(self, machine: Machine, jobs: Jobs) -> None:
+        self.machine = machine
+        self.jobs = jobs
+
+    def realtime(self, command: Realtime) -> None:
+        """A realtime byte other than ``?`` (status is the asking connection's to answer)."""
+        if command is Realtime.HOLD:
+            self.hold()
+        elif command is Realtime.RESUME:
+            self.resume()
+        elif command is Realtime.RESET:
+            self.reset()
+        else:
+            self.machine.realtime(command)
+
+    def hold(self) -> None:
+        """``!``: decelerate to a stop on the path; a running job is paused."""
+        if self.jobs.is_playing():
+            self.jobs.suspend()
+        else:
+            self.machine.feed_hold()
+
+    def resume(self) -> None:
+        """``~``: continue exactly where the hold stopped; a paused job plays on."""
+        if self.jobs.is_paused():
+            self.jobs.resume()
+        else:
+            self.machine.cycle_start()
+
+    def reset(self) -> None:
+        """Ctrl-X: stop at once and flush (ALARM:3 if it was moving); a job ends."""
+        self.machine.soft_reset()
+        if self.jobs.active:
+            self.jobs.abort()
+
+    def jog_cancel(self) -> None:
+        self.machine.cancel_jog()
+
+    def emergency_stop(self) -> None:
+        """M112: ALARM:40, motion stopped and tools off until ``$X`` or M999."""
+        self.machine.emergency_stop()

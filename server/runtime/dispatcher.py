@@ -1,0 +1,263 @@
+"""The dispatcher: one ordered command stream shared by every input source.
+
+Every line from every connection and job goes through :meth:`Dispatcher.submit`, which holds a
+FIFO lock for the whole execution of the line, so commands run strictly in arrival order and a
+line waiting for planner room holds back the lines behind it (that is the back-pressure).
+
+Lines are routed by their form:
+  * ``$...`` to the ``$`` command handlers (``$H``, ``$J``, ``$$``, ``$=`` for ``$100=80``);
+  * a leading word of two or more letters (``version``, ``fire 50``) to named commands;
+  * everything else is G-code, interpreted once, whole, by the G-code handler (the machine's
+    interpreter, where modules register the M-codes they own: see :mod:`server.gcode.codes`).
+
+Whether a line may run is decided from all of it: a ``$`` or named command is a query when
+registered as one, a G-code line when the interpreter classifies every word of it as a report
+(:meth:`Interpreter.classify`). A read-only source runs queries only. While the machine runs
+motion that one source queued (a job, or a stream), other sources may query but not change
+anything (error 45); realtime hold and reset stay open to every controlling connection.
+
+A handler returns the message lines to send before ``ok`` (or None) and raises
+:class:`CommandError` to answer ``error:N``. Several handlers may share a name; all run, in
+registration order. An unknown command is an error for its sender, never a silent no-op.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import inspect
+import re
+from collections import defaultdict
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+from server.errors import CommandError, Error
+from server.gcode.interpreter import LineKind
+from server.gcode.parser import Line, parse_line
+
+HandlerResult = list[str] | None
+Handler = Callable[["Command"], Awaitable[HandlerResult] | HandlerResult]
+Classifier = Callable[[Line], LineKind]
+
+_NAMED = re.compile(r"([A-Za-z][A-Za-z_\-]+)(?:\s+(.*))?$", re.S)
+_GM_NAME = re.compile(r"[GMgm]\d")
+_DOLLAR = re.compile(r"\$([$#]|[A-Za-z]*)\s*(.*)$", re.S)
+_SETTING = re.compile(r"\$(\d+)\s*=\s*(.*)$")
+_STARTUP = re.compile(r"\$[Nn](\d)\s*=(.*)$", re.S)
+
+
+class Source(Protocol):
+    """Whoever sent a line: a connection or a job player."""
+
+    name: str
+    can_control: bool
+
+
+@dataclass(slots=True)
+class SystemSource:
+    """A source inside the server (startup lines, tests)."""
+
+    name: str = "system"
+    can_control: bool = True
+
+
+@dataclass(slots=True)
+class Command:
+    """One command as a handler sees it.
+
+    Attributes:
+        name: the routing key: ``G28.2``, ``M106``, ``$H``, ``$=`` (setting), ``fire``.
+        text: the whole line as received.
+        args: text after the command name (``$`` and named commands).
+        line: the parsed G-code line (G/M handlers only).
+        source: who sent it.
+    """
+
+    name: str
+    text: str
+    args: str
+    source: Source
+    line: Line | None = None
+
+
+@dataclass(slots=True)
+class _Entry:
+    handlers: list[Handler] = field(default_factory=list)
+    when_locked: bool = False
+    query: bool = False
+
+
+class Dispatcher:
+    """Routes lines to handlers, one at a time, in order.
+
+    ``is_locked`` says whether the machine is locked out (ALARM, Sleep); ``is_busy`` whether
+    queued motion is still running (the source that queued it owns the machine until then).
+    """
+
+    def __init__(
+        self,
+        is_locked: Callable[[], bool] = lambda: False,
+        is_busy: Callable[[], bool] = lambda: False,
+    ) -> None:
+        self._entries: defaultdict[str, _Entry] = defaultdict(_Entry)
+        self._gcode: Handler | None = None
+        self._classify: Classifier = lambda line: LineKind.EFFECT
+        self._lock = asyncio.Lock()
+        self._is_locked = is_locked
+        self._is_busy = is_busy
+        self._owner: Source | None = None
+        self._closed = False
+        self._immediate: set[str] = set()
+
+    def register(
+        self, name: str, handler: Handler, *, when_locked: bool = False, query: bool = False
+    ) -> None:
+        """Add a handler for a ``$`` command (``$H``) or a named command (``fire``).
+
+        ``when_locked`` lets it run while the machine is in ALARM; ``query`` marks a command
+        that only reports, which read-only sources may run. G and M codes belong to the
+        interpreter (modules claim M-codes with :meth:`CodeTable.register`).
+        """
+        if _GM_NAME.match(name):
+            raise ValueError(f"{name}: G and M codes are registered with the interpreter")
+        entry = self._entries[_key(name)]
+        entry.handlers.append(handler)
+        entry.when_locked = entry.when_locked or when_locked
+        entry.query = entry.query or query
+
+    def set_gcode_handler(self, handler: Handler, classify: Classifier | None = None) -> None:
+        """The handler of every G-code line (the machine) and what decides what a line does
+        (without it, every line is an effect: read-only sources may run none)."""
+        self._gcode = handler
+        if classify is not None:
+            self._classify = classify
+
+    def names(self) -> list[str]:
+        """Every registered command name."""
+        return sorted(self._entries)
+
+    def close(self) -> None:
+        """Shutdown: refuse every line from now on."""
+        self._closed = True
+
+    def register_immediate(self, name: str, handler: Handler, *, query: bool = False) -> None:
+        """A named command that runs at once, outside the ordered stream (job control:
+        ``suspend``, ``resume``, ``abort`` must work while a held job waits for room)."""
+        self.register(name, handler, when_locked=True, query=query)
+        self._immediate.add(_key(name))
+
+    async def submit(
+        self, text: str, source: Source, still_valid: Callable[[], bool] | None = None
+    ) -> list[str]:
+        """Execute one line in order with every other source; returns messages for the reply.
+
+        ``still_valid`` is checked once the line's turn comes: a line overtaken by a reset of
+        its connection while it waited is dropped (CommandError Error.BUSY), never run late.
+        """
+        if self._closed:
+            raise CommandError(Error.BUSY, "shutting down")
+        named = _NAMED.match(text.strip())
+        if named and _key(named.group(1)) in self._immediate:
+            return await self.execute(text, source)
+        async with self._lock:
+            if self._closed:
+                raise CommandError(Error.BUSY, "shutting down")
+            if still_valid is not None and not still_valid():
+                raise CommandError(Error.BUSY, "overtaken by a reset")
+            return await self.execute(text, source)
+
+    async def execute(self, text: str, source: Source) -> list[str]:
+        """Execute one line now (the caller holds the order); raise CommandError to refuse it."""
+        stripped = text.strip()
+        if not stripped:
+            return []
+        if stripped.startswith("$"):
+            name, args = _dollar_name(stripped)
+            return await self._run(name, Command(name, text, args, source))
+        named = _NAMED.match(stripped)
+        if named and _key(named.group(1)) in self._entries:
+            name = _key(named.group(1))
+            return await self._run(name, Command(name, text, named.group(2) or "", source))
+        return await self._gcode_line(text, source)
+
+    async def _gcode_line(self, text: str, source: Source) -> list[str]:
+        line = parse_line(text)
+        if line.error is not None:
+            raise line.error
+        if not line.letters:
+            return []
+        kind = self._classify(line)
+        self._check_source(source, query=kind is LineKind.QUERY)
+        if kind is LineKind.EFFECT and self._is_locked():
+            raise CommandError(
+                Error.LOCKED_OUT, "G-code locked out during alarm: $X or M999 to unlock"
+            )
+        if self._gcode is None:
+            raise CommandError(Error.UNSUPPORTED, "no G-code interpreter")
+        return await _call(self._gcode, Command("G", text, "", source, line))
+
+    async def _run(self, name: str, command: Command) -> list[str]:
+        entry = self._entries.get(name)
+        if entry is None:
+            code = Error.INVALID_STATEMENT if name.startswith("$") else Error.UNKNOWN_COMMAND
+            raise CommandError(code, f"unknown command {name}")
+        self._check_source(command.source, query=entry.query, job_control=name in self._immediate)
+        if self._is_locked() and not entry.when_locked:
+            raise CommandError(
+                Error.LOCKED_OUT, f"{name} locked out during alarm: $X or M999 to unlock"
+            )
+        messages: list[str] = []
+        for handler in entry.handlers:
+            messages += await _call(handler, command)
+        return messages
+
+    def _check_source(self, source: Source, *, query: bool, job_control: bool = False) -> None:
+        """Queries run for anyone; anything else needs control, and (but to suspend, resume
+        or abort a job) the machine's owner."""
+        if query:
+            return
+        if not source.can_control:
+            raise CommandError(Error.AUTH_REQUIRED, "this connection is read-only")
+        if job_control:
+            return
+        owner = self._owner
+        if owner is not None and owner is not source and self._is_busy():
+            raise CommandError(Error.BUSY, f"the machine is running {owner.name}'s motion")
+        self._owner = source
+
+    def claim(self, source: Source) -> None:
+        """``source`` (a job just started) owns the machine from now on."""
+        self._owner = source
+
+
+def _dollar_name(stripped: str) -> tuple[str, str]:
+    """``$100=80`` -> (``$=``, ``100=80``); ``$J=G91 X1`` -> (``$J=``, ``G91 X1``)."""
+    setting = _SETTING.match(stripped)
+    if setting:
+        return "$=", stripped[1:]
+    startup = _STARTUP.match(stripped)
+    if startup:
+        return f"$N{startup.group(1)}=", startup.group(2)
+    match = _DOLLAR.match(stripped)
+    if match is None:
+        raise CommandError(Error.INVALID_STATEMENT, f"invalid $ statement {stripped!r}")
+    word, rest = match.group(1).upper(), match.group(2)
+    if "=" in word or rest.startswith("="):
+        return f"${word}=", rest.lstrip("=")
+    return f"${word}", rest
+
+
+async def _call(handler: Handler, command: Command) -> list[str]:
+    result = handler(command)
+    if inspect.isawaitable(result):
+        result = await result
+    return list(result or ())
+
+
+def _key(name: str) -> str:
+    """Normalise a command name: G/M codes and $ commands upper-case, named commands lower-case."""
+    if name.startswith("$"):
+        return name.upper()
+    if len(name) > 1 and name[0] in "GMgm" and name[1:].replace(".", "", 1).isdigit():
+        return f"{name[0].upper()}{float(name[1:]):g}"
+    return name.lower()

@@ -1,0 +1,63 @@
+"""The machine state and its alarm, with one owner: :class:`MachineStatus`.
+
+The kernel, the motion pipeline and the modules all read and change the state through this
+object; every change is an event on the bus (``state``, ``halt``, ``clear_halt``, ``push``), so
+transports and modules follow it without knowing who changed it. Raising an alarm stops motion
+first (the ``stop_motion`` hook, the pipeline's), then tells everyone why.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+
+from server.runtime.events import EventBus, MachineState
+
+log = logging.getLogger("motiond.state")
+
+
+class MachineStatus:
+    """Owns the machine state and the current alarm.
+
+    Attributes:
+        state: the Grbl state (Idle, Run, Hold, Alarm...).
+        alarm_code, alarm_message: the alarm in force (0 and "" when there is none).
+        stop_motion: called first by :meth:`alarm` (the motion pipeline sets it).
+        before_unlock: called by :meth:`clear_alarm` before the state returns to Idle.
+    """
+
+    def __init__(self, events: EventBus) -> None:
+        self.events = events
+        self.state = MachineState.IDLE
+        self.alarm_code = 0
+        self.alarm_message = ""
+        self.stop_motion: Callable[[], None] = lambda: None
+        self.before_unlock: Callable[[], None] = lambda: None
+
+    def set_state(self, state: MachineState) -> None:
+        if state is not self.state:
+            self.state = state
+            self.events.emit("state", state)
+
+    def push(self, message: str) -> None:
+        """Send an unsolicited line (``ALARM:2``, ``[MSG:...]``) to every connection."""
+        self.events.emit("push", message)
+
+    def alarm(self, code: int, message: str) -> None:
+        """Stop motion and tools at once, lock G-code out, tell everyone why."""
+        log.error("ALARM:%d %s", code, message)
+        self.alarm_code, self.alarm_message = code, message
+        self.stop_motion()
+        self.set_state(MachineState.ALARM)
+        self.events.emit("halt", message)
+        self.push(f"ALARM:{code}")
+        self.push(f"[MSG:{message}]")
+
+    def clear_alarm(self) -> None:
+        """``$X`` / ``M999``: unlock after an alarm."""
+        if self.state is MachineState.ALARM:
+            self.alarm_code, self.alarm_message = 0, ""
+            self.before_unlock()
+            self.set_state(MachineState.IDLE)
+            self.events.emit("clear_halt")
+            self.push("[MSG:Caution: Unlocked]")

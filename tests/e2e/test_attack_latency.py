@@ -1,0 +1,146 @@
+"""While each attack of the security review runs, an operator's ``?`` keeps its answer time.
+
+The server is a real ``motiond`` process with the strictest sensible config (a token, other
+connections read-only); the latency probe is a third process that logged in and polls ``?``
+every 10 ms (tests/support/latency_probe.py). Each attack runs from this test process for a
+couple of seconds; the probe's worst round trip must stay under 10 ms and it must miss none.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import zlib
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+
+import pytest
+import websockets
+
+from tests.e2e.test_hostile_web import client_frame, ws_handshake
+from tests.support.processes import Served, latency_probe, motiond
+
+TOKEN = "attack-test-token"
+CONFIG = f"""
+[protocol]
+token = "{TOKEN}"
+unauthenticated = "read-only"
+[http]
+token = "{TOKEN}"
+"""
+MIB = 1 << 20
+WORST_MS = 10.0
+
+Attack = Callable[[Served], Awaitable[None]]
+
+
+async def big_line_frame(served: Served) -> None:
+    """A 4 MiB /ws text frame from a client without the token (froze the loop 7 s)."""
+    async with websockets.connect(f"ws://{served.http}/ws", max_size=None) as socket:
+        await socket.send("G1 X1\n" * (4 * MIB // 6))
+        with pytest.raises(websockets.ConnectionClosed):
+            await asyncio.wait_for(socket.recv(), 10)
+            await asyncio.wait_for(socket.recv(), 10)
+
+
+async def deflate_bomb(served: Served) -> None:
+    """A few KiB on the wire that inflate to 4 MiB of newlines."""
+    deflate = zlib.compressobj(wbits=-15)
+    payload = deflate.compress(b"\n" * (4 * MIB - 1024)) + deflate.flush(zlib.Z_SYNC_FLUSH)
+    frame = client_frame(payload.removesuffix(b"\x00\x00\xff\xff"), compressed=True)
+    for _ in range(5):
+        reader, writer, _ = await ws_handshake(
+            served.http_port, "/ws", b"Sec-WebSocket-Extensions: permessage-deflate\r\n")
+        writer.write(frame)
+        await asyncio.wait_for(reader.read(), 10)  # the banner, the close, EOF
+        writer.close()
+
+
+async def big_api_frames(served: Served) -> None:
+    """32 frames of 2 MiB on /api before authentication (took 2.3 GB and 5 s stalls)."""
+    async def one() -> None:
+        async with websockets.connect(f"ws://{served.http}/api", max_size=None) as socket:
+            await socket.send("[" * 10 + " " * (2 * MIB) + "]" * 10)
+            with pytest.raises(websockets.ConnectionClosed):
+                await asyncio.wait_for(socket.recv(), 10)
+
+    await asyncio.gather(*(one() for _ in range(32)), return_exceptions=True)
+
+
+async def nested_json(served: Served) -> None:
+    """Deeply nested JSON-RPC requests (raised RecursionError)."""
+    async with websockets.connect(f"ws://{served.http}/api?token={TOKEN}") as socket:
+        for _ in range(20):
+            await socket.send("[" * 200_000 + "]" * 200_000)
+            reply = json.loads(await asyncio.wait_for(socket.recv(), 10))
+            assert reply["error"]["code"] in (-32600, -32700)
+
+
+async def status_flood(served: Served) -> None:
+    """Fifteen clients sending nothing but ``?``, 400 KB/s each (the attacker shares this
+    machine's two cores with the server and the probe, so it paces itself a little)."""
+    async def one() -> None:
+        reader, writer = await asyncio.open_connection("127.0.0.1", served.tcp_port)
+        for _ in range(100):
+            writer.write(b"?" * 4096)
+            await writer.drain()
+            await asyncio.sleep(0.01)
+        writer.close()
+
+    await asyncio.gather(*(one() for _ in range(15)))
+
+
+async def auth_guessing(served: Served) -> None:
+    """Token guesses as fast as a connection can send them."""
+    reader, writer = await asyncio.open_connection("127.0.0.1", served.tcp_port)
+    writer.write(b"".join(b"$AUTH=guess%d\n" % i for i in range(20_000)))
+    await writer.drain()
+    await asyncio.sleep(1.0)
+    writer.close()
+
+
+async def idle_sockets(served: Served) -> None:
+    """Sixteen idle TCP sockets and 32 idle /api sockets (locked the operator out)."""
+    tcp = [await asyncio.open_connection("127.0.0.1", served.tcp_port) for _ in range(16)]
+    api = []
+    for _ in range(32):
+        with contextlib.suppress(websockets.InvalidStatus):  # refused once the cap is reached
+            api.append(await websockets.connect(f"ws://{served.http}/api"))
+    await asyncio.sleep(1.0)
+    for _, writer in tcp:
+        writer.close()
+    for socket in api:
+        await socket.close()
+
+
+ATTACKS: dict[str, Attack] = {
+    "a 4 MiB /ws frame": big_line_frame,
+    "a deflate bomb on /ws": deflate_bomb,
+    "32 x 2 MiB /api frames": big_api_frames,
+    "deeply nested JSON": nested_json,
+    "a ? flood from 15 clients": status_flood,
+    "20,000 $AUTH guesses": auth_guessing,
+    "idle sockets": idle_sockets,
+}
+
+
+async def repeat_for(attack: Attack, served: Served, duration_s: float) -> None:
+    """Run ``attack`` again and again for at least ``duration_s``."""
+    loop = asyncio.get_running_loop()
+    end_s = loop.time() + duration_s
+    while True:
+        await attack(served)
+        if loop.time() >= end_s:
+            return
+
+
+@pytest.mark.parametrize("name", list(ATTACKS))
+async def test_the_operators_status_stays_fast_during_an_attack(name: str, tmp_path: Path) -> None:
+    async with motiond(tmp_path, CONFIG) as served:
+        async with latency_probe(served.tcp_port, token=TOKEN) as probe:
+            await asyncio.wait_for(repeat_for(ATTACKS[name], served, 1.0), 60)
+            await asyncio.sleep(0.3)
+        assert served.process.returncode is None, "the server survived"
+    assert probe["missed"] == 0 and probe["count"] > 80, probe
+    assert probe["max_ms"] < WORST_MS, probe

@@ -1,0 +1,167 @@
+"""The [endstops] module: homing ($H, G28.2), its alarms, hard limits, M119 and Pn:."""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Any
+
+import pytest
+
+from server.app import App
+from server.backends.sim import SimBackend
+from server.errors import CommandError, ConfigError
+from server.runtime.clock import VirtualClock
+from server.runtime.events import MachineState
+from server.runtime.status import snapshot
+from tests.conftest import make_config
+from tests.support.helpers import running, submit_all
+
+AXES = {
+    "x": {"direction": "min", "switch_at_mm": -3.0, "order": 2},
+    "y": {"direction": "min", "switch_at_mm": -2.0, "order": 2},
+    "z": {"direction": "max", "switch_at_mm": 3.0, "order": 1, "seek_mm_s": 10,
+          "feed_mm_s": 2, "pull_off_mm": 1},
+}
+STEP_MM = 1 / 80  # one X/Y step: the sim reports positions in whole steps
+
+
+def sim(app: App) -> SimBackend:
+    """The simulated machine behind ``app`` (the default backend)."""
+    backend = app.kernel.machine.backend
+    assert isinstance(backend, SimBackend)
+    return backend
+
+
+def endstops(**axes: dict[str, Any]) -> dict[str, Any]:
+    merged = {name: {**AXES[name], **axes.get(name, {})} for name in AXES}
+    return {"axes": {name: body for name, body in merged.items() if body is not None}}
+
+
+def record(app: App, event: str) -> list[Any]:
+    seen: list[Any] = []
+    app.kernel.events.subscribe(event, lambda *args: seen.append(args[0] if args else None))
+    return seen
+
+
+async def test_homing_sets_the_machine_position_with_the_travel_off_the_switches() -> None:
+    async with running(make_config(endstops=endstops())) as app:
+        kernel = app.kernel
+        states = record(app, "state")
+        assert await submit_all(app, ["G1 X20 Y10 F3000", "$H"]) == [[], ["[MSG:Homed XYZ]"]]
+        assert kernel.machine.stepgen.state.position_mm == (0.0, 0.0, 50.0)
+        physical = sim(app).position_mm()
+        assert physical == pytest.approx((-3 + 2, -2 + 2, 3 - 1), abs=2 * STEP_MM)
+        assert MachineState.HOME in states and kernel.state is MachineState.IDLE
+        assert await submit_all(app, ["M114"]) == [
+            ["C: X:0.0000 Y:0.0000 Z:50.0000 MPos: X:0.0000 Y:0.0000 Z:50.0000"]]
+        assert await submit_all(app, ["G0 X10 Y5 Z-10"]) == [[]], "inside the soft limits"
+        await kernel.machine.wait_idle()
+        assert kernel.state is MachineState.IDLE
+
+
+async def test_homing_runs_the_groups_in_order_z_first() -> None:
+    async with running(make_config(endstops=endstops())) as app:
+        await submit_all(app, ["G1 X20 Y10 F3000"])
+        await app.kernel.machine.wait_idle()
+        start_s = app.clock.now_s()
+        await submit_all(app, ["$H"])
+        rows = [row for row in sim(app).history if row[0] > start_s]
+        pairs = list(zip(rows, rows[1:], strict=False))  # moves only: not the re-homed jump
+        z_done_s = max(b[0] for a, b in pairs if 0 < abs(a[3] - b[3]) < 1)
+        x_start_s = min(b[0] for a, b in pairs if 0 < abs(a[1] - b[1]) < 1)
+        assert z_done_s < x_start_s
+
+
+async def test_g28_2_homes_only_the_named_axes() -> None:
+    async with running(make_config(endstops=endstops())) as app:
+        await submit_all(app, ["G1 X20 Y10 F3000", "G28.2 X0"])
+        assert app.kernel.machine.stepgen.state.position_mm == (0.0, 10.0, 0.0)
+        assert app.kernel.modules["endstops"].status()["homed"] == ["X"]
+        assert await submit_all(app, ["$HY"]) == [["[MSG:Homed Y]"]]
+
+
+async def test_homing_with_a_missing_switch_raises_alarm_9() -> None:
+    config = make_config(endstops=endstops(y={"switch_at_mm": None}))
+    async with running(config) as app:
+        pushed = record(app, "push")
+        with pytest.raises(CommandError) as info:
+            await submit_all(app, ["$H"])
+        assert info.value.code == 9
+        assert app.kernel.state is MachineState.ALARM and app.kernel.alarm_code == 9
+        assert "ALARM:9" in pushed and any("y_min switch not found" in p for p in pushed)
+        assert not app.kernel.machine.stepgen.state.moving
+
+
+async def test_a_switch_that_does_not_clear_on_pull_off_raises_alarm_8() -> None:
+    async with running(make_config(endstops=endstops())) as app:
+        backend = sim(app)
+        backend.switch_triggered = lambda name: name == "z_max"  # type: ignore
+        with pytest.raises(CommandError):
+            await submit_all(app, ["$H"])
+        assert app.kernel.alarm_code == 8
+
+
+async def test_a_reset_during_homing_raises_alarm_6() -> None:
+    async with running(make_config(endstops=endstops())) as app:
+        kernel = app.kernel
+        homing = asyncio.create_task(submit_all(app, ["G1 X50 F6000", "$H"]))
+        await app.clock.sleep(1.0)  # type: ignore[attr-defined]
+        assert kernel.state is MachineState.HOME
+        kernel.machine.soft_reset()
+        with pytest.raises(CommandError):
+            await homing
+        assert kernel.state is MachineState.ALARM and kernel.alarm_code == 6
+        assert not kernel.machine.stepgen.state.moving
+
+
+async def test_homing_is_allowed_in_alarm_and_unlocks_the_machine() -> None:
+    async with running(make_config(endstops=endstops())) as app:
+        app.kernel.alarm(1, "hard limit")
+        with pytest.raises(CommandError):
+            await submit_all(app, ["G0 X5"])
+        assert await submit_all(app, ["$H", "G0 X5"]) == [["[MSG:Homed XYZ]"], []]
+
+
+async def test_a_limit_switch_hit_during_a_job_raises_alarm_1_and_halts() -> None:
+    config = make_config(endstops=endstops(x={"direction": "max", "switch_at_mm": 150}))
+    async with running(config) as app:
+        kernel = app.kernel
+        await submit_all(app, ["G1 X300 F6000"])
+        await app.clock.sleep(5.0)  # type: ignore[attr-defined]
+        assert kernel.state is MachineState.ALARM and kernel.alarm_code == 1
+        x_mm = kernel.machine.stepgen.state.position_mm[0]
+        assert 150 <= x_mm < 150 + 100 * 0.002, "stopped within two ticks at 100 mm/s"
+        assert not kernel.machine.stepgen.state.moving
+        assert await submit_all(app, ["$X", "G1 X100 F6000"]) == [[], []]
+        await kernel.machine.wait_idle()
+        assert kernel.state is MachineState.IDLE, "jogging off a pressed switch is allowed"
+
+
+async def test_m119_and_the_status_pins_report_active_switches() -> None:
+    async with running(make_config(endstops=endstops())) as app:
+        assert await submit_all(app, ["M119"]) == [["X_min:0 Y_min:0 Z_max:0"]]
+        sim(app).switches_at_mm["y_min"] = 0.0
+        assert await submit_all(app, ["M119"]) == [["X_min:0 Y_min:1 Z_max:0"]]
+        assert snapshot(app.kernel, 0).pins == "Y"
+        app.kernel.alarm(10, "stop")
+        assert await submit_all(app, ["M119"]) == [["X_min:0 Y_min:1 Z_max:0"]], "in alarm too"
+
+
+@pytest.mark.parametrize(("axes", "expected"), [
+    ({"x": {"direction": "left"}}, "[endstops.axes.x] direction: Input should be 'min' or 'max'"),
+    ({"x": {"pull_off_mm": 0}}, "[endstops.axes.x] pull_off_mm: Input should be greater than 0"),
+    ({"x": {"seek": 5}}, "[endstops.axes.x] seek: unknown key"),
+    ({}, "[endstops.axes]: Dictionary should have at least 1 item"),
+])
+def test_bad_endstops_config_names_the_section_and_key(axes: dict[str, Any],
+                                                       expected: str) -> None:
+    with pytest.raises(ConfigError) as info:
+        make_config(endstops={"axes": axes})
+    assert any(p.startswith(f"test.toml: {expected}") for p in info.value.problems), \
+        info.value.problems
+
+
+def test_an_endstop_on_an_axis_the_machine_lacks_is_a_config_error() -> None:
+    with pytest.raises(ConfigError) as info:
+        App(make_config(endstops={"axes": {"a": {}}}), clock=VirtualClock())
+    assert info.value.problems == ["[endstops.axes.a]: no such axis (axes: X, Y, Z)"]

@@ -1,0 +1,53 @@
+"""The folder tree is the data flow: the pure cores import no I/O and nothing downstream."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+SERVER = Path(__file__).resolve().parents[2] / "server"
+PURE = ("gcode", "motion", "protocol")
+# What a pure package may import from motiond: the other pure cores, the error table and the
+# backend interface (a typing.Protocol), never the runtime, transports, API or offline tools.
+ALLOWED = ("server.gcode", "server.motion", "server.protocol", "server.errors",
+           "server.backends.base")
+FORBIDDEN_LIBRARIES = {"asyncio", "socket", "selectors", "threading", "subprocess",
+                       "aiohttp", "websockets", "serial", "serial_asyncio"}
+
+
+def imports(path: Path) -> set[str]:
+    names: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            names |= {alias.name for alias in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names.add(node.module)
+            if node.module == "server":
+                names |= {f"server.{alias.name}" for alias in node.names}
+    return names
+
+
+def pure_files() -> list[Path]:
+    return sorted(p for package in PURE for p in (SERVER / package).rglob("*.py"))
+
+
+def test_the_pure_packages_exist() -> None:
+    assert len(pure_files()) >= 10
+
+
+@pytest.mark.parametrize("path", pure_files(), ids=lambda p: f"{p.parent.name}/{p.name}")
+def test_a_pure_core_imports_no_io_and_nothing_downstream(path: Path) -> None:
+    found = imports(path)
+    libraries = {name.split(".")[0] for name in found} & FORBIDDEN_LIBRARIES
+    assert not libraries, f"{path.name} imports I/O: {sorted(libraries)}"
+    ours = {name for name in found if name == "server" or name.startswith("server.")}
+    downstream = {name for name in ours if not name.startswith(ALLOWED)}
+    assert not downstream, f"{path.name} imports {sorted(downstream)}"
+
+
+def test_the_runtime_does_not_import_transports_or_the_api() -> None:
+    for path in sorted((SERVER / "runtime").rglob("*.py")):
+        ours = {n for n in imports(path) if n.startswith(("server.transports", "server.api"))}
+        assert not ours, f"runtime/{path.name} imports {sorted(ours)}"
