@@ -120,6 +120,7 @@ class Laser(Module):
         ctx.register_api_method("laser.off", self._api_off, control=True)
         ctx.add_status_field("power_pct", lambda: round(100.0 * self.power, 1))
         ctx.add_feature("laser")
+        ctx.outputs.declare_tool(config.pin)
         ctx.register_code(221, self._m221, uses="S", query=True)
         for event in ("halt", "hold", "shutdown", "reset"):
             ctx.subscribe(event, self._off_now)

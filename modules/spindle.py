@@ -86,6 +86,7 @@ class Spindle(Module):
         self.override_percent = 100.0
         self.stopped_in_hold = False
         self._state = MachineState.IDLE
+        ctx.outputs.declare_tool(config.pin)
         ctx.subscribe("action", self._on_action)
         ctx.subscribe("override", self._on_override)
         ctx.subscribe("halt", self._halt)

@@ -26,6 +26,10 @@ class Backend(Protocol):
         """Set an output pin (laser PWM, spindle, fan) to a duty cycle in [0, 1]."""
         ...
 
+    def declare_tool(self, name: str) -> None:
+        """The output ``name`` drives the tool (laser, spindle): traces record it as power."""
+        ...
+
     def output(self, name: str) -> float:
         """The last value set on an output (0.0 if never set)."""
         ...

@@ -20,6 +20,9 @@ class NullBackend:
     def set_output(self, name: str, value: float, time_s: float) -> None:
         self._outputs[name] = value
 
+    def declare_tool(self, name: str) -> None:
+        pass
+
     def output(self, name: str) -> float:
         return self._outputs.get(name, 0.0)
 

@@ -14,8 +14,6 @@ from collections import deque
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-TOOL_OUTPUTS = ("laser", "spindle")
-
 
 class SimBackend:
     """A machine made of counters; see the module docstring."""
@@ -38,6 +36,7 @@ class SimBackend:
         self.output_trace: list[tuple[float, str, float]] = []
         self.events: list[str] = []  # coarse log of notable calls (tests check shutdown order)
         self._outputs: dict[str, float] = {}
+        self._tools: list[str] = []  # outputs whose duty is the tool power in the history
         self._probe = {self.axis_names.index(k.upper()): v for k, v in (probe_at_mm or {}).items()}
         self.switches_at_mm: dict[str, float] = dict(switches_at_mm or {})
         self._trace_csv = trace_csv
@@ -51,7 +50,7 @@ class SimBackend:
             self.steps_travelled += abs(delta)
 
     def sample(self, time_s: float, position_mm: Sequence[float], speed_mm_s: float) -> None:
-        power = max((self._outputs.get(name, 0.0) for name in TOOL_OUTPUTS), default=0.0)
+        power = max((self._outputs.get(name, 0.0) for name in self._tools), default=0.0)
         row = (time_s, *position_mm, speed_mm_s, power)
         self.history.append(row)
         if self._trace_rows is not None:
@@ -61,6 +60,10 @@ class SimBackend:
         if self._outputs.get(name) != value:
             self._outputs[name] = value
             self.output_trace.append((time_s, name, value))
+
+    def declare_tool(self, name: str) -> None:
+        if name not in self._tools:
+            self._tools.append(name)
 
     def output(self, name: str) -> float:
         return self._outputs.get(name, 0.0)

@@ -45,6 +45,9 @@ class _Outputs:
     def value(self, pin: str) -> float:
         return self._machine.backend.output(pin)
 
+    def declare_tool(self, pin: str) -> None:
+        self._machine.backend.declare_tool(pin)
+
 
 class _Inputs:
     """Switch inputs (implements server.runtime.module.Inputs)."""

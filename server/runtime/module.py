@@ -74,6 +74,10 @@ class Outputs(Protocol):
 
     def set(self, pin: str, value: float) -> None: ...
 
+    def declare_tool(self, pin: str) -> None:
+        """``pin`` drives the tool (its duty is the tool power in traces and history)."""
+        ...
+
     def value(self, pin: str) -> float: ...
 
 
