@@ -90,6 +90,7 @@ class Planner:
     """
 
     def __init__(self, settings: PlannerSettings, position_mm: Position) -> None:
+        self.moves_appended = 0  # every move ever appended (statistics)
         axes = len(settings.max_rate_mm_s)
         self._zero: Position = (0.0,) * axes
         self._units = slice(UNIT, UNIT + axes)
@@ -136,6 +137,7 @@ class Planner:
         A move shorter than :data:`MIN_LENGTH_MM` is dropped; its actions ride on the next block.
         O(1): the block is staged; its limits are derived in a batch at the next :meth:`plan`.
         """
+        self.moves_appended += 1
         start, target = self._chain_mm, tuple(move.target_mm)
         if len(target) != len(start):
             raise ValueError(f"expected {len(start)} coordinates, got {len(target)}")

@@ -25,7 +25,8 @@ from server.config import Config, CoreConfig
 from server.errors import CommandError
 from server.gcode.interpreter import Interpreter
 from server.gcode.parser import check_length, parse_line
-from server.motion.moves import Action, Move, MoveKind, Output
+from server.motion.feed import offer
+from server.motion.moves import Action, MoveKind, Output, Sync
 from server.motion.planner import (
     CRUISE,
     CUTTING_CODE,
@@ -163,19 +164,14 @@ class _Feeder:
                 return
 
     def _queue(self, outputs: list[Output]) -> list[Output]:
-        """Queue ``outputs`` in order until the planner is full; return those left over.
-
-        Like :meth:`Machine.queue_move` and ``queue_action``, every output waits for room.
-        """
-        planner, stats = self.planner, self.stats
-        for index, output in enumerate(outputs):
-            if planner.is_full():
-                return outputs[index:]
-            if type(output) is Move:
-                planner.append(output)
-                stats.moves += 1
-            elif type(output) is Action:
-                planner.append_action(output)
+        """Offer ``outputs`` as the live machine does (:func:`~server.motion.feed.offer`) until
+        the planner is full; return those left over. Sync requests need no machine here."""
+        index = 0
+        while index < len(outputs):
+            index = offer(self.planner, outputs, index)
+            if index < len(outputs) and type(outputs[index]) is not Sync:
+                return outputs[index:]  # the planner is full
+            index += 1
         return []
 
     def _next_line(self) -> list[Output]:
@@ -231,6 +227,7 @@ def iterate_blocks(
         block = stepgen.pop_block()
         if block is None:
             if feeder.done:
+                stats.moves = feeder.planner.moves_appended
                 stats.finish()
                 return
             continue
@@ -262,6 +259,7 @@ def estimate(
         if block is not None:
             stats.add(block)
         elif feeder.done:
+            stats.moves = planner.moves_appended
             stats.finish()
             return stats
 
@@ -291,6 +289,7 @@ def execute(
             break
     stats.duration_s = (ticks - (started_tick or 0)) * tick_s if started_tick is not None else 0.0
     stats.blocks = stepgen.state.blocks_done
+    stats.moves = feeder.planner.moves_appended
     return stats
 
 

@@ -23,7 +23,8 @@ from server.config import Config, CoreConfig
 from server.errors import Alarm, CommandError, Error, SoftLimitError
 from server.gcode.codes import CodeTable
 from server.gcode.interpreter import Interpreter, InterpreterSettings
-from server.motion.moves import Action, Move, MoveKind, Position, Sync, SyncKind, ToolMode
+from server.motion.feed import offer
+from server.motion.moves import Action, Move, MoveKind, Output, Position, Sync, SyncKind, ToolMode
 from server.motion.planner import Planner, PlannerSettings
 from server.motion.stepgen import HoldState, StepGenerator
 from server.protocol.lines import Realtime
@@ -146,19 +147,38 @@ class Machine:
         except SoftLimitError as exc:
             self.status.alarm(Alarm.SOFT_LIMIT, f"soft limit: {exc.message}")
             raise
+        self._arm_probe(outputs)
+        return await self._feed(outputs)
+
+    async def _feed(self, outputs: list[Output]) -> list[str]:
+        """Offer the line's outputs to the planner (:func:`~server.motion.feed.offer`, as
+        ``estimate`` does), waiting for room and carrying out sync requests in order."""
         messages: list[str] = []
+        index, epoch = 0, self.epoch
+        while index < len(outputs):
+            if self.check_mode:  # interpreted, never planned
+                while index < len(outputs) and type(outputs[index]) is not Sync:
+                    index += 1
+            else:
+                taken = offer(self.planner, outputs, index)
+                if taken > index:
+                    self._note_input(MachineState.RUN)
+                index = taken
+            if index == len(outputs):
+                break
+            output = outputs[index]
+            if type(output) is Sync:
+                messages += await self.sync(output)
+                index += 1
+            else:
+                await self._wait_for_room(epoch)
+        return messages
+
+    def _arm_probe(self, outputs: list[Output]) -> None:
         for output in outputs:
-            if isinstance(output, Sync) and output.kind is SyncKind.PROBE:
+            if type(output) is Sync and output.kind is SyncKind.PROBE:
                 self.stepgen.probe_towards = bool(output.params.get("towards", True))
                 self.stepgen.probe_hit = False
-        for output in outputs:
-            if isinstance(output, Move):
-                await self.queue_move(output)
-            elif isinstance(output, Action):
-                await self.queue_action(output)
-            else:
-                messages += await self.sync(output)
-        return messages
 
     async def queue_move(self, move: Move) -> None:
         """Append a move, waiting while the planner is full."""
@@ -176,8 +196,10 @@ class Machine:
         self.planner.append_action(action)
         self._note_input(MachineState.RUN)
 
-    async def _wait_for_room(self) -> None:
-        epoch = self.epoch
+    async def _wait_for_room(self, epoch: int | None = None) -> None:
+        """Wait while the planner is full; refuse the line if motion was reset meanwhile
+        (``epoch``: the machine's epoch when the line began; default now)."""
+        epoch = self.epoch if epoch is None else epoch
         while self.planner.is_full():
             self.room.clear()
             await self.room.wait()

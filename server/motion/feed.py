@@ -1,0 +1,25 @@
+"""The one way G-code reaches the planner, live and offline alike."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from server.motion.moves import Move, Output, Sync
+from server.motion.planner import Planner
+
+
+def offer(planner: Planner, outputs: Sequence[Output], start: int = 0) -> int:
+    """Append ``outputs[start:]`` (a line's moves and ordered actions) to ``planner`` in order,
+    until the planner is full or a :class:`Sync` comes; return the index of the first output
+    not taken. The live machine waits for room (or carries the Sync out) and offers the rest;
+    ``estimate`` and ``render`` pop planned blocks and offer the rest, so both plan the same
+    block sequence."""
+    for index in range(start, len(outputs)):
+        output = outputs[index]
+        if type(output) is Sync or planner.is_full():
+            return index
+        if type(output) is Move:
+            planner.append(output)
+        else:
+            planner.append_action(output)  # type: ignore[arg-type]
+    return len(outputs)
