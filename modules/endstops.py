@@ -37,7 +37,7 @@ from server.errors import Alarm, CommandError, ConfigError, Error
 from server.gcode.codes import CodeCall
 from server.motion.moves import Move, MoveKind, Output, Position, Sync, SyncKind
 from server.runtime.dispatcher import Command
-from server.runtime.events import MachineState
+from server.runtime.events import Event, MachineState
 from server.runtime.module import Module, ModuleConfig, ModuleContext
 
 LOCKED = 9
@@ -104,7 +104,7 @@ class Endstops(Module):
         ctx.register_sync(SyncKind.HOME, self._home_sync)
         ctx.add_feature("homing")
         ctx.register_code(119, self._m119, query=True)
-        ctx.subscribe("state", self._on_state)
+        ctx.subscribe(Event.STATE, self._on_state)
 
     def _resolve_axes(self) -> list[_Axis]:
         core = self.ctx.core

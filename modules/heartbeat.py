@@ -14,6 +14,7 @@ from typing import Any
 from pydantic import Field
 
 from server.runtime.dispatcher import Command
+from server.runtime.events import Event
 from server.runtime.module import Module, ModuleConfig, ModuleContext
 
 
@@ -31,7 +32,7 @@ class Heartbeat(Module):
         super().__init__(ctx, config)
         self.beats = 0
         self.started_s = ctx.clock.now_s()
-        ctx.subscribe("second", self._on_second)
+        ctx.subscribe(Event.SECOND, self._on_second)
         ctx.register_command("heartbeat", self._command, when_locked=True, query=True)
 
     def _on_second(self, now_s: float) -> None:

@@ -42,7 +42,7 @@ from server.gcode.codes import CodeCall
 from server.motion.moves import Action, MoveKind, Output, Sync, SyncKind, ToolMode
 from server.motion.stepgen import HoldState, MotionState
 from server.runtime.dispatcher import Command
-from server.runtime.events import MachineState
+from server.runtime.events import Event, MachineState
 from server.runtime.module import ApiCaller, ApiParams, Module, ModuleConfig, ModuleContext
 
 PIN_PATTERN = r"^[A-Za-z0-9_.\-]+$"
@@ -124,9 +124,9 @@ class Laser(Module):
         ctx.register_code(221, self._m221, uses="S", query=True)
         for event in ("halt", "hold", "shutdown", "reset"):
             ctx.subscribe(event, self._off_now)
-        ctx.subscribe("state", self._on_state)
-        ctx.subscribe("override", self._on_override)
-        ctx.subscribe("action", self._on_action)
+        ctx.subscribe(Event.STATE, self._on_state)
+        ctx.subscribe(Event.OVERRIDE, self._on_override)
+        ctx.subscribe(Event.ACTION, self._on_action)
 
     @property
     def scale(self) -> float:

@@ -33,7 +33,7 @@ from typing import Any
 from pydantic import Field, model_validator
 
 from server.motion.moves import Action, ToolMode
-from server.runtime.events import MachineState
+from server.runtime.events import Event, MachineState
 from server.runtime.module import Module, ModuleConfig, ModuleContext
 
 PIN_PATTERN = r"^[A-Za-z0-9_.\-]+$"
@@ -87,14 +87,14 @@ class Spindle(Module):
         self.stopped_in_hold = False
         self._state = MachineState.IDLE
         ctx.outputs.declare_tool(config.pin)
-        ctx.subscribe("action", self._on_action)
-        ctx.subscribe("override", self._on_override)
-        ctx.subscribe("halt", self._halt)
-        ctx.subscribe("shutdown", self._halt)
-        ctx.subscribe("reset", self._halt)
-        ctx.subscribe("state", self._on_state)
-        ctx.subscribe("spindle_stop", self._spindle_stop)
-        ctx.subscribe("resume", self._resume)
+        ctx.subscribe(Event.ACTION, self._on_action)
+        ctx.subscribe(Event.OVERRIDE, self._on_override)
+        ctx.subscribe(Event.HALT, self._halt)
+        ctx.subscribe(Event.SHUTDOWN, self._halt)
+        ctx.subscribe(Event.RESET, self._halt)
+        ctx.subscribe(Event.STATE, self._on_state)
+        ctx.subscribe(Event.SPINDLE_STOP, self._spindle_stop)
+        ctx.subscribe(Event.RESUME, self._resume)
         if config.spin_up_delay_s > 0:
             ctx.set_spin_up_delay(config.spin_up_delay_s)
 

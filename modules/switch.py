@@ -34,6 +34,7 @@ from server.errors import CommandError, Error
 from server.gcode.codes import CodeCall
 from server.gcode.modal import M_GROUPS
 from server.motion.moves import Action, Output
+from server.runtime.events import Event
 from server.runtime.module import Module, ModuleConfig, ModuleContext
 
 PIN_PATTERN = r"^[A-Za-z0-9_.\-]+$"
@@ -84,13 +85,13 @@ class Switch(Module):
             if config.off_mcode is not None:
                 ctx.register_code(config.off_mcode, self._off_code)
         else:
-            ctx.subscribe("toggle_coolant", self._toggle)
+            ctx.subscribe(Event.TOGGLE_COOLANT, self._toggle)
         ctx.register_code(42, self._m42, group="M42", uses="P", key=("P", self.pin))
-        ctx.subscribe("action", self._on_action)
+        ctx.subscribe(Event.ACTION, self._on_action)
         if config.off_on_halt:
-            ctx.subscribe("halt", self._off_now)
-            ctx.subscribe("reset", self._off_now)
-        ctx.subscribe("shutdown", self._off_now)
+            ctx.subscribe(Event.HALT, self._off_now)
+            ctx.subscribe(Event.RESET, self._off_now)
+        ctx.subscribe(Event.SHUTDOWN, self._off_now)
 
     # -- codes: the interpreter queues the action, in order with motion ----------------------
     def _on_code(self, call: CodeCall) -> list[Output]:

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 
 from server.errors import ALARM_MEANINGS
 from server.motion.moves import MoveKind, ToolMode
-from server.runtime.events import MachineState
+from server.runtime.events import Event, MachineState
 from server.runtime.outbox import BoundedQueue
 from server.runtime.status import state_text
 
@@ -129,8 +129,8 @@ class Publisher:
         self._unsubscribe = [
             events.subscribe(name, lambda *_: self.wake()) for name in _WAKE_EVENTS
         ]
-        self._unsubscribe.append(events.subscribe("push", self._on_push))
-        self._unsubscribe.append(events.subscribe("job", self._on_job))
+        self._unsubscribe.append(events.subscribe(Event.PUSH, self._on_push))
+        self._unsubscribe.append(events.subscribe(Event.JOB, self._on_job))
         loop = asyncio.get_running_loop()
         try:
             while True:

@@ -37,8 +37,32 @@ class MachineState(enum.Enum):
     SLEEP = "Sleep"
 
 
+class Event(enum.StrEnum):
+    """Every event on the bus, with the arguments its subscribers get."""
+
+    STATE = "state"  # (MachineState) the state changed
+    HALT = "halt"  # (reason: str) motion stopped at once, tools off: ALARM, M112, job abort
+    CLEAR_HALT = "clear_halt"  # () $X / M999 unlocked
+    HOLD = "hold"  # () a feed hold began
+    HOLD_STOPPED = "hold_stopped"  # () the hold's deceleration ended
+    RESUME = "resume"  # () cycle start after a hold
+    RESET = "reset"  # () soft reset (Ctrl-X)
+    SHUTDOWN = "shutdown"  # () the server is stopping: tools off
+    ACTION = "action"  # (Action) motion reached an ordered action
+    OVERRIDE = "override"  # (feed, rapid, spindle: percent)
+    SPINDLE_STOP = "spindle_stop"  # () Grbl's spindle stop override during a hold
+    TOGGLE_COOLANT = "toggle_coolant"  # ("flood" | "mist") Grbl's realtime coolant toggles
+    MOTORS_ENABLE = "motors_enable"  # () M17
+    MOTORS_DISABLE = "motors_disable"  # () M18/M84, $SLP
+    PROGRAM_END = "program_end"  # () M2/M30 reached
+    SECOND = "second"  # (now_s) once a second of the kernel's clock
+    PUSH = "push"  # (message) an unsolicited line for every connection
+    JOB = "job"  # (JobProgress | None) a job started, paused, resumed or ended
+
+
 class EventBus:
-    """Named synchronous events with any number of subscribers."""
+    """Named synchronous events with any number of subscribers; a name outside
+    :class:`Event` is refused (ValueError), so a misspelt subscription fails at start-up."""
 
     def __init__(self) -> None:
         self._subscribers: defaultdict[str, list[Callable[..., None]]] = defaultdict(list)
@@ -46,6 +70,7 @@ class EventBus:
 
     def subscribe(self, event: str, callback: Callable[..., None]) -> Callable[[], None]:
         """Subscribe; returns a function that unsubscribes."""
+        event = Event(event)
         self._subscribers[event].append(callback)
 
         def unsubscribe() -> None:
@@ -56,6 +81,7 @@ class EventBus:
 
     def emit(self, event: str, *args: Any) -> None:
         """Call every subscriber of ``event``; failures are logged and recorded, never raised."""
+        event = Event(event)
         for callback in tuple(self._subscribers.get(event, ())):
             try:
                 callback(*args)

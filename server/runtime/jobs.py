@@ -29,7 +29,7 @@ from server.errors import CommandError, Error
 from server.gcode.parser import check_length
 from server.offline.estimate import estimate, format_duration, read_file_lines
 from server.runtime.dispatcher import Command
-from server.runtime.events import MachineState
+from server.runtime.events import Event, MachineState
 
 if TYPE_CHECKING:
     from server.runtime.kernel import Kernel
@@ -203,7 +203,7 @@ class Jobs:
         if progress is not None and progress.state in ("running", "paused"):
             progress.state = "aborted"
         self.kernel.machine.stop_now()
-        self.kernel.events.emit("halt", "job aborted")
+        self.kernel.events.emit(Event.HALT, "job aborted")
         if self.kernel.state in (MachineState.RUN, MachineState.HOLD):
             self.kernel.set_state(MachineState.IDLE)
         if self._task is not None:
@@ -286,7 +286,7 @@ class Jobs:
         self._announce()
 
     def _announce(self) -> None:
-        self.kernel.events.emit("job", self.progress())
+        self.kernel.events.emit(Event.JOB, self.progress())
 
     # -- Smoothie commands ------------------------------------------------------------------
     def _ls(self, command: Command) -> list[str]:

@@ -24,7 +24,7 @@ from server.runtime.clock import Clock
 from server.runtime.commands import CoreCommands
 from server.runtime.control import MachineControl
 from server.runtime.dispatcher import Dispatcher, Handler, SystemSource
-from server.runtime.events import EventBus, MachineState
+from server.runtime.events import Event, EventBus, MachineState
 from server.runtime.jobs import Jobs
 from server.runtime.machine import Machine, SyncHandler
 from server.runtime.module import ApiHandler, ApiMethod, ApiParams, Module
@@ -290,7 +290,7 @@ class Kernel:
         if not self._stop.is_set():
             self.dispatcher.close()
             self.machine.stop_now()
-            self.events.emit("shutdown")
+            self.events.emit(Event.SHUTDOWN)
             self._stop.set()
 
     async def _supervise(self, section: str, module: Module) -> None:
@@ -306,7 +306,7 @@ class Kernel:
         next_s = self.clock.now_s() + 1.0
         while True:
             await self.clock.sleep_until(next_s)
-            self.events.emit("second", next_s)
+            self.events.emit(Event.SECOND, next_s)
             next_s += 1.0
 
 

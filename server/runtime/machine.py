@@ -30,7 +30,7 @@ from server.motion.stepgen import HoldState, StepGenerator
 from server.protocol.lines import Realtime
 from server.runtime.clock import Clock
 from server.runtime.dispatcher import Command
-from server.runtime.events import EventBus, MachineState
+from server.runtime.events import Event, EventBus, MachineState
 from server.runtime.settings import Settings
 from server.runtime.state import MachineStatus
 
@@ -292,11 +292,11 @@ class Machine:
             self.stepgen.hold()
             self.status.set_state(MachineState.HOLD)
         elif action.name == "program_end":
-            events.emit("program_end")
+            events.emit(Event.PROGRAM_END)
             self.status.push("[MSG:Pgm End]")
         elif action.name == "motors":
-            events.emit("motors_enable" if action.params.get("enabled") else "motors_disable")
-        events.emit("action", action)
+            events.emit(Event.MOTORS_ENABLE if action.params.get("enabled") else "motors_disable")
+        events.emit(Event.ACTION, action)
 
     def on_idle(self) -> None:
         self.idle_event.set()
@@ -306,12 +306,12 @@ class Machine:
     def on_hold_stopped(self) -> None:
         if self._cancelling_jog:
             self._finish_jog_cancel()
-        self.events.emit("hold_stopped")
+        self.events.emit(Event.HOLD_STOPPED)
 
     # -- realtime commands ------------------------------------------------------------------
     def spindle_stop(self) -> None:
         """Grbl's spindle stop override (0x9E): the spindle module toggles during a hold."""
-        self.events.emit("spindle_stop")
+        self.events.emit(Event.SPINDLE_STOP)
 
     def realtime(self, command: Realtime) -> None:
         """Act on a realtime byte at once (status and reset are the session's)."""
@@ -334,7 +334,7 @@ class Machine:
             self.tool.flood = not self.tool.flood
         else:
             self.tool.mist = not self.tool.mist
-        self.events.emit("toggle_coolant", which)
+        self.events.emit(Event.TOGGLE_COOLANT, which)
 
     def emergency_stop(self) -> None:
         """M112: halt at once, before the lines queued ahead of it run."""
@@ -345,7 +345,7 @@ class Machine:
         if self.status.state is MachineState.HOME:  # as in Grbl: homing ignores feed hold
             return
         if self.stepgen.idle and self.status.state is MachineState.IDLE:
-            self.events.emit("hold")  # nothing moves, but a focusing `fire` stops
+            self.events.emit(Event.HOLD)  # nothing moves, but a focusing `fire` stops
             return
         if self.status.state in (MachineState.RUN, MachineState.JOG) or not self.stepgen.idle:
             if self.status.state is MachineState.JOG:
@@ -353,13 +353,13 @@ class Machine:
                 return
             self.stepgen.hold()
             self.status.set_state(MachineState.HOLD)
-            self.events.emit("hold")
+            self.events.emit(Event.HOLD)
 
     def cycle_start(self) -> None:
         if self.status.state is MachineState.HOLD:
             self.stepgen.resume()
             self.status.set_state(MachineState.IDLE if self.stepgen.idle else MachineState.RUN)
-            self.events.emit("resume")
+            self.events.emit(Event.RESUME)
 
     def cancel_jog(self) -> None:
         """Jog cancel: decelerate to a stop, then drop the remaining jog moves."""
@@ -381,7 +381,7 @@ class Machine:
         self.stop_now()
         self.leave_check_mode()
         self.interpreter.reset()
-        self.events.emit("reset")
+        self.events.emit(Event.RESET)
         if moving:
             self.status.alarm(
                 Alarm.ABORT_CYCLE, "reset while in motion: position may be lost, re-home"

@@ -49,6 +49,7 @@ from server.protocol.lines import (
 from server.protocol.reports import StatusScheduler
 from server.runtime.backlog import Backlog
 from server.runtime.control import halts_at_once
+from server.runtime.events import Event as BusEvent
 from server.runtime.login_guard import LoginGuard, token_matches
 from server.runtime.outbox import BoundedQueue
 from server.runtime.ratelimit import TokenBucket
@@ -133,7 +134,7 @@ class Session:
         self._status_bucket = TokenBucket(
             core.protocol.status_reports_per_s, STATUS_BURST, time.monotonic())
         self._status_timer: asyncio.TimerHandle | None = None
-        self._unsubscribe = kernel.events.subscribe("push", self.push)
+        self._unsubscribe = kernel.events.subscribe(BusEvent.PUSH, self.push)
         self._task: asyncio.Task[None] | None = None
         self._closing = False
         self._closed = False

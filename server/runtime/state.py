@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 
-from server.runtime.events import EventBus, MachineState
+from server.runtime.events import Event, EventBus, MachineState
 
 log = logging.getLogger("motiond.state")
 
@@ -37,11 +37,11 @@ class MachineStatus:
     def set_state(self, state: MachineState) -> None:
         if state is not self.state:
             self.state = state
-            self.events.emit("state", state)
+            self.events.emit(Event.STATE, state)
 
     def push(self, message: str) -> None:
         """Send an unsolicited line (``ALARM:2``, ``[MSG:...]``) to every connection."""
-        self.events.emit("push", message)
+        self.events.emit(Event.PUSH, message)
 
     def alarm(self, code: int, message: str) -> None:
         """Stop motion and tools at once, lock G-code out, tell everyone why."""
@@ -49,7 +49,7 @@ class MachineStatus:
         self.alarm_code, self.alarm_message = code, message
         self.stop_motion()
         self.set_state(MachineState.ALARM)
-        self.events.emit("halt", message)
+        self.events.emit(Event.HALT, message)
         self.push(f"ALARM:{code}")
         self.push(f"[MSG:{message}]")
 
@@ -59,5 +59,5 @@ class MachineStatus:
             self.alarm_code, self.alarm_message = 0, ""
             self.before_unlock()
             self.set_state(MachineState.IDLE)
-            self.events.emit("clear_halt")
+            self.events.emit(Event.CLEAR_HALT)
             self.push("[MSG:Caution: Unlocked]")

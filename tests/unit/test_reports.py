@@ -275,3 +275,15 @@ def test_every_error_and_alarm_number_has_one_meaning_in_the_one_table() -> None
     assert set(ERROR_MEANINGS) == set(Error) and set(ALARM_MEANINGS) == set(Alarm)
     with pytest.raises(ValueError):
         CommandError(39, "a number outside the table is a bug")
+
+
+def test_a_misspelt_event_name_is_refused_when_subscribing() -> None:
+    from server.runtime.events import Event, EventBus
+
+    bus = EventBus()
+    seen: list[str] = []
+    bus.subscribe("halt", seen.append)
+    bus.emit(Event.HALT, "why")
+    assert seen == ["why"]
+    with pytest.raises(ValueError):
+        bus.subscribe("hlat", seen.append)
