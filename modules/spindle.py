@@ -1,6 +1,6 @@
 """``[spindle]``: a PWM spindle driven by M3/M4/M5 and S, in order with motion (Grbl 1.1).
 
-The interpreter turns every M3/M4/M5 and S change into an ordered ``Action("spindle")``; this
+The interpreter turns every M3/M4/M5 and S change into an ordered ``spindle`` action; this
 module applies it when the kernel's ``action`` event delivers it, that is when motion reaches
 it. S is in RPM, multiplied by the spindle override, and mapped as Grbl does: S0 is off, up to
 ``min_rpm`` gives ``min_pwm``, ``max_rpm`` and above give ``max_pwm``, linear in between.
@@ -32,7 +32,7 @@ from typing import Any
 
 from pydantic import Field, model_validator
 
-from server.motion.moves import Action, ToolMode
+from server.motion.moves import Action, ActionName, ToolMode
 from server.runtime.events import Event, MachineState
 from server.runtime.module import Module, ModuleConfig, ModuleContext
 
@@ -100,7 +100,7 @@ class Spindle(Module):
 
     # -- ordered actions -------------------------------------------------------------------
     def _on_action(self, action: Action) -> None:
-        if action.name == "spindle":
+        if action.name == ActionName.SPINDLE:
             self.mode = ToolMode(action.params["mode"])
             self.rpm = float(action.params["s"])
             self._output()

@@ -6,7 +6,7 @@ Every switch command executes IN ORDER WITH MOTION: the switch claims ``on_mcode
 changes when the kernel's ``action`` event delivers it, never when the line is received. The
 value is ``S / max_s`` (S defaults to ``max_s``: full on), or 0/1 with ``pwm = false``.
 
-M7, M8 and M9 belong to the interpreter, which turns them into ``Action("coolant")``: a switch
+M7, M8 and M9 belong to the interpreter, which turns them into a ``coolant`` action: a switch
 with ``on_mcode = 7`` (mist) or ``8`` (flood) follows that action instead (M9 turns both off),
 and Grbl's realtime coolant toggles (0xA0 flood, 0xA1 mist) switch it at once.
 ``M42 P<n>`` addresses the switch whose ``pin`` is ``n`` or ``P<n>``; a pin that no switch owns
@@ -33,7 +33,7 @@ from pydantic import Field, model_validator
 from server.errors import CommandError, Error
 from server.gcode.codes import CodeCall
 from server.gcode.modal import M_GROUPS
-from server.motion.moves import Action, Output
+from server.motion.moves import Action, ActionName, Output
 from server.runtime.events import Event
 from server.runtime.module import Module, ModuleConfig, ModuleContext
 
@@ -120,7 +120,7 @@ class Switch(Module):
         params = action.params
         if action.name == "switch" and params.get("section") == self.ctx.name:
             self._set(float(params["value"]))
-        elif action.name == "coolant" and self.coolant is not None:
+        elif action.name == ActionName.COOLANT and self.coolant is not None:
             self._set(1.0 if params.get(self.coolant) else 0.0)
 
     def _toggle(self, kind: str) -> None:

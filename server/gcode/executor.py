@@ -30,7 +30,17 @@ from server.gcode.modal import (
     Words,
 )
 from server.gcode.nonmodal import NonModal
-from server.motion.moves import Action, Move, MoveKind, Output, Position, Sync, SyncKind, ToolMode
+from server.motion.moves import (
+    Action,
+    ActionName,
+    Move,
+    MoveKind,
+    Output,
+    Position,
+    Sync,
+    SyncKind,
+    ToolMode,
+)
 
 if TYPE_CHECKING:
     from server.gcode.codes import CodeTable
@@ -122,23 +132,23 @@ class LineExecutor(NonModal):
         if "T" in values:
             m.tool = int(values["T"])
         if g("m_tool_change") is not None:
-            self.before.append(Action("tool_change", {"tool": m.tool}, stops_motion=True))
+            self.before.append(Action(ActionName.TOOL_CHANGE, {"tool": m.tool}, stops_motion=True))
         if (code := g("m_spindle")) is not None:
             m.tool_mode = ToolMode(code)
         if code is not None or m.s != self.start.s:
-            self.before.append(Action("spindle", {"mode": m.tool_mode, "s": m.s}))
+            self.before.append(Action(ActionName.SPINDLE, {"mode": m.tool_mode, "s": m.s}))
             self._spin_up()
         if (code := g("m_coolant")) is not None:
             m.mist = code == 7 or (m.mist and code == 8)
             m.flood = code == 8 or (m.flood and code == 7)
-            self.before.append(Action("coolant", {"mist": m.mist, "flood": m.flood}))
+            self.before.append(Action(ActionName.COOLANT, {"mist": m.mist, "flood": m.flood}))
 
     def _spin_up(self) -> None:
         """A spindle starting from off makes motion wait ``spin_up_delay_s`` (grblHAL's $340)."""
         delay_s, m = self.geo.settings.spin_up_delay_s, self.modal
         was_on = self.start.tool_mode is not ToolMode.OFF and self.start.s > 0
         if delay_s > 0 and not was_on and m.tool_mode is not ToolMode.OFF and m.s > 0:
-            self.before.append(Action("dwell", {"seconds": delay_s, "reason": "spin-up"},
+            self.before.append(Action(ActionName.DWELL, {"seconds": delay_s, "reason": "spin-up"},
                                       lead_s=delay_s, stops_motion=True))
 
     def _module_codes(self) -> None:
@@ -157,9 +167,9 @@ class LineExecutor(NonModal):
         g = self.words.g
         if (code := g("m_motors")) is not None:
             if code == 17:
-                self.before.append(Action("motors", {"enabled": True}))
+                self.before.append(Action(ActionName.MOTORS, {"enabled": True}))
             else:
-                self.after.append(Action("motors", {"enabled": False}, stops_motion=True))
+                self.after.append(Action(ActionName.MOTORS, {"enabled": False}, stops_motion=True))
         code = g("m_sync")
         if code == 112:
             self.first.append(Sync(SyncKind.HALT))
@@ -177,7 +187,8 @@ class LineExecutor(NonModal):
         if seconds > MAX_DWELL_S:
             raise CommandError(Error.BAD_NUMBER_FORMAT, f"G4 P{seconds:g}: over {MAX_DWELL_S:g} s")
         self.values_used.add("P")
-        self.before.append(Action("dwell", {"seconds": seconds}, lead_s=seconds, stops_motion=True))
+        dwell = Action(ActionName.DWELL, {"seconds": seconds}, lead_s=seconds, stops_motion=True)
+        self.before.append(dwell)
 
     def _tool_length(self) -> None:
         code = self.words.g("tool_length")
@@ -350,13 +361,13 @@ class LineExecutor(NonModal):
         if code is None:
             return
         if code in (0, 1):
-            self.after.append(Action("pause", {"optional": code == 1}, stops_motion=True))
+            self.after.append(Action(ActionName.PAUSE, {"optional": code == 1}, stops_motion=True))
             return
         if m.tool_mode is not ToolMode.OFF:
-            self.after.append(Action("spindle", {"mode": ToolMode.OFF, "s": m.s}))
+            self.after.append(Action(ActionName.SPINDLE, {"mode": ToolMode.OFF, "s": m.s}))
         if m.mist or m.flood:
-            self.after.append(Action("coolant", {"mist": False, "flood": False}))
-        self.after.append(Action("program_end", {"code": code}, stops_motion=True))
+            self.after.append(Action(ActionName.COOLANT, {"mist": False, "flood": False}))
+        self.after.append(Action(ActionName.PROGRAM_END, {"code": code}, stops_motion=True))
         m.motion, m.plane, m.incremental, m.inverse_time, m.wcs = G1, 17, False, False, 0
         m.tool_mode, m.mist, m.flood = ToolMode.OFF, False, False
         self.wco = self.offsets.wco(0, self.geo.z_axis)

@@ -49,7 +49,7 @@ from server.gcode.modal import (
     read_words,
 )
 from server.gcode.parser import Line
-from server.motion.moves import Action, Move, MoveKind, Output, Position
+from server.motion.moves import Action, ActionName, Move, MoveKind, Output, Position
 
 __all__ = ["Interpreter", "InterpreterSettings"]
 
@@ -195,7 +195,7 @@ class Interpreter:
             return None
         actions: list[Action] = []
         if s is not None and s != modal.s:
-            actions.append(Action("spindle", {"mode": modal.tool_mode, "s": s}))
+            actions.append(Action(ActionName.SPINDLE, {"mode": modal.tool_mode, "s": s}))
             modal.s = s
         modal.motion, modal.feed = motion, feed_mm_min
         if end is None or end == self.position:

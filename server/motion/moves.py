@@ -32,6 +32,18 @@ class ToolMode(enum.IntEnum):
     OFF = 5  # M5
 
 
+class ActionName(enum.StrEnum):
+    """The ordered actions the interpreter produces; modules add names of their own."""
+
+    SPINDLE = "spindle"  # mode: ToolMode, s
+    COOLANT = "coolant"  # mist, flood: bool
+    DWELL = "dwell"  # seconds (lead_s); reason
+    PAUSE = "pause"  # optional: bool (M0/M1)
+    PROGRAM_END = "program_end"  # code (M2/M30)
+    TOOL_CHANGE = "tool_change"  # tool
+    MOTORS = "motors"  # enabled: bool
+
+
 @dataclass(slots=True)
 class Action:
     """A non-motion command executed in order with motion (DESIGN.md rule 3).
@@ -41,9 +53,8 @@ class Action:
     ``stops_motion``: dwell, pause, program end) makes motion come to a stop first; dwell then
     waits ``lead_s`` seconds.
 
-    ``name`` is one of: ``spindle`` (params ``mode``: ToolMode, ``s``), ``coolant`` (``mist``,
-    ``flood``: bool), ``dwell``, ``pause`` (M0/M1, params ``optional``), ``program_end``,
-    ``tool_change`` (``tool``), ``motors`` (``enabled``: bool), or a module's own name.
+    ``name`` is an :class:`ActionName` (a StrEnum, so it equals its string) or a module's own
+    name (``switch``, ``laser``).
     """
 
     name: str

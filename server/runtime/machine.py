@@ -24,7 +24,17 @@ from server.errors import Alarm, CommandError, Error, SoftLimitError
 from server.gcode.codes import CodeTable
 from server.gcode.interpreter import Interpreter, InterpreterSettings
 from server.motion.feed import offer
-from server.motion.moves import Action, Move, MoveKind, Output, Position, Sync, SyncKind, ToolMode
+from server.motion.moves import (
+    Action,
+    ActionName,
+    Move,
+    MoveKind,
+    Output,
+    Position,
+    Sync,
+    SyncKind,
+    ToolMode,
+)
 from server.motion.planner import Planner, PlannerSettings
 from server.motion.stepgen import HoldState, StepGenerator
 from server.protocol.lines import Realtime
@@ -284,17 +294,17 @@ class Machine:
     # -- motion listener (called by the step generator) --------------------------------------
     def on_action(self, action: Action) -> None:
         events = self.status.events
-        if action.name == "spindle":
+        if action.name == ActionName.SPINDLE:
             self.tool.mode, self.tool.s = action.params["mode"], action.params["s"]
-        elif action.name == "coolant":
+        elif action.name == ActionName.COOLANT:
             self.tool.flood, self.tool.mist = action.params["flood"], action.params["mist"]
-        elif action.name == "pause":
+        elif action.name == ActionName.PAUSE:
             self.stepgen.hold()
             self.status.set_state(MachineState.HOLD)
-        elif action.name == "program_end":
+        elif action.name == ActionName.PROGRAM_END:
             events.emit(Event.PROGRAM_END)
             self.status.push("[MSG:Pgm End]")
-        elif action.name == "motors":
+        elif action.name == ActionName.MOTORS:
             events.emit(Event.MOTORS_ENABLE if action.params.get("enabled") else "motors_disable")
         events.emit(Event.ACTION, action)
 
