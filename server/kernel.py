@@ -22,6 +22,7 @@ from server.control import MachineControl
 from server.dispatcher import Dispatcher, Handler, SystemSource
 from server.errors import ConfigError
 from server.events import EventBus, MachineState
+from server.gcpacer import GcPacer
 from server.jobs import Jobs
 from server.machine import Machine, SyncHandler
 from server.module import Module
@@ -159,10 +160,12 @@ class LoopMonitor:
     (``min(lateness, thread CPU time over the sleep)``): an upper bound on what the process's
     own work (callbacks, garbage collection) delayed the loop, without the time the OS gave the
     CPU to other processes, which is what most stalls are on a loaded machine.
+    It also wakes the kernel's :class:`~server.gcpacer.GcPacer`, if any.
     """
 
-    def __init__(self, period_s: float = 0.001) -> None:
+    def __init__(self, period_s: float = 0.001, gc_pacer: GcPacer | None = None) -> None:
         self.period_s = period_s
+        self.gc_pacer = gc_pacer  # woken with the monitor: see server.gcpacer
         self.worst_stall_s = 0.0
         self.worst_cpu_stall_s = 0.0
 
@@ -170,15 +173,23 @@ class LoopMonitor:
         self.worst_stall_s = self.worst_cpu_stall_s = 0.0
 
     async def run(self) -> None:
-        while True:
-            before, cpu_before_s = time.monotonic(), time.thread_time()
-            await asyncio.sleep(self.period_s)
-            late_s = time.monotonic() - before - self.period_s
-            if late_s > self.worst_stall_s:
-                self.worst_stall_s = late_s
-            cpu_late_s = min(late_s, time.thread_time() - cpu_before_s)
-            if cpu_late_s > self.worst_cpu_stall_s:
-                self.worst_cpu_stall_s = cpu_late_s
+        before_s, cpu_before_s = time.monotonic(), time.thread_time()
+        try:
+            while True:
+                await asyncio.sleep(self.period_s)
+                woke_s, cpu_s = time.monotonic(), time.thread_time()
+                late_s = woke_s - before_s - self.period_s
+                if late_s > self.worst_stall_s:
+                    self.worst_stall_s = late_s
+                cpu_late_s = min(late_s, cpu_s - cpu_before_s)
+                if cpu_late_s > self.worst_cpu_stall_s:
+                    self.worst_cpu_stall_s = cpu_late_s
+                before_s, cpu_before_s = woke_s, cpu_s  # the pacer's work counts in the next
+                if self.gc_pacer is not None:
+                    self.gc_pacer.step(woke_s)
+        finally:
+            if self.gc_pacer is not None:
+                self.gc_pacer.close()
 
 
 class Kernel:
@@ -205,7 +216,7 @@ class Kernel:
         commands.register(self.dispatcher)
         self._load_modules(config)
         commands.register_fallbacks(self.dispatcher)
-        self.loop_monitor = LoopMonitor()
+        self.loop_monitor = LoopMonitor(gc_pacer=GcPacer(lambda: not self.machine.stepgen.idle))
         self._stop = asyncio.Event()
         self.started = asyncio.Event()
         self.stopped = False
