@@ -173,6 +173,11 @@ class BlockColumns:
     def __len__(self) -> int:
         return self.tail - self.head
 
+    @property
+    def synced(self) -> int:
+        """Columns before this index are in the array; the rest are staged."""
+        return self._synced
+
     def push(self, values: tuple[float, ...]) -> None:
         """Stage a column given by its ``input_rows`` values."""
         self._staged += values
@@ -255,7 +260,7 @@ class BlockColumns:
             capacity *= 2
         if capacity != data.shape[1]:
             data = np.zeros((data.shape[0], capacity))
-        data[:, front : front + synced - head] = self.data[:, head:synced].copy()
+        data[:, front : front + synced - head] = self.data[:, head:synced]  # numpy minds overlap
         self.data = data
         self._read = []
         shift = front - head

@@ -5,10 +5,14 @@ Pure computation (no asyncio, no I/O). Units are machine mm, mm/s, mm/s² and se
 The interpreter side calls :meth:`Planner.append` / :meth:`Planner.append_action` and watches
 :meth:`Planner.is_full` for back-pressure; the step generator calls :meth:`Planner.pop` for the
 next block to run, and :meth:`Planner.plan` first whenever :meth:`Planner.lookahead_short`.
-Appending is O(1) plain Python: the block's length, feed and direction are staged. ``plan()``
-copies staged blocks into the columns of one growable numpy array, derives their limits
-(projected axis rates and accelerations, nominal speeds, junction limits) in a batch, and
-re-plans the whole waiting window with a handful of numpy operations (:mod:`server.trapezoid`).
+Appending is O(1) plain Python: the block's length, feed and direction are staged; every
+:data:`SYNC_BLOCKS` appends (and at ``plan()``) the staged blocks are copied into the columns of
+one growable numpy array and their limits derived in a batch (projected axis rates and
+accelerations, nominal speeds, junction limits and node caps). ``plan()`` plans at most
+``plan_blocks`` blocks from the head with a handful of numpy operations
+(:func:`server.trapezoid.plan_prefix`): the rest of the window enters the backward pass through
+one minimum, taken with three array operations, so the plan of those blocks is the plan of the
+whole window and no call does Python-level work in proportion to the window.
 :class:`~server.block.Block` objects are only built at ``pop()``.
 
 Why ``pop()`` may use a plan made before more blocks were appended: appending only adds
@@ -28,16 +32,26 @@ import numpy as np
 
 from server.block import Block, BlockColumns, FloatArray, SettledBlocks
 from server.moves import Action, Move, MoveKind, Position
-from server.trapezoid import PROFILE_ROWS, axis_limits, junction_speeds_sq, plan_window
+from server.trapezoid import (
+    PROFILE_ROWS,
+    axis_limits,
+    junction_speeds_sq,
+    node_caps,
+    plan_prefix,
+)
 
 if TYPE_CHECKING:
     from server.config import CoreConfig
 
-__all__ = ["MIN_LENGTH_MM", "Block", "Planner", "PlannerSettings", "SettledBlocks"]
+__all__ = ["MIN_LENGTH_MM", "SYNC_BLOCKS", "Block", "Planner", "PlannerSettings", "SettledBlocks"]
 
 MIN_LENGTH_MM = 1e-6
 """Moves shorter than this are dropped; the next block starts where the last one ended, so
 the skipped displacement is not lost."""
+SYNC_BLOCKS = 128
+PREALLOCATED_BLOCKS = 16384
+"""Staged blocks are copied into the columns (and their limits derived) at this many, so no
+single append or plan does that for a whole window."""
 
 # Rows of the per-block column array. Given at append time: ...
 LENGTH, FEED, KIND, LEAD = range(4)
@@ -45,8 +59,10 @@ LENGTH, FEED, KIND, LEAD = range(4)
 ACCEL, RATE, NOMINAL, JUNCTION = range(4, 8)
 # ... written by plan(): ...
 ENTRY, CRUISE, EXIT, RAMP1, FLAT, RAMP2, DURATION = range(8, 8 + PROFILE_ROWS)
-# ... and the direction, one row per axis, from UNIT on.
-UNIT = DURATION + 1
+# ... the cap on v² at the block's entry node (derived), its time estimate (given at append),
+# and the direction, one row per axis, from UNIT on.
+CAP, ESTIMATE = DURATION + 1, DURATION + 2
+UNIT = ESTIMATE + 1
 
 # KIND codes: which override scales a block's nominal speed.
 _NO_OVERRIDE, _FEED_OVERRIDE, _RAPID_OVERRIDE = 0.0, 1.0, 2.0
@@ -63,7 +79,8 @@ class PlannerSettings:
 
     ``max_rate_mm_s`` and ``accel_mm_s2`` are per axis; ``junction_deviation_mm`` is δ of the
     junction model; the window is full at ``max_blocks`` blocks or ``max_planned_s`` seconds of
-    planned motion; nominal speeds never drop below ``min_feed_mm_s``.
+    planned motion; nominal speeds never drop below ``min_feed_mm_s``; one ``plan()`` plans at
+    most ``plan_blocks`` blocks (the real-time budget of a call; the plan is the same).
     """
 
     max_rate_mm_s: tuple[float, ...]
@@ -72,6 +89,7 @@ class PlannerSettings:
     max_blocks: int = 4096
     max_planned_s: float = 0.5
     min_feed_mm_s: float = 0.01
+    plan_blocks: int = 512
 
     def __post_init__(self) -> None:
         if len(self.max_rate_mm_s) != len(self.accel_mm_s2) or not self.max_rate_mm_s:
@@ -80,6 +98,8 @@ class PlannerSettings:
             raise ValueError("axis rates and accelerations must be positive")
         if self.junction_deviation_mm <= 0 or self.min_feed_mm_s <= 0:
             raise ValueError("junction_deviation_mm and min_feed_mm_s must be positive")
+        if self.plan_blocks < 1:
+            raise ValueError("plan_blocks must be at least 1")
 
     @classmethod
     def from_config(cls, core: CoreConfig) -> PlannerSettings:
@@ -111,7 +131,8 @@ class Planner:
         self._zero: Position = (0.0,) * axes
         self._units = slice(UNIT, UNIT + axes)
         self._columns = BlockColumns(
-            UNIT + axes, [LENGTH, FEED, KIND, LEAD, *range(UNIT, UNIT + axes)], _POP_ROWS
+            UNIT + axes, [LENGTH, FEED, KIND, LEAD, ESTIMATE, *range(UNIT, UNIT + axes)],
+            _POP_ROWS, _capacity(settings.max_blocks),
         )
         self._planned = 0  # blocks from the head covered by the last plan
         self._settled = 0  # ... of which appending more blocks cannot change the speeds
@@ -168,18 +189,21 @@ class Planner:
         kind = move.kind
         if kind is _RAPID:
             code, feed = _RAPID_OVERRIDE, math.inf
-            axis_s = max(map(mul, map(abs, delta), self._inv_rate))
-            self._time_estimate_s += axis_s / self._rapid_override
+            estimate_s = max(map(mul, map(abs, delta), self._inv_rate)) / self._rapid_override
         else:
             feed = move.feed_mm_s if move.feed_mm_s > 0.0 else 0.0
             code, scaled = _FEED_OVERRIDE, feed * self._feed_override
             if kind is _JOG or kind is _HOMING:
                 code, scaled = _NO_OVERRIDE, feed
-            self._time_estimate_s += length / max(scaled, self._settings.min_feed_mm_s)
-        self._columns.push((length, feed, code, 0.0, *unit))
+            estimate_s = length / max(scaled, self._settings.min_feed_mm_s)
+        self._time_estimate_s += estimate_s
+        columns = self._columns
+        columns.push((length, feed, code, 0.0, estimate_s, *unit))
         actions = self._take_pending(move.actions) if self._pending else move.actions
         self._geometry.append((move, actions, start, target, unit))
         self._dirty = True
+        if columns.tail - columns.synced >= SYNC_BLOCKS:
+            self._sync()
 
     def append_action(self, action: Action) -> None:
         """Queue a non-motion action in order with motion.
@@ -192,11 +216,14 @@ class Planner:
             self._pending.append(action)
             return
         lead_s = max(action.lead_s, 0.0)
-        self._columns.push((0.0, math.inf, _NO_OVERRIDE, lead_s, *self._zero))
+        columns = self._columns
+        columns.push((0.0, math.inf, _NO_OVERRIDE, lead_s, lead_s, *self._zero))
         here = self._chain_mm
         self._geometry.append((None, self._take_pending([action]), here, here, self._zero))
         self._time_estimate_s += lead_s
         self._dirty = True
+        if columns.tail - columns.synced >= SYNC_BLOCKS:
+            self._sync()
 
     # ------------------------------------------------------------------ window state
 
@@ -233,20 +260,47 @@ class Planner:
     # ------------------------------------------------------------------ planning and popping
 
     def plan(self) -> None:
-        """Re-plan the whole waiting window if anything changed since the last plan."""
+        """Re-plan the head of the window (at most ``plan_blocks`` blocks, with the whole
+        window's look-ahead) if anything changed since the last plan."""
         if not self._dirty:
             return
         self._dirty = self._head_dirty = False
         self._sync()
-        window = self._columns.window()
-        self._planned = window.shape[1]
-        if not self._planned:
+        columns = self._columns
+        head, tail = columns.head, columns.tail
+        self._planned = width = min(tail - head, self._settings.plan_blocks)
+        if not width:
             return
-        rows = window[LENGTH], window[ACCEL], window[NOMINAL], window[JUNCTION], window[LEAD]
-        self._settled = plan_window(*rows, self._start_mm_s, window[ENTRY : DURATION + 1])
-        self._columns.invalidate()
+        data = columns.data
+        stop = head + width
+        whole = stop == tail
+        window = data[:, head:stop]
+        cum, caps = np.empty(width + 1), np.empty(width)
+        cum[0] = 0.0
+        np.add.accumulate(2.0 * window[ACCEL] * window[LENGTH], out=cum[1:])
+        caps[: width - 1] = data[CAP, head + 1 : stop]
+        caps[width - 1] = 0.0 if whole else data[CAP, stop]
+        end_term = end_cum = float(cum[width])
+        if not whole:
+            end_term, end_cum = self._rest_of_window(stop, end_cum)
+        rows = window[LENGTH], window[ACCEL], window[NOMINAL], window[LEAD], caps, cum
+        self._settled = plan_prefix(*rows, end_term, end_cum, whole, self._start_mm_s,
+                                    window[ENTRY : DURATION + 1])
+        columns.invalidate()
         self._time_planned_s = float(np.add.reduce(window[DURATION]))
-        self._time_estimate_s = 0.0
+        self._time_estimate_s = 0.0 if whole else float(np.add.reduce(data[ESTIMATE, stop:tail]))
+
+    def _rest_of_window(self, stop: int, stop_cum: float) -> tuple[float, float]:
+        """What the blocks from column ``stop`` to the tail add to a plan of the blocks before:
+        the minimum of ``L[j] + C[j]`` over their nodes up to the window's end (whose cap is 0),
+        and ``C`` at the end, ``C`` counted on from ``stop_cum`` at node ``stop``."""
+        rest = self._columns.data[:, stop : self._columns.tail]
+        running = np.empty(rest.shape[1] + 1)
+        running[0] = 0.0
+        np.add.accumulate(2.0 * rest[ACCEL] * rest[LENGTH], out=running[1:])
+        end_s = float(running[-1])
+        lowest = min(float(np.minimum.reduce(rest[CAP] + running[:-1])), end_s)
+        return stop_cum + lowest, stop_cum + end_s
 
     def pop(self) -> Block | None:
         """Commit and remove the head block; its entry and exit speeds are final.
@@ -345,6 +399,7 @@ class Planner:
         self._feed_override, self._rapid_override = feed, rapid
         window = self._columns.window()
         window[NOMINAL] = self._nominals(window[FEED], window[RATE], window[KIND])
+        self._derive_caps(self._columns.head, self._columns.tail)
         self._columns.invalidate()
         self._dirty = self._head_dirty = True
 
@@ -371,21 +426,24 @@ class Planner:
         A zero-length block keeps its ``lead_s``; motion stays at rest through it.
         """
         if block.move is None or block.length_mm < MIN_LENGTH_MM:
-            inputs = (0.0, math.inf, _NO_OVERRIDE, block.lead_s, *self._zero)
+            inputs = (0.0, math.inf, _NO_OVERRIDE, block.lead_s, 0.0, *self._zero)
         else:
             kind, feed = _kind_and_feed(block.move)
-            inputs = (block.length_mm, feed, kind, 0.0, *block.unit)
+            inputs = (block.length_mm, feed, kind, 0.0, 0.0, *block.unit)
         self._sync()  # derive the limits of staged blocks first: push_front syncs raw inputs
         columns = self._columns
         head = columns.push_front(inputs)
         self._derive(head, head + 1)
         self._derive_junctions(head + 1, min(head + 2, columns.tail))
+        self._derive_caps(head, min(head + 2, columns.tail))
+        data = columns.data
+        data[ESTIMATE, head] = block.lead_s + block.length_mm / data[NOMINAL, head]
         columns.invalidate()
         geometry = (block.move, block.actions, block.start_mm, block.end_mm, block.unit)
         self._geometry.appendleft(geometry)
         self._start_mm_s = 0.0
         self._dirty = self._head_dirty = True
-        self._time_estimate_s += block.lead_s + block.length_mm / columns.data[NOMINAL, head]
+        self._time_estimate_s += data[ESTIMATE, head]
 
     # ------------------------------------------------------------------ internals
 
@@ -395,6 +453,7 @@ class Planner:
         first = columns.sync()
         if first < columns.tail:
             self._derive(first, columns.tail)
+            self._derive_caps(first, columns.tail)
 
     def _derive(self, first: int, stop: int) -> None:
         """Axis limits, nominal speeds and junction limits of columns ``first .. stop-1``."""
@@ -419,6 +478,17 @@ class Planner:
         limit = junction_speeds_sq(data[units, before], data[units, after], accel, deviation_mm)
         limit[data[LENGTH, before] * data[LENGTH, after] == 0.0] = 0.0  # next to a still block
         data[JUNCTION, after] = limit
+
+    def _derive_caps(self, first: int, stop: int) -> None:
+        """The cap ``L`` on v² at the entry node of columns ``first .. stop-1``: their junction
+        limits and both neighbours' nominal speeds; infinite at the head (its speed is the
+        start speed)."""
+        columns = self._columns
+        data, begin = columns.data, max(first, columns.head + 1)
+        data[CAP, first:begin] = np.inf
+        if begin < stop:
+            caps = node_caps(data[NOMINAL, begin - 1 : stop], data[JUNCTION, begin:stop])
+            data[CAP, begin:stop] = caps[:-1]
 
     def _nominals(
         self, feed: FloatArray, rate: FloatArray, kind: FloatArray, out: FloatArray | None = None
@@ -452,6 +522,15 @@ class Planner:
         self._planned = self._settled = 0
         self._dirty = self._head_dirty = False
         self._time_planned_s = self._time_estimate_s = 0.0
+
+
+def _capacity(max_blocks: int) -> int:
+    """Columns to allocate at first: room for a full window twice over (so the first stream
+    does not grow the array while it runs), within reason; a bigger window still grows it."""
+    capacity = 256
+    while capacity < 2 * max_blocks and capacity < PREALLOCATED_BLOCKS:
+        capacity *= 2
+    return capacity
 
 
 def _kind_and_feed(move: Move) -> tuple[float, float]:

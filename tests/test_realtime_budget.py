@@ -4,6 +4,11 @@ Counted in deterministic units (objects, blocks), never in time:
 
 * garbage collection while a job streams: the pacer collects the youngest generation on time,
   so no collection ever goes over the planner's whole window of objects;
+* the planning path while a 20,000 segments/s raster streams over TCP and the step generator
+  falls 50 ms behind: blocks synced per call, planned per ``plan()`` and gone through per
+  step-generator call are bounded, whatever the window holds;
+* and the bounded calls change nothing: a plan made ``plan_blocks`` at a time equals the plan
+  of the whole window, and a late tick caught up in slices emits the same steps.
 """
 
 from __future__ import annotations
@@ -11,15 +16,26 @@ from __future__ import annotations
 import asyncio
 import gc
 import json
+import math
 import sys
+from dataclasses import replace
 from pathlib import Path
 
-from server.clock import RealClock
+import pytest
+from hypothesis import given, settings
+
+from server.backends.sim import SimBackend
+from server.clock import RealClock, VirtualClock
 from server.gcpacer import GcPacer
+from server.moves import Move, MoveKind
+from server.planner import SYNC_BLOCKS, Planner, PlannerSettings
+from server.stepgen import StepGenerator
 from server.transports.tcp import TcpTransport
 from tests.conftest import REPO, make_config
 from tests.helpers import running
-from tests.senders import fast_axes
+from tests.senders import CharCountingClient, fast_axes
+from tests.test_planner import append_all, machine_and_path, run
+from tests.test_stepgen import POLYLINE, Quiet
 
 STREAM_CLIENT = REPO / "benchmarks" / "stream_client.py"
 
@@ -116,3 +132,126 @@ async def test_streaming_a_raster_never_lets_the_young_generation_fill_with_the_
     assert young_sizes, "the pacer collected the young generation while motion ran"
     assert max(young_sizes) <= 4000, f"a collection went over {max(young_sizes)} young objects"
     assert full_collections == 0
+
+
+# -- the planning path -----------------------------------------------------------------------------
+class WorkCounter:
+    """Records the work of every call on the planning path, in blocks."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        self.synced: list[int] = []  # blocks copied into the columns per sync
+        self.planned: list[int] = []  # blocks planned per plan()
+        self.per_emit: list[int] = []  # blocks gone through per step-generator call
+        self._done = 0
+        sync, plan, emit = Planner._sync, Planner.plan, StepGenerator._emit
+
+        def counted_sync(planner: Planner) -> None:
+            columns = planner._columns
+            self.synced.append(columns.tail - columns._synced)
+            sync(planner)
+
+        def counted_plan(planner: Planner) -> None:
+            dirty = planner._dirty
+            plan(planner)
+            if dirty:
+                self.planned.append(planner._planned)
+
+        def counted_emit(stepgen: StepGenerator, now_s: float) -> None:
+            done = stepgen.state.blocks_done
+            self.per_emit.append(done - self._done)  # one emit ends every call
+            self._done = done
+            emit(stepgen, now_s)
+
+        monkeypatch.setattr(Planner, "_sync", counted_sync)
+        monkeypatch.setattr(Planner, "plan", counted_plan)
+        monkeypatch.setattr(StepGenerator, "_emit", counted_emit)
+
+
+async def test_at_20k_segments_per_s_no_call_of_the_planning_path_works_through_the_window(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The window holds 4,096 blocks; a tick 50 ms late is 1,000 blocks behind. Each call
+    still syncs at most SYNC_BLOCKS, plans at most plan_blocks and steps through at most
+    max_blocks_per_call blocks (one more when a budget ends on a block boundary).
+
+    On virtual time the machine moves whenever every task waits, so the client keeps 64 KB in
+    flight (not 128 bytes) for the lines to outrun the motion and fill the window."""
+    work = WorkCounter(monkeypatch)
+    segments = 12_000
+    config = make_config(axes=fast_axes(travel_mm=5000, rate_mm_s=10000, accel_mm_s2=50000))
+    clock = VirtualClock()
+    async with running(config, clock, [TcpTransport]) as app:
+        machine = app.kernel.machine
+        stepgen, planner = machine.stepgen, machine.planner
+        port = app.transports[0].port  # type: ignore[attr-defined]
+        client = await CharCountingClient.connect("127.0.0.1", port, window=65536)
+        streaming = asyncio.create_task(client.stream(raster_lines(segments)))
+        while not (stepgen.state.moving and len(planner) >= 4000):  # noqa: ASYNC110
+            await asyncio.sleep(0)  # a full window in motion (at the start: fast to fill)
+        clock.advance_to(clock.now_s() + 0.05)  # the step generator wakes 50 ms late
+        result = await asyncio.wait_for(streaming, 60)
+        await asyncio.wait_for(machine.wait_idle(), 60)
+        await client.close()
+    assert result.replies == ["ok"] * (segments + 2)
+    assert stepgen.state.position_mm == (segments * 0.1, 0.0, 0.0)
+    assert machine.backend.steps == [segments * 8, 0, 0]
+    assert max(work.synced) <= SYNC_BLOCKS
+    assert max(work.planned) <= planner.settings.plan_blocks
+    assert max(work.per_emit) <= stepgen.max_blocks_per_call + 1
+    assert sum(work.per_emit) >= segments  # every block went through a counted call
+
+
+@settings(max_examples=100, deadline=None)
+@given(machine_and_path())
+def test_planning_a_few_blocks_at_a_time_gives_the_plan_of_the_whole_window(
+    case: tuple[PlannerSettings, list[Move], list[int]],
+) -> None:
+    machine, moves, dwells = case
+    blocks = []
+    for plan_blocks in (1, 3, 10**9):
+        planner = Planner(replace(machine, plan_blocks=plan_blocks), (0.0, 0.0))
+        append_all(planner, moves, dwells)
+        blocks.append(run(planner))
+    whole = blocks[-1]
+    for few in blocks[:-1]:
+        assert len(few) == len(whole)
+        for one, other in zip(few, whole, strict=True):
+            speeds = (one.entry_mm_s, one.cruise_mm_s, one.exit_mm_s, one.duration_s)
+            expected = (other.entry_mm_s, other.cruise_mm_s, other.exit_mm_s, other.duration_s)
+            assert all(math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-9)
+                       for a, b in zip(speeds, expected, strict=True))
+
+
+def sliced_run(max_blocks_per_call: int) -> tuple[SimBackend, StepGenerator, list[bool]]:
+    core = make_config().core
+    planner = Planner(PlannerSettings.from_config(core), (0.0, 0.0, 0.0))
+    steps_per_mm = tuple(axis.steps_per_mm for axis in core.axes.values())
+    backend = SimBackend(core.axis_names, steps_per_mm)
+    stepgen = StepGenerator(planner, backend, steps_per_mm, Quiet(),
+                            max_blocks_per_call=max_blocks_per_call)
+    for k in range(1, 401):  # 0.05 mm segments, then the polyline
+        planner.append(Move((0.05 * k, 0.0, 0.0), 80.0, MoveKind.FEED))
+    for point in POLYLINE:
+        planner.append(Move(point, 80.0, MoveKind.FEED))
+    stepgen.request_start()
+    stepgen.advance(0.0)
+    moving, now_s = [], 0.0
+    while not stepgen.idle:
+        now_s += 0.05  # every tick 50 ms late
+        while not stepgen.advance(now_s):
+            moving.append(stepgen.state.moving)
+    return backend, stepgen, moving
+
+
+def test_a_late_tick_caught_up_in_slices_emits_the_same_steps_and_keeps_moving() -> None:
+    sliced_backend, sliced, moving = sliced_run(max_blocks_per_call=3)
+    whole_backend, whole, _ = sliced_run(max_blocks_per_call=10**9)
+    assert moving and all(moving)  # between slices motion is still under way
+    assert sliced_backend.steps == whole_backend.steps == [2000, 2000, 800]
+    assert sliced.state.position_mm == whole.state.position_mm == POLYLINE[-1]
+    assert math.isclose(sliced.state.motion_time_s, whole.state.motion_time_s, rel_tol=1e-12)
+    reference = {round(row[0], 9): row[1:4] for row in whole_backend.history}
+    for row in sliced_backend.history:
+        expected = reference.get(round(row[0], 9))
+        if expected is not None:  # the times both emitted at: the same position
+            assert all(abs(a - b) < 1e-9 for a, b in zip(row[1:4], expected, strict=True))
