@@ -8,7 +8,9 @@ Counted in deterministic units (objects, blocks), never in time:
   falls 50 ms behind: blocks synced per call, planned per ``plan()`` and gone through per
   step-generator call are bounded, whatever the window holds;
 * and the bounded calls change nothing: a plan made ``plan_blocks`` at a time equals the plan
-  of the whole window, and a late tick caught up in slices emits the same steps.
+  of the whole window, and a late tick caught up in slices emits the same steps;
+* ``motiond estimate`` runs with no garbage collection (each full one re-scanned the whole
+  job's lines) and leaves the collector as it found it.
 """
 
 from __future__ import annotations
@@ -20,11 +22,14 @@ import math
 import sys
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import pytest
 from hypothesis import given, settings
 
+from server import offline
 from server.backends.sim import SimBackend
+from server.cli import main
 from server.clock import RealClock, VirtualClock
 from server.gcpacer import GcPacer
 from server.moves import Move, MoveKind
@@ -255,3 +260,31 @@ def test_a_late_tick_caught_up_in_slices_emits_the_same_steps_and_keeps_moving()
         expected = reference.get(round(row[0], 9))
         if expected is not None:  # the times both emitted at: the same position
             assert all(abs(a - b) < 1e-9 for a, b in zip(row[1:4], expected, strict=True))
+
+
+# -- motiond estimate ------------------------------------------------------------------------------
+def test_motiond_estimate_runs_without_garbage_collection_and_restores_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    job = tmp_path / "raster.nc"
+    job.write_text("\n".join(raster_lines(30_000)) + "\n")
+    collections: list[int] = []
+    estimate = offline.estimate
+
+    def count(phase: str, info: dict[str, int]) -> None:
+        if phase == "start":
+            collections.append(info["generation"])
+
+    def counted_estimate(*args: Any, **kwargs: Any) -> offline.JobStats:
+        gc.callbacks.append(count)
+        try:
+            return estimate(*args, **kwargs)
+        finally:
+            gc.callbacks.remove(count)
+
+    monkeypatch.setattr(offline, "estimate", counted_estimate)
+    frozen, enabled = gc.get_freeze_count(), gc.isenabled()
+    assert main(["estimate", str(job), "--json", "--no-limits"]) == 0
+    assert collections == []  # 200-250 collections (a few full ones) otherwise
+    assert gc.isenabled() == enabled and gc.get_freeze_count() == frozen
+    assert json.loads(capsys.readouterr().out)["moves"] == 30_000
