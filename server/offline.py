@@ -15,7 +15,7 @@ import json
 import math
 import sys
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from itertools import chain
 from pathlib import Path
 from typing import Any, TextIO
@@ -45,6 +45,7 @@ from server.stepgen import StepGenerator
 
 CUTTING = (MoveKind.FEED, MoveKind.ARC, MoveKind.PROBE)
 BBOX_BATCH = 4096
+OFFLINE_SYNC_BLOCKS = 1024  # no event loop to keep: fewer, larger syncs (the same plan)
 SKIP_CHUNK_CHARS = 1 << 16
 
 
@@ -152,7 +153,8 @@ class _Feeder:
             interpreter = Interpreter(interpreter_settings(core))
             interpreter.set_position(origin)
         self.interpreter = interpreter
-        self.planner = Planner(PlannerSettings.from_config(core), origin)
+        settings = replace(PlannerSettings.from_config(core), sync_blocks=OFFLINE_SYNC_BLOCKS)
+        self.planner = Planner(settings, origin)
         self.stats = stats
         self._lines = enumerate(lines, 1)
         self._line_limit = core.protocol.line_limit

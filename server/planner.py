@@ -6,7 +6,7 @@ The interpreter side calls :meth:`Planner.append` / :meth:`Planner.append_action
 :meth:`Planner.is_full` for back-pressure; the step generator calls :meth:`Planner.pop` for the
 next block to run, and :meth:`Planner.plan` first whenever :meth:`Planner.lookahead_short`.
 Appending is O(1) plain Python: the block's length, feed and direction are staged; every
-:data:`SYNC_BLOCKS` appends (and at ``plan()``) the staged blocks are copied into the columns of
+``sync_blocks`` appends (and at ``plan()``) the staged blocks are copied into the columns of
 one growable numpy array and their limits derived in a batch (projected axis rates and
 accelerations, nominal speeds, junction limits and node caps). ``plan()`` plans at most
 ``plan_blocks`` blocks from the head with a handful of numpy operations
@@ -44,7 +44,7 @@ if TYPE_CHECKING:
 
     from server.config import CoreConfig
 
-__all__ = ["MIN_LENGTH_MM", "SYNC_BLOCKS", "Block", "Planner", "PlannerSettings", "SettledBlocks"]
+__all__ = ["MIN_LENGTH_MM", "Block", "Planner", "PlannerSettings", "SettledBlocks"]
 
 MIN_LENGTH_MM = 1e-6
 """Moves shorter than this are dropped; the next block starts where the last one ended, so
@@ -81,8 +81,11 @@ class PlannerSettings:
 
     ``max_rate_mm_s`` and ``accel_mm_s2`` are per axis; ``junction_deviation_mm`` is δ of the
     junction model; the window is full at ``max_blocks`` blocks or ``max_planned_s`` seconds of
-    planned motion; nominal speeds never drop below ``min_feed_mm_s``; one ``plan()`` plans at
-    most ``plan_blocks`` blocks (the real-time budget of a call; the plan is the same).
+    planned motion; nominal speeds never drop below ``min_feed_mm_s``. The real-time budget of
+    a call (the plan is the same whatever they are): one ``plan()`` plans at most
+    ``plan_blocks`` blocks, and staged blocks are synced (copied into the columns, their
+    limits derived) ``sync_blocks`` at a time, so no append or plan does that for a window;
+    offline runs, with no loop to keep, sync more at once (fewer, larger numpy calls).
     """
 
     max_rate_mm_s: tuple[float, ...]
@@ -92,6 +95,7 @@ class PlannerSettings:
     max_planned_s: float = 0.5
     min_feed_mm_s: float = 0.01
     plan_blocks: int = 512
+    sync_blocks: int = 128
 
     def __post_init__(self) -> None:
         if len(self.max_rate_mm_s) != len(self.accel_mm_s2) or not self.max_rate_mm_s:
@@ -100,8 +104,8 @@ class PlannerSettings:
             raise ValueError("axis rates and accelerations must be positive")
         if self.junction_deviation_mm <= 0 or self.min_feed_mm_s <= 0:
             raise ValueError("junction_deviation_mm and min_feed_mm_s must be positive")
-        if self.plan_blocks < 1:
-            raise ValueError("plan_blocks must be at least 1")
+        if self.plan_blocks < 1 or self.sync_blocks < 1:
+            raise ValueError("plan_blocks and sync_blocks must be at least 1")
 
     @classmethod
     def from_config(cls, core: CoreConfig) -> PlannerSettings:
@@ -119,6 +123,7 @@ class PlannerSettings:
 
 
 _Geometry = tuple[Move | None, list[Action], Position, Position, Position]
+_TAKEN: _Geometry = (None, [], (), (), ())  # in the geometry list, where a popped block was
 _POP_ROWS = DURATION + 1
 
 
@@ -134,7 +139,7 @@ class Planner:
         self._units = slice(UNIT, UNIT + axes)
         self._columns = BlockColumns(
             UNIT + axes, [LENGTH, FEED, KIND, LEAD, ESTIMATE, *range(UNIT, UNIT + axes)],
-            _POP_ROWS, _capacity(settings.max_blocks), SYNC_BLOCKS,
+            _POP_ROWS, _capacity(settings.max_blocks), settings.sync_blocks,
         )
         self._planned = 0  # blocks from the head covered by the last plan
         self._settled = 0  # ... of which appending more blocks cannot change the speeds
@@ -164,6 +169,7 @@ class Planner:
         if len(settings.max_rate_mm_s) != len(self._zero):
             raise ValueError("new planner settings must keep the number of axes")
         self._settings = settings
+        self._columns.sync_every = settings.sync_blocks
         self._min_feed_mm_s = settings.min_feed_mm_s
         self._max_blocks, self._max_planned_s = settings.max_blocks, settings.max_planned_s
         self._inv_rate = tuple(1.0 / rate for rate in settings.max_rate_mm_s)
@@ -178,7 +184,7 @@ class Planner:
         :meth:`is_full` afterwards.
 
         A move shorter than :data:`MIN_LENGTH_MM` is dropped; its actions ride on the next block.
-        O(1): the block is staged; its limits are derived in batches (:data:`SYNC_BLOCKS`).
+        O(1): the block is staged; its limits are derived in batches of ``sync_blocks``.
         """
         start, target = self._chain_mm, move.target_mm
         if type(target) is not tuple:
@@ -338,7 +344,9 @@ class Planner:
             self.plan()
         (length, _, _, lead, accel, _, nominal, _, entry, cruise, exit_, ramp1, flat, ramp2,
          duration) = columns.pop_front()  # fmt: skip
-        move, actions, start, end, unit = self._geometry[self._geometry_head]
+        geometry, head = self._geometry, self._geometry_head
+        move, actions, start, end, unit = geometry[head]
+        geometry[head] = _TAKEN  # released now, not with a window's worth at the compaction
         self._drop_geometry(1)
         self._planned -= 1
         self._settled -= 1
@@ -529,15 +537,17 @@ class Planner:
 
     def _take_geometry(self, count: int) -> list[_Geometry]:
         """Remove the geometry of ``count`` blocks from the head and return it."""
-        head = self._geometry_head
-        taken = self._geometry[head : head + count]
+        geometry, head = self._geometry, self._geometry_head
+        taken = geometry[head : head + count]
+        geometry[head : head + count] = [_TAKEN] * count
         self._drop_geometry(count)
         return taken
 
     def _drop_geometry(self, count: int) -> None:
-        """Forget the geometry of ``count`` blocks from the head: a slice of a list is cheaper
-        than popping a deque one by one; the list drops its head once it is as long as the
-        rest (amortised O(1) a block, at most a window's pointers moved at once)."""
+        """Forget the geometry of ``count`` blocks from the head (already replaced by
+        ``_TAKEN``): a slice of a list is cheaper than popping a deque one by one; the list
+        drops its head once it is as long as the rest (amortised O(1) a block, at most a
+        window's pointers moved at once)."""
         head = self._geometry_head + count
         if head >= GEOMETRY_COMPACT and 2 * head >= len(self._geometry):
             del self._geometry[:head]

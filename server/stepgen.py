@@ -404,8 +404,8 @@ class StepGenerator:
             next_s += self.tick_s
             await clock.sleep_until(next_s)
             now_s = clock.now_s()
-            if now_s - next_s > 0.25:  # the loop was stalled for long: do not replay old ticks
-                next_s = now_s
+            if now_s - next_s > self.tick_s:  # late: this tick goes to now, so the deadlines
+                next_s = now_s  # it passed are not replayed one after another, unslept
             while not self._guarded(self.advance, now_s, on_fault):
                 after_tick()
                 await asyncio.sleep(0)  # the rest of a late tick after other callbacks

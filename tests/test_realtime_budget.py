@@ -33,7 +33,7 @@ from server.cli import main
 from server.clock import RealClock, VirtualClock
 from server.gcpacer import GcPacer
 from server.moves import Move, MoveKind
-from server.planner import SYNC_BLOCKS, Planner, PlannerSettings
+from server.planner import Planner, PlannerSettings
 from server.stepgen import StepGenerator
 from server.transports.tcp import TcpTransport
 from tests.conftest import REPO, make_config
@@ -176,7 +176,7 @@ async def test_at_20k_segments_per_s_no_call_of_the_planning_path_works_through_
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """The window holds 4,096 blocks; a tick 50 ms late is 1,000 blocks behind. Each call
-    still syncs at most SYNC_BLOCKS, plans at most plan_blocks and steps through at most
+    still syncs at most sync_blocks, plans at most plan_blocks and steps through at most
     max_blocks_per_call blocks (one more when a budget ends on a block boundary).
 
     On virtual time the machine moves whenever every task waits, so the client keeps 64 KB in
@@ -200,7 +200,7 @@ async def test_at_20k_segments_per_s_no_call_of_the_planning_path_works_through_
     assert result.replies == ["ok"] * (segments + 2)
     assert stepgen.state.position_mm == (segments * 0.1, 0.0, 0.0)
     assert machine.backend.steps == [segments * 8, 0, 0]
-    assert max(work.synced) <= SYNC_BLOCKS
+    assert max(work.synced) <= planner.settings.sync_blocks
     assert max(work.planned) <= planner.settings.plan_blocks
     assert max(work.per_emit) <= stepgen.max_blocks_per_call + 1
     assert sum(work.per_emit) >= segments  # every block went through a counted call
