@@ -35,6 +35,7 @@ from benchmarks.common import CORPUS, BenchResult, standalone  # noqa: E402
 from benchmarks.realtime_raster import fastest_sustained, steady_rate  # noqa: E402
 from benchmarks.stream_client import HOST, WINDOW  # noqa: E402
 from benchmarks.streaming_support import (  # noqa: E402
+    GcWatch,
     bench_config,
     loop_names,
     run_client,
@@ -111,10 +112,13 @@ async def motiond_runs(path: Path, loop: str, repeat: int) -> CheckRuns:
     runs = []
     for _ in range(repeat):
         monitor.reset()
-        run = await run_client(app.transports[0].port, path,  # type: ignore[attr-defined]
-                               banner=True, check=True)
+        with GcWatch() as gc_watch:
+            gc_watch.switch(True)
+            run = await run_client(app.transports[0].port, path,  # type: ignore[attr-defined]
+                                   banner=True, check=True)
         runs.append({**run, "stall_s": monitor.worst_stall_s,
-                     "cpu_stall_s": monitor.worst_cpu_stall_s})
+                     "cpu_stall_s": monitor.worst_cpu_stall_s,
+                     "gc": gc_watch.collections, "gc_longest_s": gc_watch.longest_s})
     app.request_stop()
     await task
     return CheckRuns(loop, runs, idle_stall_s)
@@ -153,7 +157,10 @@ def summarise_check(result: BenchResult, check: CheckRuns, bare_rate: float, rep
           f"{'OK' if ratio >= 0.3 else 'BELOW TARGET'}; worst stall while streaming "
           + " / ".join(f"{run['stall_s'] * 1000:.2f}" for run in check.runs)
           + " ms, own work " + " / ".join(f"{run['cpu_stall_s'] * 1000:.2f}" for run in check.runs)
-          + f" ms (goal < 2 ms); idle for 1 s before: {check.idle_stall_s * 1000:.2f} ms")
+          + f" ms (goal < 2 ms); idle for 1 s before: {check.idle_stall_s * 1000:.2f} ms; "
+          + "collections (gen 0/1/2, longest ms) " + " / ".join(
+              "{}/{}/{}, {:.2f}".format(*run["gc"], run["gc_longest_s"] * 1000)
+              for run in check.runs))
     result.add("throughput", f"summary {check.loop}", ratio_to_bare_per_line=(ratio, "x"),
                stall_streaming=(stall_s * 1000, "ms"),
                cpu_stall_streaming=(cpu_stall_s * 1000, "ms"),
