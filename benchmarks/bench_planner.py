@@ -3,7 +3,8 @@
 * re-plan: :meth:`Planner.plan` over 4,096 queued blocks (a raster of short zig-zag segments),
   against the same backward/forward passes and trapezoids written as plain-Python loops
   (:func:`server.motion.trapezoid.plan_window_reference`) on the same window, side by side in this
-  process (interleaved rounds, best CPU time of each);
+  process (interleaved rounds, best CPU time of each); and one ``plan()`` call of the live
+  planner on that window, which plans ``plan_blocks`` (512) of them with the look-ahead of all;
 * pipeline: append + pop per block through a window kept full, re-planning whenever the last
   plan's look-ahead runs short (as the step generator does), in blocks/s.
 
@@ -53,8 +54,11 @@ def raster(count: int) -> list[Move]:
     return moves
 
 
-def full_window(blocks: int) -> Planner:
-    planner = Planner(MACHINE, (0.0, 0.0, 0.0))
+def full_window(blocks: int, plan_blocks: int | None = None) -> Planner:
+    """A window of ``blocks`` raster blocks, planned ``plan_blocks`` at a time (default: as
+    the server does)."""
+    machine = MACHINE if plan_blocks is None else replace(MACHINE, plan_blocks=plan_blocks)
+    planner = Planner(machine, (0.0, 0.0, 0.0))
     for move in raster(blocks):
         planner.append(move)
     planner.plan()
@@ -111,17 +115,20 @@ def pipeline(machine: PlannerSettings, moves: list[Move]) -> int:
 
 
 def measure_replan(result: BenchResult, blocks: int, rounds: int) -> None:
-    """Re-plans of a full window against the plain-Python loops, side by side."""
-    planner = full_window(blocks)
+    """Re-plans of a full window against the plain-Python loops, side by side, and one call
+    of the live planner (a bounded prefix of the same window)."""
+    planner, live = full_window(blocks, plan_blocks=blocks), full_window(blocks)
     inputs = reference_inputs(planner)
     ours_times, reference_times = 50, 2
-    ours_s, reference_s = side_by_side(
+    ours_s, reference_s, live_s = side_by_side(
         rounds,
         lambda: replan(planner, ours_times),
         lambda: reference_replan(inputs, reference_times),
+        lambda: replan(live, ours_times),
     )
     ours_us = ours_s / ours_times * 1e6
     reference_us = reference_s / reference_times * 1e6
+    live_us = live_s / ours_times * 1e6
     difference_s = check_same_plan(planner, inputs)
     print(f"re-plan of {blocks:,} queued blocks (best of {rounds} interleaved rounds, CPU time)")
     ours_rate = blocks / ours_us * 1e6
@@ -132,6 +139,11 @@ def measure_replan(result: BenchResult, blocks: int, rounds: int) -> None:
     )
     print(f"  ratio                {reference_us / ours_us:10,.1f}x faster")
     print(f"  same plan: largest duration difference {difference_s:.2e} s")
+    prefix = live.settings.plan_blocks
+    print(f"  one plan() of the server's planner ({prefix} of the {blocks:,} blocks, the rest "
+          f"through one minimum): {live_us:,.0f} µs")
+    result.add("replan", "one live plan() call", blocks=(blocks, "blocks"),
+               planned=(prefix, "blocks"), replan=(live_us, "µs/call"))
     result.add("replan", "numpy prefix scans", blocks=(blocks, "blocks"),
                replan=(ours_us, "µs/re-plan"), rate=(ours_rate, "blocks/s"))
     result.add("replan", "plain-Python loops", blocks=(blocks, "blocks"),

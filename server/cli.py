@@ -8,7 +8,7 @@ import logging
 import os
 import signal
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from server import __version__
@@ -16,6 +16,8 @@ from server.config import Config, load_config
 from server.errors import ConfigError
 
 log = logging.getLogger("motiond")
+LOOPS = ("auto", "uvloop", "asyncio")
+LoopFactory = Callable[[], asyncio.AbstractEventLoop]
 
 EPILOG = """\
 examples:
@@ -83,6 +85,13 @@ def _serve_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--http-port", type=int, help="HTTP/WebSocket port (default 8080)")
     parser.add_argument("--serial", metavar="DEVICE", help="also serve a serial device")
     parser.add_argument("--pty", metavar="PATH", help="also serve a pseudo-terminal linked at PATH")
+    parser.add_argument(
+        "--loop",
+        choices=LOOPS,
+        default="auto",
+        help="event loop: uvloop's when installed (pip install 'motiond[fast]'), else asyncio's "
+        "(default: auto)",
+    )
     parser.add_argument(
         "--data-dir",
         type=Path,
@@ -160,9 +169,25 @@ def apply_overrides(args: argparse.Namespace, config: Config) -> Config:
     return config
 
 
+def loop_factory(name: str = "auto") -> LoopFactory | None:
+    """The event loop ``serve`` runs on: uvloop's when it is installed (``auto``) or asked for,
+    else asyncio's default (None). Asking for uvloop without it installed is a ConfigError."""
+    if name == "asyncio":
+        return None
+    try:
+        import uvloop
+    except ImportError:
+        if name == "uvloop":
+            raise ConfigError(["uvloop is not installed: pip install 'motiond[fast]'"]) from None
+        return None
+    factory: LoopFactory = uvloop.new_event_loop
+    return factory
+
+
 def serve(args: argparse.Namespace, config: Config) -> int:
     config = apply_overrides(args, config)
-    return asyncio.run(_serve(config))
+    with asyncio.Runner(loop_factory=loop_factory(getattr(args, "loop", "auto"))) as runner:
+        return runner.run(_serve(config))
 
 
 async def _serve(config: Config) -> int:
@@ -173,7 +198,8 @@ async def _serve(config: Config) -> int:
     loop = asyncio.get_running_loop()
     for signum in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(signum, app.request_stop)
-    log.info("motiond %s: %s", __version__, config.core.machine.name)
+    log.info("motiond %s: %s (event loop: %s)", __version__, config.core.machine.name,
+             type(loop).__module__.split(".")[0])
     await app.run()
     log.info("stopped")
     return 0

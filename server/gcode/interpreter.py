@@ -53,6 +53,8 @@ from server.motion.moves import Action, ActionName, Move, MoveKind, Output, Posi
 
 __all__ = ["Interpreter", "InterpreterSettings"]
 
+_FEED, _RAPID = MoveKind.FEED, MoveKind.RAPID
+
 JOG_G_CODES = {200: "units", 210: "units", 900: "distance", 910: "distance", 530: "machine"}
 MOTION_NAMES = {
     0: "G0",
@@ -163,47 +165,50 @@ class Interpreter:
     def _fast_line(self, line: Line) -> list[Output] | None:
         """G0/G1 + axis + F + S lines under G94 without surprises; None sends the line to the
         general path (which also produces every error)."""
-        modal, geo = self._modal, self._geo
+        modal = self._modal
         if modal.inverse_time:
             return None
+        geo = self._geo
         index, scale = geo.axis_index, geo.inch_scale if modal.inches else None
-        incremental, wco = modal.incremental, self._wco
         motion, explicit, feed, s = modal.motion, False, None, None
         target: list[float] | None = None
         for letter, value in zip(line.letters, line.values):  # noqa: B905 - parallel lists
             i = index.get(letter)
             if i is not None:  # the parser refuses repeated axis words
                 if target is None:
-                    target = list(self.position)
+                    target, incremental, wco = list(self.position), modal.incremental, self._wco
                 mm = value * scale[i] if scale else value
                 target[i] = target[i] + mm if incremental else mm + wco[i]
+            elif letter == "S":
+                if value < 0.0:
+                    return None
+                s = value + 0.0
             elif letter == "G" and not explicit and (value == 0.0 or value == 1.0):
                 motion, explicit = (G0 if value == 0.0 else G1), True
             elif letter == "F" and value >= 0.0:
                 feed = value * MM_PER_INCH + 0.0 if modal.inches else value + 0.0
-            elif letter == "S" and value >= 0.0:
-                s = value + 0.0
             else:
                 return None
-        if motion != G0 and motion != G1:
+        if motion != G1 and motion != G0:
             return None
         feed_mm_min = modal.feed if feed is None else feed
         if motion == G1 and (target or explicit) and feed_mm_min <= 0.0:
             return None
         end = None if target is None else tuple(target)
-        if end is not None and geo.outside(end) is not None:
+        if end is not None and geo.settings.soft_limits and geo.outside(end) is not None:
             return None
+        mode = modal.tool_mode
         actions: list[Action] = []
         if s is not None and s != modal.s:
-            actions.append(Action(ActionName.SPINDLE, {"mode": modal.tool_mode, "s": s}))
+            actions = [Action(ActionName.SPINDLE, {"mode": mode, "s": s})]
             modal.s = s
         modal.motion, modal.feed = motion, feed_mm_min
         if end is None or end == self.position:
             return list(actions)
         self.position = end
-        speed = math.inf if motion == G0 else feed_mm_min / 60.0
-        kind = MoveKind.RAPID if motion == G0 else MoveKind.FEED
-        return [Move(end, speed, kind, modal.tool_mode, modal.s, line.line_number, actions)]
+        if motion == G1:
+            return [Move(end, feed_mm_min / 60.0, _FEED, mode, modal.s, line.line_number, actions)]
+        return [Move(end, math.inf, _RAPID, mode, modal.s, line.line_number, actions)]
 
     # -- jogging -----------------------------------------------------------------------------
     def jog(self, line: Line) -> list[Move]:

@@ -150,11 +150,17 @@ class BlockColumns:
     """
 
     def __init__(
-        self, rows: int, input_rows: list[int], read_rows: int, capacity: int = 256
+        self,
+        rows: int,
+        input_rows: list[int],
+        read_rows: int,
+        capacity: int = 256,
+        sync_every: int = 128,
     ) -> None:
         self.data: FloatArray = np.zeros((rows, capacity))
         self.input_rows = input_rows
         self.read_rows = read_rows
+        self.sync_every = sync_every
         self.head = 0
         self.tail = 0  # including staged columns
         self._synced = 0
@@ -173,10 +179,12 @@ class BlockColumns:
     def __len__(self) -> int:
         return self.tail - self.head
 
-    def push(self, values: tuple[float, ...]) -> None:
-        """Stage a column given by its ``input_rows`` values."""
+    def push(self, values: tuple[float, ...]) -> bool:
+        """Stage a column given by its ``input_rows`` values; True once ``sync_every`` columns
+        are staged (time the owner synced)."""
         self._staged += values
         self.tail += 1
+        return self.tail - self._synced >= self.sync_every
 
     def push_front(self, values: tuple[float, ...]) -> int:
         """Put a column given by its ``input_rows`` values before the head; return its index."""
@@ -255,7 +263,7 @@ class BlockColumns:
             capacity *= 2
         if capacity != data.shape[1]:
             data = np.zeros((data.shape[0], capacity))
-        data[:, front : front + synced - head] = self.data[:, head:synced].copy()
+        data[:, front : front + synced - head] = self.data[:, head:synced]  # numpy minds overlap
         self.data = data
         self._read = []
         shift = front - head

@@ -5,11 +5,14 @@ Pure computation (no asyncio, no I/O). Units are machine mm, mm/s, mm/s² and se
 The interpreter side calls :meth:`Planner.append` / :meth:`Planner.append_action` and watches
 :meth:`Planner.is_full` for back-pressure; the step generator calls :meth:`Planner.pop` for the
 next block to run, and :meth:`Planner.plan` first whenever :meth:`Planner.lookahead_short`.
-Appending is O(1) plain Python: the block's length, feed and direction are staged. ``plan()``
-copies staged blocks into the columns of one growable numpy array, derives their limits
-(projected axis rates and accelerations, nominal speeds, junction limits) in a batch, and
-re-plans the whole waiting window with a handful of numpy operations
-(:mod:`server.motion.trapezoid`).
+Appending is O(1) plain Python: the block's length, feed and direction are staged; every
+``sync_blocks`` appends (and at ``plan()``) the staged blocks are copied into the columns of
+one growable numpy array and their limits derived in a batch (projected axis rates and
+accelerations, nominal speeds, junction limits and node caps). ``plan()`` plans at most
+``plan_blocks`` blocks from the head with a handful of numpy operations
+(:func:`server.motion.trapezoid.plan_prefix`): the rest of the window enters the backward pass
+through one minimum, taken with three array operations, so the plan of those blocks is the plan
+of the whole window and no call does Python-level work in proportion to the window.
 :class:`~server.motion.block.Block` objects are only built at ``pop()``.
 
 Why ``pop()`` may use a plan made before more blocks were appended: appending only adds
@@ -20,21 +23,35 @@ window) stays feasible; its exit speed becomes the fixed start speed of the next
 from __future__ import annotations
 
 import math
-from collections import deque
 from dataclasses import dataclass
 from operator import mul, sub
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from server.motion.block import Block, BlockColumns, FloatArray, SettledBlocks
 from server.motion.moves import Action, Move, MoveKind, Position
-from server.motion.trapezoid import PROFILE_ROWS, axis_limits, junction_speeds_sq, plan_window
+from server.motion.trapezoid import (
+    PROFILE_ROWS,
+    axis_limits,
+    junction_speeds_sq,
+    node_caps,
+    plan_prefix,
+)
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
 
 __all__ = ["MIN_LENGTH_MM", "Block", "Planner", "PlannerSettings", "SettledBlocks"]
 
 MIN_LENGTH_MM = 1e-6
 """Moves shorter than this are dropped; the next block starts where the last one ended, so
 the skipped displacement is not lost."""
+SYNC_BLOCKS = 512
+PREALLOCATED_BLOCKS = 16384
+GEOMETRY_COMPACT = 1024  # popped blocks' geometry entries dropped at once
+"""Staged blocks are copied into the columns (and their limits derived) at this many, so no
+single append or plan does that for a whole window."""
 
 # Rows of the per-block column array. Given at append time: ...
 LENGTH, FEED, KIND, LEAD = range(4)
@@ -42,8 +59,10 @@ LENGTH, FEED, KIND, LEAD = range(4)
 ACCEL, RATE, NOMINAL, JUNCTION = range(4, 8)
 # ... written by plan(): ...
 ENTRY, CRUISE, EXIT, RAMP1, FLAT, RAMP2, DURATION = range(8, 8 + PROFILE_ROWS)
-# ... and the direction, one row per axis, from UNIT on.
-UNIT = DURATION + 1
+# ... the cap on v² at the block's entry node (derived), its time estimate (given at append),
+# and the direction, one row per axis, from UNIT on.
+CAP, ESTIMATE = DURATION + 1, DURATION + 2
+UNIT = ESTIMATE + 1
 
 # KIND codes: which override scales a block's nominal speed.
 _NO_OVERRIDE, _FEED_OVERRIDE, _RAPID_OVERRIDE = 0.0, 1.0, 2.0
@@ -60,7 +79,11 @@ class PlannerSettings:
 
     ``max_rate_mm_s`` and ``accel_mm_s2`` are per axis; ``junction_deviation_mm`` is δ of the
     junction model; the window is full at ``max_blocks`` blocks or ``max_planned_s`` seconds of
-    planned motion; nominal speeds never drop below ``min_feed_mm_s``.
+    planned motion; nominal speeds never drop below ``min_feed_mm_s``. The real-time budget of
+    a call (the plan is the same whatever they are): one ``plan()`` plans at most
+    ``plan_blocks`` blocks, and staged blocks are synced (copied into the columns, their
+    limits derived) ``sync_blocks`` at a time, so no append or plan does that for a window;
+    offline runs, with no loop to keep, sync more at once (fewer, larger numpy calls).
     """
 
     max_rate_mm_s: tuple[float, ...]
@@ -69,6 +92,8 @@ class PlannerSettings:
     max_blocks: int = 4096
     max_planned_s: float = 0.5
     min_feed_mm_s: float = 0.01
+    plan_blocks: int = 512
+    sync_blocks: int = 128
 
     def __post_init__(self) -> None:
         if len(self.max_rate_mm_s) != len(self.accel_mm_s2) or not self.max_rate_mm_s:
@@ -77,9 +102,12 @@ class PlannerSettings:
             raise ValueError("axis rates and accelerations must be positive")
         if self.junction_deviation_mm <= 0 or self.min_feed_mm_s <= 0:
             raise ValueError("junction_deviation_mm and min_feed_mm_s must be positive")
+        if self.plan_blocks < 1 or self.sync_blocks < 1:
+            raise ValueError("plan_blocks and sync_blocks must be at least 1")
 
 
 _Geometry = tuple[Move | None, list[Action], Position, Position, Position]
+_TAKEN: _Geometry = (None, [], (), (), ())  # in the geometry list, where a popped block was
 _POP_ROWS = DURATION + 1
 
 
@@ -95,11 +123,13 @@ class Planner:
         self._zero: Position = (0.0,) * axes
         self._units = slice(UNIT, UNIT + axes)
         self._columns = BlockColumns(
-            UNIT + axes, [LENGTH, FEED, KIND, LEAD, *range(UNIT, UNIT + axes)], _POP_ROWS
+            UNIT + axes, [LENGTH, FEED, KIND, LEAD, ESTIMATE, *range(UNIT, UNIT + axes)],
+            _POP_ROWS, _capacity(settings.max_blocks), settings.sync_blocks,
         )
         self._planned = 0  # blocks from the head covered by the last plan
         self._settled = 0  # ... of which appending more blocks cannot change the speeds
-        self._geometry: deque[_Geometry] = deque()
+        self._geometry: list[_Geometry] = []  # of the blocks from _geometry_head on
+        self._geometry_head = 0
         self._pending: list[Action] = []
         self._start_mm_s = 0.0
         self._feed_override = self._rapid_override = 1.0
@@ -124,6 +154,9 @@ class Planner:
         if len(settings.max_rate_mm_s) != len(self._zero):
             raise ValueError("new planner settings must keep the number of axes")
         self._settings = settings
+        self._columns.sync_every = settings.sync_blocks
+        self._min_feed_mm_s = settings.min_feed_mm_s
+        self._max_blocks, self._max_planned_s = settings.max_blocks, settings.max_planned_s
         self._inv_rate = tuple(1.0 / rate for rate in settings.max_rate_mm_s)
         # accelerations then rates, as the ACCEL and RATE rows
         limits = np.array([settings.accel_mm_s2, settings.max_rate_mm_s])
@@ -131,40 +164,59 @@ class Planner:
 
     # ------------------------------------------------------------------ appending
 
-    def append(self, move: Move) -> None:
-        """Queue a straight move from the end of the last one to ``move.target_mm``.
+    def append(self, move: Move) -> bool:
+        """Queue a straight move from the end of the last one to ``move.target_mm``; return
+        :meth:`is_full` afterwards.
 
         A move shorter than :data:`MIN_LENGTH_MM` is dropped; its actions ride on the next block.
-        O(1): the block is staged; its limits are derived in a batch at the next :meth:`plan`.
+        O(1): the block is staged; its limits are derived in batches of ``sync_blocks``.
         """
         self.moves_appended += 1
-        start, target = self._chain_mm, tuple(move.target_mm)
+        start, target = self._chain_mm, move.target_mm
+        if type(target) is not tuple:
+            target = tuple(target)
         if len(target) != len(start):
             raise ValueError(f"expected {len(start)} coordinates, got {len(target)}")
-        delta = list(map(sub, target, start))
-        length = math.hypot(*delta)
+        if len(start) == 3:  # the common machine, unrolled (the same operations, 3x faster)
+            x0, y0, z0 = start
+            x1, y1, z1 = target
+            delta: Sequence[float] = (x1 - x0, y1 - y0, z1 - z0)
+            length = math.hypot(*delta)
+            inverse = 1.0 / length if length >= MIN_LENGTH_MM else 0.0
+            dx, dy, dz = delta
+            unit: tuple[float, ...] = (dx * inverse, dy * inverse, dz * inverse)
+        else:
+            delta = list(map(sub, target, start))
+            length = math.hypot(*delta)
+            inverse = 1.0 / length if length >= MIN_LENGTH_MM else 0.0
+            unit = tuple([x * inverse for x in delta])
         self.position_mm = target
         if length < MIN_LENGTH_MM:
             self._pending.extend(move.actions)
-            return
+            return self.is_full()
         self._chain_mm = target
-        inverse = 1.0 / length
-        unit = tuple([x * inverse for x in delta])
         kind = move.kind
         if kind is _RAPID:
             code, feed = _RAPID_OVERRIDE, math.inf
-            axis_s = max(map(mul, map(abs, delta), self._inv_rate))
-            self._time_estimate_s += axis_s / self._rapid_override
+            estimate_s = max(map(mul, map(abs, delta), self._inv_rate)) / self._rapid_override
         else:
             feed = move.feed_mm_s if move.feed_mm_s > 0.0 else 0.0
             code, scaled = _FEED_OVERRIDE, feed * self._feed_override
             if kind is _JOG or kind is _HOMING:
                 code, scaled = _NO_OVERRIDE, feed
-            self._time_estimate_s += length / max(scaled, self._settings.min_feed_mm_s)
-        self._columns.push((length, feed, code, 0.0, *unit))
+            estimate_s = length / (scaled if scaled > self._min_feed_mm_s else self._min_feed_mm_s)
+        self._time_estimate_s += estimate_s
         actions = self._take_pending(move.actions) if self._pending else move.actions
         self._geometry.append((move, actions, start, target, unit))
         self._dirty = True
+        columns = self._columns
+        if columns.push((length, feed, code, 0.0, estimate_s, *unit)):
+            self._sync()
+        count = columns.tail - columns.head
+        return count >= 2 and (
+            count >= self._max_blocks
+            or self._time_planned_s + self._time_estimate_s >= self._max_planned_s
+        )
 
     def append_action(self, action: Action) -> None:
         """Queue a non-motion action in order with motion.
@@ -177,11 +229,12 @@ class Planner:
             self._pending.append(action)
             return
         lead_s = max(action.lead_s, 0.0)
-        self._columns.push((0.0, math.inf, _NO_OVERRIDE, lead_s, *self._zero))
         here = self._chain_mm
         self._geometry.append((None, self._take_pending([action]), here, here, self._zero))
         self._time_estimate_s += lead_s
         self._dirty = True
+        if self._columns.push((0.0, math.inf, _NO_OVERRIDE, lead_s, lead_s, *self._zero)):
+            self._sync()
 
     # ------------------------------------------------------------------ window state
 
@@ -194,12 +247,12 @@ class Planner:
 
         Never full with fewer than two blocks, so a single very long move can always queue.
         """
-        columns, limits = self._columns, self._settings
+        columns = self._columns
         count = columns.tail - columns.head
-        if count < 2:
-            return False
-        planned_s = self._time_planned_s + self._time_estimate_s
-        return count >= limits.max_blocks or planned_s >= limits.max_planned_s
+        return count >= 2 and (
+            count >= self._max_blocks
+            or self._time_planned_s + self._time_estimate_s >= self._max_planned_s
+        )
 
     def planned_time_s(self) -> float:
         """Seconds of queued motion: planned durations, plus a lower bound (the time at the
@@ -219,20 +272,47 @@ class Planner:
     # ------------------------------------------------------------------ planning and popping
 
     def plan(self) -> None:
-        """Re-plan the whole waiting window if anything changed since the last plan."""
+        """Re-plan the head of the window (at most ``plan_blocks`` blocks, with the whole
+        window's look-ahead) if anything changed since the last plan."""
         if not self._dirty:
             return
         self._dirty = self._head_dirty = False
         self._sync()
-        window = self._columns.window()
-        self._planned = window.shape[1]
-        if not self._planned:
+        columns = self._columns
+        head, tail = columns.head, columns.tail
+        self._planned = width = min(tail - head, self._settings.plan_blocks)
+        if not width:
             return
-        rows = window[LENGTH], window[ACCEL], window[NOMINAL], window[JUNCTION], window[LEAD]
-        self._settled = plan_window(*rows, self._start_mm_s, window[ENTRY : DURATION + 1])
-        self._columns.invalidate()
+        data = columns.data
+        stop = head + width
+        whole = stop == tail
+        window = data[:, head:stop]
+        cum, caps = np.empty(width + 1), np.empty(width)
+        cum[0] = 0.0
+        np.add.accumulate(2.0 * window[ACCEL] * window[LENGTH], out=cum[1:])
+        caps[: width - 1] = data[CAP, head + 1 : stop]
+        caps[width - 1] = 0.0 if whole else data[CAP, stop]
+        end_term = end_cum = float(cum[width])
+        if not whole:
+            end_term, end_cum = self._rest_of_window(stop, end_cum)
+        rows = window[LENGTH], window[ACCEL], window[NOMINAL], window[LEAD], caps, cum
+        self._settled = plan_prefix(*rows, end_term, end_cum, whole, self._start_mm_s,
+                                    window[ENTRY : DURATION + 1])
+        columns.invalidate()
         self._time_planned_s = float(np.add.reduce(window[DURATION]))
-        self._time_estimate_s = 0.0
+        self._time_estimate_s = 0.0 if whole else float(np.add.reduce(data[ESTIMATE, stop:tail]))
+
+    def _rest_of_window(self, stop: int, stop_cum: float) -> tuple[float, float]:
+        """What the blocks from column ``stop`` to the tail add to a plan of the blocks before:
+        the minimum of ``L[j] + C[j]`` over their nodes up to the window's end (whose cap is 0),
+        and ``C`` at the end, ``C`` counted on from ``stop_cum`` at node ``stop``."""
+        rest = self._columns.data[:, stop : self._columns.tail]
+        running = np.empty(rest.shape[1] + 1)
+        running[0] = 0.0
+        np.add.accumulate(2.0 * rest[ACCEL] * rest[LENGTH], out=running[1:])
+        end_s = float(running[-1])
+        lowest = min(float(np.minimum.reduce(rest[CAP] + running[:-1])), end_s)
+        return stop_cum + lowest, stop_cum + end_s
 
     def pop(self) -> Block | None:
         """Commit and remove the head block; its entry and exit speeds are final.
@@ -251,7 +331,10 @@ class Planner:
             self.plan()
         (length, _, _, lead, accel, _, nominal, _, entry, cruise, exit_, ramp1, flat, ramp2,
          duration) = columns.pop_front()  # fmt: skip
-        move, actions, start, end, unit = self._geometry.popleft()
+        geometry, head = self._geometry, self._geometry_head
+        move, actions, start, end, unit = geometry[head]
+        geometry[head] = _TAKEN  # released now, not with a window's worth at the compaction
+        self._drop_geometry(1)
         self._planned -= 1
         self._settled -= 1
         self._start_mm_s = exit_
@@ -279,7 +362,7 @@ class Planner:
             self.plan()
         count = max(self._settled, 1)
         rows = columns.pop_front_many(count)
-        geometry = [self._geometry.popleft() for _ in range(count)]
+        geometry = self._take_geometry(count)
         self._planned -= count
         self._settled -= count
         self._start_mm_s = float(rows[EXIT, -1])
@@ -293,9 +376,10 @@ class Planner:
 
         ``position_mm`` is stale afterwards: call :meth:`set_position` with where motion stopped.
         """
-        dropped = [action for _, actions, _, _, _ in self._geometry for action in actions]
+        waiting = self._geometry[self._geometry_head :]
+        dropped = [action for _, actions, _, _, _ in waiting for action in actions]
         dropped += self._pending
-        self._geometry.clear()
+        self._geometry, self._geometry_head = [], 0
         self._pending = []
         self._clear_window()
         self._start_mm_s = 0.0
@@ -331,6 +415,7 @@ class Planner:
         self._feed_override, self._rapid_override = feed, rapid
         window = self._columns.window()
         window[NOMINAL] = self._nominals(window[FEED], window[RATE], window[KIND])
+        self._derive_caps(self._columns.head, self._columns.tail)
         self._columns.invalidate()
         self._dirty = self._head_dirty = True
 
@@ -357,21 +442,28 @@ class Planner:
         A zero-length block keeps its ``lead_s``; motion stays at rest through it.
         """
         if block.move is None or block.length_mm < MIN_LENGTH_MM:
-            inputs = (0.0, math.inf, _NO_OVERRIDE, block.lead_s, *self._zero)
+            inputs = (0.0, math.inf, _NO_OVERRIDE, block.lead_s, 0.0, *self._zero)
         else:
             kind, feed = _kind_and_feed(block.move)
-            inputs = (block.length_mm, feed, kind, 0.0, *block.unit)
+            inputs = (block.length_mm, feed, kind, 0.0, 0.0, *block.unit)
         self._sync()  # derive the limits of staged blocks first: push_front syncs raw inputs
         columns = self._columns
         head = columns.push_front(inputs)
         self._derive(head, head + 1)
         self._derive_junctions(head + 1, min(head + 2, columns.tail))
+        self._derive_caps(head, min(head + 2, columns.tail))
+        data = columns.data
+        data[ESTIMATE, head] = block.lead_s + block.length_mm / data[NOMINAL, head]
         columns.invalidate()
         geometry = (block.move, block.actions, block.start_mm, block.end_mm, block.unit)
-        self._geometry.appendleft(geometry)
+        if self._geometry_head:
+            self._geometry_head -= 1
+            self._geometry[self._geometry_head] = geometry
+        else:
+            self._geometry.insert(0, geometry)
         self._start_mm_s = 0.0
         self._dirty = self._head_dirty = True
-        self._time_estimate_s += block.lead_s + block.length_mm / columns.data[NOMINAL, head]
+        self._time_estimate_s += data[ESTIMATE, head]
 
     # ------------------------------------------------------------------ internals
 
@@ -381,6 +473,7 @@ class Planner:
         first = columns.sync()
         if first < columns.tail:
             self._derive(first, columns.tail)
+            self._derive_caps(first, columns.tail)
 
     def _derive(self, first: int, stop: int) -> None:
         """Axis limits, nominal speeds and junction limits of columns ``first .. stop-1``."""
@@ -406,6 +499,17 @@ class Planner:
         limit[data[LENGTH, before] * data[LENGTH, after] == 0.0] = 0.0  # next to a still block
         data[JUNCTION, after] = limit
 
+    def _derive_caps(self, first: int, stop: int) -> None:
+        """The cap ``L`` on v² at the entry node of columns ``first .. stop-1``: their junction
+        limits and both neighbours' nominal speeds; infinite at the head (its speed is the
+        start speed)."""
+        columns = self._columns
+        data, begin = columns.data, max(first, columns.head + 1)
+        data[CAP, first:begin] = np.inf
+        if begin < stop:
+            caps = node_caps(data[NOMINAL, begin - 1 : stop], data[JUNCTION, begin:stop])
+            data[CAP, begin:stop] = caps[:-1]
+
     def _nominals(
         self, feed: FloatArray, rate: FloatArray, kind: FloatArray, out: FloatArray | None = None
     ) -> FloatArray:
@@ -417,6 +521,25 @@ class Planner:
             rate = rate * np.where(kind == _RAPID_OVERRIDE, self._rapid_override, 1.0)
         nominal = np.minimum(feed, rate, out=out)
         return np.maximum(nominal, self._settings.min_feed_mm_s, out=nominal)
+
+    def _take_geometry(self, count: int) -> list[_Geometry]:
+        """Remove the geometry of ``count`` blocks from the head and return it."""
+        geometry, head = self._geometry, self._geometry_head
+        taken = geometry[head : head + count]
+        geometry[head : head + count] = [_TAKEN] * count
+        self._drop_geometry(count)
+        return taken
+
+    def _drop_geometry(self, count: int) -> None:
+        """Forget the geometry of ``count`` blocks from the head (already replaced by
+        ``_TAKEN``): a slice of a list is cheaper than popping a deque one by one; the list
+        drops its head once it is as long as the rest (amortised O(1) a block, at most a
+        window's pointers moved at once)."""
+        head = self._geometry_head + count
+        if head >= GEOMETRY_COMPACT and 2 * head >= len(self._geometry):
+            del self._geometry[:head]
+            head = 0
+        self._geometry_head = head
 
     def _take_pending(self, more: list[Action]) -> list[Action]:
         if not self._pending:
@@ -435,9 +558,19 @@ class Planner:
 
     def _clear_window(self) -> None:
         self._columns.clear()
+        self._geometry, self._geometry_head = [], 0
         self._planned = self._settled = 0
         self._dirty = self._head_dirty = False
         self._time_planned_s = self._time_estimate_s = 0.0
+
+
+def _capacity(max_blocks: int) -> int:
+    """Columns to allocate at first: room for a full window twice over (so the first stream
+    does not grow the array while it runs), within reason; a bigger window still grows it."""
+    capacity = 256
+    while capacity < 2 * max_blocks and capacity < PREALLOCATED_BLOCKS:
+        capacity *= 2
+    return capacity
 
 
 def _kind_and_feed(move: Move) -> tuple[float, float]:

@@ -21,14 +21,18 @@ neighbours' nominal speeds; 0 at the end of the window):
 start speed is already above what the caps allow (an override lowered the nominal speeds under a
 block in motion): acceleration limits then win over the caps, which are exceeded for as short a
 distance as physics allows. ``F`` is feasible both ways (``|F[i+1] − F[i]| ≤ 2·a_i·d_i``), so
-every block's ramps fit in its length.
+every block's ramps fit in its length. Since ``B[0]`` is the fastest feasible start, ``s − C``
+is only applied when ``s > B[0]`` (by more than rounding, :data:`OVER_SPEED`): a start speed
+carried from an earlier plan, a rounding above ``B[0]``, would otherwise leave the window's end
+at a speed of a rounding's square root (1e-7 mm/s) instead of a stop.
 
 Rounding: the prefix form carries an absolute error in ``v²`` of a few ulps of ``C[n]`` (250 mm
 of window at 1,000 mm/s² gives ``C[n] = 5e5`` mm²/s², so about 1e-10 mm²/s²). Clamping with
 ``B ≤ L`` and ``F ≤ V``, which hold exactly in real arithmetic, makes every speed that is set by
 its own cap exact, and stops (caps of 0) are exact anyway.
 
-:func:`plan_window` does this with a handful of numpy operations over the whole window;
+:func:`plan_window` does this with a handful of numpy operations over the whole window, and
+:func:`plan_prefix` over its first blocks only, the rest entering through one number;
 :func:`plan_window_reference` is the same computation written as the classic per-block loops,
 kept as the readable specification (tests check they agree; the benchmark times both).
 """
@@ -47,6 +51,11 @@ FloatArray = npt.NDArray[np.float64]
 PROFILE_ROWS = 7
 """Rows of the plan: entry, cruise, exit speed (mm/s); ramp1, flat, ramp2, total time (s)."""
 STILL_LIMIT = 1e150
+"""Speed and acceleration limit of a zero-length block (see :func:`axis_limits`)."""
+OVER_SPEED = 1.0 + 1e-9
+"""A start speed (squared) above the window's backward limit by more than this factor is an
+over-speed start; below it, the difference is the rounding of a speed carried from an
+earlier plan (its square root, squared again)."""
 """Speed and acceleration limit of a zero-length block (see :func:`axis_limits`)."""
 
 
@@ -119,26 +128,68 @@ def plan_window(
     entry is then settled too, the head's being fixed); the last block never counts.
     """
     n = length_mm.shape[0]
-    two_ad = 2.0 * accel_mm_s2 * length_mm
     cum = np.empty(n + 1)
     cum[0] = 0.0
-    np.add.accumulate(two_ad, out=cum[1:])
+    np.add.accumulate(2.0 * accel_mm_s2 * length_mm, out=cum[1:])
+    caps = node_caps(nominal_mm_s, junction_sq[1:])
+    caps[n - 1] = 0.0  # the end of the window: a stop
+    end = float(cum[n])
+    return plan_prefix(length_mm, accel_mm_s2, nominal_mm_s, lead_s, caps, cum, end, end, True,
+                       start_mm_s, out)
+
+
+def node_caps(nominal_mm_s: FloatArray, junction_sq: FloatArray) -> FloatArray:
+    """Caps on v² of the nodes between consecutive blocks (mm²/s²): the junction limits
+    (one per node) and both neighbours' nominal speeds; one more slot at the end, unset."""
+    caps = np.empty(nominal_mm_s.shape[0])
     nominal_sq = nominal_mm_s * nominal_mm_s
+    np.minimum(nominal_sq[:-1], nominal_sq[1:], out=caps[:-1])
+    np.minimum(caps[:-1], junction_sq, out=caps[:-1])
+    return caps
+
+
+def plan_prefix(
+    length_mm: FloatArray,
+    accel_mm_s2: FloatArray,
+    nominal_mm_s: FloatArray,
+    lead_s: FloatArray,
+    caps_sq: FloatArray,
+    cum: FloatArray,
+    end_term: float,
+    end_cum: float,
+    whole: bool,
+    start_mm_s: float,
+    out: FloatArray,
+) -> int:
+    """Plan the first ``n`` blocks of a window exactly as planning the whole window would.
+
+    Only nodes ``0..n`` are computed: the rest of the window enters through ``end_term``, the
+    minimum of ``L[j] + C[j]`` over its nodes ``j ≥ n`` (its end's term is ``C`` there, its
+    cap being 0), which is all the backward pass needs of them. ``caps_sq`` holds ``L`` of
+    nodes ``1..n`` (node ``n``'s is 0 when the prefix is the ``whole`` window); ``cum`` holds
+    ``C`` at nodes ``0..n`` from any origin; ``end_cum`` is ``C`` at the end of the window.
+    Writes ``out`` and returns the settled blocks as :func:`plan_window` does.
+    """
+    n = length_mm.shape[0]
+    two_ad = 2.0 * accel_mm_s2 * length_mm
     caps = np.empty(n + 1)
     caps[0] = np.inf
-    caps[n] = 0.0
-    np.minimum(nominal_sq[:-1], nominal_sq[1:], out=caps[1:n])
-    np.minimum(caps[1:n], junction_sq[1:], out=caps[1:n])
-    settled = n - 1
-    if n > 1:
-        unsettled = cum[n] - cum[1:n] < caps[1:n]
+    caps[1:] = caps_sq
+    tested = n - 1 if whole else n  # the end of the window is no cap: it never settles
+    settled = tested
+    if tested > 0:
+        unsettled = end_cum - cum[1 : tested + 1] < caps[1 : tested + 1]
         first = int(unsettled.argmax())
         settled = first if unsettled[first] else settled
-    backward = np.minimum.accumulate((caps + cum)[::-1])[::-1]
+    terms = caps + cum
+    terms[n] = end_term
+    backward = np.minimum.accumulate(terms[::-1])[::-1]
     backward -= cum
     np.minimum(backward, caps, out=backward)  # exact where a node's own cap binds
     start_sq = start_mm_s * start_mm_s
-    limit = np.maximum(backward, start_sq - cum, out=backward)
+    if start_sq > backward[0] * OVER_SPEED:  # see the module docstring
+        np.maximum(backward, (start_sq + cum[0]) - cum, out=backward)
+    limit = backward
     limit[0] = start_sq
     speed_sq = np.minimum.accumulate(limit - cum)
     speed_sq += cum
