@@ -40,7 +40,7 @@ from server.transports.tcp import TcpTransport
 from tests.conftest import REPO, make_config
 from tests.integration.test_stepgen import POLYLINE, Quiet
 from tests.support.helpers import running
-from tests.support.senders import CharCountingClient, fast_axes
+from tests.support.senders import CharCountingClient, fast_axes, wait_for
 from tests.unit.test_planner import append_all, machine_and_path, run
 
 STREAM_CLIENT = REPO / "benchmarks" / "stream_client.py"
@@ -192,8 +192,8 @@ async def test_at_20k_segments_per_s_no_call_of_the_planning_path_works_through_
         port = app.transports[0].port  # type: ignore[attr-defined]
         client = await CharCountingClient.connect("127.0.0.1", port, window=65536)
         streaming = asyncio.create_task(client.stream(raster_lines(segments)))
-        while not (stepgen.state.moving and len(planner) >= 4000):  # noqa: ASYNC110
-            await asyncio.sleep(0)  # a full window in motion (at the start: fast to fill)
+        await wait_for(lambda: stepgen.state.moving and len(planner) >= 4000, 30.0,
+                       "a full window in motion (at the start, where it fills fast)")
         clock.advance_to(clock.now_s() + 0.05)  # the step generator wakes 50 ms late
         result = await asyncio.wait_for(streaming, 60)
         await asyncio.wait_for(machine.wait_idle(), 60)
