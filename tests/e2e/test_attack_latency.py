@@ -91,6 +91,19 @@ async def status_flood(served: Served) -> None:
     await asyncio.gather(*(one() for _ in range(15)))
 
 
+async def stream_ahead(served: Served) -> None:
+    """2 MB of moves without waiting for ``ok`` (``nc < job.nc``), from a logged-in sender,
+    then a feed hold and a reset, which must act at once."""
+    reader, writer = await asyncio.open_connection("127.0.0.1", served.tcp_port)
+    lines = b"".join(b"G1 X%d Y%d F3000\n" % (i % 200, i % 150) for i in range(100_000))
+    writer.write(f"$AUTH={TOKEN}\n".encode() + lines[: 2 * MIB])
+    await asyncio.sleep(0.5)
+    writer.write(b"!\x18")
+    await writer.drain()
+    await asyncio.sleep(0.3)
+    writer.close()
+
+
 async def auth_guessing(served: Served) -> None:
     """Token guesses as fast as a connection can send them."""
     reader, writer = await asyncio.open_connection("127.0.0.1", served.tcp_port)
@@ -121,6 +134,7 @@ ATTACKS: dict[str, Attack] = {
     "deeply nested JSON": nested_json,
     "a ? flood from 15 clients": status_flood,
     "20,000 $AUTH guesses": auth_guessing,
+    "2 MB streamed ahead, then ! and Ctrl-X": stream_ahead,
     "idle sockets": idle_sockets,
 }
 
