@@ -27,7 +27,7 @@ from server.errors import CommandError
 from server.runtime.events import MachineState
 from server.transports.tcp import TcpTransport
 from tests.conftest import REPO, make_config
-from tests.e2e.test_api import RpcClient, api_config, client, http_of, serving
+from tests.support.api_client import RpcClient, api_config, client, http_of, serving
 from tests.support.helpers import running, submit_all
 
 STALL_BOUND_S = 0.25  # generous on a shared two-core machine; the faults stalled for seconds
