@@ -2,8 +2,9 @@
 
 Run in its own process (``python -m tests.support.latency_probe HOST PORT``), so the attacks
 and the test harness never share its event loop. It sends ``?`` every ``--period-ms`` and times
-each status report's round trip until its standard input closes, then prints one JSON line:
-``{"count": N, "p50_ms": .., "p90_ms": .., "p99_ms": .., "max_ms": .., "missed": M}`` where ``missed``
+each status report's round trip until its standard input closes, then prints one JSON line,
+``{"count": N, "p50_ms": .., "p90_ms": .., "p99_ms": .., "max_ms": .., "missed": M}``
+(percentiles and worst in milliseconds) where ``missed``
 counts requests with no report within a second.
 """
 
