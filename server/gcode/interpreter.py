@@ -136,20 +136,27 @@ class Interpreter:
         return outputs
 
     def classify(self, line: Line) -> LineKind:
-        """What ``line`` may do (see :class:`LineKind`); unknown words count as effects."""
-        letters = set(line.letters) - {"N"}
-        codes = [int(v) for letter, v in line.words if letter == "M" and v == int(v)]
-        if letters == {"M"} and all(self._is_query(code) for code in codes):
-            return LineKind.QUERY
-        if letters <= {"M"} and codes and all(c in UNLOCKING or self._is_query(c) for c in codes):
-            return LineKind.UNLOCK
-        g_words = [v for letter, v in line.words if letter == "G"]
-        if g_words == [28.2] and letters - {"G"} <= set(self._geo.axis_index):
-            return LineKind.UNLOCK
-        return LineKind.EFFECT
+        """What ``line`` may do (see :class:`LineKind`); unknown words count as effects.
 
-    def _is_query(self, code: int) -> bool:
-        return code in CORE_QUERIES or self.codes.is_query(code)
+        Cheap for the common line: without an M word and a ``G28.2`` it is an effect."""
+        letters, values = line.letters, line.values
+        if "M" not in letters and not ("G" in letters and 28.2 in values):
+            return LineKind.EFFECT
+        words = [(letter, value) for letter, value in zip(letters, values, strict=True)
+                 if letter != "N"]
+        m_codes = [value for letter, value in words if letter == "M"]
+        if len(m_codes) == len(words):
+            if all(self._is_query(code) for code in m_codes):
+                return LineKind.QUERY
+            if all(code in UNLOCKING or self._is_query(code) for code in m_codes):
+                return LineKind.UNLOCK
+            return LineKind.EFFECT
+        homing = [value for letter, value in words if letter == "G"] == [28.2]
+        axes = {letter for letter, _ in words} - {"G"} <= set(self._geo.axis_index)
+        return LineKind.UNLOCK if homing and axes else LineKind.EFFECT
+
+    def _is_query(self, code: float) -> bool:
+        return code == int(code) and (code in CORE_QUERIES or self.codes.is_query(int(code)))
 
     def _general_line(self, line: Line) -> list[Output]:
         words = read_words(line.words, self._geo.axis_index, self.codes)

@@ -195,7 +195,8 @@ class Settings:
         }
 
     def write(self, statement: str) -> None:
-        """Apply ``N=value`` (the text after ``$``); raise CommandError with Grbl's codes."""
+        """Apply ``N=value`` (the text after ``$``) live; raise CommandError with Grbl's codes.
+        Persisting it is :meth:`save` of :meth:`file_text`, which blocks: call it in a thread."""
         number_text, equals, value_text = statement.partition("=")
         try:
             number = int(number_text.strip())
@@ -208,7 +209,6 @@ class Settings:
                 Error.BAD_NUMBER_FORMAT, f"${number}: bad number {value_text.strip()!r}"
             )
         self.set(number, float(value_text))
-        self._save()
 
     def set(self, number: int, value: float) -> None:
         """Check ``value`` as Grbl does (see the module docstring), then apply it live."""
@@ -270,12 +270,8 @@ class Settings:
             except (ValueError, TypeError, CommandError) as exc:
                 log.warning("%s: ignored the saved value $%s = %r: %s", path, key, value, exc)
 
-    def _save(self) -> None:
-        """Persist every writable value. Synchronous, on the loop: a few milliseconds for this
-        small file, settings are written rarely, and the ok then means the value is on disk,
-        as in Grbl (whose handler cannot await: see ``CoreCommands.write_setting``)."""
-        if self.path is None:
-            return
+    def file_text(self) -> str:
+        """The settings file's contents for the values now in force (taken on the loop)."""
         lines = [
             "# Written by motiond for $x=value; delete to go back to the config file.",
             "[settings]",
@@ -283,8 +279,15 @@ class Settings:
         for number, setting in sorted(self.table.items()):
             if setting.write is not None:
                 lines.append(f'"{number}" = {setting.read(self.core)!r}')
+        return "\n".join(lines) + "\n"
+
+    def save(self, text: str) -> None:
+        """Write ``text`` (:meth:`file_text`) atomically; blocks for an fsync or two, so the
+        server calls it in a thread. The ok of ``$x=`` comes once the value is on disk."""
+        if self.path is None:
+            return
         try:
-            write_atomically(self.path, "\n".join(lines) + "\n")
+            write_atomically(self.path, text)
         except OSError as exc:
             log.warning("could not save settings to %s: %s", self.path, exc)
 

@@ -45,11 +45,13 @@ axis = {"steps_per_mm": 80, "max_rate_mm_s": 500, "accel_mm_s2": 3000, "max_mm":
 core = build_config({"axes": {"x": dict(axis), "y": dict(axis)}}).core
 settings = Settings(core, Path(sys.argv[1]), is_idle=lambda: True, apply=lambda: None)
 value = 1
-settings.write(f"110={value}")  # the file exists from here on
+settings.write(f"110={value}")
+settings.save(settings.file_text())  # the file exists from here on
 print("writing", flush=True)
 while True:
     value = value % 50_000 + 1
     settings.write(f"110={value}")
+    settings.save(settings.file_text())
 """
 
 

@@ -128,3 +128,14 @@ async def test_while_one_source_runs_motion_others_may_query_but_not_change_stat
     assert await dispatcher.submit("G1 X20", streamer) == ["ran"]
     busy = False
     assert await dispatcher.submit("G0 X0", other) == ["ran"], "idle: anyone may take over"
+
+
+@pytest.mark.parametrize("text, kind", [
+    ("M114", "query"), ("N7 M114", "query"), ("M112", "unlock"), ("M999", "unlock"),
+    ("G28.2 X0", "unlock"), ("G1 X1", "effect"), ("M114 G1 X1", "effect"),
+    ("M114 F100", "effect"), ("M1.5", "effect"), ("M3 S100", "effect"), ("G28.2 F100", "effect"),
+])
+def test_a_line_is_classified_from_every_word(text: str, kind: str) -> None:
+    from server.gcode.parser import parse_line
+
+    assert Interpreter(SMALL).classify(parse_line(text)).value == kind
