@@ -12,6 +12,7 @@ import gc
 import importlib.util
 import json
 import sys
+import threading
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
@@ -20,7 +21,8 @@ from typing import Any, TypeVar
 
 from benchmarks.stream_client import HOST
 from server.cli import loop_factory
-from server.config import Config, build_config
+from server.config import Config, StepgenConfig, build_config
+from server.runtime import realtime
 
 CLIENT = Path(__file__).resolve().with_name("stream_client.py")
 PROBE = Path(__file__).resolve().with_name("status_probe.py")
@@ -41,15 +43,45 @@ def bench_config() -> Config:
 
 
 # -- event loops -----------------------------------------------------------------------------------
+REALTIME = "+rt"  # a loop name's suffix: its thread at the real-time priority `serve` asks for
+
+
+def may_run_realtime() -> bool:
+    """Whether this process may give a thread real-time priority (tried in a throw-away one)."""
+    granted: list[bool] = []
+    thread = threading.Thread(target=lambda: granted.append(realtime.claim(1).realtime))
+    thread.start()
+    thread.join()
+    return granted[0]
+
+
 def loop_names() -> list[str]:
-    """The event loops to measure side by side: asyncio's, and uvloop's when installed."""
-    return ["asyncio"] + ["uvloop"] * (importlib.util.find_spec("uvloop") is not None)
+    """The configurations to measure side by side: asyncio's loop at ordinary priority; as
+    ``motiond serve`` runs it (real-time priority, when this process may have it); uvloop's when
+    installed."""
+    rt = REALTIME if may_run_realtime() else ""
+    names = ["asyncio"] + [f"asyncio{rt}"] * bool(rt)
+    return names + [f"uvloop{rt}"] * (importlib.util.find_spec("uvloop") is not None)
+
+
+def default_loop_name() -> str:
+    """The configuration ``motiond serve`` runs with its default config."""
+    loop = "uvloop" if loop_factory() is not None else "asyncio"
+    return loop + (REALTIME if may_run_realtime() else "")
 
 
 def run_on(loop: str, work: Callable[[], Awaitable[T]]) -> T:
-    """Run ``work()`` on a new event loop of that name, as ``motiond serve --loop`` would."""
-    with asyncio.Runner(loop_factory=loop_factory(loop)) as runner:
-        return runner.run(work())  # type: ignore[arg-type]
+    """Run ``work()`` on a new event loop of that name, as ``motiond serve --loop`` would: with a
+    ``+rt`` suffix, its thread at ``[stepgen] realtime_priority``'s default for the run."""
+    name, rt, _ = loop.partition(REALTIME)
+    switch_interval_s = sys.getswitchinterval()
+    priority = realtime.claim(StepgenConfig().realtime_priority if rt else 0)
+    try:
+        with asyncio.Runner(loop_factory=loop_factory(name)) as runner:
+            return runner.run(work())  # type: ignore[arg-type]
+    finally:
+        if priority.realtime:
+            realtime.release(switch_interval_s)
 
 
 # -- the client processes --------------------------------------------------------------------------

@@ -14,6 +14,7 @@ from pathlib import Path
 from server import __version__
 from server.config import Config, load_config
 from server.errors import ConfigError
+from server.runtime import realtime
 
 log = logging.getLogger("motiond")
 LOOPS = ("auto", "uvloop", "asyncio")
@@ -194,12 +195,13 @@ async def _serve(config: Config) -> int:
     from server.app import App
     from server.transports import default_transports
 
+    priority = realtime.claim(config.core.stepgen.realtime_priority)
     app = App(config, transports=default_transports(config))
     loop = asyncio.get_running_loop()
     for signum in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(signum, app.request_stop)
-    log.info("motiond %s: %s (event loop: %s)", __version__, config.core.machine.name,
-             type(loop).__module__.split(".")[0])
+    log.info("motiond %s: %s (event loop: %s, %s)", __version__, config.core.machine.name,
+             type(loop).__module__.split(".")[0], priority.detail)
     await app.run()
     log.info("stopped")
     return 0

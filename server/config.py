@@ -63,6 +63,9 @@ class PlannerConfig(Strict):
 
 class StepgenConfig(Strict):
     tick_hz: float = Field(1000.0, ge=10, le=100_000)
+    # SCHED_FIFO priority of the event loop's thread under `motiond serve`; 0 = ordinary
+    # (see server/runtime/realtime.py)
+    realtime_priority: int = Field(10, ge=0, le=99)
 
 
 class BackendConfig(Strict):

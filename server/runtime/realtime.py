@@ -1,0 +1,69 @@
+"""Real-time scheduling for the event loop's thread: the loop gets the CPU when its timer fires.
+
+On a host shared with senders and other programs, most late wake-ups of the event loop are not
+its own work but time the OS gave to other processes: the streaming benchmark measures both
+(the wall stall, and the part the loop's thread spent running). A step generator's tick, a
+feed hold and a status report cannot wait for the scheduler's next round, so ``motiond serve``
+asks Linux for a real-time policy (``SCHED_FIFO``) for the loop's thread, as LinuxCNC and
+Klipper's Linux MCU process do for their step timing:
+
+* the loop preempts ordinary processes the moment it wakes, so a stall is its own work only;
+* ``SCHED_RESET_ON_FORK``: the processes and threads it starts (a worker thread planning a
+  toolpath or writing settings) run at ordinary priority and never compete with the loop;
+* the interpreter's GIL switch interval drops to 0.5 ms, so a worker thread running Python
+  hands the GIL back to the loop within that, not the default 5 ms;
+* Linux keeps 5 % of every second for ordinary processes (``sched_rt_runtime_us``), so even a
+  runaway loop cannot lock the host up.
+
+Without the right (``CAP_SYS_NICE``, an ``rtprio`` limit, Docker's ``--cap-add SYS_NICE``)
+motiond runs at ordinary priority and says so once.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from dataclasses import dataclass
+
+GIL_SWITCH_INTERVAL_S = 0.0005
+HOW_TO_GRANT = (
+    "grant it with `setcap cap_sys_nice+ep` on the Python binary, an `rtprio` limit in "
+    "/etc/security/limits.conf, `--cap-add SYS_NICE` (Docker) or `CPUSchedulingPolicy=fifo` "
+    "(systemd); or set [stepgen] realtime_priority = 0 to stop asking"
+)
+
+
+@dataclass(frozen=True, slots=True)
+class Priority:
+    """What the loop's thread runs at: ``priority`` 0 is the ordinary time-shared policy."""
+
+    priority: int
+    detail: str
+
+    @property
+    def realtime(self) -> bool:
+        return self.priority > 0
+
+
+def claim(priority: int) -> Priority:
+    """Run the calling thread (the event loop's) at real-time ``priority`` (1-99) under
+    ``SCHED_FIFO``; 0 leaves it as it is. Never raises: the result says what it got."""
+    if priority <= 0:
+        return Priority(0, "ordinary priority ([stepgen] realtime_priority = 0)")
+    if not hasattr(os, "sched_setscheduler"):
+        return Priority(0, "ordinary priority (real-time scheduling needs Linux)")
+    policy = os.SCHED_FIFO | os.SCHED_RESET_ON_FORK
+    try:
+        os.sched_setscheduler(0, policy, os.sched_param(priority))
+    except OSError as exc:
+        return Priority(0, f"ordinary priority: real-time priority refused ({exc.strerror}); "
+                           + HOW_TO_GRANT)
+    sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
+    return Priority(priority, f"real-time priority {priority} (SCHED_FIFO)")
+
+
+def release(previous_switch_interval_s: float) -> None:
+    """Back to the ordinary policy (benchmarks compare both in one process)."""
+    if hasattr(os, "sched_setscheduler"):
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    sys.setswitchinterval(previous_switch_interval_s)
