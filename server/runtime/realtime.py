@@ -15,7 +15,7 @@ Klipper's Linux MCU process do for their step timing:
 * Linux keeps 5 % of every second for ordinary processes (``sched_rt_runtime_us``), so even a
   runaway loop cannot lock the host up.
 
-Without the right (``CAP_SYS_NICE``, an ``rtprio`` limit, Docker's ``--cap-add SYS_NICE``)
+Without the right (``CAP_SYS_NICE``, an ``rtprio`` limit, Docker's ``--ulimit rtprio=10``)
 motiond runs at ordinary priority and says so once.
 """
 
@@ -28,7 +28,7 @@ from dataclasses import dataclass
 GIL_SWITCH_INTERVAL_S = 0.0005
 HOW_TO_GRANT = (
     "grant it with `setcap cap_sys_nice+ep` on the Python binary, an `rtprio` limit in "
-    "/etc/security/limits.conf, `--cap-add SYS_NICE` (Docker) or `CPUSchedulingPolicy=fifo` "
+    "/etc/security/limits.conf, `--ulimit rtprio=10` (Docker) or `CPUSchedulingPolicy=fifo` "
     "(systemd); or set [stepgen] realtime_priority = 0 to stop asking"
 )
 
