@@ -20,18 +20,9 @@ from dataclasses import replace
 from functools import partial
 
 from benchmarks.common import BenchResult, add_run_options, execute, side_by_side
+from server.motion.limits import ACCEL, DURATION, ENTRY, JUNCTION, LEAD, LENGTH, NOMINAL
 from server.motion.moves import Move, MoveKind
-from server.motion.planner import (
-    ACCEL,
-    DURATION,
-    ENTRY,
-    JUNCTION,
-    LEAD,
-    LENGTH,
-    NOMINAL,
-    Planner,
-    PlannerSettings,
-)
+from server.motion.planner import Planner, PlannerSettings
 from server.motion.trapezoid import plan_window_reference
 
 MACHINE = PlannerSettings(

@@ -268,3 +268,19 @@ class BlockColumns:
         self._read = []
         shift = front - head
         self.head, self.tail, self._synced = head + shift, self.tail + shift, synced + shift
+
+
+def unplanned_block(
+    move: Move | None,
+    actions: list[Action],
+    start_mm: Position,
+    end_mm: Position,
+    unit: Position,
+    length_mm: float = 0.0,
+    nominal_mm_s: float = 0.0,
+    accel_mm_s2: float = 0.0,
+) -> Block:
+    """A block with its geometry and limits but no speeds or times yet."""
+    zero = 0.0
+    return Block(move, actions, start_mm, end_mm, unit, length_mm, nominal_mm_s, accel_mm_s2,
+                 zero, zero, zero, zero, zero, zero, zero, zero)  # fmt: skip

@@ -23,21 +23,36 @@ window) stays feasible; its exit speed becomes the fixed start speed of the next
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from operator import mul, sub
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from server.motion.block import Block, BlockColumns, FloatArray, SettledBlocks
-from server.motion.moves import Action, Move, MoveKind, Position
-from server.motion.trapezoid import (
-    PROFILE_ROWS,
-    axis_limits,
-    junction_speeds_sq,
-    node_caps,
-    plan_prefix,
+from server.motion.block import Block, BlockColumns, SettledBlocks, unplanned_block
+from server.motion.limits import (
+    ACCEL,
+    CAP,
+    DURATION,
+    ENTRY,
+    ESTIMATE,
+    EXIT,
+    FEED,
+    FEED_OVERRIDE,
+    FEED_OVERRIDE_RANGE,
+    KIND,
+    LEAD,
+    LENGTH,
+    NO_OVERRIDE,
+    NOMINAL,
+    RAPID_OVERRIDE,
+    RAPID_OVERRIDE_RANGE,
+    UNIT,
+    Limits,
+    PlannerSettings,
+    kind_and_feed,
 )
+from server.motion.moves import Action, Move, MoveKind, Position
+from server.motion.trapezoid import plan_prefix
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -47,64 +62,9 @@ __all__ = ["MIN_LENGTH_MM", "Block", "Planner", "PlannerSettings", "SettledBlock
 MIN_LENGTH_MM = 1e-6
 """Moves shorter than this are dropped; the next block starts where the last one ended, so
 the skipped displacement is not lost."""
-SYNC_BLOCKS = 512
 PREALLOCATED_BLOCKS = 16384
 GEOMETRY_COMPACT = 1024  # popped blocks' geometry entries dropped at once
-"""Staged blocks are copied into the columns (and their limits derived) at this many, so no
-single append or plan does that for a whole window."""
-
-# Rows of the per-block column array. Given at append time: ...
-LENGTH, FEED, KIND, LEAD = range(4)
-# ... derived in batches when staged blocks are synced: ...
-ACCEL, RATE, NOMINAL, JUNCTION = range(4, 8)
-# ... written by plan(): ...
-ENTRY, CRUISE, EXIT, RAMP1, FLAT, RAMP2, DURATION = range(8, 8 + PROFILE_ROWS)
-# ... the cap on v² at the block's entry node (derived), its time estimate (given at append),
-# and the direction, one row per axis, from UNIT on.
-CAP, ESTIMATE = DURATION + 1, DURATION + 2
-UNIT = ESTIMATE + 1
-
-# KIND codes: which override scales a block's nominal speed.
-_NO_OVERRIDE, _FEED_OVERRIDE, _RAPID_OVERRIDE = 0.0, 1.0, 2.0
-CUTTING_CODE = _FEED_OVERRIDE
-"""The KIND of exactly the FEED, ARC and PROBE moves (jog and homing have no override)."""
 _RAPID, _JOG, _HOMING = MoveKind.RAPID, MoveKind.JOG, MoveKind.HOMING
-FEED_OVERRIDE_RANGE = (0.1, 2.0)
-RAPID_OVERRIDE_RANGE = (0.25, 1.0)
-
-
-@dataclass(frozen=True, slots=True)
-class PlannerSettings:
-    """Machine limits the planner needs; per-axis tuples follow the configuration's axis order.
-
-    ``max_rate_mm_s`` and ``accel_mm_s2`` are per axis; ``junction_deviation_mm`` is δ of the
-    junction model; the window is full at ``max_blocks`` blocks or ``max_planned_s`` seconds of
-    planned motion; nominal speeds never drop below ``min_feed_mm_s``. The real-time budget of
-    a call (the plan is the same whatever they are): one ``plan()`` plans at most
-    ``plan_blocks`` blocks, and staged blocks are synced (copied into the columns, their
-    limits derived) ``sync_blocks`` at a time, so no append or plan does that for a window;
-    offline runs, with no loop to keep, sync more at once (fewer, larger numpy calls).
-    """
-
-    max_rate_mm_s: tuple[float, ...]
-    accel_mm_s2: tuple[float, ...]
-    junction_deviation_mm: float = 0.01
-    max_blocks: int = 4096
-    max_planned_s: float = 0.5
-    min_feed_mm_s: float = 0.01
-    plan_blocks: int = 512
-    sync_blocks: int = 128
-
-    def __post_init__(self) -> None:
-        if len(self.max_rate_mm_s) != len(self.accel_mm_s2) or not self.max_rate_mm_s:
-            raise ValueError("max_rate_mm_s and accel_mm_s2 need one value per axis")
-        if min(self.max_rate_mm_s) <= 0 or min(self.accel_mm_s2) <= 0:
-            raise ValueError("axis rates and accelerations must be positive")
-        if self.junction_deviation_mm <= 0 or self.min_feed_mm_s <= 0:
-            raise ValueError("junction_deviation_mm and min_feed_mm_s must be positive")
-        if self.plan_blocks < 1 or self.sync_blocks < 1:
-            raise ValueError("plan_blocks and sync_blocks must be at least 1")
-
 
 _Geometry = tuple[Move | None, list[Action], Position, Position, Position]
 _TAKEN: _Geometry = (None, [], (), (), ())  # in the geometry list, where a popped block was
@@ -121,7 +81,6 @@ class Planner:
         self.moves_appended = 0  # every move ever appended (statistics)
         axes = len(settings.max_rate_mm_s)
         self._zero: Position = (0.0,) * axes
-        self._units = slice(UNIT, UNIT + axes)
         self._columns = BlockColumns(
             UNIT + axes, [LENGTH, FEED, KIND, LEAD, ESTIMATE, *range(UNIT, UNIT + axes)],
             _POP_ROWS, _capacity(settings.max_blocks), settings.sync_blocks,
@@ -132,7 +91,8 @@ class Planner:
         self._geometry_head = 0
         self._pending: list[Action] = []
         self._start_mm_s = 0.0
-        self._feed_override = self._rapid_override = 1.0
+        self._limits = Limits(self._columns, settings.accel_mm_s2, settings.max_rate_mm_s,
+                              settings.junction_deviation_mm, settings.min_feed_mm_s)
         self._dirty = self._head_dirty = False
         self._time_planned_s = self._time_estimate_s = 0.0
         self._use_settings(settings)
@@ -158,9 +118,11 @@ class Planner:
         self._min_feed_mm_s = settings.min_feed_mm_s
         self._max_blocks, self._max_planned_s = settings.max_blocks, settings.max_planned_s
         self._inv_rate = tuple(1.0 / rate for rate in settings.max_rate_mm_s)
-        # accelerations then rates, as the ACCEL and RATE rows
-        limits = np.array([settings.accel_mm_s2, settings.max_rate_mm_s])
-        self._inverse_limits = (1.0 / limits)[:, :, None]
+        limits = Limits(self._columns, settings.accel_mm_s2, settings.max_rate_mm_s,
+                        settings.junction_deviation_mm, settings.min_feed_mm_s)
+        limits.feed_override = self._limits.feed_override
+        limits.rapid_override = self._limits.rapid_override
+        self._limits = limits
 
     # ------------------------------------------------------------------ appending
 
@@ -197,13 +159,14 @@ class Planner:
         self._chain_mm = target
         kind = move.kind
         if kind is _RAPID:
-            code, feed = _RAPID_OVERRIDE, math.inf
-            estimate_s = max(map(mul, map(abs, delta), self._inv_rate)) / self._rapid_override
+            code, feed = RAPID_OVERRIDE, math.inf
+            estimate_s = max(map(mul, map(abs, delta), self._inv_rate))
+            estimate_s /= self._limits.rapid_override
         else:
             feed = move.feed_mm_s if move.feed_mm_s > 0.0 else 0.0
-            code, scaled = _FEED_OVERRIDE, feed * self._feed_override
+            code, scaled = FEED_OVERRIDE, feed * self._limits.feed_override
             if kind is _JOG or kind is _HOMING:
-                code, scaled = _NO_OVERRIDE, feed
+                code, scaled = NO_OVERRIDE, feed
             estimate_s = length / (scaled if scaled > self._min_feed_mm_s else self._min_feed_mm_s)
         self._time_estimate_s += estimate_s
         actions = self._take_pending(move.actions) if self._pending else move.actions
@@ -233,7 +196,7 @@ class Planner:
         self._geometry.append((None, self._take_pending([action]), here, here, self._zero))
         self._time_estimate_s += lead_s
         self._dirty = True
-        if self._columns.push((0.0, math.inf, _NO_OVERRIDE, lead_s, lead_s, *self._zero)):
+        if self._columns.push((0.0, math.inf, NO_OVERRIDE, lead_s, lead_s, *self._zero)):
             self._sync()
 
     # ------------------------------------------------------------------ window state
@@ -409,13 +372,12 @@ class Planner:
         to waiting and future blocks; jog and homing moves are not scaled."""
         feed = min(max(feed, FEED_OVERRIDE_RANGE[0]), FEED_OVERRIDE_RANGE[1])
         rapid = min(max(rapid, RAPID_OVERRIDE_RANGE[0]), RAPID_OVERRIDE_RANGE[1])
-        if (feed, rapid) == (self._feed_override, self._rapid_override):
+        limits = self._limits
+        if (feed, rapid) == (limits.feed_override, limits.rapid_override):
             return
         self._sync()
-        self._feed_override, self._rapid_override = feed, rapid
-        window = self._columns.window()
-        window[NOMINAL] = self._nominals(window[FEED], window[RATE], window[KIND])
-        self._derive_caps(self._columns.head, self._columns.tail)
+        limits.feed_override, limits.rapid_override = feed, rapid
+        limits.renominate()
         self._columns.invalidate()
         self._dirty = self._head_dirty = True
 
@@ -429,12 +391,10 @@ class Planner:
         delta = [e - s for e, s in zip(end, start, strict=True)]
         length = math.hypot(*delta)
         if length < MIN_LENGTH_MM or move is None:
-            return _unplanned(move, actions, start, end, self._zero)
+            return unplanned_block(move, actions, start, end, self._zero)
         unit = tuple([x / length for x in delta])
-        accel, rate = axis_limits(np.array(unit)[:, None], self._inverse_limits)
-        kind, feed = _kind_and_feed(move)
-        nominal = self._nominals(np.array([feed]), rate, np.array([kind]))
-        return _unplanned(move, actions, start, end, unit, length, nominal.item(), accel.item())
+        accel, nominal = self._limits.of_direction(unit, move)
+        return unplanned_block(move, actions, start, end, unit, length, nominal, accel)
 
     def insert_front(self, block: Block) -> None:
         """Put a block (a remainder after a feed hold) back at the head; it starts from rest.
@@ -442,16 +402,17 @@ class Planner:
         A zero-length block keeps its ``lead_s``; motion stays at rest through it.
         """
         if block.move is None or block.length_mm < MIN_LENGTH_MM:
-            inputs = (0.0, math.inf, _NO_OVERRIDE, block.lead_s, 0.0, *self._zero)
+            inputs = (0.0, math.inf, NO_OVERRIDE, block.lead_s, 0.0, *self._zero)
         else:
-            kind, feed = _kind_and_feed(block.move)
+            kind, feed = kind_and_feed(block.move)
             inputs = (block.length_mm, feed, kind, 0.0, 0.0, *block.unit)
         self._sync()  # derive the limits of staged blocks first: push_front syncs raw inputs
         columns = self._columns
         head = columns.push_front(inputs)
-        self._derive(head, head + 1)
-        self._derive_junctions(head + 1, min(head + 2, columns.tail))
-        self._derive_caps(head, min(head + 2, columns.tail))
+        limits = self._limits
+        limits.derive(head, head + 1)
+        limits.derive_junctions(head + 1, min(head + 2, columns.tail))
+        limits.derive_caps(head, min(head + 2, columns.tail))
         data = columns.data
         data[ESTIMATE, head] = block.lead_s + block.length_mm / data[NOMINAL, head]
         columns.invalidate()
@@ -472,55 +433,8 @@ class Planner:
         columns = self._columns
         first = columns.sync()
         if first < columns.tail:
-            self._derive(first, columns.tail)
-            self._derive_caps(first, columns.tail)
-
-    def _derive(self, first: int, stop: int) -> None:
-        """Axis limits, nominal speeds and junction limits of columns ``first .. stop-1``."""
-        data, new = self._columns.data, slice(first, stop)
-        data[ACCEL : RATE + 1, new] = axis_limits(data[self._units, new], self._inverse_limits)
-        self._nominals(data[FEED, new], data[RATE, new], data[KIND, new], out=data[NOMINAL, new])
-        self._derive_junctions(first, stop)
-
-    def _derive_junctions(self, first: int, stop: int) -> None:
-        """Junction limits of columns ``first .. stop-1`` against the column before each.
-
-        The head's own junction never counts (its entry is the start speed).
-        """
-        data, begin = self._columns.data, max(first, self._columns.head + 1)
-        data[JUNCTION, first:begin] = 0.0
-        if begin >= stop:
-            return
-        before, after = slice(begin - 1, stop - 1), slice(begin, stop)
-        accel = np.minimum(data[ACCEL, before], data[ACCEL, after])
-        deviation_mm = self._settings.junction_deviation_mm
-        units = self._units
-        limit = junction_speeds_sq(data[units, before], data[units, after], accel, deviation_mm)
-        limit[data[LENGTH, before] * data[LENGTH, after] == 0.0] = 0.0  # next to a still block
-        data[JUNCTION, after] = limit
-
-    def _derive_caps(self, first: int, stop: int) -> None:
-        """The cap ``L`` on v² at the entry node of columns ``first .. stop-1``: their junction
-        limits and both neighbours' nominal speeds; infinite at the head (its speed is the
-        start speed)."""
-        columns = self._columns
-        data, begin = columns.data, max(first, columns.head + 1)
-        data[CAP, first:begin] = np.inf
-        if begin < stop:
-            caps = node_caps(data[NOMINAL, begin - 1 : stop], data[JUNCTION, begin:stop])
-            data[CAP, begin:stop] = caps[:-1]
-
-    def _nominals(
-        self, feed: FloatArray, rate: FloatArray, kind: FloatArray, out: FloatArray | None = None
-    ) -> FloatArray:
-        """Nominal speeds (mm/s): the feed scaled by its override, capped by the axis rate
-        limit (scaled by the rapid override for rapids), never under ``min_feed_mm_s``."""
-        if self._feed_override != 1.0:
-            feed = feed * np.where(kind == _FEED_OVERRIDE, self._feed_override, 1.0)
-        if self._rapid_override != 1.0:
-            rate = rate * np.where(kind == _RAPID_OVERRIDE, self._rapid_override, 1.0)
-        nominal = np.minimum(feed, rate, out=out)
-        return np.maximum(nominal, self._settings.min_feed_mm_s, out=nominal)
+            self._limits.derive(first, columns.tail)
+            self._limits.derive_caps(first, columns.tail)
 
     def _take_geometry(self, count: int) -> list[_Geometry]:
         """Remove the geometry of ``count`` blocks from the head and return it."""
@@ -554,7 +468,7 @@ class Planner:
             return None
         here = self._chain_mm
         actions, self._pending = self._pending, []
-        return _unplanned(None, actions, here, here, self._zero)
+        return unplanned_block(None, actions, here, here, self._zero)
 
     def _clear_window(self) -> None:
         self._columns.clear()
@@ -571,27 +485,3 @@ def _capacity(max_blocks: int) -> int:
     while capacity < 2 * max_blocks and capacity < PREALLOCATED_BLOCKS:
         capacity *= 2
     return capacity
-
-
-def _kind_and_feed(move: Move) -> tuple[float, float]:
-    """The override code of a move and its requested feed (mm/s; inf for rapids)."""
-    if move.kind is _RAPID:
-        return _RAPID_OVERRIDE, math.inf
-    feed = move.feed_mm_s if move.feed_mm_s > 0.0 else 0.0
-    return (_NO_OVERRIDE if move.kind in (_JOG, _HOMING) else _FEED_OVERRIDE), feed
-
-
-def _unplanned(
-    move: Move | None,
-    actions: list[Action],
-    start_mm: Position,
-    end_mm: Position,
-    unit: Position,
-    length_mm: float = 0.0,
-    nominal_mm_s: float = 0.0,
-    accel_mm_s2: float = 0.0,
-) -> Block:
-    """A block with its geometry and limits but no speeds or times yet."""
-    zero = 0.0
-    return Block(move, actions, start_mm, end_mm, unit, length_mm, nominal_mm_s, accel_mm_s2,
-                 zero, zero, zero, zero, zero, zero, zero, zero)  # fmt: skip

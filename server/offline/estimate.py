@@ -29,17 +29,9 @@ from server.errors import CommandError
 from server.gcode.interpreter import Interpreter
 from server.gcode.parser import check_length, parse_line
 from server.motion.feed import offer
+from server.motion.limits import CRUISE, CUTTING_CODE, DURATION, KIND, LENGTH
 from server.motion.moves import Action, Move, MoveKind, Output, Sync
-from server.motion.planner import (
-    CRUISE,
-    CUTTING_CODE,
-    DURATION,
-    KIND,
-    LENGTH,
-    Block,
-    Planner,
-    SettledBlocks,
-)
+from server.motion.planner import Block, Planner, SettledBlocks
 from server.motion.stepgen import StepGenerator
 from server.runtime.machine import interpreter_settings, planner_settings
 
