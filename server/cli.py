@@ -200,8 +200,9 @@ async def _serve(config: Config) -> int:
     loop = asyncio.get_running_loop()
     for signum in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(signum, app.request_stop)
-    log.info("motiond %s: %s (event loop: %s, %s)", __version__, config.core.machine.name,
-             type(loop).__module__.split(".")[0], priority.detail)
+    log.info("motiond %s: %s (event loop: %s)", __version__, config.core.machine.name,
+             type(loop).__module__.split(".")[0])
+    log.info("the event loop's thread runs at %s", priority.detail)
     await app.run()
     log.info("stopped")
     return 0

@@ -19,11 +19,14 @@ import contextlib
 import gc
 import socket
 import statistics
+import sys
 import time
 from collections.abc import Iterator
 
 import pytest
 
+from server.config import StepgenConfig
+from server.runtime import realtime
 from server.runtime.clock import RealClock, VirtualClock
 from server.runtime.events import MachineState
 from server.transports.tcp import TcpTransport
@@ -145,7 +148,18 @@ def quiet_heap() -> Iterator[None]:
 
 async def _flood_while_streaming(payload: bytes) -> tuple[int, float | None]:
     """A client floods ``payload`` and never reads while a second one streams a 4 s job with
-    character counting and a third polls ``?`` at 10 Hz; all on a real clock."""
+    character counting and a third polls ``?`` at 10 Hz; all on a real clock, the loop's thread
+    at the real-time priority ``motiond serve`` asks for (the flood thread it starts is not)."""
+    switch_interval_s = sys.getswitchinterval()
+    priority = realtime.claim(StepgenConfig().realtime_priority)
+    try:
+        return await _flood_and_stream(payload)
+    finally:
+        if priority.realtime:
+            realtime.release(switch_interval_s)
+
+
+async def _flood_and_stream(payload: bytes) -> tuple[int, float | None]:
     config = make_config()
     # 0.5 mm segments at 100 mm/s, out and back: 5 ms blocks keep the planner busy
     lines = ["G1 F6000"] + [f"G1 X{min(i, 800 - i) * 0.5:.1f} Y{i * 0.01:.2f}"

@@ -8,10 +8,12 @@ import subprocess
 import sys
 import threading
 from collections.abc import Callable
+from pathlib import Path
 from typing import TypeVar
 
 from server.runtime import realtime
 from tests.conftest import REPO
+from tests.support.processes import motiond
 
 T = TypeVar("T")
 
@@ -67,3 +69,14 @@ def test_without_the_right_it_runs_ordinary_and_says_how_to_grant_it() -> None:
     assert numbers == f"0 {os.SCHED_OTHER}"
     assert "refused" in detail and "cap_sys_nice" in detail
     assert "realtime_priority = 0" in detail
+
+
+async def test_motiond_serve_runs_its_loop_fifo_unless_told_not_to(tmp_path: Path) -> None:
+    (tmp_path / "rt").mkdir()
+    (tmp_path / "off").mkdir()
+    async with motiond(tmp_path / "rt") as served:
+        policy = os.sched_getscheduler(served.process.pid)  # the main thread: the loop's
+        assert policy & ~os.SCHED_RESET_ON_FORK == os.SCHED_FIFO
+        assert os.sched_getparam(served.process.pid).sched_priority == 10  # the default
+    async with motiond(tmp_path / "off", "[stepgen]\nrealtime_priority = 0\n") as served:
+        assert os.sched_getscheduler(served.process.pid) == os.SCHED_OTHER
