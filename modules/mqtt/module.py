@@ -68,7 +68,7 @@ class Mqtt(Module):
         self.published_status: dict[str, Any] | None = None
         self._wake = asyncio.Event()
         self._job: tuple[str, float, str] | None = None  # name, started_s, state
-        self._link: Any = None  # the Link once running (aiomqtt is imported then)
+        self.link: Any = None  # the Link once running (aiomqtt is imported then)
         for event in _WAKE_EVENTS:
             ctx.subscribe(event, lambda *_: self._wake.set())
         ctx.subscribe(Event.STATE, self._on_state)
@@ -87,7 +87,7 @@ class Mqtt(Module):
                     reconnect_max_s=config.reconnect_max_s, log=self.ctx.log)
         link.greeting = self._greeting
         link.on_message = self._on_message
-        self._link = link
+        self.link = link
 
         def credentials() -> Credentials:  # run in a thread: it may read the password file
             return Credentials(config.username, _password(config))
@@ -98,7 +98,7 @@ class Mqtt(Module):
             group.create_task(self._sample(), name="mqtt-status")
 
     def status(self) -> dict[str, Any]:
-        link = self._link
+        link = self.link
         return {
             "broker": str(self.broker),
             "prefix": self.topics.prefix,
