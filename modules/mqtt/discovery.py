@@ -67,7 +67,6 @@ def discovery_messages(
 def _entity(topics: Topics, device: Device, key: str, **fields: Any) -> dict[str, Any]:
     return {
         "unique_id": f"motiond_{device.node_id}_{key}",
-        "object_id": f"{device.node_id}_{key}",
         "availability_topic": topics.availability,
         "payload_available": "online",
         "payload_not_available": "offline",

@@ -123,7 +123,10 @@ class Link:
         await client.publish(self.topics.availability, b"online", self.qos, retain=True)
         for message in self.greeting():
             await client.publish(message.topic, message.payload, self.qos, message.retain)
-        await client.subscribe(self.topics.commands, self.qos)
+        granted = await client.subscribe(self.topics.commands, self.qos)
+        if any(_refused(code) for code in granted):
+            self.log.warning("the broker refused %s to this user (its ACL): commands cannot "
+                             "be received or answered", self.topics.commands)
 
     async def _send(self, client: aiomqtt.Client) -> None:
         while True:
@@ -151,6 +154,12 @@ class Link:
         with contextlib.suppress(*NOT_CONNECTED):
             await client.publish(self.topics.availability, b"offline", self.qos, retain=True,
                                  timeout=FAREWELL_TIMEOUT_S)
+
+
+def _refused(code: object) -> bool:
+    """A SUBACK return code of 128 or more is a refusal (MQTT 3.1.1 and 5)."""
+    value = getattr(code, "value", code)
+    return isinstance(value, int) and value >= 0x80
 
 
 def _reason(group: BaseExceptionGroup[BaseException]) -> str:
