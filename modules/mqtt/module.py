@@ -44,6 +44,7 @@ IDLE_LOOK_S = 1.0  # while nothing signals a change, the status is still sampled
 _WAKE_EVENTS = (Event.STATE, Event.HALT, Event.CLEAR_HALT, Event.HOLD, Event.HOLD_STOPPED,
                 Event.RESUME, Event.OVERRIDE, Event.ACTION, Event.PROGRAM_END, Event.JOB)
 _JOB_ENDS = frozenset({"done", "failed", "aborted"})
+_QUIET_STATES = frozenset({"Idle", "Alarm", "Sleep", "Check"})
 
 
 class Mqtt(Module):
@@ -108,21 +109,27 @@ class Mqtt(Module):
 
     # -- status ---------------------------------------------------------------------------
     async def _sample(self) -> None:
-        """Publish the status when it changes: at most ``status_hz``, soon after an event."""
+        """Publish the status when it changes: at most ``status_hz``; while the machine is
+        busy at that rate, else soon after an event (and at least every ``IDLE_LOOK_S``)."""
         period_s = 1.0 / self.config.status_hz
         while True:
             self._wake.clear()
-            self._offer_status()
+            busy = self._offer_status()
             await asyncio.sleep(period_s)
-            if not self._wake.is_set():
+            if not busy and not self._wake.is_set():
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(self._wake.wait(), max(0.0, IDLE_LOOK_S - period_s))
 
-    def _offer_status(self, force: bool = False) -> None:
-        payload = status_payload(self.ctx.status(), self.machine)
+    def _offer_status(self, force: bool = False) -> bool:
+        """Queue the status if it changed; whether the machine is busy (it will change)."""
+        snapshot = self.ctx.status()
+        payload = status_payload(snapshot, self.machine)
         if force or payload != self.published_status:
             self.published_status = payload
             self.outbox.put_status(Outgoing(self.topics.status, encode(payload), retain=True))
+        job = snapshot.get("job") or {}
+        return bool(snapshot.get("moving")) or snapshot.get("state") not in _QUIET_STATES or (
+            job.get("state") in ("running", "paused"))
 
     def _greeting(self) -> list[Outgoing]:
         """What a new connection publishes first (then the status, fresh)."""

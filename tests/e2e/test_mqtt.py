@@ -87,12 +87,16 @@ async def test_status_follows_a_running_job_and_events_mark_its_start_and_end(
             "G21 G90\nG1 X20 F1200\nG1 Y20\nG1 X0\nG1 Y0\n")
         async with watching(broker, f"{PREFIX}/#") as watch:
             await watch.wait_for(f"{PREFIX}/availability", is_online)
+            loop = asyncio.get_running_loop()
+            started_s, before = loop.time(), len(watch.on(f"{PREFIX}/status"))
             await watch.publish(f"{PREFIX}/cmd/job", {"id": "j1", "name": "square.nc"})
             reply = await watch.wait_json(f"{PREFIX}/reply")
             running = await watch.wait_json(
                 f"{PREFIX}/status", lambda s: s["state"] == "Run" and s["job"]["percent"] > 0)
             end = await watch.wait_json(f"{PREFIX}/event/job",
                                         lambda e: e["event"] == "end", timeout_s=20)
+            window_s = loop.time() - started_s
+            published = len(watch.on(f"{PREFIX}/status")) - before
             done = await watch.wait_json(
                 f"{PREFIX}/status", lambda s: s["job"]["state"] == "done")
             events = [event["event"] for event in watch.json_on(f"{PREFIX}/event/job")]
@@ -101,6 +105,7 @@ async def test_status_follows_a_running_job_and_events_mark_its_start_and_end(
     assert running["job"]["remaining_s"] is not None and running["speed_mm_min"] > 0
     assert running["feed_mm_min"] == 1200 and running["mpos"] != [0.0, 0.0]
     assert events == ["start", "end"]
+    assert 2 * window_s <= published <= 10 * window_s + 3, "while it moves: at most status_hz"
     assert end["machine"] == "Mill 1" and end["job"]["state"] == "done"
     assert done["job"]["percent"] == 100 and done["mpos"] == [0.0, 0.0]
 
