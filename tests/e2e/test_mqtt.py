@@ -141,20 +141,23 @@ async def test_gcode_lines_are_answered_one_to_one_with_their_correlation_id(
     async with (
         mosquitto(tmp_path / "broker") as broker,
         serve(tmp_path, broker, allow_control=True) as served,
+        watching(broker, f"{PREFIX}/#") as watch,
     ):
-        async with watching(broker, f"{PREFIX}/#") as watch:
-            await watch.wait_for(f"{PREFIX}/availability", is_online)
-            for request_id, lines in batches.items():
-                await watch.publish(f"{PREFIX}/cmd/gcode", {"id": request_id, "lines": lines})
-            await watch.publish(f"{PREFIX}/cmd/gcode", b'{"id": "d", "lines": 7}')
-            await watch.publish(f"{PREFIX}/cmd/realtime", {"id": "r", "command": "hold"})
-            await watch.wait_json(f"{PREFIX}/reply", lambda r: r["id"] == "c" and r["index"])
-            await watch.wait_json(f"{PREFIX}/reply", lambda r: r["id"] == "d")
-            await watch.publish(f"{PREFIX}/cmd/realtime", {"id": "s", "command": "resume"})
-            await watch.wait_json(f"{PREFIX}/reply", lambda r: r["id"] == "s")
-            await asyncio.sleep(0.5)
-            replies = watch.json_on(f"{PREFIX}/reply")
+        await watch.wait_for(f"{PREFIX}/availability", is_online)
+        for request_id, lines in batches.items():
+            await watch.publish(f"{PREFIX}/cmd/gcode", {"id": request_id, "lines": lines})
+        await watch.publish(f"{PREFIX}/cmd/gcode", b'{"id": "d", "lines": 7}')
+        await watch.publish(f"{PREFIX}/cmd/realtime", {"id": "r", "command": "hold"})
+        await watch.wait_json(f"{PREFIX}/reply", lambda r: r["id"] == "c" and r["index"])
+        await watch.wait_json(f"{PREFIX}/reply", lambda r: r["id"] == "d")
+        await watch.publish(f"{PREFIX}/cmd/realtime", {"id": "s", "command": "resume"})
+        await watch.wait_json(f"{PREFIX}/reply", lambda r: r["id"] == "s")
+        await asyncio.sleep(0.5)
+        replies = watch.json_on(f"{PREFIX}/reply")
         report = await tcp_report(served.tcp_port)
+        await watch.publish(f"{PREFIX}/cmd/gcode", {"id": "e", "lines": ["M112"]})
+        alarm = await watch.wait_json(f"{PREFIX}/event/alarm")
+        status = await watch.wait_json(f"{PREFIX}/status", lambda s: s["alarm"])
     gcode = [r for r in replies if r["command"] == "gcode" and "index" in r]
     assert sorted((r["id"], r["index"]) for r in gcode) == sorted(
         [("a", 0), ("a", 1), ("a", 2), ("b", 0), ("b", 1), ("b", 2), ("c", 0), ("c", 1)])
@@ -166,6 +169,9 @@ async def test_gcode_lines_are_answered_one_to_one_with_their_correlation_id(
     assert invalid["error"]["reason"] == "invalid_payload" and "index" not in invalid
     assert {r["id"] for r in replies if r["command"] == "realtime" and r["ok"]} == {"r", "s"}
     assert mpos(report) == [0.0, 0.0]
+    assert alarm["machine"] == "Mill 1" and alarm["state"] == "Alarm"
+    assert alarm["alarm"]["code"] == 40 and alarm["alarm"]["meaning"].startswith("Halt")
+    assert status["state"] == "Alarm" and status["alarm"] == alarm["alarm"]
 
 
 async def test_a_broker_restart_mid_job_leaves_motion_alone_and_state_is_republished(
