@@ -28,7 +28,7 @@ import asyncio
 import contextlib
 import importlib.util
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from modules.mqtt.config import MqttConfig, Topics, broker_address, slug
 from modules.mqtt.control import Control
@@ -39,6 +39,9 @@ from server import __version__
 from server.errors import ConfigError
 from server.runtime.events import Event, MachineState
 from server.runtime.module import Module, ModuleContext
+
+if TYPE_CHECKING:
+    from modules.mqtt.link import Link
 
 IDLE_LOOK_S = 1.0  # while nothing signals a change, the status is still sampled this often
 _WAKE_EVENTS = (Event.STATE, Event.HALT, Event.CLEAR_HALT, Event.HOLD, Event.HOLD_STOPPED,
@@ -69,7 +72,7 @@ class Mqtt(Module):
         self.published_status: dict[str, Any] | None = None
         self._wake = asyncio.Event()
         self._job: tuple[str, float, str] | None = None  # name, started_s, state
-        self.link: Any = None  # the Link once running (aiomqtt is imported then)
+        self.link: Link | None = None  # once running (aiomqtt is imported then)
         for event in _WAKE_EVENTS:
             ctx.subscribe(event, lambda *_: self._wake.set())
         ctx.subscribe(Event.STATE, self._on_state)
@@ -103,8 +106,8 @@ class Mqtt(Module):
         return {
             "broker": str(self.broker),
             "prefix": self.topics.prefix,
-            "connected": bool(link and link.connected),
-            "dropped": self.outbox.dropped + (link.dropped_incoming if link else 0),
+            "connected": link is not None and link.connected,
+            "dropped": self.outbox.dropped + (0 if link is None else link.dropped_incoming),
         }
 
     # -- status ---------------------------------------------------------------------------
