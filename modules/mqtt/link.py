@@ -6,6 +6,11 @@ One connection at a time: on connect it publishes ``online`` (retained; the last
 subscribes to the command topics and runs a sender (draining the :class:`Outbox`) beside a
 receiver (handing each message to ``on_message``, a plain function that never waits). When
 cancelled (shutdown), it publishes ``offline`` before it disconnects.
+
+Every publish and subscribe is bounded by ``asyncio.timeout`` around a call made with
+``timeout=math.inf``: aiomqtt's own timeouts use ``asyncio.wait_for``, which on Python 3.11
+loses a cancellation that arrives as the awaited reply does, and a sender that misses its
+cancellation keeps the module (and so the server's shutdown) alive.
 """
 
 from __future__ import annotations
@@ -13,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import random
 import ssl
 from collections.abc import Callable
@@ -119,11 +125,18 @@ class Link:
             finally:
                 self.connected = False
 
+    async def _publish(self, client: aiomqtt.Client, message: Outgoing,
+                       timeout_s: float = PUBLISH_TIMEOUT_S) -> None:
+        async with asyncio.timeout(timeout_s):
+            await client.publish(message.topic, message.payload, self.qos, message.retain,
+                                 timeout=math.inf)
+
     async def _greet(self, client: aiomqtt.Client) -> None:
-        await client.publish(self.topics.availability, b"online", self.qos, retain=True)
+        await self._publish(client, Outgoing(self.topics.availability, b"online", True))
         for message in self.greeting():
-            await client.publish(message.topic, message.payload, self.qos, message.retain)
-        granted = await client.subscribe(self.topics.commands, self.qos)
+            await self._publish(client, message)
+        async with asyncio.timeout(PUBLISH_TIMEOUT_S):
+            granted = await client.subscribe(self.topics.commands, self.qos, timeout=math.inf)
         if any(_refused(code) for code in granted):
             self.log.warning("the broker refused %s to this user (its ACL): commands cannot "
                              "be received or answered", self.topics.commands)
@@ -132,8 +145,8 @@ class Link:
         while True:
             message = await self.outbox.get()
             try:
-                await client.publish(message.topic, message.payload, self.qos, message.retain)
-            except aiomqtt.MqttError:
+                await self._publish(client, message)
+            except NOT_CONNECTED:
                 if message.topic == self.topics.status:
                     self.outbox.restore_status(message)
                 raise
@@ -152,8 +165,8 @@ class Link:
     async def _farewell(self, client: aiomqtt.Client) -> None:
         """Shutdown: say ``offline`` (the will is only for a connection that breaks)."""
         with contextlib.suppress(*NOT_CONNECTED):
-            await client.publish(self.topics.availability, b"offline", self.qos, retain=True,
-                                 timeout=FAREWELL_TIMEOUT_S)
+            offline = Outgoing(self.topics.availability, b"offline", True)
+            await self._publish(client, offline, FAREWELL_TIMEOUT_S)
 
 
 def _refused(code: object) -> bool:

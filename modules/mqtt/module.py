@@ -120,8 +120,9 @@ class Mqtt(Module):
             busy = self._offer_status()
             await asyncio.sleep(period_s)
             if not busy and not self._wake.is_set():
-                with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(self._wake.wait(), max(0.0, IDLE_LOOK_S - period_s))
+                with contextlib.suppress(TimeoutError):  # not wait_for: see modules.mqtt.link
+                    async with asyncio.timeout(max(0.0, IDLE_LOOK_S - period_s)):
+                        await self._wake.wait()
 
     def _offer_status(self, force: bool = False) -> bool:
         """Queue the status if it changed; whether the machine is busy (it will change)."""
