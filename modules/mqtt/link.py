@@ -7,10 +7,11 @@ subscribes to the command topics and runs a sender (draining the :class:`Outbox`
 receiver (handing each message to ``on_message``, a plain function that never waits). When
 cancelled (shutdown), it publishes ``offline`` before it disconnects.
 
-Every publish and subscribe is bounded by ``asyncio.timeout`` around a call made with
-``timeout=math.inf``: aiomqtt's own timeouts use ``asyncio.wait_for``, which on Python 3.11
-loses a cancellation that arrives as the awaited reply does, and a sender that misses its
-cancellation keeps the module (and so the server's shutdown) alive.
+Connecting, publishing, subscribing and disconnecting are each bounded by ``asyncio.timeout``
+around aiomqtt calls made without a timeout of their own (``math.inf``): aiomqtt's timeouts use
+``asyncio.wait_for``, which on Python 3.11 loses a cancellation that arrives with the awaited
+reply, and a sender that misses its cancellation keeps the module (and so the server's
+shutdown) alive.
 """
 
 from __future__ import annotations
@@ -31,6 +32,8 @@ from modules.mqtt.outbox import Outbox, Outgoing
 
 INCOMING_LIMIT = 1000  # messages received and not yet handled; more are dropped (and counted)
 PUBLISH_TIMEOUT_S = 10.0
+CONNECT_TIMEOUT_S = 15.0
+CLOSE_TIMEOUT_S = 2.0
 FAREWELL_TIMEOUT_S = 0.5
 FIRST_DELAY_S = 0.5
 NOT_CONNECTED = (aiomqtt.MqttError, OSError, TimeoutError)
@@ -107,23 +110,32 @@ class Link:
             self.broker.host, self.broker.port, username=login.username,
             password=login.password, identifier=self.client_id, tls_context=tls,
             will=aiomqtt.Will(self.topics.availability, b"offline", self.qos, retain=True),
-            keepalive=self.keepalive_s, timeout=PUBLISH_TIMEOUT_S, logger=self._client_log,
+            keepalive=self.keepalive_s, timeout=math.inf, logger=self._client_log,
             max_queued_incoming_messages=INCOMING_LIMIT, clean_session=True,
         )
-        async with client:
-            self.connected = True
-            self.connections += 1
-            self.log.info("connected to %s as %s", self.broker, self.client_id)
-            try:
-                await self._greet(client)
-                async with asyncio.TaskGroup() as group:
-                    group.create_task(self._send(client))
-                    group.create_task(self._receive(client))
-            except asyncio.CancelledError:
-                await self._farewell(client)
-                raise
-            finally:
-                self.connected = False
+        async with asyncio.timeout(CONNECT_TIMEOUT_S):
+            await client.__aenter__()
+        try:
+            await self._connected(client)
+        finally:
+            with contextlib.suppress(*NOT_CONNECTED):
+                async with asyncio.timeout(CLOSE_TIMEOUT_S):
+                    await client.__aexit__(None, None, None)
+
+    async def _connected(self, client: aiomqtt.Client) -> None:
+        self.connected = True
+        self.connections += 1
+        self.log.info("connected to %s as %s", self.broker, self.client_id)
+        try:
+            await self._greet(client)
+            async with asyncio.TaskGroup() as group:
+                group.create_task(self._send(client))
+                group.create_task(self._receive(client))
+        except asyncio.CancelledError:
+            await self._farewell(client)
+            raise
+        finally:
+            self.connected = False
 
     async def _publish(self, client: aiomqtt.Client, message: Outgoing,
                        timeout_s: float = PUBLISH_TIMEOUT_S) -> None:
