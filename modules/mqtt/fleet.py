@@ -34,6 +34,7 @@ class Machine:
             "topic": self.key,
             "availability": self.availability,
             "state": self.status.get("state"),
+            "alarm_code": (self.status.get("alarm") or {}).get("code"),
             "alarm": (self.status.get("alarm") or {}).get("meaning") or None,
             "job": job.get("name"),
             "job_state": job.get("state"),
@@ -81,8 +82,8 @@ def _cells(row: dict[str, Any]) -> tuple[str, ...]:
     if row["job_state"] and row["job_state"] != "running":
         job += f" ({row['job_state']})"
     state = row["state"] or "-"
-    if row["alarm"]:
-        state += f": {row['alarm']}"
+    if row["alarm_code"]:
+        state += f" {row['alarm_code']}"  # the meaning is in --json
     return (
         row["machine"], row["availability"], state, job,
         "-" if progress is None else f"{progress:.0f} %",

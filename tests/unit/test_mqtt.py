@@ -175,15 +175,19 @@ def test_the_fleet_table() -> None:
         {"machine": "Laser 1", **SNAPSHOT}).encode())
     absorb(machines, "motiond", "motiond/mill/availability", b"offline")
     absorb(machines, "motiond", "motiond/mill/status", b"{broken")
+    absorb(machines, "motiond", "motiond/cnc/status", json.dumps({"state": "Alarm", "alarm": {
+        "code": 1, "message": "x", "meaning": "Hard limit triggered"}, "job": None}).encode())
     absorb(machines, "motiond", "other/x/status", b"{}")
     absorb(machines, "motiond", "motiond/x/reply", b"{}")
     rows = [machine.row() for machine in machines.values()]
-    assert [row["machine"] for row in rows] == ["Laser 1", "mill"]
+    assert [row["machine"] for row in rows] == ["Laser 1", "mill", "cnc"]
+    assert rows[2]["alarm"] == "Hard limit triggered" and rows[2]["availability"] == "unknown"
     assert rows[0]["progress_pct"] == 42.0 and rows[0]["job"] == "a.nc"
     lines = table(rows).splitlines()
     assert lines[0].split() == ["MACHINE", "ONLINE", "STATE", "JOB", "PROGRESS", "REMAINING"]
     assert lines[1].split() == ["Laser", "1", "online", "Run", "a.nc", "42", "%", "0:30"]
     assert lines[2].split() == ["mill", "offline", "-", "-", "-", "-"]
+    assert lines[3].split() == ["cnc", "unknown", "Alarm", "1", "-", "-", "-"]
     assert table([]) == "no machines found"
 
 
