@@ -10,7 +10,8 @@ so they wait their turn, are refused while another source's motion or a job runs
 and are locked out in ALARM. They run in a task of their own, one message after another, so
 that a line waiting for planner room never delays a ``hold`` or ``reset``; at most
 ``PENDING_BATCHES`` messages wait (more are refused ``busy``). A reset drops the lines that
-have not started (each answered ``busy``).
+have not started (each answered ``busy``). An M112 line stops the machine as it arrives, ahead
+of the lines waiting, as it does from a sender or the JSON API.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from modules.mqtt.payloads import (
 )
 from server.errors import CommandError, Error
 from server.gcode.parser import check_length
+from server.runtime.control import halts_at_once
 from server.runtime.module import ModuleContext
 
 PENDING_BATCHES = 16
@@ -100,6 +102,8 @@ class Control:
         self.reply(ok_reply(request.id, "job", name=request.name))
 
     def _queue_gcode(self, request: Gcode) -> None:
+        if any(halts_at_once(line) for line in request.lines):
+            self.ctx.control.emergency_stop()  # on arrival, as from every other source
         try:
             self._batches.put_nowait(_Batch(request, self._generation))
         except asyncio.QueueFull:

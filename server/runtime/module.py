@@ -114,8 +114,9 @@ class Motion(Protocol):
 
 
 class MachineControls(Protocol):
-    """Realtime control, acted on at once: exactly what ``!``, ``~`` and Ctrl-X do on any
-    connection (one implementation, :class:`server.runtime.control.MachineControl`)."""
+    """Realtime control, acted on at once: exactly what ``!``, ``~``, Ctrl-X and an arriving
+    M112 do on any connection (one implementation: ``server.runtime.control.MachineControl``).
+    """
 
     def hold(self) -> None:
         """Feed hold: decelerate to a stop on the path; a running job is paused."""
@@ -127,6 +128,10 @@ class MachineControls(Protocol):
 
     def reset(self) -> None:
         """Soft reset: stop at once and flush (ALARM:3 if it was moving); a job ends."""
+        ...
+
+    def emergency_stop(self) -> None:
+        """M112 on arrival: ALARM:40, motion stopped and tools off until ``$X`` or M999."""
         ...
 
 

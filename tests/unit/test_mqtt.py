@@ -198,7 +198,8 @@ class FakeContext:
         self.calls: list[str] = []
         self.core = SimpleNamespace(protocol=SimpleNamespace(line_limit=256))
         self.control = SimpleNamespace(**{name: (lambda n=name: self.calls.append(n))
-                                          for name in ("hold", "resume", "reset")})
+                                          for name in ("hold", "resume", "reset",
+                                                       "emergency_stop")})
         self.gate = asyncio.Event()
 
     async def run_gcode(self, text: str) -> list[str]:
@@ -238,6 +239,18 @@ async def test_control_answers_each_line_once_and_a_reset_drops_what_has_not_sta
     job = next(r for r in replies if r["command"] == "job")
     assert job["error"]["code"] == 44 and job["error"]["reason"] == "refused"
     assert ctx.calls == ["G0 X1", "G999", "G0 X2", "G0 X3", "reset"]
+
+
+async def test_an_m112_line_stops_the_machine_on_arrival_ahead_of_waiting_lines() -> None:
+    ctx, replies = FakeContext(), []
+    control = Control(ctx, replies.append, allowed=True, max_lines=10,  # type: ignore[arg-type]
+                      max_payload_bytes=1000)
+    task = asyncio.create_task(control.run())
+    control.on_command("gcode", b'{"id": "a", "lines": ["G0 X1"]}')
+    await asyncio.sleep(0)  # "G0 X1" waits for planner room
+    control.on_command("gcode", b'{"id": "b", "lines": ["G0 X2", "m 112"]}')
+    assert ctx.calls == ["G0 X1", "emergency_stop"]
+    task.cancel()
 
 
 def test_control_disabled_refuses_everything_and_keeps_the_id() -> None:
