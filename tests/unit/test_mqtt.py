@@ -24,7 +24,7 @@ from modules.mqtt.payloads import (
     status_payload,
 )
 from server.errors import CommandError, ConfigError, Error
-from tests.conftest import make_config
+from tests.conftest import REPO, make_config
 
 
 @pytest.mark.parametrize(("url", "address"), [
@@ -263,3 +263,18 @@ def test_control_disabled_refuses_everything_and_keeps_the_id() -> None:
     assert [r["id"] for r in replies] == ["a", None, None]
     assert all(r["error"]["reason"] == "control_disabled" for r in replies)
     assert ctx.calls == [] and control.refused == 3
+
+
+def test_check_config_names_the_file_section_and_key(
+    tmp_path: Any, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from server.cli import main
+
+    bad = tmp_path / "fleet.toml"
+    bad.write_text((REPO / "examples" / "mqtt.toml").read_text().replace(
+        'url = "mqtt://broker.local:1883"', 'url = "tcp://broker.local:1883"').replace(
+        "qos = 1", "qos = 3"))
+    assert main(["check-config", str(bad)]) == 1
+    errors = capsys.readouterr().err
+    assert f"{bad}: [mqtt] url: the scheme must be mqtt:// or mqtts://" in errors
+    assert f"{bad}: [mqtt] qos: Input should be less than or equal to 2" in errors
