@@ -40,9 +40,12 @@ NOT_CONNECTED = (aiomqtt.MqttError, OSError, TimeoutError)
 
 
 @dataclass(frozen=True, slots=True)
-class Credentials:
+class Login:
+    """What a connection attempt needs from files: the password and the TLS context."""
+
     username: str | None
     password: str | None
+    tls: ssl.SSLContext | None
 
 
 class _CountDrops(logging.Filter):
@@ -83,14 +86,14 @@ class Link:
     def dropped_incoming(self) -> int:
         return self._drops.dropped
 
-    async def run(self, credentials: Callable[[], Credentials], tls: ssl.SSLContext | None) -> None:
-        """Stay connected until cancelled. ``credentials`` is read before each attempt."""
+    async def run(self, login: Callable[[], Login]) -> None:
+        """Stay connected until cancelled. ``login`` runs in a thread before each attempt (it
+        reads files: a password file or CA certificates that cannot be read are retried)."""
         delay_s, quiet = FIRST_DELAY_S, False
         while True:
             connections = self.connections
             try:
-                login = await asyncio.to_thread(credentials)
-                await self._session(login, tls)
+                await self._session(await asyncio.to_thread(login))
             except* NOT_CONNECTED as group:
                 if self.connections > connections:  # it was up: start the back-off again
                     delay_s, quiet = FIRST_DELAY_S, False
@@ -105,10 +108,10 @@ class Link:
             await asyncio.sleep(delay_s * random.uniform(0.8, 1.2))
             delay_s = min(self.reconnect_max_s, delay_s * 2)
 
-    async def _session(self, login: Credentials, tls: ssl.SSLContext | None) -> None:
+    async def _session(self, login: Login) -> None:
         client = aiomqtt.Client(
             self.broker.host, self.broker.port, username=login.username,
-            password=login.password, identifier=self.client_id, tls_context=tls,
+            password=login.password, identifier=self.client_id, tls_context=login.tls,
             will=aiomqtt.Will(self.topics.availability, b"offline", self.qos, retain=True),
             keepalive=self.keepalive_s, timeout=math.inf, logger=self._client_log,
             max_queued_incoming_messages=INCOMING_LIMIT, clean_session=True,
@@ -190,8 +193,3 @@ def _refused(code: object) -> bool:
 def _reason(group: BaseExceptionGroup[BaseException]) -> str:
     errors = group.exceptions
     return "; ".join(str(error) or type(error).__name__ for error in errors[:3])
-
-
-def tls_context(ca_file: str | None) -> ssl.SSLContext:
-    """The TLS context of an ``mqtts://`` broker (reads certificates: call it in a thread)."""
-    return ssl.create_default_context(cafile=ca_file)

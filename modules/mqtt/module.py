@@ -27,6 +27,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import importlib.util
+import ssl
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -41,7 +42,7 @@ from server.runtime.events import Event, MachineState
 from server.runtime.module import Module, ModuleContext
 
 if TYPE_CHECKING:
-    from modules.mqtt.link import Link
+    from modules.mqtt.link import Link, Login
 
 IDLE_LOOK_S = 1.0  # while nothing signals a change, the status is still sampled this often
 _WAKE_EVENTS = (Event.STATE, Event.HALT, Event.CLEAR_HALT, Event.HOLD, Event.HOLD_STOPPED,
@@ -79,27 +80,30 @@ class Mqtt(Module):
         ctx.subscribe(Event.JOB, self._on_job)
 
     async def run(self) -> None:
-        from modules.mqtt.link import Credentials, Link, tls_context
+        from modules.mqtt.link import Link
 
         config = self.config
-        tls = None
-        if self.broker.tls:
-            ca_file = None if config.ca_file is None else str(config.ca_file)
-            tls = await asyncio.to_thread(tls_context, ca_file)
         link = Link(self.broker, self.topics, self.outbox, client_id=self.client_id,
                     qos=config.qos, keepalive_s=config.keepalive_s,
                     reconnect_max_s=config.reconnect_max_s, log=self.ctx.log)
         link.greeting = self._greeting
         link.on_message = self._on_message
         self.link = link
-
-        def credentials() -> Credentials:  # run in a thread: it may read the password file
-            return Credentials(config.username, _password(config))
-
         async with asyncio.TaskGroup() as group:
-            group.create_task(link.run(credentials, tls), name="mqtt-link")
+            group.create_task(link.run(self._login), name="mqtt-link")
             group.create_task(self.control.run(), name="mqtt-gcode")
             group.create_task(self._sample(), name="mqtt-status")
+
+    def _login(self) -> Login:
+        """Run in a thread before each connection attempt: it reads files."""
+        from modules.mqtt.link import Login
+
+        config = self.config
+        tls = None
+        if self.broker.tls:
+            tls = ssl.create_default_context(
+                cafile=None if config.ca_file is None else str(config.ca_file))
+        return Login(config.username, _password(config), tls)
 
     def status(self) -> dict[str, Any]:
         link = self.link

@@ -2,7 +2,9 @@
 
 The broker listens on a free loopback port with a generated config (persistence off, so a
 restart forgets every retained message: whatever is retained afterwards was published again).
-With ``users`` it takes only those users (a password file made with ``mosquitto_passwd``).
+With ``users`` it takes only those users (a password file made with ``mosquitto_passwd``);
+with ``tls`` it speaks only TLS, with a self-signed certificate for 127.0.0.1 (``openssl``)
+saved as ``cert.pem`` in its folder.
 """
 
 from __future__ import annotations
@@ -37,9 +39,11 @@ class Broker:
     port: int
     process: asyncio.subprocess.Process | None = None
 
+    tls: bool = False
+
     @property
     def url(self) -> str:
-        return f"mqtt://127.0.0.1:{self.port}"
+        return f"{'mqtts' if self.tls else 'mqtt'}://127.0.0.1:{self.port}"
 
     async def start(self) -> None:
         self.process = await asyncio.create_subprocess_exec(
@@ -67,11 +71,16 @@ class Broker:
 
 
 @contextlib.asynccontextmanager
-async def mosquitto(folder: Path, users: dict[str, str] | None = None) -> AsyncIterator[Broker]:
+async def mosquitto(
+    folder: Path, users: dict[str, str] | None = None, tls: bool = False
+) -> AsyncIterator[Broker]:
     folder.mkdir(parents=True, exist_ok=True)
-    broker = Broker(folder, free_port())
+    broker = Broker(folder, free_port(), tls=tls)
     lines = [f"listener {broker.port} 127.0.0.1", "persistence false", "user root",
              "log_dest none", "max_queued_messages 100000"]
+    if tls:
+        await self_signed(folder / "cert.pem", folder / "key.pem")
+        lines += [f"certfile {folder / 'cert.pem'}", f"keyfile {folder / 'key.pem'}"]
     if users:
         passwords = folder / "passwords"
         for number, (user, password) in enumerate(users.items()):
@@ -88,6 +97,16 @@ async def mosquitto(folder: Path, users: dict[str, str] | None = None) -> AsyncI
         yield broker
     finally:
         await broker.stop()
+
+
+async def self_signed(cert: Path, key: Path) -> None:
+    """A certificate for 127.0.0.1, its own CA (valid one day)."""
+    made = await asyncio.create_subprocess_exec(
+        "openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1",
+        "-keyout", str(key), "-out", str(cert), "-subj", "/CN=127.0.0.1",
+        "-addext", "subjectAltName=IP:127.0.0.1",
+        stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.DEVNULL)
+    assert await made.wait() == 0, "openssl could not make a certificate"
 
 
 @dataclass
