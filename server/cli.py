@@ -1,4 +1,4 @@
-"""``motiond``: serve (default), check-config, estimate, render."""
+"""``motiond``: serve (default), check-config, estimate, render, fleet."""
 
 from __future__ import annotations
 
@@ -28,6 +28,7 @@ examples:
   motiond check-config my.toml         list every problem in a config file
   motiond estimate job.nc              job time, distances and bounding box
   motiond render job.nc -o job.svg     a picture of the toolpath coloured by speed
+  motiond fleet --url mqtt://broker    every machine on an MQTT broker ([mqtt] module)
 """
 
 
@@ -71,7 +72,38 @@ def build_parser() -> argparse.ArgumentParser:
             sub.add_argument(
                 "-o", "--output", type=Path, required=True, help="output file (.svg or .png)"
             )
+    _fleet_options(commands)
     return parser
+
+
+FLEET_EPILOG = """\
+Lists the machines whose [mqtt] module publishes under PREFIX/<machine>/ (the default
+topic_prefix is motiond/<machine slug>), from their retained availability and status topics.
+
+examples:
+  motiond fleet --url mqtt://broker.local
+  motiond fleet --url mqtts://broker.example.com --username ops --password-file ~/.mqtt-pw
+  motiond fleet --url mqtt://127.0.0.1:1883 --json | jq '.[] | select(.state == "Alarm")'
+"""
+
+
+def _fleet_options(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    fleet = commands.add_parser(
+        "fleet", help="list the machines on an MQTT broker with their state and job progress",
+        description="Every motiond on an MQTT broker: online or offline, state, job, progress.",
+        epilog=FLEET_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    fleet.add_argument(
+        "--url", default=os.environ.get("MOTIOND_MQTT_URL", "mqtt://127.0.0.1:1883"),
+        help="broker, mqtt://host[:1883] or mqtts://host[:8883] "
+        "(default: $MOTIOND_MQTT_URL, else mqtt://127.0.0.1:1883)")
+    fleet.add_argument("--prefix", default="motiond",
+                       help="topic level above each machine's (default: motiond)")
+    fleet.add_argument("--username", help="broker user")
+    fleet.add_argument("--password-file", type=Path, help="file holding the broker password")
+    fleet.add_argument("--ca-file", type=Path, help="mqtts: CA certificates to trust")
+    fleet.add_argument("--wait-s", type=float, default=1.0,
+                       help="how long to collect retained messages (default: 1.0)")
+    fleet.add_argument("--json", action="store_true", help="print JSON, one object per machine")
 
 
 def _serve_options(parser: argparse.ArgumentParser) -> None:
@@ -114,6 +146,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if args.command == "check-config":
             return check_config(args.file)
+        if args.command == "fleet":
+            from modules.mqtt.fleet import fleet_command
+
+            return fleet_command(args)
         config = load_config(args.config)
         if getattr(args, "no_limits", False):
             config.core.machine.soft_limits = False

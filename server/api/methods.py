@@ -21,14 +21,14 @@ from typing import TYPE_CHECKING, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from server import __version__
-from server.api.telemetry import TOPICS, build_status
+from server.api.telemetry import TOPICS
 from server.errors import ERROR_MEANINGS, CommandError, Error
 from server.gcode.parser import check_length
 from server.protocol.lines import Realtime
 from server.protocol.reports import StatusScheduler
 from server.runtime.control import MachineControl, halts_at_once
 from server.runtime.module import ApiMethod
-from server.runtime.status import snapshot, state_text
+from server.runtime.status import build_status, snapshot, state_text
 
 if TYPE_CHECKING:
     from server.api.server import Connection, JsonApi

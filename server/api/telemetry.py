@@ -16,17 +16,14 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import dataclasses
 import json
 import logging
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from server.errors import ALARM_MEANINGS
-from server.motion.moves import MoveKind, ToolMode
 from server.runtime.events import Event, MachineState
 from server.runtime.outbox import BoundedQueue
-from server.runtime.status import state_text
+from server.runtime.status import build_status, job_dict, tool_power_pct
 
 if TYPE_CHECKING:
     from server.runtime.kernel import Kernel
@@ -34,7 +31,6 @@ if TYPE_CHECKING:
 log = logging.getLogger("motiond.telemetry")
 QUEUE_FRAMES = 256
 TOPICS = frozenset({"status", "telemetry", "console", "job"})
-CUTTING = frozenset({MoveKind.FEED, MoveKind.ARC, MoveKind.PROBE})
 _WAKE_EVENTS = (
     "state",
     "halt",
@@ -183,49 +179,6 @@ class Publisher:
 
 
 # -- what is published ----------------------------------------------------------------------
-def build_status(kernel: Kernel) -> dict[str, Any]:
-    """The machine as the web UI shows it: JSON-able, rounded so that noise is not a change."""
-    machine = kernel.machine
-    motion = machine.stepgen.state
-    interpreter = machine.interpreter
-    mpos = motion.position_mm
-    alarm = None
-    if kernel.state is MachineState.ALARM:
-        alarm = {
-            "code": kernel.alarm_code,
-            "message": kernel.alarm_message,
-            "meaning": ALARM_MEANINGS.get(kernel.alarm_code, ""),
-        }
-    progress = kernel.jobs.progress()
-    return {
-        "state": state_text(kernel),
-        "alarm": alarm,
-        "mpos": _round(mpos),
-        "wpos": _round(interpreter.work_position(mpos)),
-        "wco": _round(interpreter.wco()),
-        "speed_mm_min": round(motion.speed_mm_s * 60.0, 1),
-        "power_pct": round(tool_power_pct(kernel), 1),
-        "tool": {
-            "mode": f"M{int(machine.tool.mode)}",
-            "s": machine.tool.s,
-            "flood": machine.tool.flood,
-            "mist": machine.tool.mist,
-        },
-        "moving": motion.moving,
-        "queue_depth": len(machine.planner),
-        "line": motion.line_number if motion.moving else None,
-        "overrides": {
-            "feed": machine.feed_override,
-            "rapid": machine.rapid_override,
-            "spindle": machine.spindle_override,
-        },
-        "modal": interpreter.modal_snapshot(),
-        "job": None if progress is None else job_dict(progress),
-        "modules": {name: module.status() for name, module in kernel.modules.items()},
-        **{name: read() for name, read in kernel.status_fields.items()},
-    }
-
-
 def telemetry_sample(kernel: Kernel) -> dict[str, Any]:
     """One point for the live plots: machine time, speed and tool power."""
     motion = kernel.machine.stepgen.state
@@ -235,32 +188,3 @@ def telemetry_sample(kernel: Kernel) -> dict[str, Any]:
         "power_pct": round(tool_power_pct(kernel), 1),
         "s": motion.s_value if motion.moving else kernel.machine.tool.s,
     }
-
-
-def tool_power_pct(kernel: Kernel) -> float:
-    """Tool power now, in percent: a module's ``power_pct`` status field when one gives it
-    (the laser's real duty), else what Grbl's laser mode would fire (S over ``$30``, scaled
-    by speed under M4)."""
-    contributed = kernel.status_fields.get("power_pct")
-    if contributed is not None:
-        return float(contributed())
-    motion = kernel.machine.stepgen.state
-    if not motion.moving or motion.kind not in CUTTING or motion.tool_mode is ToolMode.OFF:
-        return 0.0
-    max_s = kernel.machine.settings.values().get(30, 1000.0) or 1000.0
-    ratio = min(1.0, max(0.0, motion.s_value / max_s))
-    if motion.tool_mode is ToolMode.CCW and motion.nominal_mm_s > 0:
-        ratio *= min(1.0, motion.speed_mm_s / motion.nominal_mm_s)
-    return 100.0 * ratio
-
-
-def job_dict(progress: Any) -> dict[str, Any]:
-    data = dataclasses.asdict(progress)
-    for key in ("percent", "elapsed_s", "remaining_s", "estimate_s", "started_s"):
-        if isinstance(data.get(key), float):
-            data[key] = round(data[key], 1)
-    return data
-
-
-def _round(values: tuple[float, ...]) -> list[float]:
-    return [round(value, 3) + 0.0 for value in values]

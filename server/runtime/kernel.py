@@ -31,6 +31,7 @@ from server.runtime.jobs import Jobs
 from server.runtime.machine import Machine, SyncHandler
 from server.runtime.module import ApiHandler, ApiMethod, ApiParams, Module
 from server.runtime.state import MachineStatus
+from server.runtime.status import build_status
 
 log = logging.getLogger("motiond.kernel")
 
@@ -96,6 +97,7 @@ class _Context:
         self.outputs = _Outputs(kernel.machine, kernel.clock)
         self.inputs = _Inputs(kernel.machine)
         self.moves = _Motion(kernel.machine)
+        self.control = kernel.control
         self._source = SystemSource(f"module {name}")
 
     def register_command(
@@ -125,6 +127,12 @@ class _Context:
 
     async def run_gcode(self, text: str) -> list[str]:
         return await self._kernel.dispatcher.submit(text, self._source)
+
+    def start_job(self, name: str) -> None:
+        self._kernel.jobs.play(name)
+
+    def status(self) -> dict[str, Any]:
+        return build_status(self._kernel)
 
     def register_api_method(
         self,

@@ -113,6 +113,28 @@ class Motion(Protocol):
         ...
 
 
+class MachineControls(Protocol):
+    """Realtime control, acted on at once: exactly what ``!``, ``~``, Ctrl-X and an arriving
+    M112 do on any connection (one implementation: ``server.runtime.control.MachineControl``).
+    """
+
+    def hold(self) -> None:
+        """Feed hold: decelerate to a stop on the path; a running job is paused."""
+        ...
+
+    def resume(self) -> None:
+        """Cycle start: continue where the hold stopped; a paused job plays on."""
+        ...
+
+    def reset(self) -> None:
+        """Soft reset: stop at once and flush (ALARM:3 if it was moving); a job ends."""
+        ...
+
+    def emergency_stop(self) -> None:
+        """M112 on arrival: ALARM:40, motion stopped and tools off until ``$X`` or M999."""
+        ...
+
+
 class ModuleContext(Protocol):
     """What a module may use of the core (DESIGN.md rule 2): narrow ports, not the machine."""
 
@@ -129,6 +151,11 @@ class ModuleContext(Protocol):
 
     @property
     def moves(self) -> Motion: ...
+
+    @property
+    def control(self) -> MachineControls:
+        """Hold, resume and reset, the same for a module as for every connection."""
+        ...
 
     def register_command(
         self, name: str, handler: Handler, *, when_locked: bool = False, query: bool = False
@@ -159,6 +186,17 @@ class ModuleContext(Protocol):
 
     async def run_gcode(self, text: str) -> list[str]:
         """Run one line in order with every other source, as the module."""
+        ...
+
+    def start_job(self, name: str) -> None:
+        """Play the stored job file ``name``, as the JSON API's ``job.start`` does; raises
+        :class:`~server.errors.CommandError` (45 busy, 44 no such file) and changes nothing."""
+        ...
+
+    def status(self) -> dict[str, Any]:
+        """The machine now, as the web UI's status shows it (JSON-able: state, alarm and its
+        meaning, positions, speed, tool power, queue, the job with its progress); the one
+        snapshot of :func:`server.runtime.status.build_status`, built on each call."""
         ...
 
     def register_api_method(
