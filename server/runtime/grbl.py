@@ -103,7 +103,7 @@ class GrblMachine(Machine):
         if self.status.state is MachineState.IDLE:
             self.status.set_state(MachineState.RUN)
         reply: asyncio.Future[list[str]] = asyncio.get_running_loop().create_future()
-        answer.add_done_callback(lambda done: _settle(done, reply, text))
+        answer.add_done_callback(lambda done: self._settle(done, reply, text))
         if command.defer is not None:
             command.defer(reply)
             return []
@@ -272,6 +272,27 @@ class GrblMachine(Machine):
             accessories=report.accessories,
         )
 
+    def _settle(self, answer: asyncio.Future[Answered], reply: asyncio.Future[list[str]],
+                text: str) -> None:
+        """The controller's answer becomes the line's reply (messages, or a CommandError); a
+        refusal is also told to every client (observers see why a job stopped)."""
+        if reply.done():
+            return
+        error: BaseException | None = (
+            LineDropped("cancelled") if answer.cancelled() else answer.exception())
+        if isinstance(error, LineDropped):
+            reply.set_exception(CommandError(Error.BUSY, f"not run: {error}"))
+        elif error is not None:
+            reply.set_exception(error)
+        elif answer.result().error is None:
+            reply.set_result(list(answer.result().messages))
+        else:
+            code = answer.result().error
+            assert code is not None
+            self.status.push(f"[MSG:controller error:{code} on {text}]")
+            reply.set_exception(_controller_error(code, text))
+        reply.exception()  # retrieved here: a caller gone since (a reset) must not log it
+
     # -- the task ---------------------------------------------------------------------------
     async def run(self) -> None:
         """The controller connection (no step generator: the controller steps)."""
@@ -279,25 +300,6 @@ class GrblMachine(Machine):
             await self.controller.run()
         finally:
             self.backend.close()
-
-
-def _settle(answer: asyncio.Future[Answered], reply: asyncio.Future[list[str]],
-            text: str) -> None:
-    """Turn the controller's answer into the line's reply (messages, or a CommandError)."""
-    if reply.done():
-        return
-    error: BaseException | None = (
-        LineDropped("cancelled") if answer.cancelled() else answer.exception())
-    if isinstance(error, LineDropped):
-        reply.set_exception(CommandError(Error.BUSY, f"not run: {error}"))
-    elif error is not None:
-        reply.set_exception(error)
-    else:
-        result = answer.result()
-        if result.error is None:
-            reply.set_result(list(result.messages))
-        else:
-            reply.set_exception(_controller_error(result.error, text))
 
 
 def _controller_error(code: int, text: str) -> CommandError:
