@@ -70,6 +70,7 @@ class GrblMachine(Machine):
         self._controller_alarm = False  # the alarm in force came from the controller
         self._previous_state = ""
         self._position_synced = False
+        self._overrides = (100, 100, 100)  # Grbl reports Ov: only now and then
         self._idle = asyncio.Event()
         self._idle.set()
 
@@ -147,6 +148,8 @@ class GrblMachine(Machine):
 
     def on_status(self, report: ControllerStatus) -> None:
         self.controller_status = report
+        self._overrides = report.overrides or self._overrides
+        self.feed_override, self.rapid_override, self.spindle_override = self._overrides
         self._publish_motion(report)
         base = report.base_state
         if base == "Alarm":
@@ -268,7 +271,7 @@ class GrblMachine(Machine):
             rx_free_bytes=rx_free_bytes,
             line_number=report.line_number,
             pins=report.pins,
-            overrides=report.overrides or (100, 100, 100),
+            overrides=self._overrides,
             accessories=report.accessories,
         )
 

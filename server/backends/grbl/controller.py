@@ -18,7 +18,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
 
@@ -86,6 +85,7 @@ class Controller:
         self.ready = False  # handshake done: client lines may flow
         self.handshake: Handshake | None = None
         self.lines_sent = 0
+        self.status_polls = 0  # '?' sent to the board: one task, whatever the clients ask
         self._writer: asyncio.StreamWriter | None = None
         self._futures: dict[int, asyncio.Future[Answered]] = {}
         self._room = asyncio.Event()
@@ -116,7 +116,7 @@ class Controller:
                 self._drop_connection(reason)
                 await asyncio.sleep(self.config.reconnect_s)
         finally:
-            self._drop_connection("motiond is stopping")
+            self._drop_connection("motiond is stopping", tell=False)
 
     async def _open(self) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
         if self.config.tcp is not None:
@@ -174,6 +174,7 @@ class Controller:
         period_s = 1.0 / self.config.status_hz
         while True:
             self.realtime(STATUS)
+            self.status_polls += 1
             await asyncio.sleep(period_s)
 
     async def _wait_banner(self) -> str:
@@ -266,7 +267,7 @@ class Controller:
                 future.exception()  # retrieved: nobody may be waiting for it any more
         self._room.set()
 
-    def _drop_connection(self, reason: str) -> None:
+    def _drop_connection(self, reason: str, *, tell: bool = True) -> None:
         writer, self._writer = self._writer, None
         was_ready, self.ready = self.ready, False
         self.status = None
@@ -274,20 +275,7 @@ class Controller:
         if writer is not None:
             with contextlib.suppress(Exception):
                 writer.close()
-        if was_ready:
+        if was_ready and tell:
             log.error("controller at %s lost: %s", self.where, reason)
             self.listener.on_lost(reason)
 
-
-def on_done(future: asyncio.Future[Answered], then: Callable[[Answered | None,
-            BaseException | None], None]) -> None:
-    """Call ``then(answer, None)`` or ``then(None, exception)`` once ``future`` is done."""
-    def done(finished: asyncio.Future[Answered]) -> None:
-        if finished.cancelled():
-            then(None, LineDropped("cancelled"))
-        elif finished.exception() is not None:
-            then(None, finished.exception())
-        else:
-            then(finished.result(), None)
-
-    future.add_done_callback(done)
