@@ -1,6 +1,6 @@
 """Run motiond's benchmarks by name.
 
-    python -m benchmarks NAME [--quick] [--json]     # NAME: parser, planner, offline, streaming, grbl
+    python -m benchmarks NAME [--quick] [--json]   # parser, planner, offline, streaming, grbl
     python -m benchmarks all [--quick] [--json]
     python -m benchmarks --list
 

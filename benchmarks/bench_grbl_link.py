@@ -88,7 +88,7 @@ async def command(port: int, text: str) -> None:
     """Send one line to the controller over TCP and wait for its answer."""
     reader, writer = await asyncio.open_connection(HOST, port)
     writer.write(text.encode() + b"\n")
-    while not (line := (await reader.readline()).strip()).startswith((b"ok", b"error")):
+    while not (await reader.readline()).strip().startswith((b"ok", b"error")):
         pass
     writer.close()
 
@@ -138,7 +138,9 @@ async def through_motiond(workdir: Path, pty: Path, path: Path) -> dict[str, Any
     await app.ready.wait()
     machine = app.kernel.machine
     assert isinstance(machine, GrblMachine)
-    while not machine.controller.ready:
+    for _ in range(500):  # the handshake: banner, $I, $$, $#, $G
+        if machine.controller.ready:
+            break
         await asyncio.sleep(0.02)
     result = await run_client(app.transports[0].port, path,  # type: ignore[attr-defined]
                               banner=True)
