@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+from dataclasses import replace
 
 from server.backends.grbl.controller import Controller, Handshake, LineDropped
 from server.backends.grbl.link import (
@@ -89,7 +90,17 @@ class GrblMachine(Machine):
                 if not self.check_mode or sync.kind is SyncKind.MESSAGE:
                     messages += await self.sync(sync)
             return messages
+        if any(sync.kind is SyncKind.PROBE for sync in syncs):
+            return await self._probe(command)
         return await self.forward(compact(command.text), command)
+
+    async def _probe(self, command: Command) -> list[str]:
+        """G38.x: the board probes; motiond waits for it (Grbl's parser does too), then takes
+        the position it stopped at."""
+        messages = await self.forward(compact(command.text), replace(command, defer=None))
+        await self.wait_idle()
+        self.interpreter.set_position(self.stepgen.state.position_mm)
+        return messages
 
     async def forward(self, text: str, command: Command) -> list[str]:
         """Send one line to the controller; its reply is deferred when the caller allows."""

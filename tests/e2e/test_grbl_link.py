@@ -44,7 +44,8 @@ from tests.support.senders import (
 # The controller: fast enough that a few hundred short moves run in a few seconds.
 CONTROLLER_AXES = "".join(
     f"[axes.{axis}]\nsteps_per_mm = 80\nmax_rate_mm_s = 1000\naccel_mm_s2 = 50000\n"
-    "max_mm = 300\n" for axis in "xyz")
+    "min_mm = -50\nmax_mm = 300\n" for axis in "xyz")
+CONTROLLER_PROBE = "[backend]\nprobe_at_mm = { z = -2.0 }\n"  # its probe touches at Z-2
 STATUS_HZ = 20
 
 
@@ -71,7 +72,7 @@ def link_config(tmp_path: Path, **sections: Any) -> Config:
     """The motiond under test: axes deliberately unlike the controller's (it adopts those)."""
     data: dict[str, Any] = {
         "axes": {axis: {"steps_per_mm": 100, "max_rate_mm_s": 100, "accel_mm_s2": 1000,
-                        "max_mm": 300} for axis in "xyz"},
+                        "min_mm": -50, "max_mm": 300} for axis in "xyz"},
         "jobs": {"data_dir": str(tmp_path / "link-data")},
         "backend": {"kind": "grbl", "serial": str(tmp_path / "ttyController"),
                     "status_hz": STATUS_HZ, "reconnect_s": 0.2},
@@ -84,7 +85,7 @@ def link_config(tmp_path: Path, **sections: Any) -> Config:
 
 @contextlib.asynccontextmanager
 async def controller(tmp_path: Path) -> AsyncIterator[Served]:
-    async with motiond(tmp_path, axes_toml=CONTROLLER_AXES, name="controller",
+    async with motiond(tmp_path, CONTROLLER_PROBE, axes_toml=CONTROLLER_AXES, name="controller",
                        args=["--pty", str(tmp_path / "ttyController")]) as served:
         yield served
 
@@ -292,6 +293,9 @@ async def test_killing_the_controller_mid_job_alarms_and_a_new_one_is_reconnecte
         await client.state("Run")
         served.process.kill()
         await served.process.wait()
+        # the cable is out: the device node goes (udev removes /dev/ttyUSB0; here the link to
+        # the dead pty, whose number another pty on this machine may take at any time)
+        (tmp_path / "ttyController").unlink()
         await client.expect("ALARM:42")
         await client.expect("[MSG:job job.gcode stopped at")
         assert not app.kernel.jobs.active
@@ -309,3 +313,19 @@ async def test_killing_the_controller_mid_job_alarms_and_a_new_one_is_reconnecte
 async def link_after_controller(tmp_path: Path) -> AsyncIterator[tuple[Served, App]]:
     async with controller(tmp_path) as served, link(tmp_path) as app:
         yield served, app
+
+
+async def test_a_probe_waits_for_the_board_and_goes_on_from_where_it_stopped(
+        tmp_path: Path) -> None:
+    async with controller(tmp_path) as served, link(tmp_path) as app:
+        client = await CharCountingClient.connect("127.0.0.1", tcp_port(app))
+        try:
+            probed = await client.command("G38.2 Z-10 F600")
+            assert probed == ["[PRB:0.000,0.000,-2.000:1]", "ok"]
+            assert await client.command("G91 G0 Z1") == ["ok"]
+            assert (await client.command("M114"))[0] == "C: X:0.0000 Y:0.0000 Z:-1.0000 MPos: " \
+                "X:0.0000 Y:0.0000 Z:-1.0000"
+        finally:
+            await client.close()
+        await controller_settles_at(served, (0.0, 0.0, -1.0))
+        assert app.kernel.machine.interpreter.position == pytest.approx((0.0, 0.0, -1.0))

@@ -62,13 +62,15 @@ async def motiond(tmp_path: Path, extra_toml: str = "", *, args: Sequence[str] =
     config = tmp_path / f"{name}.toml"
     config.write_text(axes_toml + f"[jobs]\ndata_dir = '{data_dir}'\n" + extra_toml)
     tcp_port, http_port = free_port(), free_port()
+    log_file = (tmp_path / f"{name}.log").open("ab")  # its warnings, for a failing test
     process = await asyncio.create_subprocess_exec(
         sys.executable, "-m", "server.cli", "--config", str(config), "--host", "127.0.0.1",
         "--tcp-port", str(tcp_port), "--http-port", str(http_port), "--log-level", "warning",
         *args,
         cwd=REPO, env={**os.environ, "PYTHONUNBUFFERED": "1"},
-        stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.DEVNULL,
+        stdout=asyncio.subprocess.DEVNULL, stderr=log_file,
     )
+    log_file.close()
     try:
         await _wait_listening(tcp_port, process)
         await _wait_listening(http_port, process)

@@ -25,7 +25,7 @@ def test_embedded_default_is_a_simulated_laser_cutter() -> None:
     assert config.core.axis_names == ("X", "Y", "Z")
 
 
-@pytest.mark.parametrize("name", ["laser.toml", "cnc.toml", "plotter.toml"])
+@pytest.mark.parametrize("name", ["laser.toml", "cnc.toml", "plotter.toml", "grbl-link.toml"])
 def test_example_configs_load(name: str) -> None:
     config = load_config(REPO / "examples" / name)
     assert config.core.axis_names[:2] == ("X", "Y")
