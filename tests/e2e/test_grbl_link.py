@@ -320,12 +320,15 @@ async def test_a_probe_waits_for_the_board_and_goes_on_from_where_it_stopped(
     async with controller(tmp_path) as served, link(tmp_path) as app:
         client = await CharCountingClient.connect("127.0.0.1", tcp_port(app))
         try:
-            probed = await client.command("G38.2 Z-10 F600")
-            assert probed == ["[PRB:0.000,0.000,-2.000:1]", "ok"]
+            report, reply = await client.command("G38.2 Z-10 F600")
+            assert reply == "ok" and report.startswith("[PRB:0.000,0.000,-2.0")
+            touched_z = float(report.split(",")[2].split(":")[0])  # within a tick of Z-2
             assert await client.command("G91 G0 Z1") == ["ok"]
-            assert (await client.command("M114"))[0] == "C: X:0.0000 Y:0.0000 Z:-1.0000 MPos: " \
-                "X:0.0000 Y:0.0000 Z:-1.0000"
+            position = (await client.command("M114"))[0]
         finally:
             await client.close()
-        await controller_settles_at(served, (0.0, 0.0, -1.0))
-        assert app.kernel.machine.interpreter.position == pytest.approx((0.0, 0.0, -1.0))
+        end_z = round(touched_z + 1, 3)
+        assert position == f"C: X:0.0000 Y:0.0000 Z:{end_z:.4f} MPos: X:0.0000 Y:0.0000 " \
+            f"Z:{end_z:.4f}"
+        await controller_settles_at(served, (0.0, 0.0, end_z))
+        assert app.kernel.machine.interpreter.position == pytest.approx((0.0, 0.0, end_z))
