@@ -251,6 +251,23 @@ class GrblMachine(Machine):
     def cancel_jog(self) -> None:
         self.controller.realtime(Realtime.JOG_CANCEL)
 
+    def set_overrides(
+        self, feed: int | None = None, rapid: int | None = None, spindle: int | None = None
+    ) -> None:
+        """The API's override setter, as the realtime bytes Grbl knows (100 %, then ±10s and
+        ±1s); the board's next report confirms them."""
+        for value, steps in ((feed, _FEED_BYTES), (spindle, _SPINDLE_BYTES)):
+            if value is not None:
+                for byte in _override_bytes(max(10, min(200, value)), steps):
+                    self.controller.realtime(byte)
+        if rapid is not None:
+            self.controller.realtime({100: Realtime.RAPID_100, 50: Realtime.RAPID_50}.get(
+                rapid, Realtime.RAPID_25))
+        self.feed_override = self.feed_override if feed is None else max(10, min(200, feed))
+        self.spindle_override = (
+            self.spindle_override if spindle is None else max(10, min(200, spindle)))
+        self.rapid_override = self.rapid_override if rapid is None else rapid
+
     def soft_reset(self) -> None:
         self._controller_alarm = False
         super().soft_reset()
@@ -314,6 +331,21 @@ class GrblMachine(Machine):
             await self.controller.run()
         finally:
             self.backend.close()
+
+
+# (100 %, +10, -10, +1, -1) for feed and spindle overrides
+_FEED_BYTES = (Realtime.FEED_100, Realtime.FEED_PLUS_10, Realtime.FEED_MINUS_10,
+               Realtime.FEED_PLUS_1, Realtime.FEED_MINUS_1)
+_SPINDLE_BYTES = (Realtime.SPINDLE_100, Realtime.SPINDLE_PLUS_10, Realtime.SPINDLE_MINUS_10,
+                  Realtime.SPINDLE_PLUS_1, Realtime.SPINDLE_MINUS_1)
+
+
+def _override_bytes(percent: int, steps: tuple[Realtime, ...]) -> list[int]:
+    """The realtime bytes that take an override from anything to ``percent``."""
+    hundred, plus_10, minus_10, plus_1, minus_1 = steps
+    tens, ones = divmod(abs(percent - 100), 10)
+    up = percent >= 100
+    return [hundred, *[plus_10 if up else minus_10] * tens, *[plus_1 if up else minus_1] * ones]
 
 
 def _controller_error(code: int, text: str) -> CommandError:

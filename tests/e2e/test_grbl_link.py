@@ -248,6 +248,8 @@ async def test_hold_resume_override_and_reset_reach_the_controller(tmp_path: Pat
         client.writer.write(b"\x91")  # feed +10 %
         # motiond keeps no override of its own on this backend: Ov: is the board's report
         await client.state("Run", containing="|Ov:110,")
+        app.kernel.machine.set_overrides(feed=75, spindle=120)  # the API's machine.override
+        await client.state("Run", containing="|Ov:75,100,120")
         client.writer.write(b"\x18")
         await client.expect("ALARM:3")  # Grbl: reset while moving
         stopped = parse_status(await controller_report(served))
