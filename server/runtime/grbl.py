@@ -57,6 +57,7 @@ _STATES = {"Idle": MachineState.IDLE, "Run": MachineState.RUN, "Hold": MachineSt
            "Jog": MachineState.JOG, "Home": MachineState.HOME, "Door": MachineState.DOOR,
            "Sleep": MachineState.SLEEP, "Check": MachineState.CHECK}
 _MOVING = frozenset({"Run", "Jog", "Home"})
+_STILL = frozenset({"Idle", "Alarm", "Check", "Sleep"})  # nothing will move without a command
 
 
 class GrblMachine(Machine):
@@ -173,7 +174,7 @@ class GrblMachine(Machine):
             if state is not None:
                 self.status.set_state(state)
         self._previous_state = base
-        if self.controller.link.in_flight == 0 and base in ("Idle", "Alarm"):
+        if self.controller.link.in_flight == 0 and base in _STILL:
             self._sync_position(report)
             self._idle.set()
             self.idle_event.set()
@@ -199,6 +200,13 @@ class GrblMachine(Machine):
         self.status.alarm(Alarm.BACKEND_FAILED, f"controller connection lost: {reason}")
         self._idle.set()
         self.idle_event.set()
+
+    def on_restart(self, banner: str) -> None:
+        """The board restarted by itself (reset button, power): what it had is lost."""
+        self._position_synced = False
+        self._controller_alarm = False
+        self.status.alarm(Alarm.BACKEND_FAILED,
+                          f"the controller restarted ({banner}): position may be lost")
 
     def _publish_motion(self, report: ControllerStatus) -> None:
         """The controller's position and speed become motiond's motion state (web UI, M114)."""

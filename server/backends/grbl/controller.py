@@ -73,6 +73,8 @@ class ControllerListener(Protocol):
 
     def on_lost(self, reason: str) -> None: ...
 
+    def on_restart(self, banner: str) -> None: ...
+
 
 class Controller:
     """One downstream controller; see the module docstring."""
@@ -90,6 +92,7 @@ class Controller:
         self._futures: dict[int, asyncio.Future[Answered]] = {}
         self._room = asyncio.Event()
         self._banner = asyncio.Event()
+        self._reset_sent = False  # a banner after our own Ctrl-X is expected
         self._buffer_from_report = config.buffer_bytes is None
 
     @property
@@ -203,9 +206,10 @@ class Controller:
         elif isinstance(event, Banner):
             self._fail(event.dropped, "the controller restarted")
             self._banner_text = event.text
-            if self._banner.is_set() and self.ready:
-                self.listener.on_feedback(f"[MSG:controller restarted: {event.text}]")
+            expected, self._reset_sent = self._reset_sent, False
             self._banner.set()
+            if self.ready and not expected:  # reset button, power, a DTR pulse
+                self.listener.on_restart(event.text)
             self._room.set()
         elif isinstance(event, Feedback):
             self.listener.on_feedback(event.text)
@@ -257,6 +261,7 @@ class Controller:
         if self._writer is None:
             return
         self._writer.write(bytes((RESET,)))
+        self._reset_sent = True
         self._fail(self.link.reset(), "reset")
 
     def _fail(self, tokens: list[int] | tuple[int, ...], reason: str) -> None:
