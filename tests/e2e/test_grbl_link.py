@@ -23,6 +23,7 @@ from typing import Any
 
 import pytest
 
+from server.api.telemetry import build_status
 from server.app import App
 from server.backends.grbl.link import parse_status
 from server.config import Config, build_config
@@ -191,7 +192,12 @@ async def test_grbl_streamer_through_motiond_ends_the_controller_at_the_exact_po
         assert not sender.errors and not sender.alarms
         assert sender.processed == len(sender.sent), "a job line was never acknowledged"
         assert sender.oks == len(sender.writes), "one ok per line written, no more, no less"
-        await controller_settles_at(served, expected_run(lines, core).end_mm)
+        end_mm = expected_run(lines, core).end_mm
+        await controller_settles_at(served, end_mm)
+        # the web UI's live position is the board's
+        end = [round(v, 3) for v in end_mm]
+        await wait_for(lambda: build_status(app.kernel)["mpos"] == end, 2.0, "the UI at the end")
+        assert build_status(app.kernel)["state"] == "Idle"
 
 
 async def test_printcore_over_tcp_through_motiond(tmp_path: Path) -> None:
