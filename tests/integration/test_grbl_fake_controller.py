@@ -17,6 +17,7 @@ from server.runtime.events import MachineState
 from server.runtime.grbl import GrblMachine
 from server.transports.tcp import TcpTransport
 from tests.support.helpers import running
+from tests.support.senders import BANNER as MOTIOND_BANNER
 from tests.support.senders import CharCountingClient, wait_for
 
 BANNER = b"\r\nGrbl 3.7 [FluidNC v3.7.8 (wifi) '$' for help]\r\n"
@@ -30,6 +31,8 @@ class FakeController:
     def __init__(self) -> None:
         self.lines: list[str] = []
         self.resets = 0
+        self.mute_next_reset = False  # hang on the next Ctrl-X: no banner
+        self.connections = 0
         self.writer: asyncio.StreamWriter | None = None
         self.server: asyncio.Server | None = None
 
@@ -40,13 +43,16 @@ class FakeController:
 
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         self.writer = writer  # silent: no banner until Ctrl-X (as FluidNC on a socket)
+        self.connections += 1
         pending = b""
         while data := await reader.read(4096):
             pending += data
             if b"\x18" in pending:
                 self.resets += 1
                 pending = pending.rpartition(b"\x18")[2]
-                writer.write(BANNER)
+                if not self.mute_next_reset:
+                    writer.write(BANNER)
+                self.mute_next_reset = False
             if b"?" in pending:
                 pending = pending.replace(b"?", b"")
                 writer.write(b"<Idle|MPos:0.000,0.000|Bf:15,255|FS:0,0>\r\n")
@@ -74,7 +80,8 @@ class FakeController:
 
 
 @contextlib.asynccontextmanager
-async def linked(tmp_path: Path) -> AsyncIterator[tuple[FakeController, App]]:
+async def linked(tmp_path: Path, reply_timeout_s: float = 10.0
+                 ) -> AsyncIterator[tuple[FakeController, App]]:
     fake = FakeController()
     port = await fake.start()
     config = build_config({
@@ -82,7 +89,7 @@ async def linked(tmp_path: Path) -> AsyncIterator[tuple[FakeController, App]]:
                         "max_mm": 300} for axis in "xy"},
         "jobs": {"data_dir": str(tmp_path / "data")}, "tcp": {"port": 0},
         "backend": {"kind": "grbl", "tcp": f"127.0.0.1:{port}", "banner_timeout_s": 0.2,
-                    "status_hz": 20}})
+                    "status_hz": 20, "reply_timeout_s": reply_timeout_s, "reconnect_s": 0.1}})
     try:
         async with running(config, RealClock(), [TcpTransport]) as app:
             machine = app.kernel.machine
@@ -139,6 +146,28 @@ async def test_a_controller_that_restarts_by_itself_alarms(tmp_path: Path) -> No
             await wait_for(lambda: app.kernel.state is MachineState.ALARM, 2.0, "the alarm")
             assert app.kernel.alarm_code == 42
             assert (await client.command("G0 X1"))[-1] == "error:9"
+            assert (await client.command("$X"))[-1] == "ok"
+            assert (await client.command("G0 X1"))[-1] == "ok"
+        finally:
+            await client.close()
+
+
+async def test_a_board_that_does_not_come_back_from_ctrl_x_is_reconnected(
+        tmp_path: Path) -> None:
+    async with linked(tmp_path, reply_timeout_s=0.5) as (fake, app):
+        machine = app.kernel.machine
+        assert isinstance(machine, GrblMachine)
+        client = await client_of(app)
+        try:
+            fake.mute_next_reset = True
+            client.writer.write(b"\x18")
+            while (await client._line(5.0)) != MOTIOND_BANNER:  # motiond's, to its client
+                pass
+            # this line waits for the board's banner, which never comes: refused, not hung
+            assert (await client.command("G0 X1", timeout_s=5.0))[-1] == "error:45"
+            await wait_for(lambda: app.kernel.alarm_code == 42, 2.0, "ALARM:42")
+            await wait_for(lambda: fake.connections == 2 and machine.controller.ready, 5.0,
+                           "the reconnection")
             assert (await client.command("$X"))[-1] == "ok"
             assert (await client.command("G0 X1"))[-1] == "ok"
         finally:

@@ -93,6 +93,7 @@ class Controller:
         self._room = asyncio.Event()
         self._banner = asyncio.Event()
         self._reset_sent = False  # a banner after our own Ctrl-X is expected
+        self._banner_watch: asyncio.TimerHandle | None = None
         self._buffer_from_report = config.buffer_bytes is None
 
     @property
@@ -207,6 +208,7 @@ class Controller:
             self._fail(event.dropped, "the controller restarted")
             self._banner_text = event.text
             expected, self._reset_sent = self._reset_sent, False
+            self._stop_banner_watch()
             self._banner.set()
             if self.ready and not expected:  # reset button, power, a DTR pulse
                 self.listener.on_restart(event.text)
@@ -263,6 +265,23 @@ class Controller:
         self._writer.write(bytes((RESET,)))
         self._reset_sent = True
         self._fail(self.link.reset(), "reset")
+        if self.ready and self._banner_watch is None:
+            self._banner_watch = asyncio.get_running_loop().call_later(
+                self.config.reply_timeout_s, self._no_banner_after_reset)
+
+    def _no_banner_after_reset(self) -> None:
+        """A board that does not come back from Ctrl-X is hung: reconnect (which alarms), so
+        lines never wait for it for ever."""
+        self._banner_watch = None
+        if self.link.awaiting_banner and self._writer is not None:
+            log.error("no banner from %s %.1f s after Ctrl-X: reconnecting", self.where,
+                      self.config.reply_timeout_s)
+            self._writer.close()
+
+    def _stop_banner_watch(self) -> None:
+        if self._banner_watch is not None:
+            self._banner_watch.cancel()
+            self._banner_watch = None
 
     def _fail(self, tokens: list[int] | tuple[int, ...], reason: str) -> None:
         for token in tokens:
@@ -275,6 +294,7 @@ class Controller:
     def _drop_connection(self, reason: str, *, tell: bool = True) -> None:
         writer, self._writer = self._writer, None
         was_ready, self.ready = self.ready, False
+        self._stop_banner_watch()
         self.status = None
         self._fail(self.link.lost(), f"controller connection lost: {reason}")
         if writer is not None:
