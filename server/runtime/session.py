@@ -140,6 +140,7 @@ class Session:
         self._unsubscribe = kernel.events.subscribe(BusEvent.PUSH, self.push)
         self._task: asyncio.Task[None] | None = None
         self._replies: deque[tuple[int, asyncio.Future[bytes]]] = deque()  # behind a deferred
+        self._replies_room = asyncio.Event()
         self._closing = False
         self._closed = False
 
@@ -186,6 +187,7 @@ class Session:
         self._lines_ready.set()
         self._room.set()
         self._input_room.set()
+        self._replies_room.set()
 
     @property
     def closed(self) -> bool:
@@ -383,7 +385,8 @@ class Session:
                 self._queued_bytes = max(0, self._queued_bytes - _size(event))
                 self._answer(reply, epoch)
             while len(self._replies) >= INBOUND_LINES and not self._closing:
-                await asyncio.wait([self._replies[0][1]])
+                self._replies_room.clear()
+                await self._replies_room.wait()
             if self._ending is not None:
                 self.end(self._ending)
                 return
@@ -409,6 +412,8 @@ class Session:
             epoch, reply = self._replies.popleft()
             if epoch == self._epoch and not reply.cancelled():
                 self.outbox.put(reply.result())
+        if len(self._replies) < INBOUND_LINES:
+            self._replies_room.set()
 
     def _later(self, messages: list[str],
                deferred: list[asyncio.Future[list[str]]]) -> asyncio.Future[bytes]:

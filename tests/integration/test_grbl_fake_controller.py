@@ -15,6 +15,7 @@ from server.config import build_config
 from server.runtime.clock import RealClock
 from server.runtime.events import MachineState
 from server.runtime.grbl import GrblMachine
+from server.runtime.session import INBOUND_LINES, Session
 from server.transports.tcp import TcpTransport
 from tests.support.helpers import running
 from tests.support.senders import BANNER as MOTIOND_BANNER
@@ -33,6 +34,8 @@ class FakeController:
         self.resets = 0
         self.mute_next_reset = False  # hang on the next Ctrl-X: no banner
         self.connections = 0
+        self.held: list[bytes] = []  # answers held back while ``holding``
+        self.holding = False
         self.writer: asyncio.StreamWriter | None = None
         self.server: asyncio.Server | None = None
 
@@ -58,7 +61,11 @@ class FakeController:
                 writer.write(b"<Idle|MPos:0.000,0.000|Bf:15,255|FS:0,0>\r\n")
             *lines, pending = pending.split(b"\n")
             for line in lines:
-                writer.write(self._answer(line.decode().strip()))
+                answer = self._answer(line.decode().strip())
+                if self.holding and answer == b"ok\r\n":
+                    self.held.append(answer)  # a full planner: Grbl answers when it has room
+                else:
+                    writer.write(answer)
 
     def _answer(self, line: str) -> bytes:
         self.lines.append(line)
@@ -67,6 +74,12 @@ class FakeController:
         if line == "G0X3":
             return b"error:79\r\n"  # a grblHAL number Grbl 1.1 does not have
         return b"ok\r\n"
+
+    def release(self) -> None:
+        assert self.writer is not None
+        self.holding = False
+        self.writer.write(b"".join(self.held))
+        self.held.clear()
 
     def restart(self) -> None:
         assert self.writer is not None
@@ -172,3 +185,28 @@ async def test_a_board_that_does_not_come_back_from_ctrl_x_is_reconnected(
             assert (await client.command("G0 X1"))[-1] == "ok"
         finally:
             await client.close()
+
+
+async def test_replies_wait_in_order_behind_an_unanswered_line_and_are_bounded(
+        tmp_path: Path) -> None:
+    async with linked(tmp_path) as (fake, app):
+        client = await client_of(app)
+        try:
+            fake.holding = True
+            client.writer.write(b"G0 X5\n" + b"$G\n" * 150)  # streamed without counting
+            await wait_for(lambda: fake.lines[-1:] == ["G0X5"], 2.0, "the line at the board")
+            await asyncio.sleep(0.2)
+            (session,) = _sessions(app)
+            assert len(session._replies) == INBOUND_LINES, "replies queued, up to the bound"
+            fake.release()
+            replies = [await client._line(5.0) for _ in range(1 + 2 * 150)]
+        finally:
+            await client.close()
+        assert replies[0] == "ok", "the board's answer comes first, in order"
+        assert replies[1::2] == [replies[1]] * 150 and replies[1].startswith("[GC:")
+        assert replies[2::2] == ["ok"] * 150
+
+
+def _sessions(app: App) -> list[Session]:
+    transport = app.transports[0]
+    return [session for _, session in transport._clients.values()]  # type: ignore[attr-defined]
