@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import re
 from dataclasses import replace
 
 from server.backends.grbl.controller import Controller, Handshake, LineDropped
@@ -40,6 +41,7 @@ from server.backends.grbl.link import (
 )
 from server.config import Config
 from server.errors import ALARM_MEANINGS, Alarm, CommandError, Error, SoftLimitError
+from server.gcode.parser import parse_line
 from server.motion.moves import Move, Sync, SyncKind, ToolMode
 from server.motion.stepgen import HoldState
 from server.protocol.lines import Realtime
@@ -58,6 +60,9 @@ _STATES = {"Idle": MachineState.IDLE, "Run": MachineState.RUN, "Hold": MachineSt
            "Sleep": MachineState.SLEEP, "Check": MachineState.CHECK}
 _MOVING = frozenset({"Run", "Jog", "Home"})
 _STILL = frozenset({"Idle", "Alarm", "Check", "Sleep"})  # nothing will move without a command
+_WCS_REPORT = re.compile(r"^\[G(5[4-9]):([-0-9.,]+)\]$")
+_ADOPTED_MODES = frozenset({"G54", "G55", "G56", "G57", "G58", "G59", "G17", "G18", "G19",
+                            "G20", "G21", "G90", "G91", "G93", "G94"})
 
 
 class GrblMachine(Machine):
@@ -152,6 +157,7 @@ class GrblMachine(Machine):
     # -- the controller's reports (ControllerListener) ---------------------------------------
     def on_connected(self, handshake: Handshake) -> None:
         self._adopt(handshake.settings)
+        self._adopt_offsets(handshake)
         self._position_synced = False
         self.status.push(f"[MSG:controller connected: {handshake.banner}]")
 
@@ -245,6 +251,28 @@ class GrblMachine(Machine):
                 self.settings.set(number, theirs)
             except CommandError as exc:
                 log.warning("cannot adopt $%d=%g: %s", number, theirs, exc.message)
+
+    def _adopt_offsets(self, handshake: Handshake) -> None:
+        """The board's work offsets (``$#``: G54-G59, kept in its EEPROM) and modal state
+        (``$G``: coordinate system, plane, units, distance and feed modes), run through
+        motiond's interpreter as G-code, so work positions and soft limits agree."""
+        inches = handshake.settings.get(13, 0.0) >= 1  # $13=1: $# reports inches
+        lines = ["G20" if inches else "G21"]
+        for text in handshake.offsets:
+            match = _WCS_REPORT.match(text)
+            if match:
+                values = [float(v) for v in match.group(2).split(",") if v]
+                words = " ".join(f"{axis}{value:.4f}" for axis, value in
+                                 zip(self.core.axis_names, values, strict=False))
+                lines.append(f"G10 L2 P{int(match.group(1)) - 53} {words}")
+        modal = [word for text in handshake.modal for word in text.strip("[]").split()[1:]
+                 if word in _ADOPTED_MODES]
+        lines.append(" ".join(modal or ["G21"]))
+        for line in lines:
+            try:
+                self.interpreter.execute(parse_line(line))
+            except CommandError as exc:
+                log.warning("cannot adopt the controller's %r: %s", line, exc.message)
 
     # -- realtime commands ------------------------------------------------------------------
     def realtime(self, command: Realtime) -> None:

@@ -374,3 +374,23 @@ async def test_after_ctrl_x_no_reply_of_a_dropped_line_reaches_the_client(
         finally:
             await client.close()
         await controller_settles_at(served, (9.0, 0.0, 0.0))
+
+
+async def test_the_boards_work_offsets_and_modes_are_adopted(tmp_path: Path) -> None:
+    async with controller(tmp_path) as served:
+        board = await CharCountingClient.connect("127.0.0.1", served.tcp_port)
+        try:  # set on the board itself, before motiond connects
+            assert await board.command("G10 L2 P2 X10 Y20") == ["ok"]
+            assert await board.command("G55") == ["ok"]
+        finally:
+            await board.close()
+        async with link(tmp_path) as app:
+            client = await CharCountingClient.connect("127.0.0.1", tcp_port(app))
+            try:
+                offsets = await client.command("$#")
+                assert "[G55:10.000,20.000,0.000]" in offsets
+                assert " G55 " in (await client.command("$G"))[0]
+                assert await client.command("G0 X5 Y5") == ["ok"]  # work coordinates
+            finally:
+                await client.close()
+            await controller_settles_at(served, (15.0, 25.0, 0.0))

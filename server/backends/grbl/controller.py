@@ -214,7 +214,10 @@ class Controller:
                 self.listener.on_restart(event.text)
             self._room.set()
         elif isinstance(event, Feedback):
-            self.listener.on_feedback(event.text)
+            if self.ready:
+                self.listener.on_feedback(event.text)
+            else:  # a bootloader's noise, the start-up messages: nothing for the clients
+                log.debug("controller at %s, before the handshake: %r", self.where, event.text)
 
     def _status(self, status: ControllerStatus) -> None:
         self.status = status
