@@ -112,8 +112,9 @@ class GrblMachine(Machine):
         """Send one line to the controller; its reply is deferred when the caller allows."""
         if not text:
             return []
+        epoch = self.epoch
         try:
-            answer = await self.controller.send_line(text)
+            answer = await self.controller.send_line(text, lambda: epoch == self.epoch)
         except LineDropped as exc:
             raise CommandError(Error.BUSY, str(exc)) from exc
         self._idle.clear()

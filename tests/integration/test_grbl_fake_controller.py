@@ -53,6 +53,9 @@ class FakeController:
             if b"\x18" in pending:
                 self.resets += 1
                 pending = pending.rpartition(b"\x18")[2]
+                self.held.clear()  # a reset empties the board's buffer: never answered
+                self.holding = False
+                self.lines.append("<reset>")
                 if not self.mute_next_reset:
                     writer.write(BANNER)
                 self.mute_next_reset = False
@@ -210,3 +213,30 @@ async def test_replies_wait_in_order_behind_an_unanswered_line_and_are_bounded(
 def _sessions(app: App) -> list[Session]:
     transport = app.transports[0]
     return [session for _, session in transport._clients.values()]  # type: ignore[attr-defined]
+
+
+async def test_a_line_waiting_for_room_when_another_client_resets_is_not_sent_late(
+        tmp_path: Path) -> None:
+    async with linked(tmp_path) as (fake, app):
+        machine = app.kernel.machine
+        assert isinstance(machine, GrblMachine)
+        streamer, other = await client_of(app), await client_of(app)
+        lines = [f"G0 X{n}" for n in range(10, 90)]  # 6 bytes each on the wire: 42 fit in 255
+        try:
+            fake.holding = True
+            streamer.writer.write("".join(f"{line}\n" for line in lines).encode())
+            await wait_for(lambda: machine.controller.link.in_flight == 42, 2.0, "a full window")
+            other.writer.write(b"\x18")
+            replies: list[str] = []
+            while len(replies) < len(lines):
+                line = await streamer._line(5.0)
+                if line == "ok" or line.startswith("error"):
+                    replies.append(line)
+        finally:
+            await streamer.close()
+            await other.close()
+        reset_at = len(fake.lines) - 1 - fake.lines[::-1].index("<reset>")  # the last one
+        assert fake.lines[reset_at - 42:reset_at] == [line.replace(" ", "") for line in lines[:42]]
+        after = fake.lines[reset_at + 1:]
+        assert "G0X52" not in after, "the line that waited for room was sent after the reset"
+        assert replies[:43] == ["error:45"] * 43

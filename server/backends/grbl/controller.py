@@ -18,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
 
@@ -229,17 +230,22 @@ class Controller:
         self.listener.on_status(status)
 
     # -- sending ----------------------------------------------------------------------------
-    async def send_line(self, text: str) -> asyncio.Future[Answered]:
+    async def send_line(
+        self, text: str, still_valid: Callable[[], bool] = lambda: True
+    ) -> asyncio.Future[Answered]:
         """Wait for room in the controller's buffer, write ``text``; the future resolves with
-        its answer. Raises :class:`LineDropped` at once while the controller is not connected."""
+        its answer. Raises :class:`LineDropped` at once while the controller is not connected,
+        and if ``still_valid()`` no longer holds once there is room (a reset meanwhile)."""
         while not self.ready:
             if self._writer is None:
                 raise LineDropped(f"the controller at {self.where} is not connected")
             self._room.clear()
             await self._room.wait()
-        return await self._send(text)
+        return await self._send(text, still_valid)
 
-    async def _send(self, text: str) -> asyncio.Future[Answered]:
+    async def _send(
+        self, text: str, still_valid: Callable[[], bool] = lambda: True
+    ) -> asyncio.Future[Answered]:
         size = len(text.encode("ascii", "replace")) + 1
         while not self.link.fits(size):
             if self._writer is None:
@@ -249,6 +255,8 @@ class Controller:
         writer = self._writer
         if writer is None:
             raise LineDropped(f"the controller at {self.where} is not connected")
+        if not still_valid():
+            raise LineDropped("motion was reset while this line waited")
         token, data = self.link.send(text)
         future: asyncio.Future[Answered] = asyncio.get_running_loop().create_future()
         self._futures[token] = future
