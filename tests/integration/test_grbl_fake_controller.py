@@ -126,7 +126,7 @@ async def test_a_silent_controller_gets_ctrl_x_and_its_buffer_and_settings_are_a
     async with linked(tmp_path) as (fake, app):
         machine = app.kernel.machine
         assert isinstance(machine, GrblMachine)
-        assert fake.resets == 1 and fake.lines[:4] == ["$I", "$$", "$#", "$G"]
+        assert fake.resets == 1 and fake.lines[:5] == ["<reset>", "$I", "$$", "$#", "$G"]
         await wait_for(lambda: machine.controller.link.buffer_bytes == 255, 2.0, "Bf: 255")
         axes = list(app.kernel.config.core.axes.values())
         assert [a.steps_per_mm for a in axes] == [160, 160]
