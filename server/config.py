@@ -210,6 +210,14 @@ class CoreConfig(Strict):
             raise ValueError("an axis is named twice")
         return self
 
+    @model_validator(mode="after")
+    def _controller_not_served(self) -> CoreConfig:
+        device = self.backend.serial
+        if device is not None and device in (self.serial.device, self.serial.pty):
+            raise ValueError(f"{device} is the Grbl controller's ([backend] serial): it cannot "
+                             "also be served to senders ([serial] device or pty)")
+        return self
+
     @property
     def axis_names(self) -> tuple[str, ...]:
         """Axis letters, upper-case, in configuration order."""
