@@ -84,12 +84,17 @@ async def controller(workdir: Path) -> AsyncIterator[tuple[Path, int]]:
         await process.wait()
 
 
-async def command(port: int, text: str) -> None:
-    """Send one line to the controller over TCP and wait for its answer."""
+async def check_mode(port: int, on: bool) -> None:
+    """Put the controller in check mode (``$C``) or out of it, whatever it was in (motiond
+    stopping resets the board with Ctrl-X, which leaves check mode)."""
     reader, writer = await asyncio.open_connection(HOST, port)
-    writer.write(text.encode() + b"\n")
-    while not (await reader.readline()).strip().startswith((b"ok", b"error")):
+    writer.write(b"?")
+    while not (line := (await reader.readline()).strip()).startswith(b"<"):
         pass
+    if line.startswith(b"<Check") != on:
+        writer.write(b"$C\n")
+        while not (await reader.readline()).strip().startswith((b"ok", b"error")):
+            pass
     writer.close()
 
 
@@ -157,11 +162,12 @@ async def measure(lines: list[str], repeat: int) -> dict[str, dict[str, Any]]:
         runs: dict[str, list[dict[str, Any]]] = {"pty": [], "tcp": [], "motiond": []}
         async with controller(workdir) as (pty, port):
             for _ in range(repeat):  # side by side, in turn
+                await check_mode(port, False)  # the client toggles it around its run
                 runs["tcp"].append(await run_client(port, path, banner=True, check=True))
-                await command(port, "$C")
+                await check_mode(port, True)
                 runs["pty"].append(await asyncio.to_thread(stream_pty, pty, lines))
+                await check_mode(port, True)
                 runs["motiond"].append(await through_motiond(workdir, pty, path))
-                await command(port, "$C")
         return {key: min(values, key=lambda run: run["elapsed_s"]) for key, values in
                 runs.items()}
 
