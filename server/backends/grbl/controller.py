@@ -93,6 +93,7 @@ class Controller:
         self._futures: dict[int, asyncio.Future[Answered]] = {}
         self._room = asyncio.Event()
         self._banner = asyncio.Event()
+        self._banner_text = ""
         self._reset_sent = False  # a banner after our own Ctrl-X is expected
         self._banner_watch: asyncio.TimerHandle | None = None
         self._buffer_from_report = config.buffer_bytes is None
@@ -190,8 +191,6 @@ class Controller:
             self.reset()
             await asyncio.wait_for(self._banner.wait(), self.config.reply_timeout_s)
         return self._banner_text
-
-    _banner_text = ""
 
     # -- events from the controller ---------------------------------------------------------
     def _event(self, event: LinkEvent) -> None:
