@@ -129,7 +129,8 @@ class GrblMachine(Machine):
         return await reply
 
     async def _forward_command(self, command: Command) -> list[str]:
-        """``$X``, ``$H``, ``$J=``: after motiond's own handler, the controller's turn."""
+        """``$X``, ``$H``, ``$J=``, ``$100=80``: after motiond's own handler (which checks
+        the line, and refuses a setting it does not know), the controller's turn."""
         if command.name in ("$X", "$H"):
             self._controller_alarm = False
         try:
@@ -140,7 +141,7 @@ class GrblMachine(Machine):
             raise
 
     def register_commands(self, dispatcher: Dispatcher) -> None:
-        for name in ("$X", "$H"):
+        for name in ("$X", "$H", "$="):  # $=: a setting motiond took is the board's too
             dispatcher.register(name, self._forward_command, when_locked=True)
         dispatcher.register("$J=", self._forward_command)
 

@@ -376,7 +376,8 @@ async def test_after_ctrl_x_no_reply_of_a_dropped_line_reaches_the_client(
         await controller_settles_at(served, (9.0, 0.0, 0.0))
 
 
-async def test_the_boards_work_offsets_and_modes_are_adopted(tmp_path: Path) -> None:
+async def test_the_boards_offsets_and_modes_are_adopted_and_settings_written_through(
+        tmp_path: Path) -> None:
     async with controller(tmp_path) as served:
         board = await CharCountingClient.connect("127.0.0.1", served.tcp_port)
         try:  # set on the board itself, before motiond connects
@@ -391,6 +392,13 @@ async def test_the_boards_work_offsets_and_modes_are_adopted(tmp_path: Path) -> 
                 assert "[G55:10.000,20.000,0.000]" in offsets
                 assert " G55 " in (await client.command("$G"))[0]
                 assert await client.command("G0 X5 Y5") == ["ok"]  # work coordinates
+                assert await client.command("$110=42000") == ["ok"]  # written to both
+                assert (await client.command("$23=1"))[-1] == "error:3"  # unknown: not sent
             finally:
                 await client.close()
             await controller_settles_at(served, (15.0, 25.0, 0.0))
+        board = await CharCountingClient.connect("127.0.0.1", served.tcp_port)
+        try:
+            assert "$110=42000.000" in await board.command("$$")
+        finally:
+            await board.close()
