@@ -1,6 +1,6 @@
 """Run motiond's benchmarks by name.
 
-    python -m benchmarks NAME [--quick] [--json]     # NAME: parser, planner, offline, streaming
+    python -m benchmarks NAME [--quick] [--json]   # parser, planner, offline, streaming, grbl
     python -m benchmarks all [--quick] [--json]
     python -m benchmarks --list
 
@@ -27,6 +27,8 @@ BENCHMARKS: dict[str, tuple[str, str]] = {  # name: (module, one-line descriptio
                 "estimate blocks/s and full 1 kHz execution real-time factor per corpus file"),
     "streaming": ("benchmarks.bench_streaming",
                   "TCP streaming lines/s against a bare asyncio server; real-time raster rate"),
+    "grbl": ("benchmarks.bench_grbl_link",
+             "lines/s through motiond to a Grbl controller against streaming to it directly"),
 }
 
 

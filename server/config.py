@@ -69,10 +69,42 @@ class StepgenConfig(Strict):
 
 
 class BackendConfig(Strict):
-    kind: Literal["sim", "null"] = "sim"
+    kind: Literal["sim", "null", "grbl"] = Field(
+        "sim", description="sim: the simulated machine; null: nothing; grbl: a Grbl, grblHAL "
+        "or FluidNC controller downstream (serial or tcp)")
     trace_csv: Path | None = None
     history_samples: int = Field(100_000, ge=0)
     probe_at_mm: dict[str, float] = Field(default_factory=dict)
+    serial: str | None = Field(
+        None, min_length=1, description="grbl: the controller's serial device (or a pty)")
+    tcp: str | None = Field(
+        None, pattern=r"^[^\s:]+:\d{1,5}$",
+        description="grbl: the controller's host:port (FluidNC, grblHAL over the network)")
+    baud: int = Field(115200, ge=300, le=4_000_000, description="grbl: serial speed")
+    buffer_bytes: int | None = Field(
+        None, ge=16, le=65536,
+        description="grbl: the controller's receive buffer for character counting; default "
+        "the Bf: figure it reports, else 127")
+    status_hz: float = Field(
+        10.0, ge=5, le=20, description="grbl: how often the controller is polled with '?'")
+    banner_timeout_s: float = Field(
+        3.0, gt=0, le=60,
+        description="grbl: wait this long for the banner after opening the port (an Arduino "
+        "resets on open), then send Ctrl-X and wait again")
+    reply_timeout_s: float = Field(
+        10.0, gt=0, le=600, description="grbl: a start-up query ($I, $$, $#, $G) unanswered "
+        "this long means the controller is not answering: the connection is retried")
+    reconnect_s: float = Field(
+        0.5, gt=0, le=60, description="grbl: retry opening a lost controller this often")
+
+    @model_validator(mode="after")
+    def _one_controller(self) -> BackendConfig:
+        if self.kind == "grbl" and (self.serial is None) == (self.tcp is None):
+            raise ValueError('kind = "grbl" needs exactly one of serial = "/dev/ttyUSB0" '
+                             'or tcp = "host:23"')
+        if self.kind != "grbl" and (self.serial is not None or self.tcp is not None):
+            raise ValueError('serial and tcp are options of kind = "grbl"')
+        return self
 
 
 class TcpConfig(Strict):
@@ -179,6 +211,14 @@ class CoreConfig(Strict):
             raise ValueError(f"axis names must be among {', '.join(AXIS_LETTERS)}, not {bad}")
         if len({name.upper() for name in self.axes}) != len(self.axes):
             raise ValueError("an axis is named twice")
+        return self
+
+    @model_validator(mode="after")
+    def _controller_not_served(self) -> CoreConfig:
+        device = self.backend.serial
+        if device is not None and device in (self.serial.device, self.serial.pty):
+            raise ValueError(f"{device} is the Grbl controller's ([backend] serial): it cannot "
+                             "also be served to senders ([serial] device or pty)")
         return self
 
     @property

@@ -17,8 +17,13 @@ motion that one source queued (a job, or a stream), other sources may query but 
 anything (error 45); realtime hold and reset stay open to every controlling connection.
 
 A handler returns the message lines to send before ``ok`` (or None) and raises
-:class:`CommandError` to answer ``error:N``. Several handlers may share a name; all run, in
-registration order. An unknown command is an error for its sender, never a silent no-op.
+:class:`CommandError` to answer ``error:N``. A caller that can answer later passes ``defer``
+(a session, a job): a handler whose line is answered by something downstream (a Grbl controller
+behind motiond) hands it the future of that answer and returns at once, so the next line can be
+sent while this one is in the controller's buffer; the caller replies once the future is done,
+in the order it submitted the lines. Without ``defer`` the handler waits for the answer itself.
+Several handlers may share a name; all run, in registration order. An unknown command is an
+error for its sender, never a silent no-op.
 """
 
 from __future__ import annotations
@@ -36,6 +41,7 @@ from server.gcode.interpreter import LineKind
 from server.gcode.parser import Line, parse_line
 
 HandlerResult = list[str] | None
+Deferred = Callable[["asyncio.Future[list[str]]"], None]  # takes a line's answer-to-come
 Handler = Callable[["Command"], Awaitable[HandlerResult] | HandlerResult]
 Classifier = Callable[[Line], LineKind]
 
@@ -71,6 +77,7 @@ class Command:
         args: text after the command name (``$`` and named commands).
         line: the parsed G-code line (G/M handlers only).
         source: who sent it.
+        defer: set when the caller can take the line's answer later (see the module docstring).
     """
 
     name: str
@@ -78,6 +85,7 @@ class Command:
     args: str
     source: Source
     line: Line | None = None
+    defer: Deferred | None = None
 
 
 @dataclass(slots=True)
@@ -147,7 +155,11 @@ class Dispatcher:
         self._immediate.add(_key(name))
 
     async def submit(
-        self, text: str, source: Source, still_valid: Callable[[], bool] | None = None
+        self,
+        text: str,
+        source: Source,
+        still_valid: Callable[[], bool] | None = None,
+        defer: Deferred | None = None,
     ) -> list[str]:
         """Execute one line in order with every other source; returns messages for the reply.
 
@@ -164,23 +176,23 @@ class Dispatcher:
                 raise CommandError(Error.BUSY, "shutting down")
             if still_valid is not None and not still_valid():
                 raise CommandError(Error.BUSY, "overtaken by a reset")
-            return await self.execute(text, source)
+            return await self.execute(text, source, defer)
 
-    async def execute(self, text: str, source: Source) -> list[str]:
+    async def execute(self, text: str, source: Source, defer: Deferred | None = None) -> list[str]:
         """Execute one line now (the caller holds the order); raise CommandError to refuse it."""
         stripped = text.strip()
         if not stripped:
             return []
         if stripped.startswith("$"):
             name, args = _dollar_name(stripped)
-            return await self._run(name, Command(name, text, args, source))
+            return await self._run(name, Command(name, text, args, source, defer=defer))
         named = _NAMED.match(stripped)
         if named and _key(named.group(1)) in self._entries:
             name = _key(named.group(1))
             return await self._run(name, Command(name, text, named.group(2) or "", source))
-        return await self._gcode_line(text, source)
+        return await self._gcode_line(text, source, defer)
 
-    async def _gcode_line(self, text: str, source: Source) -> list[str]:
+    async def _gcode_line(self, text: str, source: Source, defer: Deferred | None) -> list[str]:
         line = parse_line(text)
         if line.error is not None:
             raise line.error
@@ -194,7 +206,7 @@ class Dispatcher:
             )
         if self._gcode is None:
             raise CommandError(Error.UNSUPPORTED, "no G-code interpreter")
-        return await _call(self._gcode, Command("G", text, "", source, line))
+        return await _call(self._gcode, Command("G", text, "", source, line, defer))
 
     async def _run(self, name: str, command: Command) -> list[str]:
         entry = self._entries.get(name)

@@ -8,7 +8,9 @@ dropped. A file on disk whose name breaks these rules is never listed. Uploads a
 hidden ``.upload-*`` file and renamed; such files left by a crash are removed at start-up.
 Playing a file streams its lines through the same dispatcher a sender uses, so the job is
 executed, flow-controlled and error-checked exactly like streamed G-code; the first line that
-is refused stops the job with a message naming the line. File I/O runs in a thread.
+is refused stops the job with a message naming the line. A line answered downstream (a Grbl
+controller) is deferred by the dispatcher: the job sends on while it is in the controller's
+buffer and stops at the first answer that is an error. File I/O runs in a thread.
 """
 
 from __future__ import annotations
@@ -20,7 +22,8 @@ import os
 import re
 import tempfile
 import time
-from collections.abc import AsyncIterator
+from collections import deque
+from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, BinaryIO
@@ -257,10 +260,15 @@ class Jobs:
         loop = asyncio.get_running_loop()
         turn_s = loop.time()
         limit = self.kernel.config.core.protocol.line_limit
+        pending: deque[tuple[int, asyncio.Future[list[str]]]] = deque()
         for number, line in enumerate(lines, 1):
             try:
                 check_length(line, limit)  # error 11, as a stream refuses it
-                await dispatcher.submit(line, source)
+                await dispatcher.submit(line, source, defer=_deferring(pending, number))
+                await _settle(pending, wait=False)
+            except _LineFailed as failed:
+                self._fail(progress, failed.text)
+                return
             except CommandError as exc:
                 self._fail(progress, f"line {number}: error:{exc.code} {exc.message}")
                 return
@@ -269,6 +277,11 @@ class Jobs:
             if loop.time() - turn_s > YIELD_AFTER_S:  # lines that never wait must not hog
                 await asyncio.sleep(0)
                 turn_s = loop.time()
+        try:
+            await _settle(pending, wait=True)
+        except _LineFailed as failed:
+            self._fail(progress, failed.text)
+            return
         await machine.wait_idle()
         if self.kernel.state is MachineState.ALARM:
             self._fail(progress, f"line {progress.lines_done}: stopped by an alarm")
@@ -322,6 +335,31 @@ class Jobs:
 
     def _resume(self, command: Command) -> None:
         self.resume()
+
+
+def _deferring(
+    pending: deque[tuple[int, asyncio.Future[list[str]]]], number: int
+) -> Callable[[asyncio.Future[list[str]]], None]:
+    """The ``defer`` of line ``number``: its answer-to-come joins ``pending``."""
+    return lambda future: pending.append((number, future))
+
+
+class _LineFailed(Exception):
+    def __init__(self, text: str) -> None:
+        super().__init__(text)
+        self.text = text
+
+
+async def _settle(pending: deque[tuple[int, asyncio.Future[list[str]]]], *, wait: bool) -> None:
+    """Drop the deferred answers that came (all of them, waiting, with ``wait``); raise
+    :class:`_LineFailed` naming the first line the controller refused."""
+    while pending and (wait or pending[0][1].done()):
+        number, future = pending[0]
+        try:
+            await future
+        except CommandError as exc:
+            raise _LineFailed(f"line {number}: error:{exc.code} {exc.message}") from exc
+        pending.popleft()
 
 
 def _clock(seconds: float) -> str:

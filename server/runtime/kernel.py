@@ -27,6 +27,7 @@ from server.runtime.control import MachineControl
 from server.runtime.dispatcher import Dispatcher, Handler, SystemSource
 from server.runtime.events import Event, EventBus, MachineState
 from server.runtime.gcpacer import GcPacer
+from server.runtime.grbl import GrblMachine
 from server.runtime.jobs import Jobs
 from server.runtime.machine import Machine, SyncHandler
 from server.runtime.module import ApiHandler, ApiMethod, ApiParams, Module
@@ -230,10 +231,11 @@ class Kernel:
         self.clock = clock
         self.events = EventBus()
         self.status = MachineStatus(self.events)
-        self.machine = Machine(config, clock, self.events, self.status)
+        machine_class = GrblMachine if config.core.backend.kind == "grbl" else Machine
+        self.machine = machine_class(config, clock, self.events, self.status)
         self.dispatcher = Dispatcher(
             is_locked=lambda: self.status.state in LOCKED_STATES,
-            is_busy=lambda: not self.machine.stepgen.idle or self.jobs.active,
+            is_busy=lambda: self.machine.busy or self.jobs.active,
         )
         self.dispatcher.set_gcode_handler(
             self.machine.handle_gcode, lambda line: self.machine.interpreter.classify(line)
@@ -247,6 +249,7 @@ class Kernel:
         self._specs: dict[str, ModuleSpec] = {}
         commands = CoreCommands(self)
         commands.register(self.dispatcher)
+        self.machine.register_commands(self.dispatcher)
         self._load_modules(config)
         commands.register_fallbacks(self.dispatcher)
         self.loop_monitor = LoopMonitor(gc_pacer=GcPacer(lambda: not self.machine.stepgen.idle))

@@ -38,8 +38,9 @@ from server.motion.moves import (
 from server.motion.planner import Planner, PlannerSettings
 from server.motion.stepgen import HoldState, StepGenerator
 from server.protocol.lines import Realtime
+from server.protocol.reports import StatusSnapshot
 from server.runtime.clock import Clock
-from server.runtime.dispatcher import Command
+from server.runtime.dispatcher import Command, Dispatcher
 from server.runtime.events import Event, EventBus, MachineState
 from server.runtime.settings import Settings
 from server.runtime.state import MachineStatus
@@ -67,7 +68,7 @@ def settings_path(config: Config) -> Path:
 
 def build_backend(core: CoreConfig) -> Backend:
     """The backend named by ``[backend] kind``."""
-    if core.backend.kind == "null":
+    if core.backend.kind in ("null", "grbl"):  # a Grbl controller steps itself
         return NullBackend()
     return SimBackend(
         core.axis_names,
@@ -223,6 +224,18 @@ class Machine:
         self.stepgen.note_input(self.clock.now_s())
         if self.status.state is MachineState.IDLE:
             self.status.set_state(state)
+
+    @property
+    def busy(self) -> bool:
+        """Motion is queued or running (its source owns the machine until it ends)."""
+        return not self.stepgen.idle
+
+    def register_commands(self, dispatcher: Dispatcher) -> None:
+        """Commands this machine adds to the core's (a downstream controller's); none here."""
+
+    def status_snapshot(self, rx_free_bytes: int) -> StatusSnapshot | None:
+        """A status report from elsewhere (a downstream controller), or None: motiond's own."""
+        return None
 
     async def wait_idle(self) -> None:
         """Wait until every queued move has been executed."""

@@ -6,7 +6,10 @@ A transport creates a :class:`Session`, feeds it bytes (or WebSocket text) and d
 * acts on realtime bytes at once (status, hold, resume, reset, overrides, jog cancel), even
   while lines wait for planner room, and on ``M112`` the moment its line arrives;
 * queues complete lines (bounded) and executes them one at a time through the dispatcher,
-  answering each with exactly one ``ok`` or ``error:N`` in order;
+  answering each with exactly one ``ok`` or ``error:N`` in order. A line answered downstream
+  (a Grbl controller behind motiond) is deferred: the next lines execute while it sits in the
+  controller's buffer, and the replies behind it wait for its answer (at most
+  :data:`INBOUND_LINES` of them), so the order holds;
 * keeps taking bytes while its line queue is full: they wait in a
   :class:`~server.runtime.backlog.Backlog` (``[protocol] backlog_bytes``) whose realtime bytes
   are acted on as they arrive, so a sender that streams ahead without character counting can
@@ -136,6 +139,8 @@ class Session:
         self._status_timer: asyncio.TimerHandle | None = None
         self._unsubscribe = kernel.events.subscribe(BusEvent.PUSH, self.push)
         self._task: asyncio.Task[None] | None = None
+        self._replies: deque[tuple[int, asyncio.Future[bytes]]] = deque()  # behind a deferred
+        self._replies_room = asyncio.Event()
         self._closing = False
         self._closed = False
 
@@ -182,6 +187,7 @@ class Session:
         self._lines_ready.set()
         self._room.set()
         self._input_room.set()
+        self._replies_room.set()
 
     @property
     def closed(self) -> bool:
@@ -377,7 +383,10 @@ class Session:
                 self._room.set()
             if epoch == self._epoch:
                 self._queued_bytes = max(0, self._queued_bytes - _size(event))
-                self.outbox.put(reply)
+                self._answer(reply, epoch)
+            while len(self._replies) >= INBOUND_LINES and not self._closing:
+                self._replies_room.clear()
+                await self._replies_room.wait()
             if self._ending is not None:
                 self.end(self._ending)
                 return
@@ -385,7 +394,57 @@ class Session:
                 await asyncio.sleep(0)
                 turn_s = loop.time()
 
-    async def _execute(self, event: LineReceived | LineRejected, epoch: int) -> bytes:
+    def _answer(self, reply: bytes | asyncio.Future[bytes], epoch: int) -> None:
+        """Send a line's reply, or queue it behind the deferred replies still pending."""
+        if isinstance(reply, bytes):
+            if not self._replies:
+                self.outbox.put(reply)
+                return
+            ready: asyncio.Future[bytes] = asyncio.get_running_loop().create_future()
+            ready.set_result(reply)
+            reply = ready
+        self._replies.append((epoch, reply))
+        reply.add_done_callback(self._flush_replies)
+
+    def _flush_replies(self, _: object = None) -> None:
+        """Send the replies at the head of the queue that are ready, in order."""
+        while self._replies and self._replies[0][1].done():
+            epoch, reply = self._replies.popleft()
+            if epoch == self._epoch and not reply.cancelled():
+                self.outbox.put(reply.result())
+        if len(self._replies) < INBOUND_LINES:
+            self._replies_room.set()
+
+    def _later(self, messages: list[str],
+               deferred: list[asyncio.Future[list[str]]]) -> asyncio.Future[bytes]:
+        """The reply of a deferred line: ``messages`` and its answers, or the first error."""
+        reply: asyncio.Future[bytes] = asyncio.get_running_loop().create_future()
+
+        def done(_: object) -> None:
+            if reply.done() or not all(future.done() for future in deferred):
+                return
+            lines = list(messages)
+            for future in deferred:
+                error = CommandError(Error.BUSY, "cancelled") if future.cancelled() else (
+                    future.exception())
+                if isinstance(error, CommandError):
+                    reply.set_result(self.protocol.reply_error(error))
+                    return
+                if error is not None:
+                    log.error("deferred line failed: %r", error)
+                    reply.set_result(self.protocol.reply_error(
+                        CommandError(Error.UNSUPPORTED, "internal error")))
+                    return
+                lines += future.result()
+            reply.set_result(self._reply_ok(lines))
+
+        for future in deferred:
+            future.add_done_callback(done)
+        return reply
+
+    async def _execute(
+        self, event: LineReceived | LineRejected, epoch: int
+    ) -> bytes | asyncio.Future[bytes]:
         if isinstance(event, LineRejected):
             return self.protocol.reply_error(event.error)
         if event.handled:  # M110: the protocol already set the line number
@@ -398,15 +457,19 @@ class Session:
             return self._refuse("log in first")
         if not self.may_observe:
             return self._refuse("log in with $AUTH=")
+        deferred: list[asyncio.Future[list[str]]] = []
         try:
             messages = await self.kernel.dispatcher.submit(
-                event.text, self, still_valid=lambda: epoch == self._epoch)
+                event.text, self, still_valid=lambda: epoch == self._epoch,
+                defer=deferred.append)
         except CommandError as exc:
             return self.protocol.reply_error(exc)
         except Exception as exc:  # noqa: BLE001 - unexpected: alarm, answer, keep serving
             log.exception("line %r failed", event.text)
             self.kernel.alarm(Alarm.MODULE_FAILED, f"internal error on {event.text!r}: {exc!r}")
             return self.protocol.reply_error(CommandError(Error.UNSUPPORTED, "internal error"))
+        if deferred:
+            return self._later(messages, deferred)
         return self._reply_ok(messages)
 
 

@@ -36,6 +36,9 @@ def state_text(kernel: Kernel) -> str:
 def snapshot(kernel: Kernel, rx_free_bytes: int) -> StatusSnapshot:
     """The machine as a status report shows it, now."""
     machine = kernel.machine
+    downstream = machine.status_snapshot(rx_free_bytes)
+    if downstream is not None:
+        return downstream
     motion = machine.stepgen.state
     tool = machine.tool
     accessories = {ToolMode.CW: "S", ToolMode.CCW: "C"}.get(tool.mode, "")

@@ -8,7 +8,7 @@ import json
 import os
 import socket
 import sys
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -53,19 +53,24 @@ async def _wait_listening(port: int, process: asyncio.subprocess.Process) -> Non
 
 
 @contextlib.asynccontextmanager
-async def motiond(tmp_path: Path, extra_toml: str = "") -> AsyncIterator[Served]:
-    """``motiond --config`` on free ports with ``extra_toml`` appended to a small XY machine."""
-    data_dir = tmp_path / "data"
+async def motiond(tmp_path: Path, extra_toml: str = "", *, args: Sequence[str] = (),
+                  axes_toml: str = AXES_TOML, name: str = "machine") -> AsyncIterator[Served]:
+    """``motiond --config`` on free ports with ``extra_toml`` appended to a small XY machine
+    (``axes_toml``), more command-line ``args`` (``--pty PATH``); ``name`` names its files."""
+    data_dir = tmp_path / f"data-{name}" if name != "machine" else tmp_path / "data"
     data_dir.mkdir(exist_ok=True)
-    config = tmp_path / "machine.toml"
-    config.write_text(AXES_TOML + f"[jobs]\ndata_dir = '{data_dir}'\n" + extra_toml)
+    config = tmp_path / f"{name}.toml"
+    config.write_text(axes_toml + f"[jobs]\ndata_dir = '{data_dir}'\n" + extra_toml)
     tcp_port, http_port = free_port(), free_port()
+    log_file = (tmp_path / f"{name}.log").open("ab")  # its warnings, for a failing test
     process = await asyncio.create_subprocess_exec(
         sys.executable, "-m", "server.cli", "--config", str(config), "--host", "127.0.0.1",
         "--tcp-port", str(tcp_port), "--http-port", str(http_port), "--log-level", "warning",
+        *args,
         cwd=REPO, env={**os.environ, "PYTHONUNBUFFERED": "1"},
-        stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.DEVNULL,
+        stdout=asyncio.subprocess.DEVNULL, stderr=log_file,
     )
+    log_file.close()
     try:
         await _wait_listening(tcp_port, process)
         await _wait_listening(http_port, process)

@@ -25,7 +25,9 @@ def test_embedded_default_is_a_simulated_laser_cutter() -> None:
     assert config.core.axis_names == ("X", "Y", "Z")
 
 
-@pytest.mark.parametrize("name", ["laser.toml", "cnc.toml", "plotter.toml", "mqtt.toml"])
+@pytest.mark.parametrize(
+    "name", ["laser.toml", "cnc.toml", "plotter.toml", "mqtt.toml", "grbl-link.toml"]
+)
 def test_example_configs_load(name: str) -> None:
     config = load_config(REPO / "examples" / name)
     assert config.core.axis_names[:2] == ("X", "Y")
@@ -116,3 +118,21 @@ def test_serve_refuses_a_bad_config_without_a_traceback(
 
 def test_make_config_helper_builds_from_dicts() -> None:
     assert make_config(planner={"max_blocks": 16}).core.planner.max_blocks == 16
+
+
+def test_grbl_backend_options_are_checked_with_file_section_and_key() -> None:
+    axes = {"x": {"steps_per_mm": 80, "max_rate_mm_s": 100, "accel_mm_s2": 100, "max_mm": 100}}
+    cases = [
+        ({"kind": "grbl"}, 'm.toml: [backend]: kind = "grbl" needs exactly one of serial'),
+        ({"kind": "grbl", "serial": "/dev/ttyUSB0", "status_hz": 50},
+         "m.toml: [backend] status_hz: Input should be less than or equal to 20"),
+        ({"kind": "grbl", "tcp": "fluidnc.local"}, "m.toml: [backend] tcp: String should match"),
+        ({"kind": "sim", "serial": "/dev/ttyUSB0"}, 'serial and tcp are options of kind = "grbl"'),
+    ]
+    for backend, expected in cases:
+        with pytest.raises(ConfigError) as raised:
+            build_config({"axes": axes, "backend": backend}, "m.toml")
+        assert expected in str(raised.value), str(raised.value)
+    with pytest.raises(ConfigError, match="cannot also be served"):
+        build_config({"axes": axes, "backend": {"kind": "grbl", "serial": "/dev/ttyACM0"},
+                      "serial": {"device": "/dev/ttyACM0"}}, "m.toml")

@@ -1,0 +1,1 @@
+"""A Grbl, grblHAL or FluidNC controller downstream of motiond (``[backend] kind = "grbl"``)."""

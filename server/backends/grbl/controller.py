@@ -1,0 +1,316 @@
+"""The asyncio side of a Grbl controller connection: open, handshake, stream, poll, reconnect.
+
+:class:`Controller` owns one task (:meth:`Controller.run`). It opens the device (a serial port
+or a pseudo-terminal with pyserial-asyncio, or ``host:port`` with asyncio streams), waits for
+the welcome banner (opening an Arduino's port resets it: the banner comes once its bootloader
+has run; a controller that stays silent gets a Ctrl-X), asks ``$I``, ``$$``, ``$#`` and ``$G``,
+reports them to its listener, then polls ``?`` at ``status_hz`` and reads until the connection
+is lost. A lost connection drops every unanswered line (their futures raise
+:class:`LineDropped`), tells the listener, and is retried every ``reconnect_s``.
+
+Lines go through the pure :class:`~server.backends.grbl.link.Link`: :meth:`Controller.send_line`
+waits for room in the controller's receive buffer, writes the line and returns a future that
+resolves with the controller's :class:`~server.backends.grbl.link.Answered`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Protocol
+
+from server.backends.grbl.link import (
+    DEFAULT_BUFFER_BYTES,
+    AlarmReport,
+    Answered,
+    Banner,
+    ControllerStatus,
+    Feedback,
+    Link,
+    LinkEvent,
+    StatusReport,
+    parse_settings,
+)
+
+if TYPE_CHECKING:
+    from server.config import BackendConfig
+
+log = logging.getLogger("motiond.grbl")
+READ_BYTES = 4096
+RESET = 0x18
+STATUS = 0x3F
+
+
+class LineDropped(Exception):
+    """The controller will never answer this line (reset, restart or lost connection)."""
+
+
+@dataclass(frozen=True, slots=True)
+class Handshake:
+    """What the controller told about itself when it connected."""
+
+    banner: str
+    build_info: tuple[str, ...]
+    settings: dict[int, float]
+    offsets: tuple[str, ...]
+    modal: tuple[str, ...]
+
+
+class ControllerListener(Protocol):
+    """What the controller tells its owner (all called from the event loop)."""
+
+    def on_connected(self, handshake: Handshake) -> None: ...
+
+    def on_status(self, status: ControllerStatus) -> None: ...
+
+    def on_answer(self) -> None: ...
+
+    def on_alarm(self, code: int) -> None: ...
+
+    def on_feedback(self, text: str) -> None: ...
+
+    def on_lost(self, reason: str) -> None: ...
+
+    def on_restart(self, banner: str) -> None: ...
+
+
+class Controller:
+    """One downstream controller; see the module docstring."""
+
+    def __init__(self, config: BackendConfig, listener: ControllerListener) -> None:
+        self.config = config
+        self.listener = listener
+        self.link = Link(config.buffer_bytes or DEFAULT_BUFFER_BYTES)
+        self.status: ControllerStatus | None = None
+        self.ready = False  # handshake done: client lines may flow
+        self.handshake: Handshake | None = None
+        self.lines_sent = 0
+        self.status_polls = 0  # '?' sent to the board: one task, whatever the clients ask
+        self._writer: asyncio.StreamWriter | None = None
+        self._futures: dict[int, asyncio.Future[Answered]] = {}
+        self._room = asyncio.Event()
+        self._banner = asyncio.Event()
+        self._banner_text = ""
+        self._reset_sent = False  # a banner after our own Ctrl-X is expected
+        self._banner_watch: asyncio.TimerHandle | None = None
+        self._buffer_from_report = config.buffer_bytes is None
+
+    @property
+    def where(self) -> str:
+        return self.config.serial or self.config.tcp or "?"
+
+    # -- the task ---------------------------------------------------------------------------
+    async def run(self) -> None:
+        """Connect, serve, and reconnect forever (until cancelled)."""
+        failures = 0
+        try:
+            while True:
+                try:
+                    reader, writer = await self._open()
+                except (OSError, ValueError) as exc:
+                    if failures == 0:
+                        log.warning("cannot open the controller at %s (%s); retrying every "
+                                    "%.1f s", self.where, exc, self.config.reconnect_s)
+                    failures += 1
+                    await asyncio.sleep(self.config.reconnect_s)
+                    continue
+                failures = 0
+                reason = await self._serve(reader, writer)
+                self._drop_connection(reason)
+                await asyncio.sleep(self.config.reconnect_s)
+        finally:
+            self._drop_connection("motiond is stopping", tell=False)
+
+    async def _open(self) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
+        if self.config.tcp is not None:
+            host, _, port = self.config.tcp.rpartition(":")
+            return await asyncio.open_connection(host, int(port))
+        import serial_asyncio  # pyserial-asyncio
+
+        assert self.config.serial is not None
+        reader, writer = await serial_asyncio.open_serial_connection(
+            url=self.config.serial, baudrate=self.config.baud)
+        return reader, writer
+
+    async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> str:
+        """Handshake and poll beside the reader; returns why the connection ended."""
+        self._writer = writer
+        self._banner.clear()
+        self.link.lost()
+        reading = asyncio.create_task(self._read(reader), name="grbl-read")
+        talking = asyncio.create_task(self._talk(), name="grbl-talk")
+        try:
+            done, _ = await asyncio.wait({reading, talking}, return_when=asyncio.FIRST_COMPLETED)
+            finished = done.pop()
+            return finished.result() if not finished.cancelled() else "cancelled"
+        except Exception as exc:  # noqa: BLE001 - any failure ends this connection only
+            return f"{type(exc).__name__}: {exc}"
+        finally:
+            for task in (reading, talking):
+                task.cancel()
+            await asyncio.gather(reading, talking, return_exceptions=True)
+
+    async def _read(self, reader: asyncio.StreamReader) -> str:
+        while True:
+            try:
+                data = await reader.read(READ_BYTES)
+            except OSError as exc:
+                return f"read failed: {exc}"
+            if not data:
+                return "the controller closed the connection"
+            for event in self.link.receive(data):
+                self._event(event)
+
+    async def _talk(self) -> str:
+        """Banner, start-up queries, then status polling until the connection ends."""
+        banner = await self._wait_banner()
+        replies = []
+        for query in ("$I", "$$", "$#", "$G"):
+            answer = await asyncio.wait_for(await self._send(query), self.config.reply_timeout_s)
+            replies.append(answer.messages if answer.error is None else ())
+        self.handshake = Handshake(banner, replies[0], parse_settings(replies[1]), replies[2],
+                                   replies[3])
+        self.ready = True
+        self._room.set()
+        log.info("controller at %s: %s", self.where, banner)
+        self.listener.on_connected(self.handshake)
+        period_s = 1.0 / self.config.status_hz
+        while True:
+            self.realtime(STATUS)
+            self.status_polls += 1
+            await asyncio.sleep(period_s)
+
+    async def _wait_banner(self) -> str:
+        try:
+            await asyncio.wait_for(self._banner.wait(), self.config.banner_timeout_s)
+        except TimeoutError:
+            log.info("no banner from %s: sending Ctrl-X", self.where)
+            self.reset()
+            await asyncio.wait_for(self._banner.wait(), self.config.reply_timeout_s)
+        return self._banner_text
+
+    # -- events from the controller ---------------------------------------------------------
+    def _event(self, event: LinkEvent) -> None:
+        if isinstance(event, Answered):
+            future = self._futures.pop(event.token, None)
+            if future is not None and not future.done():
+                future.set_result(event)
+            self._room.set()
+            self.listener.on_answer()
+        elif isinstance(event, StatusReport):
+            self._status(event.status)
+        elif isinstance(event, AlarmReport):
+            self.listener.on_alarm(event.code)
+        elif isinstance(event, Banner):
+            self._fail(event.dropped, "the controller restarted")
+            self._banner_text = event.text
+            expected, self._reset_sent = self._reset_sent, False
+            self._stop_banner_watch()
+            self._banner.set()
+            if self.ready and not expected:  # reset button, power, a DTR pulse
+                self.listener.on_restart(event.text)
+            self._room.set()
+        elif isinstance(event, Feedback):
+            if self.ready:
+                self.listener.on_feedback(event.text)
+            else:  # a bootloader's noise, the start-up messages: nothing for the clients
+                log.debug("controller at %s, before the handshake: %r", self.where, event.text)
+
+    def _status(self, status: ControllerStatus) -> None:
+        self.status = status
+        idle = status.base_state == "Idle" and self.link.in_flight == 0
+        if self._buffer_from_report and idle and status.rx_free_bytes:
+            self.link.buffer_bytes = status.rx_free_bytes  # the whole buffer, when empty
+            self._buffer_from_report = False
+            log.info("controller receive buffer: %d bytes (from Bf:)", status.rx_free_bytes)
+        self.listener.on_status(status)
+
+    # -- sending ----------------------------------------------------------------------------
+    async def send_line(
+        self, text: str, still_valid: Callable[[], bool] = lambda: True
+    ) -> asyncio.Future[Answered]:
+        """Wait for room in the controller's buffer, write ``text``; the future resolves with
+        its answer. Raises :class:`LineDropped` at once while the controller is not connected,
+        and if ``still_valid()`` no longer holds once there is room (a reset meanwhile)."""
+        while not self.ready:
+            if self._writer is None:
+                raise LineDropped(f"the controller at {self.where} is not connected")
+            self._room.clear()
+            await self._room.wait()
+        return await self._send(text, still_valid)
+
+    async def _send(
+        self, text: str, still_valid: Callable[[], bool] = lambda: True
+    ) -> asyncio.Future[Answered]:
+        size = len(text.encode("ascii", "replace")) + 1
+        while not self.link.fits(size):
+            if self._writer is None:
+                raise LineDropped(f"the controller at {self.where} is not connected")
+            self._room.clear()
+            await self._room.wait()
+        writer = self._writer
+        if writer is None:
+            raise LineDropped(f"the controller at {self.where} is not connected")
+        if not still_valid():
+            raise LineDropped("motion was reset while this line waited")
+        token, data = self.link.send(text)
+        future: asyncio.Future[Answered] = asyncio.get_running_loop().create_future()
+        self._futures[token] = future
+        writer.write(data)
+        self.lines_sent += 1
+        return future
+
+    def realtime(self, byte: int) -> None:
+        """A realtime byte (``?``, ``!``, ``~``, overrides...), written at once."""
+        if self._writer is not None:
+            self._writer.write(bytes((byte,)))
+
+    def reset(self) -> None:
+        """Ctrl-X: the controller stops and empties its buffer; unanswered lines are dropped."""
+        if self._writer is None:
+            return
+        self._writer.write(bytes((RESET,)))
+        self._reset_sent = True
+        self._fail(self.link.reset(), "reset")
+        if self.ready and self._banner_watch is None:
+            self._banner_watch = asyncio.get_running_loop().call_later(
+                self.config.reply_timeout_s, self._no_banner_after_reset)
+
+    def _no_banner_after_reset(self) -> None:
+        """A board that does not come back from Ctrl-X is hung: reconnect (which alarms), so
+        lines never wait for it for ever."""
+        self._banner_watch = None
+        if self.link.awaiting_banner and self._writer is not None:
+            log.error("no banner from %s %.1f s after Ctrl-X: reconnecting", self.where,
+                      self.config.reply_timeout_s)
+            self._writer.close()
+
+    def _stop_banner_watch(self) -> None:
+        if self._banner_watch is not None:
+            self._banner_watch.cancel()
+            self._banner_watch = None
+
+    def _fail(self, tokens: list[int] | tuple[int, ...], reason: str) -> None:
+        for token in tokens:
+            future = self._futures.pop(token, None)
+            if future is not None and not future.done():
+                future.set_exception(LineDropped(reason))
+                future.exception()  # retrieved: nobody may be waiting for it any more
+        self._room.set()
+
+    def _drop_connection(self, reason: str, *, tell: bool = True) -> None:
+        writer, self._writer = self._writer, None
+        was_ready, self.ready = self.ready, False
+        self._stop_banner_watch()
+        self.status = None
+        self._fail(self.link.lost(), f"controller connection lost: {reason}")
+        if writer is not None:
+            with contextlib.suppress(Exception):
+                writer.close()
+        if was_ready and tell:
+            log.error("controller at %s lost: %s", self.where, reason)
+            self.listener.on_lost(reason)
+

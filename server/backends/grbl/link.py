@@ -1,0 +1,301 @@
+"""The Grbl serial protocol as seen from the host: a pure, sans-I/O link core.
+
+:class:`Link` keeps the character-counting send window of one controller connection and
+matches the controller's answers to the lines sent, in order:
+
+* :meth:`Link.send` admits a line only while the bytes of unanswered lines plus its own fit in
+  the controller's receive buffer (Grbl's "character counting"; 127 bytes on an Arduino);
+* :meth:`Link.receive` turns the controller's bytes into events: each ``ok`` / ``error:N``
+  answers the oldest unanswered line (:class:`Answered`, with the lines the controller printed
+  for it before, such as ``[PRB:...]`` or ``$$`` output), ``<...>`` is a :class:`StatusReport`,
+  ``ALARM:N`` an :class:`AlarmReport`, the welcome line a :class:`Banner`; anything else while
+  no line is waiting is :class:`Feedback` (``[MSG:...]`` after a reset);
+* :meth:`Link.reset` (Ctrl-X sent) and :meth:`Link.lost` drop every unanswered line: after a
+  reset the controller empties its buffer and never answers them, so answers are ignored and
+  nothing is sent until its banner arrives again.
+
+Nothing here does I/O or knows asyncio; the transport (``controller.py``) writes the bytes.
+Units: positions mm, feed mm/min as the controller reports it.
+"""
+
+from __future__ import annotations
+
+import re
+from collections import deque
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+DEFAULT_BUFFER_BYTES = 127  # Grbl's 128-byte serial buffer, one byte kept free
+MAX_LINE_BYTES = 1024  # a controller line longer than this is junk (noise on the wire)
+_BANNER = re.compile(r"^Grbl(?:HAL)?\s+\S+.*\[.*\]", re.I)
+_ANSWER = re.compile(r"^(?:ok|error:(\d+))$", re.I)
+_ALARM = re.compile(r"^ALARM:(\d+)$", re.I)
+_SETTING = re.compile(r"^\$(\d+)=([-+]?[0-9]*\.?[0-9]+)")
+_COMMENT = re.compile(r"\([^)]*\)|;.*")
+_SPACE = re.compile(r"\s+")
+
+
+@dataclass(frozen=True, slots=True)
+class ControllerStatus:
+    """One ``<...>`` report, decoded. ``machine_mm`` is None if it carried no position."""
+
+    state: str  # "Idle", "Run", "Hold:0", "Alarm", "Door:1"...
+    machine_mm: tuple[float, ...] | None
+    wco_mm: tuple[float, ...] | None
+    feed_mm_min: float = 0.0
+    spindle_s: float = 0.0
+    planner_free_blocks: int | None = None
+    rx_free_bytes: int | None = None
+    line_number: int | None = None
+    pins: str = ""
+    overrides: tuple[int, int, int] | None = None
+    accessories: str = ""
+
+    @property
+    def base_state(self) -> str:
+        """The state without its sub-state: ``Hold:0`` -> ``Hold``."""
+        return self.state.partition(":")[0]
+
+
+@dataclass(frozen=True, slots=True)
+class Answered:
+    """The controller answered line ``token``: ``error`` is None for ``ok``."""
+
+    token: int
+    messages: tuple[str, ...]
+    error: int | None
+
+
+@dataclass(frozen=True, slots=True)
+class StatusReport:
+    status: ControllerStatus
+
+
+@dataclass(frozen=True, slots=True)
+class AlarmReport:
+    code: int
+
+
+@dataclass(frozen=True, slots=True)
+class Banner:
+    """The controller (re)started: ``dropped`` are the lines it will never answer."""
+
+    text: str
+    dropped: tuple[int, ...] = ()
+
+
+@dataclass(frozen=True, slots=True)
+class Feedback:
+    """A line that answers nothing we sent (``[MSG:...]``, a stray ``ok``...)."""
+
+    text: str
+
+
+LinkEvent = Answered | StatusReport | AlarmReport | Banner | Feedback
+
+
+@dataclass(slots=True)
+class _InFlight:
+    token: int
+    size_bytes: int
+    messages: list[str] = field(default_factory=list)
+
+
+class Link:
+    """One controller connection's send window and reply matching; see the module docstring."""
+
+    def __init__(self, buffer_bytes: int = DEFAULT_BUFFER_BYTES) -> None:
+        self.buffer_bytes = buffer_bytes
+        self.used_bytes = 0
+        self.awaiting_banner = True
+        self._in_flight: deque[_InFlight] = deque()
+        self._next_token = 0
+        self._partial = bytearray()
+        self._wco: tuple[float, ...] | None = None
+
+    # -- sending ----------------------------------------------------------------------------
+    @property
+    def in_flight(self) -> int:
+        """Lines sent and not yet answered."""
+        return len(self._in_flight)
+
+    def fits(self, line_bytes: int) -> bool:
+        """Whether a line of ``line_bytes`` (newline included) may be sent now. A line longer
+        than the whole buffer goes alone (the controller reads it as its buffer drains)."""
+        if self.awaiting_banner:
+            return False
+        if not self._in_flight:
+            return True
+        return self.used_bytes + line_bytes <= self.buffer_bytes
+
+    def send(self, text: str) -> tuple[int, bytes]:
+        """Admit one line: its token (for :class:`Answered`) and the bytes to write."""
+        data = text.encode("ascii", "replace") + b"\n"
+        if not self.fits(len(data)):
+            raise RuntimeError("the controller's buffer has no room for this line")
+        token = self._next_token
+        self._next_token += 1
+        self._in_flight.append(_InFlight(token, len(data)))
+        self.used_bytes += len(data)
+        return token, data
+
+    def reset(self) -> list[int]:
+        """Ctrl-X was sent: the unanswered lines are gone; wait for the banner."""
+        dropped = [line.token for line in self._in_flight]
+        self._in_flight.clear()
+        self.used_bytes = 0
+        self.awaiting_banner = True
+        return dropped
+
+    def lost(self) -> list[int]:
+        """The connection is gone: every unanswered line is dropped, input discarded."""
+        self._partial.clear()
+        self._wco = None
+        return self.reset()
+
+    # -- receiving --------------------------------------------------------------------------
+    def receive(self, data: bytes) -> list[LinkEvent]:
+        """Bytes from the controller, in order; complete lines become events."""
+        self._partial += data
+        events: list[LinkEvent] = []
+        while True:
+            end = self._partial.find(b"\n")
+            if end < 0:
+                if len(self._partial) > MAX_LINE_BYTES:
+                    self._partial.clear()
+                return events
+            raw = bytes(self._partial[:end])
+            del self._partial[: end + 1]
+            text = raw.decode("ascii", "replace").strip()
+            if text:
+                event = self._line(text)
+                if event is not None:
+                    events.append(event)
+
+    def _line(self, text: str) -> LinkEvent | None:
+        if text.startswith("<") and text.endswith(">"):
+            status = parse_status(text, self._wco)
+            if status.wco_mm is not None:
+                self._wco = status.wco_mm
+            return StatusReport(status)
+        if _BANNER.match(text):
+            dropped = tuple(self.reset())
+            self.awaiting_banner = False
+            return Banner(text, dropped)
+        alarm = _ALARM.match(text)
+        if alarm:
+            return AlarmReport(int(alarm.group(1)))
+        answer = _ANSWER.match(text)
+        if answer:
+            return self._answer(text, None if answer.group(1) is None else int(answer.group(1)))
+        if self._in_flight and not self.awaiting_banner:
+            self._in_flight[0].messages.append(text)
+            return None
+        return Feedback(text)
+
+    def _answer(self, text: str, error: int | None) -> LinkEvent:
+        if self.awaiting_banner or not self._in_flight:
+            return Feedback(text)  # an answer to a line dropped by a reset
+        line = self._in_flight.popleft()
+        self.used_bytes -= line.size_bytes
+        return Answered(line.token, tuple(line.messages), error)
+
+
+# -- line and report parsing ------------------------------------------------------------------
+def compact(text: str) -> str:
+    """A line as Grbl stores it: comments and white space removed (fewer bytes to count)."""
+    return _SPACE.sub("", _COMMENT.sub("", text))
+
+
+def parse_status(text: str, wco_mm: tuple[float, ...] | None = None) -> ControllerStatus:
+    """Decode ``<Idle|MPos:1,2,3|FS:0,0|WCO:0,0,0>``; ``wco_mm``: the last offset reported
+    (Grbl sends ``WCO:`` only now and then), used to turn ``WPos:`` into machine position."""
+    fields = text.strip("<>").split("|")
+    values: dict[str, str] = {}
+    for item in fields[1:]:
+        key, _, value = item.partition(":")
+        values[key] = value
+    wco = _numbers(values["WCO"]) if "WCO" in values else None
+    machine = _machine_position(values, wco or wco_mm)
+    feed, spindle = _feed(values)
+    buffers = _ints(values.get("Bf", ""))
+    overrides = _ints(values.get("Ov", ""))
+    return ControllerStatus(
+        state=fields[0],
+        machine_mm=machine,
+        wco_mm=wco,
+        feed_mm_min=feed,
+        spindle_s=spindle,
+        planner_free_blocks=buffers[0] if len(buffers) >= 1 else None,
+        rx_free_bytes=buffers[1] if len(buffers) >= 2 else None,
+        line_number=int(values["Ln"]) if values.get("Ln", "").isdigit() else None,
+        pins=values.get("Pn", ""),
+        overrides=(overrides[0], overrides[1], overrides[2]) if len(overrides) >= 3 else None,
+        accessories=values.get("A", ""),
+    )
+
+
+def _machine_position(
+    values: Mapping[str, str], wco_mm: tuple[float, ...] | None
+) -> tuple[float, ...] | None:
+    if "MPos" in values:
+        return _numbers(values["MPos"])
+    if "WPos" in values:
+        work = _numbers(values["WPos"])
+        offset = wco_mm or tuple(0.0 for _ in work)
+        return tuple(w + o for w, o in zip(work, offset, strict=False))
+    return None
+
+
+def _feed(values: Mapping[str, str]) -> tuple[float, float]:
+    if "FS" in values:
+        numbers = _numbers(values["FS"]) + (0.0, 0.0)
+        return numbers[0], numbers[1]
+    if "F" in values:
+        return _numbers(values["F"])[0], 0.0
+    return 0.0, 0.0
+
+
+def _numbers(text: str) -> tuple[float, ...]:
+    return tuple(float(part) for part in text.split(",") if part)
+
+
+def _ints(text: str) -> list[int]:
+    return [int(float(part)) for part in text.split(",") if part]
+
+
+def parse_settings(lines: tuple[str, ...] | list[str]) -> dict[int, float]:
+    """``$$`` output (``$100=80.000``...) as numbers; other lines are ignored."""
+    settings: dict[int, float] = {}
+    for line in lines:
+        match = _SETTING.match(line.strip())
+        if match:
+            settings[int(match.group(1))] = float(match.group(2))
+    return settings
+
+
+# $11 junction deviation, $20 soft limits stay motiond's, $32 laser mode, then per axis
+# steps/mm, max rate (mm/min), acceleration (mm/s²) and travel (mm).
+ADOPTED_SETTINGS = (11, 32)
+AXIS_SETTINGS = (100, 110, 120, 130)
+
+
+def adopted_numbers(axis_count: int) -> list[int]:
+    """The ``$`` settings motiond takes from the controller, for ``axis_count`` axes."""
+    return [*ADOPTED_SETTINGS,
+            *(base + index for base in AXIS_SETTINGS for index in range(axis_count))]
+
+
+def mismatches(
+    controller: Mapping[int, float], ours: Mapping[int, float], numbers: list[int]
+) -> list[tuple[int, float, float]]:
+    """``(number, ours, controller's)`` for each adopted setting on which the two differ
+    (relative tolerance 1e-6: the controller prints three decimals)."""
+    found = []
+    for number in numbers:
+        if number not in controller or number not in ours:
+            continue
+        theirs, mine = float(controller[number]), float(ours[number])
+        if abs(theirs - mine) > 1e-6 * max(1.0, abs(theirs), abs(mine)) + 5e-4:
+            found.append((number, mine, theirs))
+    return found

@@ -1,0 +1,394 @@
+"""``[backend] kind = "grbl"``: the machine is a Grbl, grblHAL or FluidNC controller downstream.
+
+:class:`GrblMachine` is the :class:`~server.runtime.machine.Machine` of such a setup. motiond's
+whole front stays as it is (transports, protocol, dispatcher, jobs, API); only the end of the
+pipeline changes. Every G-code line still goes through the dispatcher and motiond's interpreter
+(one path per line: bad lines fail here with motiond's error numbers, soft limits and modal
+state are checked), but instead of being planned and stepped it is sent to the controller,
+compacted, with character counting (:class:`~server.backends.grbl.controller.Controller`). The
+line's reply is deferred (:attr:`Command.defer <server.runtime.dispatcher.Command>`): it is the
+controller's ``ok`` or ``error:N``, sent to the client once the controller has answered, in
+order, while the following lines already stream.
+
+Realtime commands reach this machine through :class:`~server.runtime.control.MachineControl`
+as on any backend and are written to the controller at once. The controller's status, polled
+at ``[backend] status_hz`` by one task, is the machine's: it drives the state, the position the
+web UI and ``M114`` show, and every client's ``?`` report (answered from the latest report, so
+ten clients polling do not multiply the traffic to the board). The controller's ``$$`` settings
+are adopted into motiond's machine model at each connection (a warning per difference with the
+config), so ``estimate``, soft limits and the toolpath agree with the real machine.
+
+An alarm from the controller (``ALARM:N``) alarms motiond, which tells every client. An alarm
+raised by motiond (soft limit, M112, a lost connection) stops the controller with Ctrl-X. A lost
+connection alarms (ALARM:42), fails the lines in flight, stops a job, and the controller is
+reopened every ``reconnect_s``; ``$X`` unlocks both once it is back.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import re
+from dataclasses import replace
+
+from server.backends.grbl.controller import Controller, Handshake, LineDropped
+from server.backends.grbl.link import (
+    Answered,
+    ControllerStatus,
+    adopted_numbers,
+    compact,
+    mismatches,
+)
+from server.config import Config
+from server.errors import ALARM_MEANINGS, Alarm, CommandError, Error, SoftLimitError
+from server.gcode.parser import parse_line
+from server.motion.moves import Move, Sync, SyncKind, ToolMode
+from server.motion.stepgen import HoldState
+from server.protocol.lines import Realtime
+from server.protocol.reports import StatusSnapshot
+from server.runtime.clock import Clock
+from server.runtime.dispatcher import Command, Dispatcher
+from server.runtime.events import EventBus, MachineState
+from server.runtime.machine import Machine
+from server.runtime.state import MachineStatus
+
+log = logging.getLogger("motiond.grbl")
+LOCAL_SYNCS = frozenset({SyncKind.HALT, SyncKind.CLEAR_HALT, SyncKind.MESSAGE,
+                         SyncKind.REPORT_POSITION})  # M112, M999, messages, M114: motiond's own
+_STATES = {"Idle": MachineState.IDLE, "Run": MachineState.RUN, "Hold": MachineState.HOLD,
+           "Jog": MachineState.JOG, "Home": MachineState.HOME, "Door": MachineState.DOOR,
+           "Sleep": MachineState.SLEEP, "Check": MachineState.CHECK}
+_MOVING = frozenset({"Run", "Jog", "Home"})
+_STILL = frozenset({"Idle", "Alarm", "Check", "Sleep"})  # nothing will move without a command
+_WCS_REPORT = re.compile(r"^\[G(5[4-9]):([-0-9.,]+)\]$")
+_ADOPTED_MODES = frozenset({"G54", "G55", "G56", "G57", "G58", "G59", "G17", "G18", "G19",
+                            "G20", "G21", "G90", "G91", "G93", "G94"})
+
+
+class GrblMachine(Machine):
+    """The motion pipeline ends at a Grbl controller; see the module docstring."""
+
+    def __init__(
+        self, config: Config, clock: Clock, events: EventBus, status: MachineStatus
+    ) -> None:
+        super().__init__(config, clock, events, status)
+        self.controller = Controller(config.core.backend, self)
+        self.controller_status: ControllerStatus | None = None
+        self._controller_alarm = False  # the alarm in force came from the controller
+        self._previous_state = ""
+        self._position_synced = False
+        self._overrides = (100, 100, 100)  # Grbl reports Ov: only now and then
+        self._idle = asyncio.Event()
+        self._idle.set()
+
+    # -- lines ------------------------------------------------------------------------------
+    async def handle_gcode(self, command: Command) -> list[str]:
+        assert command.line is not None
+        try:
+            outputs = self.interpreter.execute(command.line)
+        except SoftLimitError as exc:
+            self.status.alarm(Alarm.SOFT_LIMIT, f"soft limit: {exc.message}")
+            raise
+        syncs = [out for out in outputs if type(out) is Sync]
+        if self.check_mode or any(sync.kind in LOCAL_SYNCS for sync in syncs):
+            messages: list[str] = []
+            for sync in syncs:
+                if not self.check_mode or sync.kind is SyncKind.MESSAGE:
+                    messages += await self.sync(sync)
+            return messages
+        if any(sync.kind is SyncKind.PROBE for sync in syncs):
+            return await self._probe(command)
+        return await self.forward(compact(command.text), command)
+
+    async def _probe(self, command: Command) -> list[str]:
+        """G38.x: the board probes; motiond waits for it (Grbl's parser does too), then takes
+        the position it stopped at."""
+        messages = await self.forward(compact(command.text), replace(command, defer=None))
+        await self.wait_idle()
+        self.interpreter.set_position(self.stepgen.state.position_mm)
+        return messages
+
+    async def forward(self, text: str, command: Command) -> list[str]:
+        """Send one line to the controller; its reply is deferred when the caller allows."""
+        if not text:
+            return []
+        epoch = self.epoch
+        try:
+            answer = await self.controller.send_line(text, lambda: epoch == self.epoch)
+        except LineDropped as exc:
+            raise CommandError(Error.BUSY, str(exc)) from exc
+        self._idle.clear()
+        self.idle_event.clear()
+        if self.status.state is MachineState.IDLE:
+            self.status.set_state(MachineState.RUN)
+        reply: asyncio.Future[list[str]] = asyncio.get_running_loop().create_future()
+        answer.add_done_callback(lambda done: self._settle(done, reply, text))
+        if command.defer is not None:
+            command.defer(reply)
+            return []
+        return await reply
+
+    async def _forward_command(self, command: Command) -> list[str]:
+        """``$X``, ``$H``, ``$J=``, ``$100=80``: after motiond's own handler (which checks
+        the line, and refuses a setting it does not know), the controller's turn."""
+        if command.name in ("$X", "$H"):
+            self._controller_alarm = False
+        try:
+            return await self.forward(compact(command.text), command)
+        except CommandError:
+            if command.name == "$X" and not self.controller.ready:  # nothing to unlock yet
+                self.status.alarm(Alarm.BACKEND_FAILED, "the controller is not connected")
+            raise
+
+    def register_commands(self, dispatcher: Dispatcher) -> None:
+        for name in ("$X", "$H", "$="):  # $=: a setting motiond took is the board's too
+            dispatcher.register(name, self._forward_command, when_locked=True)
+        dispatcher.register("$J=", self._forward_command)
+
+    async def queue_move(self, move: Move) -> None:
+        """Jogs and module moves are the controller's: motiond's planner stays empty."""
+
+    async def wait_idle(self) -> None:
+        """Until every line sent is answered and the controller reports Idle after that."""
+        await self._idle.wait()
+
+    @property
+    def busy(self) -> bool:
+        return not self._idle.is_set()
+
+    # -- the controller's reports (ControllerListener) ---------------------------------------
+    def on_connected(self, handshake: Handshake) -> None:
+        self._adopt(handshake.settings)
+        self._adopt_offsets(handshake)
+        self._position_synced = False
+        self.status.push(f"[MSG:controller connected: {handshake.banner}]")
+
+    def on_answer(self) -> None:
+        self._idle.clear()  # a status report after this answer says whether it is idle
+
+    def on_status(self, report: ControllerStatus) -> None:
+        self.controller_status = report
+        self._overrides = report.overrides or self._overrides
+        self.feed_override, self.rapid_override, self.spindle_override = self._overrides
+        self._publish_motion(report)
+        base = report.base_state
+        if base == "Alarm":
+            if self._previous_state != "Alarm" and self.status.state is not MachineState.ALARM:
+                self._controller_alarm = True
+                self.status.alarm(Alarm.ABORT_CYCLE,
+                                  "the controller is in alarm: $X (or $H) to unlock")
+        elif self.status.state not in (MachineState.ALARM, MachineState.CHECK):
+            state = _STATES.get(base)
+            if state is not None:
+                self.status.set_state(state)
+        self._previous_state = base
+        if self.controller.link.in_flight == 0 and base in _STILL:
+            self._sync_position(report)
+            self._idle.set()
+            self.idle_event.set()
+
+    def on_alarm(self, code: int) -> None:
+        self._controller_alarm = True
+        self._previous_state = "Alarm"
+        if self.status.state is MachineState.ALARM and self.status.alarm_code == code:
+            return
+        meaning = ALARM_MEANINGS.get(code, "see the controller's documentation")
+        self.status.alarm(code, f"controller ALARM:{code}: {meaning}")
+
+    def on_feedback(self, text: str) -> None:
+        if text.startswith("[") and text.endswith("]"):
+            self.status.push(text)
+        elif text.lower() != "ok" and not text.lower().startswith("error:"):
+            self.status.push(f"[MSG:controller: {text}]")
+
+    def on_lost(self, reason: str) -> None:
+        self.controller_status = None
+        self._previous_state = ""
+        self._controller_alarm = False
+        self.status.alarm(Alarm.BACKEND_FAILED, f"controller connection lost: {reason}")
+        self._idle.set()
+        self.idle_event.set()
+
+    def on_restart(self, banner: str) -> None:
+        """The board restarted by itself (reset button, power): what it had is lost."""
+        self._position_synced = False
+        self._controller_alarm = False
+        self.status.alarm(Alarm.BACKEND_FAILED,
+                          f"the controller restarted ({banner}): position may be lost")
+
+    def _publish_motion(self, report: ControllerStatus) -> None:
+        """The controller's position and speed become motiond's motion state (web UI, M114)."""
+        motion = self.stepgen.state
+        if report.machine_mm is not None:
+            axes = len(self.core.axis_names)
+            motion.position_mm = tuple((list(report.machine_mm) + [0.0] * axes)[:axes])
+        motion.speed_mm_s = report.feed_mm_min / 60.0
+        motion.moving = report.base_state in _MOVING or report.state == "Hold:1"
+        motion.hold = {"Hold:0": HoldState.STOPPED, "Hold:1": HoldState.DECELERATING}.get(
+            report.state, HoldState.NONE)
+        motion.line_number = report.line_number
+        motion.s_value = report.spindle_s
+        motion.tool_mode = ToolMode.CCW if "C" in report.accessories else (
+            ToolMode.CW if "S" in report.accessories else ToolMode.OFF)
+        motion.time_s = self.clock.now_s()
+
+    def _sync_position(self, report: ControllerStatus) -> None:
+        """After a connection or a reset, the interpreter starts from where the machine is."""
+        if self._position_synced or report.machine_mm is None:
+            return
+        self._position_synced = True
+        self.interpreter.set_position(self.stepgen.state.position_mm)
+        self.planner.set_position(self.stepgen.state.position_mm)
+
+    def _adopt(self, settings: dict[int, float]) -> None:
+        """Take the controller's steps, rates, accelerations, travel, junction deviation and
+        laser mode; warn about each value that differs from motiond's config."""
+        numbers = adopted_numbers(len(self.core.axis_names))
+        ours = self.settings.values()
+        for number, mine, theirs in mismatches(settings, ours, numbers):
+            description = self.settings.table[number].description
+            log.warning("controller $%d=%g (%s) differs from motiond's config (%g): using "
+                        "the controller's", number, theirs, description, mine)
+            try:
+                self.settings.set(number, theirs)
+            except CommandError as exc:
+                log.warning("cannot adopt $%d=%g: %s", number, theirs, exc.message)
+
+    def _adopt_offsets(self, handshake: Handshake) -> None:
+        """The board's work offsets (``$#``: G54-G59, kept in its EEPROM) and modal state
+        (``$G``: coordinate system, plane, units, distance and feed modes), run through
+        motiond's interpreter as G-code, so work positions and soft limits agree."""
+        inches = handshake.settings.get(13, 0.0) >= 1  # $13=1: $# reports inches
+        lines = ["G20" if inches else "G21"]
+        for text in handshake.offsets:
+            match = _WCS_REPORT.match(text)
+            if match:
+                values = [float(v) for v in match.group(2).split(",") if v]
+                words = " ".join(f"{axis}{value:.4f}" for axis, value in
+                                 zip(self.core.axis_names, values, strict=False))
+                lines.append(f"G10 L2 P{int(match.group(1)) - 53} {words}")
+        modal = [word for text in handshake.modal for word in text.strip("[]").split()[1:]
+                 if word in _ADOPTED_MODES]
+        lines.append(" ".join(modal or ["G21"]))
+        for line in lines:
+            try:
+                self.interpreter.execute(parse_line(line))
+            except CommandError as exc:
+                log.warning("cannot adopt the controller's %r: %s", line, exc.message)
+
+    # -- realtime commands ------------------------------------------------------------------
+    def realtime(self, command: Realtime) -> None:
+        self.controller.realtime(int(command))
+
+    def feed_hold(self) -> None:
+        self.controller.realtime(Realtime.HOLD)
+
+    def cycle_start(self) -> None:
+        self.controller.realtime(Realtime.RESUME)
+
+    def cancel_jog(self) -> None:
+        self.controller.realtime(Realtime.JOG_CANCEL)
+
+    def set_overrides(
+        self, feed: int | None = None, rapid: int | None = None, spindle: int | None = None
+    ) -> None:
+        """The API's override setter, as the realtime bytes Grbl knows (100 %, then ±10s and
+        ±1s); the board's next report confirms them."""
+        for value, steps in ((feed, _FEED_BYTES), (spindle, _SPINDLE_BYTES)):
+            if value is not None:
+                for byte in _override_bytes(max(10, min(200, value)), steps):
+                    self.controller.realtime(byte)
+        if rapid is not None:
+            self.controller.realtime({100: Realtime.RAPID_100, 50: Realtime.RAPID_50}.get(
+                rapid, Realtime.RAPID_25))
+        self.feed_override = self.feed_override if feed is None else max(10, min(200, feed))
+        self.spindle_override = (
+            self.spindle_override if spindle is None else max(10, min(200, spindle)))
+        self.rapid_override = self.rapid_override if rapid is None else rapid
+
+    def soft_reset(self) -> None:
+        self._controller_alarm = False
+        super().soft_reset()
+
+    def stop_now(self) -> None:
+        """Stop the controller (Ctrl-X) unless the alarm is its own; lines in flight fail."""
+        self.epoch += 1
+        if not self._controller_alarm:
+            self.controller.reset()
+        self._position_synced = False
+        self.room.set()
+
+    def status_snapshot(self, rx_free_bytes: int) -> StatusSnapshot | None:
+        """The controller's latest report as every client's ``?`` answer (None: disconnected)."""
+        report = self.controller_status
+        if report is None:
+            return None
+        motion = self.stepgen.state
+        wco = report.wco_mm or self.interpreter.wco()
+        axes = len(self.core.axis_names)
+        state = "Alarm" if self.status.state is MachineState.ALARM else report.state
+        return StatusSnapshot(
+            state=state,
+            machine_mm=motion.position_mm,
+            wco_mm=tuple((list(wco) + [0.0] * axes)[:axes]),
+            feed_mm_s=motion.speed_mm_s,
+            spindle_s=report.spindle_s,
+            planner_free_blocks=report.planner_free_blocks or 0,
+            rx_free_bytes=rx_free_bytes,
+            line_number=report.line_number,
+            pins=report.pins,
+            overrides=self._overrides,
+            accessories=report.accessories,
+        )
+
+    def _settle(self, answer: asyncio.Future[Answered], reply: asyncio.Future[list[str]],
+                text: str) -> None:
+        """The controller's answer becomes the line's reply (messages, or a CommandError); a
+        refusal is also told to every client (observers see why a job stopped)."""
+        if reply.done():
+            return
+        error: BaseException | None = (
+            LineDropped("cancelled") if answer.cancelled() else answer.exception())
+        if isinstance(error, LineDropped):
+            reply.set_exception(CommandError(Error.BUSY, f"not run: {error}"))
+        elif error is not None:
+            reply.set_exception(error)
+        elif answer.result().error is None:
+            reply.set_result(list(answer.result().messages))
+        else:
+            code = answer.result().error
+            assert code is not None
+            self.status.push(f"[MSG:controller error:{code} on {text}]")
+            reply.set_exception(_controller_error(code, text))
+        reply.exception()  # retrieved here: a caller gone since (a reset) must not log it
+
+    # -- the task ---------------------------------------------------------------------------
+    async def run(self) -> None:
+        """The controller connection (no step generator: the controller steps)."""
+        try:
+            await self.controller.run()
+        finally:
+            self.backend.close()
+
+
+# (100 %, +10, -10, +1, -1) for feed and spindle overrides
+_FEED_BYTES = (Realtime.FEED_100, Realtime.FEED_PLUS_10, Realtime.FEED_MINUS_10,
+               Realtime.FEED_PLUS_1, Realtime.FEED_MINUS_1)
+_SPINDLE_BYTES = (Realtime.SPINDLE_100, Realtime.SPINDLE_PLUS_10, Realtime.SPINDLE_MINUS_10,
+                  Realtime.SPINDLE_PLUS_1, Realtime.SPINDLE_MINUS_1)
+
+
+def _override_bytes(percent: int, steps: tuple[Realtime, ...]) -> list[int]:
+    """The realtime bytes that take an override from anything to ``percent``."""
+    hundred, plus_10, minus_10, plus_1, minus_1 = steps
+    tens, ones = divmod(abs(percent - 100), 10)
+    up = percent >= 100
+    return [hundred, *[plus_10 if up else minus_10] * tens, *[plus_1 if up else minus_1] * ones]
+
+
+def _controller_error(code: int, text: str) -> CommandError:
+    try:
+        return CommandError(code, f"the controller refused {text!r}")
+    except ValueError:  # a grblHAL or FluidNC number motiond does not know
+        return CommandError(Error.UNSUPPORTED, f"the controller refused {text!r}: error:{code}")
+
