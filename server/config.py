@@ -65,11 +65,50 @@ class StepgenConfig(Strict):
     tick_hz: float = Field(1000.0, ge=10, le=100_000)
 
 
+MCU_PIN_PATTERN = r"^!?[A-Za-z][A-Za-z0-9_]*$"
+
+
+class KlipperAxisPins(Strict):
+    """``[backend.axes.x]``: one stepper driver on the Klipper MCU (``!`` inverts a pin)."""
+
+    step_pin: str = Field(pattern=MCU_PIN_PATTERN, description="e.g. PB13")
+    dir_pin: str = Field(pattern=MCU_PIN_PATTERN, description="e.g. !PB12")
+    enable_pin: str | None = Field(None, pattern=MCU_PIN_PATTERN, description="e.g. !PB14")
+    step_pulse_s: float = Field(2e-6, ge=0, le=1e-3, description="minimum step pulse width")
+
+
+class KlipperOutput(Strict):
+    """``[backend.outputs.NAME]``: an output modules set by NAME (``[laser] pin = NAME``)."""
+
+    pin: str | None = Field(None, pattern=MCU_PIN_PATTERN,
+                            description="the MCU pin (default: NAME itself); ! inverts")
+    pwm: bool = Field(True, description="hardware PWM (config_pwm_out); false: on/off")
+    cycle_time_s: float = Field(0.0001, gt=0, le=1, description="PWM period (1/frequency)")
+
+
 class BackendConfig(Strict):
-    kind: Literal["sim", "null"] = "sim"
+    kind: Literal["sim", "null", "klipper"] = "sim"
     trace_csv: Path | None = None
     history_samples: int = Field(100_000, ge=0)
     probe_at_mm: dict[str, float] = Field(default_factory=dict)
+    serial: str | None = Field(None, description="klipper: the MCU's device or pty path")
+    baud: int = Field(250000, gt=0, description="klipper: serial speed (USB ignores it)")
+    lead_time_s: float = Field(
+        0.2, ge=0.02, le=2.0,
+        description="klipper: trajectory time t executes at MCU time t + lead (also the most "
+        "a feed hold takes to start decelerating, and the host stall it survives)")
+    max_error_s: float = Field(
+        25e-6, ge=1e-6, le=1e-3, description="klipper: how early a step may be (compression)")
+    response_timeout_s: float = Field(
+        0.5, ge=0.05, le=10, description="klipper: an MCU silent this long is an alarm")
+    axes: dict[str, KlipperAxisPins] = Field(default_factory=dict)
+    outputs: dict[str, KlipperOutput] = Field(default_factory=dict)
+
+    @model_validator(mode="after")
+    def _klipper_complete(self) -> BackendConfig:
+        if self.kind == "klipper" and not self.serial:
+            raise ValueError("kind = \"klipper\" needs serial (the MCU's device path)")
+        return self
 
 
 class TcpConfig(Strict):
@@ -176,6 +215,12 @@ class CoreConfig(Strict):
             raise ValueError(f"axis names must be among {', '.join(AXIS_LETTERS)}, not {bad}")
         if len({name.upper() for name in self.axes}) != len(self.axes):
             raise ValueError("an axis is named twice")
+        if self.backend.kind == "klipper":
+            pins = {name.upper() for name in self.backend.axes}
+            missing = [name for name in self.axes if name.upper() not in pins]
+            if missing or len(pins) != len(self.axes):
+                raise ValueError(f"[backend.axes.*] must give the pins of every axis "
+                                 f"({', '.join(self.axis_names)}); missing {missing}")
         return self
 
     @property
