@@ -105,9 +105,23 @@ class VirtualMcu:
     def restart(self) -> None:
         """A reset: clock from zero, sequence from zero, unconfigured, outputs at rest."""
         with self.lock:
-            for out in self.outputs.values():
-                out.events.append((self.clock(), out.default))
+            self._cancel_future(self.clock())
             self._power_on()
+
+    def _archive(self) -> None:
+        """Objects go (config_reset, restart); what they did stays in the records."""
+        for oid, stepper in self.steppers.items():
+            self.old_runs.setdefault(oid, []).extend(stepper.runs)
+        for oid, out in self.outputs.items():
+            self.old_events.setdefault(oid, []).extend(out.events)
+        self.steppers, self.outputs = {}, {}
+
+    def output_events(self, pin: str) -> list[tuple[int, int]]:
+        """Every value the pin was set to, with its clock, across reconfigurations."""
+        with self.lock:
+            events = [e for oid, out in self.outputs.items() if out.pin == pin
+                      for e in self.old_events.get(oid, []) + out.events]
+        return events
 
     def _power_on(self) -> None:
         self._t0 = time.monotonic()
@@ -116,6 +130,10 @@ class VirtualMcu:
         self.crc = 0
         self.oid_count = 0
         self.shutdown_reason: str | None = None
+        self.old_runs: dict[int, list[StepRecord]] = getattr(self, "old_runs", {})
+        self.old_events: dict[int, list[tuple[int, int]]] = getattr(self, "old_events", {})
+        if hasattr(self, "steppers"):
+            self._archive()
         self.steppers: dict[int, Stepper] = {}
         self.outputs: dict[int, OutputPin] = {}
         self._queue_free_at: list[int] = []  # clock at which each queued move leaves the queue
@@ -127,7 +145,8 @@ class VirtualMcu:
     def step_clocks(self, oid: int) -> tuple[np.ndarray, np.ndarray]:
         """Every step the stepper made: MCU clocks and +1/-1 directions, in order."""
         with self.lock:
-            runs = list(self.steppers[oid].runs)
+            current = self.steppers[oid].runs if oid in self.steppers else []
+            runs = self.old_runs.get(oid, []) + list(current)
         if not runs:
             return np.empty(0, np.int64), np.empty(0, np.int64)
         clocks = np.concatenate([r.clocks for r in runs])
@@ -221,13 +240,17 @@ class VirtualMcu:
         now = self.clock()
         self.shutdown_reason = reason
         self.shutdowns.append(reason)
-        for stepper in self.steppers.values():  # steps not yet made never happen
-            for run in stepper.runs:
-                run.clocks = run.clocks[run.clocks <= now]
+        self._cancel_future(now)
+        self.respond("shutdown clock=%u static_string_id=%hu", now & 0xFFFFFFFF, reason)
+
+    def _cancel_future(self, now: int) -> None:
+        """Steps and output changes not yet made never happen; outputs go to their defaults."""
+        runs = [r for s in self.steppers.values() for r in s.runs]
+        for run in runs + [r for old in self.old_runs.values() for r in old]:
+            run.clocks = run.clocks[run.clocks <= now]
         for out in self.outputs.values():
             out.events = [e for e in out.events if e[0] <= now] + [(now, out.default)]
         self._queue_free_at.clear()
-        self.respond("shutdown clock=%u static_string_id=%hu", now & 0xFFFFFFFF, reason)
 
     def _cmd_identify(self, now: int, offset: int, count: int) -> None:
         self.respond("identify_response offset=%u data=%.*s", offset,
@@ -271,7 +294,7 @@ class VirtualMcu:
             self.shutdown("config_reset only available when shutdown")
             return
         self.configured, self.crc, self.oid_count = False, 0, 0
-        self.steppers, self.outputs = {}, {}
+        self._archive()
         self.shutdown_reason = None
 
     def _cmd_emergency_stop(self, now: int) -> None:

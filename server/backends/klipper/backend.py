@@ -39,6 +39,8 @@ from server.config import CoreConfig, KlipperOutput
 
 log = logging.getLogger("motiond.klipper")
 LATE_MARGIN_S = 0.002
+SLEW_S = 2.0
+MAX_SLEW = 200e-6
 
 
 def split_pin(text: str) -> tuple[str, bool]:
@@ -75,7 +77,7 @@ class _Output:
     oid: int = 0
     invert: bool = False
     last_clock: int = 0
-    on: bool = False
+    value: float = 0.0  # the last value sent (0 after a configuration or a stop)
 
 
 class KlipperBackend:
@@ -104,7 +106,7 @@ class KlipperBackend:
         self._next_flush_s = 0.0
         self._outbox: deque[tuple[bytes, int | None, int]] = deque()  # msg, slot until, due
         self._in_use: list[int] = []
-        self._enables: list[tuple[int, bool]] = []
+        self._map: tuple[float, float, float] = (0.0, 0.0, 0.0)  # host s, MCU clock, ticks/s
 
     # -- the Backend seam ---------------------------------------------------------------------
     @property
@@ -140,6 +142,8 @@ class KlipperBackend:
         self._sample_s = time_s
         if not self.ready:
             return
+        if time_s >= self._next_flush_s or self._map[2] == 0.0:
+            self._update_map(time_s + self.lead_s)
         self._generate(time_s)
         if time_s >= self._next_flush_s or not self._pieces:
             self._next_flush_s = time_s + self.flush_s
@@ -151,9 +155,11 @@ class KlipperBackend:
         out = self.outputs.get(name)
         if out is None or self.mcu is None or not self.ready:
             return
+        if value == out.value:
+            return
         when_s = self._sample_s if self._sample_s is not None else time_s
-        clock = max(int(self._clock_at(when_s + self.lead_s)), out.last_clock + 1)
-        out.last_clock, out.on = clock, value > 0.0
+        clock = max(int(self._motion_clock(when_s + self.lead_s)), out.last_clock + 1)
+        out.last_clock, out.value = clock, value
         if self.pwm_log is not None:
             self.pwm_log.append((when_s, name, value))
         d = self.mcu.dictionary
@@ -188,7 +194,7 @@ class KlipperBackend:
         busy = self._busy()
         self._drop_motion()
         for out in self.outputs.values():
-            out.on = False
+            out.value = 0.0
         if busy and self.mcu is not None and self.ready:
             log.warning("emergency stop sent to the MCU")
             self.mcu.emergency_stop()
@@ -229,14 +235,15 @@ class KlipperBackend:
         self.fault = message
         self._drop_motion()
         for out in self.outputs.values():
-            out.on = False
+            out.value = 0.0
 
     def _on_configured(self) -> None:
         for axis in self.axes:
             axis.needs_reset, axis.sent_dir = True, 0
         for out in self.outputs.values():
-            out.last_clock, out.on = 0, False
+            out.last_clock, out.value = 0, 0.0
         self._in_use.clear()
+        self._map = (0.0, 0.0, 0.0)
 
     def _config_commands(self, d: Dictionary) -> list[Command]:
         freq = d.constant_int("CLOCK_FREQ")
@@ -281,8 +288,28 @@ class KlipperBackend:
 
     # -- steps --------------------------------------------------------------------------------
     def _clock_at(self, host_s: float) -> float:
+        """The fitted (live) MCU clock at host time ``host_s``: deadlines, flow control."""
         assert self.mcu is not None and self.mcu.clock is not None
         return self.mcu.clock.clock_at(host_s)
+
+    def _motion_clock(self, host_s: float | FloatArray) -> float | FloatArray:
+        """The MCU clock scheduled for host time ``host_s`` (already including the lead)."""
+        ref_s, ref_clock, freq = self._map
+        return ref_clock + freq * (host_s - ref_s)
+
+    def _update_map(self, frontier_s: float) -> None:
+        """Steer the scheduling map towards the live fit without a jump: from ``frontier_s``
+        (the latest time steps were scheduled for) its rate is the fitted rate plus what closes
+        the gap in ``SLEW_S``, so step times stay continuous and in order while the fit moves."""
+        assert self.mcu is not None and self.mcu.clock is not None
+        fit = self.mcu.clock
+        if self._map[2] == 0.0:
+            self._map = (frontier_s, fit.clock_at(frontier_s), fit.freq_hz)
+            return
+        here = float(self._motion_clock(frontier_s))
+        correction = (fit.clock_at(frontier_s) - here) / SLEW_S
+        limit = fit.freq_hz * MAX_SLEW
+        self._map = (frontier_s, here, fit.freq_hz + min(limit, max(-limit, correction)))
 
     def _now_clock(self) -> float:
         return self._clock_at(time.monotonic())
@@ -304,9 +331,7 @@ class KlipperBackend:
     def _piece_steps(self, piece: Piece, rel_s: float) -> None:
         v0, a = piece.start_mm_s, piece.accel_mm_s2
         distance = v0 * rel_s + 0.5 * a * rel_s * rel_s
-        assert self.mcu is not None and self.mcu.clock is not None
-        base_clock = self._clock_at(piece.start_s + self.lead_s)
-        freq_hz = self.mcu.clock.freq_hz
+        base_s = piece.start_s + self.lead_s
         for axis, start, unit in zip(self.axes, piece.start_mm, piece.unit, strict=True):
             if unit == 0.0:
                 continue
@@ -315,13 +340,15 @@ class KlipperBackend:
             if target == axis.position:
                 continue
             times = crossing_times(x0, u, v0, a, rel_s, axis.position, target)
-            axis.add(1 if target > axis.position else -1, base_clock + times * freq_hz)
+            clocks = self._motion_clock(base_s + times)
+            assert isinstance(clocks, np.ndarray)
+            axis.add(1 if target > axis.position else -1, clocks)
             axis.position = target
 
     def _flush(self, now_s: float) -> None:
         """Compress what is due soon (all of it when motion has no more pieces)."""
         idle = not self._pieces
-        force_clock = self._clock_at(now_s + 0.5 * self.lead_s)
+        force_clock = self._motion_clock(now_s + 0.5 * self.lead_s)
         for axis in self.axes:
             while axis.segments:
                 direction, points = axis.segments[0]
@@ -388,7 +415,7 @@ class KlipperBackend:
             return False
         now = self._now_clock()
         return (any(until > now for until in self._in_use) or bool(self._outbox)
-                or any(out.on for out in self.outputs.values()))
+                or any(out.value > 0.0 for out in self.outputs.values()))
 
     def _drop_motion(self) -> None:
         self._pieces.clear()
