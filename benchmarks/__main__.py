@@ -1,6 +1,7 @@
 """Run motiond's benchmarks by name.
 
-    python -m benchmarks NAME [--quick] [--json]     # NAME: parser, planner, offline, streaming
+    python -m benchmarks NAME [--quick] [--json]     # NAME: parser, planner, offline, streaming,
+                                                     #       klipper
     python -m benchmarks all [--quick] [--json]
     python -m benchmarks --list
 
@@ -27,6 +28,8 @@ BENCHMARKS: dict[str, tuple[str, str]] = {  # name: (module, one-line descriptio
                 "estimate blocks/s and full 1 kHz execution real-time factor per corpus file"),
     "streaming": ("benchmarks.bench_streaming",
                   "TCP streaming lines/s against a bare asyncio server; real-time raster rate"),
+    "klipper": ("benchmarks.bench_klipper",
+                "Klipper backend: host CPU per second of motion at 20,000 segments/s, bytes/s"),
 }
 
 

@@ -33,7 +33,7 @@ from server.backends.base import Piece
 from server.backends.klipper.codec import ProtocolError
 from server.backends.klipper.dictionary import Dictionary
 from server.backends.klipper.mcu import Command, KlipperFault, Mcu
-from server.backends.klipper.stepcompress import StepCompressor, StepRun, run_clocks
+from server.backends.klipper.stepcompress import StepCompressor, run_clocks
 from server.backends.klipper.steptimes import FloatArray, crossing_times, step_target
 from server.config import CoreConfig, KlipperOutput
 
@@ -95,8 +95,7 @@ class KlipperBackend:
         self.outputs = {name: _Output(name, out) for name, out in cfg.outputs.items()}
         self.values: dict[str, float] = {}
         self.pwm_log: list[tuple[float, str, float]] | None = [] if record else None
-        self.runs: list[tuple[int, StepRun]] = []  # (oid, run), only when recording
-        self._record = record
+        self.errors: list[FloatArray] | None = [] if record else None
         self.mcu: Mcu | None = None
         self.ready = False
         self.fault: str | None = None
@@ -373,15 +372,17 @@ class KlipperBackend:
             self._outbox.append((d.encode("set_next_step_dir", oid=axis.oid,
                                           dir=int((direction > 0) != axis.invert_dir)), None, 0))
             axis.sent_dir = direction
-        last = compressor.last_clock
+        last, index = compressor.last_clock, 0
         runs, done = compressor.compress(points, final)
         for run in runs:
             first = last + run.interval
             self._outbox.append((d.encode("queue_step", oid=axis.oid, interval=run.interval,
                                           count=run.count, add=run.add), first, first))
-            if self._record:
-                self.runs.append((axis.oid, run))
-            last = int(run_clocks(last, run)[-1])
+            clocks = run_clocks(last, run)
+            if self.errors is not None:  # how early each step is, in ticks
+                self.errors.append(points[index:index + run.count] - clocks)
+            index += run.count
+            last = int(clocks[-1])
         return done
 
     def _pump(self) -> None:
