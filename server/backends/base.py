@@ -32,6 +32,9 @@ class Piece:
 class Backend(Protocol):
     """What a hardware or simulated machine must provide."""
 
+    wants_trajectory: bool
+    """Whether :meth:`trajectory` is used (the step generator builds no pieces otherwise)."""
+
     def step(self, time_s: float, delta_steps: Sequence[int]) -> None:
         """Move each axis by ``delta_steps[i]`` whole steps (signed), completed by ``time_s``."""
         ...

@@ -10,6 +10,8 @@ from server.backends.base import Piece
 class NullBackend:
     """Discards steps and samples; remembers outputs so tools can be checked off."""
 
+    wants_trajectory = False
+
     def __init__(self) -> None:
         self._outputs: dict[str, float] = {}
 

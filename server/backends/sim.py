@@ -20,6 +20,8 @@ from server.backends.base import Piece
 class SimBackend:
     """A machine made of counters; see the module docstring."""
 
+    wants_trajectory = False
+
     def __init__(
         self,
         axis_names: Sequence[str],

@@ -181,7 +181,7 @@ class StepGenerator:
         self.planner.set_start_speed(0.0)
         self._set_hold(HoldState.NONE)
         self._publish_still()
-        if self._last_tick_s is not None:  # the trajectory ends here (backends drop the rest)
+        if self._last_tick_s is not None and self.backend.wants_trajectory:  # the rest is dropped
             zeros = tuple(0.0 for _ in self.state.position_mm)
             self.backend.trajectory(
                 Piece(self._last_tick_s, 0.0, self.state.position_mm, zeros, 0.0, 0.0))
@@ -230,7 +230,8 @@ class StepGenerator:
                 if self.state.hold is not HoldState.NONE:  # a pause action stopped us
                     cursor.block, cursor.time_s, cursor.distance_mm = block, 0.0, 0.0
                     return 0.0
-                self._block_pieces(now_s - t, block)
+                if self.backend.wants_trajectory:
+                    self._block_pieces(now_s - t, block)
             if t < block.duration_s:
                 break
             if budget <= 0:
@@ -294,7 +295,8 @@ class StepGenerator:
         cursor = self._cursor
         v, a = cursor.hold_speed_mm_s, cursor.hold_accel_mm_s2
         used_s = min(dt, v / a) if a != math.inf else 0.0
-        self._hold_pieces(v, a, used_s)
+        if self.backend.wants_trajectory:
+            self._hold_pieces(v, a, used_s)
         cursor.distance_mm += v * used_s - 0.5 * a * used_s * used_s if used_s else 0.0
         cursor.hold_speed_mm_s = max(0.0, v - a * used_s) if used_s else 0.0
         block = cursor.block
@@ -309,7 +311,8 @@ class StepGenerator:
                 for action in block.actions:
                     self.listener.on_action(action)
                 block.actions = []
-                self._hold_piece_into(block, overflow, v, a, used_s)
+                if self.backend.wants_trajectory:
+                    self._hold_piece_into(block, overflow, v, a, used_s)
                 cursor.hold_accel_mm_s2 = min(
                     cursor.hold_accel_mm_s2, block.accel_mm_s2 or math.inf
                 )

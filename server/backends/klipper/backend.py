@@ -83,6 +83,8 @@ class _Output:
 class KlipperBackend:
     """See the module docstring."""
 
+    wants_trajectory = True
+
     def __init__(self, core: CoreConfig, *, record: bool = False, retry_s: float = 1.0,
                  flush_s: float = 0.02) -> None:
         cfg = core.backend
@@ -101,6 +103,7 @@ class KlipperBackend:
         self.fault: str | None = None
         self._fault_to_raise: str | None = None
         self._pieces: deque[Piece] = deque()
+        self._head: Piece | None = None  # the piece steps are being generated from
         self._sample_s: float | None = None
         self._next_flush_s = 0.0
         self._outbox: deque[tuple[bytes, int | None, int]] = deque()  # msg, slot until, due
@@ -129,8 +132,11 @@ class KlipperBackend:
             pieces.pop()
         if pieces and pieces[-1].start_s + pieces[-1].duration_s > piece.start_s:
             last = pieces.pop()
-            pieces.append(Piece(last.start_s, piece.start_s - last.start_s, last.start_mm,
-                                last.unit, last.start_mm_s, last.accel_mm_s2))
+            cut = Piece(last.start_s, piece.start_s - last.start_s, last.start_mm, last.unit,
+                        last.start_mm_s, last.accel_mm_s2)
+            pieces.append(cut)
+            if last is self._head:
+                self._head = cut
         if piece.duration_s > 0.0:
             pieces.append(piece)
 
@@ -329,6 +335,12 @@ class KlipperBackend:
 
     def _piece_steps(self, piece: Piece, rel_s: float) -> None:
         v0, a = piece.start_mm_s, piece.accel_mm_s2
+        if piece is not self._head:  # first look at this piece
+            self._head = piece
+            if self._rebased(piece):
+                return
+        if rel_s == 0.0:
+            return
         distance = v0 * rel_s + 0.5 * a * rel_s * rel_s
         base_s = piece.start_s + self.lead_s
         for axis, start, unit in zip(self.axes, piece.start_mm, piece.unit, strict=True):
@@ -343,6 +355,18 @@ class KlipperBackend:
             assert isinstance(clocks, np.ndarray)
             axis.add(1 if target > axis.position else -1, clocks)
             axis.position = target
+
+    def _rebased(self, piece: Piece) -> bool:
+        """A piece that starts away from where the steps are (the position was redefined,
+        as homing does) moves the step count there without stepping."""
+        jumped = False
+        for axis, start in zip(self.axes, piece.start_mm, strict=True):
+            here = start * axis.steps_per_mm
+            if abs(here - axis.position) > 1.0:
+                log.warning("axis %s redefined at %.3f mm: no steps sent", axis.name, start)
+                axis.position = step_target(here)
+                jumped = True
+        return jumped and piece.duration_s == 0.0
 
     def _flush(self, now_s: float) -> None:
         """Compress what is due soon (all of it when motion has no more pieces)."""
