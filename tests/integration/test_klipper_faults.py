@@ -116,3 +116,19 @@ async def test_an_mcu_configured_differently_is_reported_and_never_driven(
         assert not backend.ready
         names = {name for _, name, _ in mcu.commands}
         assert not names & {"allocate_oids", "queue_step", "finalize_config"}
+
+
+async def test_an_mcu_shutdown_becomes_an_alarm_naming_its_reason_tools_off(
+    mcu: VirtualMcu
+) -> None:
+    async with klipper_machine(mcu, laser=LASER) as app:
+        backend = app.kernel.machine.backend
+        assert isinstance(backend, KlipperBackend)
+        await submit_all(app, ["M3 S800", "G1 X100 F3000"])
+        await asyncio.sleep(0.4)
+        with mcu.lock:
+            mcu.shutdown("Rescheduled timer in the past")
+        assert await wait_for_alarm(app) < 1.0
+        assert "the MCU shut down: Rescheduled timer in the past" in app.kernel.alarm_message
+        assert backend.output("PA8") == 0.0 and app.kernel.modules["laser"].power == 0.0
+        assert mcu.output_events("PA8")[-1][1] == 0

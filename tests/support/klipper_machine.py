@@ -26,10 +26,11 @@ def klipper_config(path: str, lead_time_s: float = 0.2, **extra: Any) -> Any:
 
 
 @contextlib.asynccontextmanager
-async def klipper_machine(mcu: VirtualMcu, **extra: Any) -> AsyncIterator[App]:
+async def klipper_machine(mcu: VirtualMcu, lead_time_s: float = 0.2,
+                          **extra: Any) -> AsyncIterator[App]:
     """An in-process server on the real clock whose backend is a KlipperBackend on ``mcu``,
     recording its exact step times; yields once the MCU is configured."""
-    config = klipper_config(mcu.path, **extra)
+    config = klipper_config(mcu.path, lead_time_s, **extra)
     async with running(config, clock=RealClock()) as app:
         machine = app.kernel.machine
         backend = machine.backend

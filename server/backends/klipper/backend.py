@@ -426,10 +426,10 @@ class KlipperBackend:
                     return
                 heapq.heappush(in_use, until)
             if until is not None and due < late:
-                self._on_fault(f"steps due {(late - due) / mcu.clock.freq_hz * 1e3:.1f} ms ago "
-                               "were not sent in time (host stall or link too slow: raise "
-                               "lead_time_s)" if mcu.clock else "late")
+                late_ms = (late - due) / mcu.clock.freq_hz * 1e3 if mcu.clock else 0.0
                 self.halt()
+                self._on_fault(f"steps due {late_ms:.1f} ms ago were not sent in time (host "
+                               "stall or link too slow: raise lead_time_s)")
                 return
             self._outbox.popleft()
             mcu.link.send(message)
