@@ -258,3 +258,16 @@ async def test_a_stall_beyond_the_lead_time_alarms_and_never_sends_a_late_step(
         assert "not sent in time" in app.kernel.alarm_message
         assert mcu.min_lead_ticks > 0, "every step the MCU received was still in its future"
         assert mcu.shutdowns in ([], ["Command request"])  # stopped if it still had moves
+
+
+async def test_stopping_the_server_mid_move_stops_the_mcu_before_it_lets_go(
+    mcu: VirtualMcu
+) -> None:
+    async with klipper_machine(mcu, laser=LASER) as app:
+        await submit_all(app, ["M3 S900", "G1 X150 F6000"])
+        await asyncio.sleep(0.4)
+        assert mcu.output_events("PA8")[-1][1] > 0
+    assert mcu.shutdowns == ["Command request"]
+    stop_clock = next(c for c, name, _ in mcu.commands if name == "emergency_stop")
+    clocks, _ = mcu.step_clocks(0)
+    assert clocks[-1] <= stop_clock and mcu.output_events("PA8")[-1][1] == 0

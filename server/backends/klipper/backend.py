@@ -40,6 +40,7 @@ from server.config import CoreConfig, KlipperOutput
 log = logging.getLogger("motiond.klipper")
 LATE_MARGIN_S = 0.002
 SLEW_S = 2.0
+EXIT_GRACE_S = 0.3
 MAX_SLEW = 200e-6
 
 
@@ -227,10 +228,26 @@ class KlipperBackend:
                 await mcu.watch()
             except (KlipperFault, ProtocolError, ConnectionError) as exc:
                 self._on_fault(str(exc))
+            except asyncio.CancelledError:
+                await self._stop_before_exit(mcu)
+                raise
             finally:
                 self.ready = False
                 mcu.close()
             await asyncio.sleep(self.retry_s)
+
+    async def _stop_before_exit(self, mcu: Mcu) -> None:
+        """Shutting down with steps queued or a tool on: the emergency stop gets out first
+        (bounded: at most ``EXIT_GRACE_S``)."""
+        if not (self.ready and self._busy()):
+            return
+        mcu.emergency_stop()
+        deadline = time.monotonic() + EXIT_GRACE_S
+        while (mcu.link.queued_bytes or mcu.link.window.inflight) and not mcu.link.closed:
+            if time.monotonic() > deadline:
+                log.error("the MCU did not acknowledge the emergency stop before exit")
+                return
+            await asyncio.sleep(0.01)
 
     def _on_fault(self, reason: str) -> None:
         message = f"klipper MCU on {self.cfg.serial}: {reason}"
