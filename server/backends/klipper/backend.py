@@ -25,7 +25,6 @@ import heapq
 import logging
 import time
 from collections import deque
-from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -33,52 +32,16 @@ from server.backends.base import Piece
 from server.backends.klipper.codec import ProtocolError
 from server.backends.klipper.dictionary import Dictionary
 from server.backends.klipper.mcu import Command, KlipperFault, Mcu
-from server.backends.klipper.stepcompress import StepCompressor, run_clocks
+from server.backends.klipper.pins import Axis, Output, config_commands
+from server.backends.klipper.stepcompress import run_clocks
 from server.backends.klipper.steptimes import FloatArray, crossing_times, step_target
-from server.config import CoreConfig, KlipperOutput
+from server.config import CoreConfig
 
 log = logging.getLogger("motiond.klipper")
 LATE_MARGIN_S = 0.002
 SLEW_S = 2.0
 EXIT_GRACE_S = 0.3
 MAX_SLEW = 200e-6
-
-
-def split_pin(text: str) -> tuple[str, bool]:
-    """``"!PB4"`` -> ``("PB4", True)``."""
-    return text.lstrip("!"), text.startswith("!")
-
-
-@dataclass(slots=True)
-class _Axis:
-    name: str
-    steps_per_mm: float
-    oid: int = 0
-    invert_dir: bool = False
-    position: int = 0  # whole steps commanded so far
-    segments: list[tuple[int, FloatArray]] = field(default_factory=list)  # (dir, exact clocks)
-    compressor: StepCompressor = field(default_factory=lambda: StepCompressor(1.0))
-    sent_dir: int = 0
-    needs_reset: bool = True
-    exact: list[FloatArray] | None = None  # recorded exact clocks (tests, benchmarks)
-
-    def add(self, direction: int, clocks: FloatArray) -> None:
-        if self.exact is not None:
-            self.exact.append(clocks)
-        if self.segments and self.segments[-1][0] == direction:
-            self.segments[-1] = (direction, np.concatenate((self.segments[-1][1], clocks)))
-        else:
-            self.segments.append((direction, clocks))
-
-
-@dataclass(slots=True)
-class _Output:
-    name: str
-    config: KlipperOutput
-    oid: int = 0
-    invert: bool = False
-    last_clock: int = 0
-    value: float = 0.0  # the last value sent (0 after a configuration or a stop)
 
 
 class KlipperBackend:
@@ -93,9 +56,9 @@ class KlipperBackend:
         self.cfg, self.retry_s, self.flush_s = cfg, retry_s, flush_s
         self.lead_s = cfg.lead_time_s
         self.axis_names = core.axis_names
-        self.axes = [_Axis(n, a.steps_per_mm, exact=[] if record else None)
+        self.axes = [Axis(n, a.steps_per_mm, exact=[] if record else None)
                      for n, a in zip(core.axis_names, core.axes.values(), strict=True)]
-        self.outputs = {name: _Output(name, out) for name, out in cfg.outputs.items()}
+        self.outputs = {name: Output(name, out) for name, out in cfg.outputs.items()}
         self.values: dict[str, float] = {}
         self.pwm_log: list[tuple[float, str, float]] | None = [] if record else None
         self.errors: list[FloatArray] | None = [] if record else None
@@ -268,45 +231,7 @@ class KlipperBackend:
         self._map = (0.0, 0.0, 0.0)
 
     def _config_commands(self, d: Dictionary) -> list[Command]:
-        freq = d.constant_int("CLOCK_FREQ")
-        commands: list[Command] = []
-        oid = 0
-        for axis, (name, pins) in zip(self.axes, self.cfg.axes.items(), strict=True):
-            step, invert_step = split_pin(self._check_pin(d, f"axes.{name}", pins.step_pin))
-            direction, axis.invert_dir = split_pin(self._check_pin(d, f"axes.{name}",
-                                                                   pins.dir_pin))
-            axis.oid, axis.compressor = oid, StepCompressor(self.cfg.max_error_s * freq)
-            commands.append(("config_stepper", {
-                "oid": oid, "step_pin": step, "dir_pin": direction,
-                "invert_step": int(invert_step),
-                "step_pulse_ticks": int(pins.step_pulse_s * freq)}))
-            oid += 1
-            if pins.enable_pin:
-                enable, inverted = split_pin(self._check_pin(d, f"axes.{name}", pins.enable_pin))
-                commands.append(("config_digital_out", {
-                    "oid": oid, "pin": enable, "value": int(not inverted),
-                    "default_value": int(inverted), "max_duration": 0}))
-                oid += 1
-        for name, out in self.outputs.items():
-            pin_text = self._check_pin(d, f"outputs.{name}", out.config.pin or name)
-            pin, out.invert = split_pin(pin_text)
-            out.oid, oid = oid, oid + 1
-            if out.config.pwm:
-                off = d.constant_int("PWM_MAX", 255) if out.invert else 0
-                commands.append(("config_pwm_out", {
-                    "oid": out.oid, "pin": pin, "cycle_ticks": int(out.config.cycle_time_s * freq),
-                    "value": off, "default_value": off, "max_duration": 0}))
-            else:
-                commands.append(("config_digital_out", {
-                    "oid": out.oid, "pin": pin, "value": int(out.invert),
-                    "default_value": int(out.invert), "max_duration": 0}))
-        return commands
-
-    def _check_pin(self, d: Dictionary, section: str, text: str) -> str:
-        if split_pin(text)[0] not in d.enumerations.get("pin", {}):
-            raise KlipperFault(f"config error: [backend.{section}]: unknown pin {text!r} on "
-                               f"this MCU ({d.constants.get('MCU', '?')})")
-        return text
+        return config_commands(self.cfg, self.axes, self.outputs, d)
 
     # -- steps --------------------------------------------------------------------------------
     def _clock_at(self, host_s: float) -> float:
@@ -399,7 +324,7 @@ class KlipperBackend:
                     break
                 axis.segments.pop(0)
 
-    def _emit(self, axis: _Axis, direction: int, points: FloatArray, final: bool) -> int:
+    def _emit(self, axis: Axis, direction: int, points: FloatArray, final: bool) -> int:
         assert self.mcu is not None
         d = self.mcu.dictionary
         compressor = axis.compressor
