@@ -80,6 +80,7 @@ class VirtualMcu:
         self.blocks_received = 0
         self.commands: list[tuple[int, str, dict[str, Any]]] = []  # (clock, name, params)
         self.shutdowns: list[str] = []
+        self.refused: list[str] = []  # commands the MCU could not carry out
         self.max_moves_in_use = 0
         self.min_lead_ticks = float("inf")  # earliest a move arrived before it was due
         self._stop = threading.Event()
@@ -112,16 +113,14 @@ class VirtualMcu:
         """Objects go (config_reset, restart); what they did stays in the records."""
         for oid, stepper in self.steppers.items():
             self.old_runs.setdefault(oid, []).extend(stepper.runs)
-        for oid, out in self.outputs.items():
-            self.old_events.setdefault(oid, []).extend(out.events)
+        self.old_outputs.extend(self.outputs.values())
         self.steppers, self.outputs = {}, {}
 
     def output_events(self, pin: str) -> list[tuple[int, int]]:
         """Every value the pin was set to, with its clock, across reconfigurations."""
         with self.lock:
-            events = [e for oid, out in self.outputs.items() if out.pin == pin
-                      for e in self.old_events.get(oid, []) + out.events]
-        return events
+            outputs = self.old_outputs + list(self.outputs.values())
+            return [e for out in outputs if out.pin == pin for e in out.events]
 
     def _power_on(self) -> None:
         self._t0 = time.monotonic()
@@ -131,7 +130,7 @@ class VirtualMcu:
         self.oid_count = 0
         self.shutdown_reason: str | None = None
         self.old_runs: dict[int, list[StepRecord]] = getattr(self, "old_runs", {})
-        self.old_events: dict[int, list[tuple[int, int]]] = getattr(self, "old_events", {})
+        self.old_outputs: list[OutputPin] = getattr(self, "old_outputs", [])
         if hasattr(self, "steppers"):
             self._archive()
         self.steppers: dict[int, Stepper] = {}
@@ -232,12 +231,16 @@ class VirtualMcu:
         if self.shutdown_reason is not None and name not in always:
             self.respond("is_shutdown static_string_id=%hu", self.shutdown_reason)
             return
-        handler(now, **params)
+        try:
+            handler(now, **params)
+        except (KeyError, AssertionError) as exc:  # what the firmware refuses: an unknown oid
+            self.refused.append(f"{name} {params}: {exc!r}")
+            self.shutdown("Invalid oid type", now)
 
-    def shutdown(self, reason: str) -> None:
+    def shutdown(self, reason: str, now: int | None = None) -> None:
         if self.shutdown_reason is not None:
             return
-        now = self.clock()
+        now = self.clock() if now is None else now
         self.shutdown_reason = reason
         self.shutdowns.append(reason)
         self._cancel_future(now)
@@ -298,7 +301,7 @@ class VirtualMcu:
         self.shutdown_reason = None
 
     def _cmd_emergency_stop(self, now: int) -> None:
-        self.shutdown("Command request")
+        self.shutdown("Command request", now)
 
     def _cmd_clear_shutdown(self, now: int) -> None:
         self.shutdown_reason = None

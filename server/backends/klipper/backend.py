@@ -6,9 +6,10 @@ time each axis' exact step times are computed (:mod:`.steptimes`), mapped to MCU
 ``t + lead_time_s`` through the fitted clock (:mod:`.clocksync`), and compressed into
 ``queue_step`` runs within ``max_error_s`` (:mod:`.stepcompress`) every ``flush_s``, with
 ``set_next_step_dir`` on direction changes and ``reset_step_clock`` after a long idle or a
-reconfiguration. A run that may still grow is held back until its first step is half a lead
-time away. Messages leave in order while the MCU's move queue (``move_count`` from its config)
-has room, counting each queued move until its first step is due.
+reconfiguration. A run that may still grow is held back at most ``HOLD_BACK_S``, so a host
+stall of up to ``lead_time_s`` - 50 ms never starves the MCU. Messages leave in order while the
+MCU's move queue (``move_count`` from its config) has room, counting each queued move until its
+first step is due.
 
 Outputs named in ``[backend.outputs]`` become ``queue_pwm_out``/``queue_digital_out`` at the
 MCU time of the last sample (the instant whose speed the laser's power was computed from) plus
@@ -41,6 +42,8 @@ log = logging.getLogger("motiond.klipper")
 LATE_MARGIN_S = 0.002
 SLEW_S = 2.0
 EXIT_GRACE_S = 0.3
+HOLD_BACK_S = 0.05
+"""The longest a run that may still grow waits before it is sent anyway."""
 MAX_SLEW = 200e-6
 
 
@@ -60,7 +63,7 @@ class KlipperBackend:
                      for n, a in zip(core.axis_names, core.axes.values(), strict=True)]
         self.outputs = {name: Output(name, out) for name, out in cfg.outputs.items()}
         self.values: dict[str, float] = {}
-        self.pwm_log: list[tuple[float, str, float]] | None = [] if record else None
+        self.pwm_log: list[tuple[float, str, float, int]] | None = [] if record else None
         self.errors: list[FloatArray] | None = [] if record else None
         self.mcu: Mcu | None = None
         self.ready = False
@@ -130,7 +133,7 @@ class KlipperBackend:
         clock = max(int(self._motion_clock(when_s + self.lead_s)), out.last_clock + 1)
         out.last_clock, out.value = clock, value
         if self.pwm_log is not None:
-            self.pwm_log.append((when_s, name, value))
+            self.pwm_log.append((when_s, name, value, clock))
         d = self.mcu.dictionary
         if out.config.pwm:
             top = d.constant_int("PWM_MAX", 255)
@@ -313,7 +316,7 @@ class KlipperBackend:
     def _flush(self, now_s: float) -> None:
         """Compress what is due soon (all of it when motion has no more pieces)."""
         idle = not self._pieces
-        force_clock = self._motion_clock(now_s + 0.5 * self.lead_s)
+        force_clock = self._motion_clock(now_s + self.lead_s - min(HOLD_BACK_S, 0.5 * self.lead_s))
         for axis in self.axes:
             while axis.segments:
                 direction, points = axis.segments[0]

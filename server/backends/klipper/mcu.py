@@ -4,7 +4,8 @@
 (``get_uptime`` then a burst of ``get_clock``), and configures the MCU: ``allocate_oids``, the
 config commands, ``finalize_config`` with a CRC32 of their text. An MCU that is already
 configured is reused only when its CRC is ours; one configured differently is refused (it would
-be driven with a stale config). :meth:`Mcu.watch` then samples the clock every
+be driven with a stale config); one shut down (after a fault) is reset with ``config_reset``
+and configured afresh. :meth:`Mcu.watch` then samples the clock every
 ``poll_s`` and checks ``get_config``: an MCU silent for ``timeout_s``, restarted (unconfigured,
 a clock jump or a sequence number never sent) or shut down raises :class:`KlipperFault` naming
 the reason. An emergency stop the host asked for is followed by ``config_reset`` and the same
@@ -14,6 +15,7 @@ configuration at once, so the machine can move again right away.
 from __future__ import annotations
 
 import asyncio
+import logging
 import time
 import zlib
 from collections.abc import Callable
@@ -24,6 +26,7 @@ from server.backends.klipper.codec import Params, ProtocolError
 from server.backends.klipper.dictionary import Dictionary
 from server.backends.klipper.link import Link
 
+log = logging.getLogger("motiond.klipper")
 Command = tuple[str, dict[str, Any]]
 IDENTIFY_CHUNK = 40
 SYNC_BURST = 8
@@ -50,6 +53,7 @@ class Mcu:
         self.move_count = 0
         self.crc = 0
         self.stopping = False  # an emergency stop we sent: its shutdown is expected
+        self.shutdown_reason: str | None = None
         self._fault: asyncio.Future[str] | None = None
         self._last_heard_s = time.monotonic()
         self._commands: list[Command] = []
@@ -115,8 +119,10 @@ class Mcu:
             raise KlipperFault(
                 f"the MCU is configured differently (crc {config['crc']:#x}, ours "
                 f"{self.crc:#x}): restart it (power cycle or reset) before connecting")
-        if config["is_shutdown"]:
-            raise KlipperFault("the MCU is shut down: restart it")
+        if config["is_shutdown"]:  # ours, or unconfigured: start it over (the alarm stays)
+            log.warning("the MCU on %s is shut down: resetting its configuration", self.path)
+            self.link.send(self.dictionary.encode("config_reset"))
+            config["is_config"] = 0
         if not config["is_config"]:
             self._send_config()
             config = await self._ask("get_config", "config")
@@ -147,7 +153,12 @@ class Mcu:
                 raise KlipperFault(self._fault.result())
             if time.monotonic() - self._last_heard_s > self.timeout_s:
                 raise KlipperFault(f"the MCU stopped answering for {self.timeout_s:g} s")
-            await self._poll()
+            try:
+                await self._poll()
+            except KlipperFault:
+                if self._fault.done():  # the first word, with its reason, wins
+                    raise KlipperFault(self._fault.result()) from None
+                raise
 
     async def _poll(self) -> None:
         poll = asyncio.gather(self.sample_clock(), self._ask("get_config", "config"))
@@ -156,7 +167,7 @@ class Mcu:
             self.stopping = not (config["is_config"] and not config["is_shutdown"])
             return
         if config["is_shutdown"]:
-            raise KlipperFault("the MCU is shut down")
+            raise KlipperFault(f"the MCU shut down: {self.shutdown_reason or 'reason unknown'}")
         if not config["is_config"]:
             raise KlipperFault("the MCU restarted (it lost its configuration)")
         if config["crc"] != self.crc:
@@ -175,8 +186,18 @@ class Mcu:
         self._last_heard_s = now_s
         if name in ("shutdown", "is_shutdown"):
             reason = params.get("static_string_id", "?")
-            if not self.stopping:
+            self.shutdown_reason = str(reason)
+            if self._clock_jumped(params.get("clock"), now_s):
+                self._report("the MCU restarted (its clock started over)")
+            elif not self.stopping:
                 self._report(f"the MCU shut down: {reason}")
+
+    def _clock_jumped(self, clock32: int | None, now_s: float) -> bool:
+        """Whether a clock the MCU reported is far (50 ms) from the fitted one."""
+        if clock32 is None or self.clock is None or not self.clock.synced:
+            return False
+        error = self.clock.extend(clock32) - self.clock.clock_at(now_s)
+        return abs(error) > 0.05 * self.clock.freq_hz
 
     def _on_link_error(self, reason: str) -> None:
         self._report(reason)

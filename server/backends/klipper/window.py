@@ -6,8 +6,11 @@ and discards blocks out of order, answering those with the number it still expec
 The host keeps the blocks not yet acknowledged, at most ``max_blocks`` of them and
 ``window_bytes`` bytes (the MCU's ``RECEIVE_WINDOW``), and sends them all again from the first
 unacknowledged one when a nak arrives or the retransmission timeout passes (doubling each time,
-reset by a fresh round-trip measurement). A sequence number that cannot be an answer to what
-was sent means the MCU restarted: :class:`SequenceError`.
+reset by a fresh round-trip measurement); naks are ignored for two round trips after a resend
+(the duplicates a resend causes draw naks of their own). A sequence number that cannot be an
+answer to what was sent means the MCU restarted (:class:`SequenceError`), except before the
+first acknowledgement: an MCU that served a host before keeps its count, and the host adopts it
+(as Klipper's host does).
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ class SequenceError(Exception):
 @dataclass(slots=True)
 class _Sent:
     seq: int
+    payload: bytes
     block: bytes
     sent_s: float
     retransmitted: bool = False
@@ -45,7 +49,9 @@ class SendWindow:
         self.rto_s = MIN_RTO_S * 4
         self.srtt_s: float | None = None
         self.retransmits = 0
-        self._nak_at = -1
+        self.synced = False  # a response to one of our blocks was seen (the first command
+        # always draws one: an empty block before it is a nak whatever its number)
+        self._ignore_naks_until_s = 0.0
 
     @property
     def bytes_in_flight(self) -> int:
@@ -58,7 +64,7 @@ class SendWindow:
     def make_block(self, payload: bytes, now_s: float) -> bytes:
         """Frame ``payload`` with the next sequence number and keep it until acknowledged."""
         block = frame(self.next_seq, payload)
-        self.inflight.append(_Sent(self.next_seq, block, now_s))
+        self.inflight.append(_Sent(self.next_seq, payload, block, now_s))
         self.next_seq += 1
         return block
 
@@ -70,15 +76,26 @@ class SendWindow:
         """A block from the MCU acknowledging up to ``seq4``; blocks to send again (a nak)."""
         ahead = (seq4 - self.acked) & SEQ_MASK
         rseq = self.acked + ahead
+        if not self.synced:
+            if empty or rseq > self.next_seq:  # a nak: an MCU that ran before; adopt its count
+                return self._adopt(rseq, now_s)
+            self.synced = rseq > self.acked
         if rseq > self.next_seq:
             raise SequenceError(f"the MCU expects block {seq4} of 16, never sent: it restarted")
         if rseq > self.acked:
             self._acknowledge(rseq, now_s)
             return []
-        if empty and self.inflight and self._nak_at != self.acked:
-            self._nak_at = self.acked
+        if empty and self.inflight and now_s >= self._ignore_naks_until_s:
             return self._resend(now_s)
         return []
+
+    def _adopt(self, rseq: int, now_s: float) -> list[bytes]:
+        """Number from the MCU's expected block on (a first connection to an MCU that talked
+        to a host before); what was in flight is framed again with the new numbers."""
+        payloads = [sent.payload for sent in self.inflight]
+        self.inflight.clear()
+        self.acked = self.next_seq = rseq
+        return [self.make_block(payload, now_s) for payload in payloads]
 
     def on_timer(self, now_s: float) -> list[bytes]:
         """Blocks to send again if the oldest one timed out."""
@@ -94,14 +111,16 @@ class SendWindow:
             if not sent.retransmitted:
                 self._measure(now_s - sent.sent_s)
         self.acked = rseq
-        self._nak_at = -1
 
     def _measure(self, rtt_s: float) -> None:
         self.srtt_s = rtt_s if self.srtt_s is None else 0.875 * self.srtt_s + 0.125 * rtt_s
         self.rto_s = min(MAX_RTO_S, max(MIN_RTO_S, 3.0 * self.srtt_s))
 
     def _resend(self, now_s: float) -> list[bytes]:
+        """Everything unacknowledged again. The duplicates a resend causes draw naks of their
+        own within a round trip: naks are ignored for two round trips."""
         self.retransmits += 1
+        self._ignore_naks_until_s = now_s + 2.0 * max(self.srtt_s or 0.0, MIN_RTO_S / 5)
         for sent in self.inflight:
             sent.sent_s, sent.retransmitted = now_s, True
         return [sent.block for sent in self.inflight]
