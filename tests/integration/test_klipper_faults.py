@@ -132,3 +132,21 @@ async def test_an_mcu_shutdown_becomes_an_alarm_naming_its_reason_tools_off(
         assert "the MCU shut down: Rescheduled timer in the past" in app.kernel.alarm_message
         assert backend.output("PA8") == 0.0 and app.kernel.modules["laser"].power == 0.0
         assert mcu.output_events("PA8")[-1][1] == 0
+
+
+async def test_the_emergency_stop_goes_before_every_message_not_yet_sent(mcu: VirtualMcu) -> None:
+    async with klipper_machine(mcu) as app:
+        backend = app.kernel.machine.backend
+        assert isinstance(backend, KlipperBackend) and backend.mcu is not None
+        await submit_all(app, ["G1 X100 F6000"])
+        await asyncio.sleep(0.3)
+        mcu.mute()  # nothing is acknowledged any more: the window fills, messages wait
+        link, dictionary = backend.mcu.link, backend.mcu.dictionary
+        for _ in range(40):
+            link.send(dictionary.encode("get_clock"))
+        await asyncio.sleep(0.05)
+        assert link.queued_bytes > 0
+        backend.halt()
+        waiting = [dictionary.decode(message)[0][0] for message in link._queue]
+        assert waiting[0] == "emergency_stop"
+        assert "queue_step" not in waiting and "get_clock" not in waiting

@@ -82,6 +82,14 @@ class Link:
             self._queue.append(message)
             self._pump()
 
+    def send_first(self, message: bytes) -> list[bytes]:
+        """Send ``message`` before everything not yet sent, which is dropped and returned
+        (an emergency stop must not wait behind the steps it cancels)."""
+        dropped = list(self._queue)
+        self._queue.clear()
+        self.send(message)
+        return dropped
+
     async def request(self, message: bytes, response: str, timeout_s: float,
                       match: Match = lambda _: True) -> Params:
         """Send ``message`` and wait for the first ``response`` that ``match``es."""

@@ -177,7 +177,7 @@ class Mcu:
         """``emergency_stop`` now (every queued step and output dropped, outputs to their
         defaults), then ``config_reset`` and the same configuration, sent in order at once."""
         self.stopping = True
-        self.link.send(self.dictionary.encode("emergency_stop"))
+        self.link.send_first(self.dictionary.encode("emergency_stop"))
         self.link.send(self.dictionary.encode("config_reset"))
         self._send_config()
         self.on_configured()
