@@ -149,4 +149,4 @@ async def test_the_emergency_stop_goes_before_every_message_not_yet_sent(mcu: Vi
         backend.halt()
         waiting = [dictionary.decode(message)[0][0] for message in link._queue]
         assert waiting[0] == "emergency_stop"
-        assert "queue_step" not in waiting and "get_clock" not in waiting
+        assert "queue_step" not in waiting and "get_clock" not in waiting  # plain sends dropped

@@ -59,6 +59,7 @@ class Link:
         self._on_message, self._on_error = on_message, on_error
         self._reader = BlockReader()
         self._queue: deque[bytes] = deque()
+        self._keep: deque[bool] = deque()  # per queued message: a request's (never dropped)
         self._out = bytearray()
         self._waiters: list[tuple[str, Match, asyncio.Future[Params]]] = []
         self._timer: asyncio.TimerHandle | None = None
@@ -76,18 +77,23 @@ class Link:
         """Message bytes waiting for room in the window."""
         return sum(len(m) for m in self._queue)
 
-    def send(self, message: bytes) -> None:
+    def send(self, message: bytes, keep: bool = False) -> None:
         """Queue one encoded command; it goes out as soon as the window allows."""
         if not self.closed:
             self._queue.append(message)
+            self._keep.append(keep)
             self._pump()
 
     def send_first(self, message: bytes) -> list[bytes]:
-        """Send ``message`` before everything not yet sent, which is dropped and returned
-        (an emergency stop must not wait behind the steps it cancels)."""
-        dropped = list(self._queue)
+        """Send ``message`` before everything not yet sent, which is dropped and returned, but
+        for requests (an emergency stop must not wait behind the steps it cancels)."""
+        kept = [(m, k) for m, k in zip(self._queue, self._keep, strict=True) if k]
+        dropped = [m for m, k in zip(self._queue, self._keep, strict=True) if not k]
         self._queue.clear()
+        self._keep.clear()
         self.send(message)
+        for queued, _ in kept:
+            self.send(queued, keep=True)
         return dropped
 
     async def request(self, message: bytes, response: str, timeout_s: float,
@@ -97,7 +103,7 @@ class Link:
         future: asyncio.Future[Params] = self._loop.create_future()
         waiter = (response, match, future)
         self._waiters.append(waiter)
-        self.send(message)
+        self.send(message, keep=True)
         try:
             return await asyncio.wait_for(future, timeout_s)
         finally:
@@ -114,6 +120,7 @@ class Link:
                     payload = payload[:len(payload) - len(self._queue[0])]
                     break
                 self._queue.popleft()
+                self._keep.popleft()
             if not payload:
                 break
             self._write(self.window.make_block(bytes(payload), now_s))
