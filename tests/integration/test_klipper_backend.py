@@ -271,3 +271,14 @@ async def test_stopping_the_server_mid_move_stops_the_mcu_before_it_lets_go(
     stop_clock = next(c for c, name, _ in mcu.commands if name == "emergency_stop")
     clocks, _ = mcu.step_clocks(0)
     assert clocks[-1] <= stop_clock and mcu.output_events("PA8")[-1][1] == 0
+
+
+async def test_flow_control_keeps_a_small_move_queue_full_but_never_overflowing() -> None:
+    small = VirtualMcu(move_count=24).start()
+    try:
+        async with klipper_machine(small, machine={"soft_limits": False}) as app:
+            await run_job(app, excerpt("laser-raster-tree.nc", 120, 4.0))
+            assert small.max_moves_in_use == 24, "the queue was the limit, and was respected"
+            assert check_steps(app, small) > 1000
+    finally:
+        small.stop()
