@@ -1,6 +1,7 @@
 """Run motiond's benchmarks by name.
 
-    python -m benchmarks NAME [--quick] [--json]   # parser, planner, offline, streaming, grbl
+    python -m benchmarks NAME [--quick] [--json]     # NAME: parser, planner, offline, streaming,
+                                                     #       grbl, klipper
     python -m benchmarks all [--quick] [--json]
     python -m benchmarks --list
 
@@ -29,6 +30,8 @@ BENCHMARKS: dict[str, tuple[str, str]] = {  # name: (module, one-line descriptio
                   "TCP streaming lines/s against a bare asyncio server; real-time raster rate"),
     "grbl": ("benchmarks.bench_grbl_link",
              "lines/s through motiond to a Grbl controller against streaming to it directly"),
+    "klipper": ("benchmarks.bench_klipper",
+                "Klipper backend: host CPU per second of motion at 20,000 segments/s, bytes/s"),
 }
 
 

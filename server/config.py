@@ -68,19 +68,46 @@ class StepgenConfig(Strict):
     realtime_priority: int = Field(10, ge=0, le=99)
 
 
+MCU_PIN_PATTERN = r"^!?[A-Za-z][A-Za-z0-9_]*$"
+KLIPPER_BAUD = 250_000  # Klipper's own default for a UART-connected MCU
+
+
+class KlipperAxisPins(Strict):
+    """``[backend.axes.x]``: one stepper driver on the Klipper MCU (``!`` inverts a pin)."""
+
+    step_pin: str = Field(pattern=MCU_PIN_PATTERN, description="e.g. PB13")
+    dir_pin: str = Field(pattern=MCU_PIN_PATTERN, description="e.g. !PB12")
+    enable_pin: str | None = Field(None, pattern=MCU_PIN_PATTERN, description="e.g. !PB14")
+    step_pulse_s: float = Field(2e-6, ge=0, le=1e-3, description="minimum step pulse width")
+
+
+class KlipperOutput(Strict):
+    """``[backend.outputs.NAME]``: an output modules set by NAME (``[laser] pin = NAME``)."""
+
+    pin: str | None = Field(None, pattern=MCU_PIN_PATTERN,
+                            description="the MCU pin (default: NAME itself); ! inverts")
+    pwm: bool = Field(True, description="hardware PWM (config_pwm_out); false: on/off")
+    cycle_time_s: float = Field(0.0001, gt=0, le=1, description="PWM period (1/frequency)")
+
+
 class BackendConfig(Strict):
-    kind: Literal["sim", "null", "grbl"] = Field(
+    kind: Literal["sim", "null", "grbl", "klipper"] = Field(
         "sim", description="sim: the simulated machine; null: nothing; grbl: a Grbl, grblHAL "
-        "or FluidNC controller downstream (serial or tcp)")
+        "or FluidNC controller downstream (serial or tcp); klipper: an MCU running Klipper's "
+        "firmware executes the step generator's schedule (serial)")
     trace_csv: Path | None = None
     history_samples: int = Field(100_000, ge=0)
     probe_at_mm: dict[str, float] = Field(default_factory=dict)
     serial: str | None = Field(
-        None, min_length=1, description="grbl: the controller's serial device (or a pty)")
+        None, min_length=1,
+        description="grbl: the controller's serial device; klipper: the MCU's (or a pty)")
     tcp: str | None = Field(
         None, pattern=r"^[^\s:]+:\d{1,5}$",
         description="grbl: the controller's host:port (FluidNC, grblHAL over the network)")
-    baud: int = Field(115200, ge=300, le=4_000_000, description="grbl: serial speed")
+    baud: int = Field(
+        115200, ge=300, le=4_000_000,
+        description="serial speed (default 115200 for grbl, 250000 for klipper; USB ignores it)")
+    # -- grbl
     buffer_bytes: int | None = Field(
         None, ge=16, le=65536,
         description="grbl: the controller's receive buffer for character counting; default "
@@ -96,14 +123,36 @@ class BackendConfig(Strict):
         "this long means the controller is not answering: the connection is retried")
     reconnect_s: float = Field(
         0.5, gt=0, le=60, description="grbl: retry opening a lost controller this often")
+    # -- klipper
+    lead_time_s: float = Field(
+        0.2, ge=0.02, le=2.0,
+        description="klipper: trajectory time t executes at MCU time t + lead (also the most "
+        "a feed hold takes to start decelerating, and the host stall it survives)")
+    max_error_s: float = Field(
+        25e-6, ge=1e-6, le=1e-3, description="klipper: how early a step may be (compression)")
+    response_timeout_s: float = Field(
+        0.5, ge=0.05, le=10, description="klipper: an MCU silent this long is an alarm")
+    axes: dict[str, KlipperAxisPins] = Field(default_factory=dict)
+    outputs: dict[str, KlipperOutput] = Field(default_factory=dict)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _baud_of_kind(cls, data: Any) -> Any:
+        if isinstance(data, dict) and data.get("kind") == "klipper" and "baud" not in data:
+            return {**data, "baud": KLIPPER_BAUD}
+        return data
 
     @model_validator(mode="after")
-    def _one_controller(self) -> BackendConfig:
+    def _one_link(self) -> BackendConfig:
         if self.kind == "grbl" and (self.serial is None) == (self.tcp is None):
             raise ValueError('kind = "grbl" needs exactly one of serial = "/dev/ttyUSB0" '
                              'or tcp = "host:23"')
-        if self.kind != "grbl" and (self.serial is not None or self.tcp is not None):
-            raise ValueError('serial and tcp are options of kind = "grbl"')
+        if self.kind == "klipper" and (self.serial is None or self.tcp is not None):
+            raise ValueError('kind = "klipper" needs serial (the MCU\'s device path), not tcp')
+        if self.kind not in ("grbl", "klipper") and (
+            self.serial is not None or self.tcp is not None
+        ):
+            raise ValueError('serial and tcp are options of kind = "grbl" or "klipper"')
         return self
 
 
@@ -211,6 +260,12 @@ class CoreConfig(Strict):
             raise ValueError(f"axis names must be among {', '.join(AXIS_LETTERS)}, not {bad}")
         if len({name.upper() for name in self.axes}) != len(self.axes):
             raise ValueError("an axis is named twice")
+        if self.backend.kind == "klipper":
+            pins = {name.upper() for name in self.backend.axes}
+            missing = [name for name in self.axes if name.upper() not in pins]
+            if missing or len(pins) != len(self.axes):
+                raise ValueError(f"[backend.axes.*] must give the pins of every axis "
+                                 f"({', '.join(self.axis_names)}); missing {missing}")
         return self
 
     @model_validator(mode="after")

@@ -8,14 +8,39 @@ call; times are seconds on the kernel's clock; outputs are duty cycles in [0, 1]
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Protocol
+
+
+@dataclass(frozen=True, slots=True)
+class Piece:
+    """A stretch of trajectory at constant acceleration along a straight line (Klipper's trapq).
+
+    Position at ``start_s + t`` (``0 <= t <= duration_s``) is
+    ``start_mm + unit * (start_mm_s * t + accel_mm_s2 * t² / 2)``. A piece replaces whatever
+    trajectory an earlier piece described from ``start_s`` on (a feed hold cuts a block short).
+    """
+
+    start_s: float
+    duration_s: float
+    start_mm: tuple[float, ...]
+    unit: tuple[float, ...]
+    start_mm_s: float
+    accel_mm_s2: float
 
 
 class Backend(Protocol):
     """What a hardware or simulated machine must provide."""
 
+    wants_trajectory: bool
+    """Whether :meth:`trajectory` is used (the step generator builds no pieces otherwise)."""
+
     def step(self, time_s: float, delta_steps: Sequence[int]) -> None:
         """Move each axis by ``delta_steps[i]`` whole steps (signed), completed by ``time_s``."""
+        ...
+
+    def trajectory(self, piece: Piece) -> None:
+        """The exact path motion takes next (hardware that times its own steps); may ignore."""
         ...
 
     def sample(self, time_s: float, position_mm: Sequence[float], speed_mm_s: float) -> None:
@@ -44,6 +69,14 @@ class Backend(Protocol):
 
     def place_switch(self, name: str, at_mm: float) -> None:
         """Simulated machines: put the named switch at ``at_mm`` on its axis (others ignore)."""
+        ...
+
+    def halt(self) -> None:
+        """Emergency stop: drop every queued step and turn every output off at once."""
+        ...
+
+    async def run(self) -> None:
+        """Serve the hardware until cancelled (owned by the machine; may return at once)."""
         ...
 
     def close(self) -> None:

@@ -14,9 +14,13 @@ from collections import deque
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+from server.backends.base import Piece
+
 
 class SimBackend:
     """A machine made of counters; see the module docstring."""
+
+    wants_trajectory = False
 
     def __init__(
         self,
@@ -48,6 +52,15 @@ class SimBackend:
         for axis, delta in enumerate(delta_steps):
             steps[axis] += delta
             self.steps_travelled += abs(delta)
+
+    def trajectory(self, piece: Piece) -> None:
+        pass
+
+    def halt(self) -> None:
+        pass
+
+    async def run(self) -> None:
+        pass
 
     def sample(self, time_s: float, position_mm: Sequence[float], speed_mm_s: float) -> None:
         power = max((self._outputs.get(name, 0.0) for name in self._tools), default=0.0)

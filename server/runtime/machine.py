@@ -70,6 +70,10 @@ def build_backend(core: CoreConfig) -> Backend:
     """The backend named by ``[backend] kind``."""
     if core.backend.kind in ("null", "grbl"):  # a Grbl controller steps itself
         return NullBackend()
+    if core.backend.kind == "klipper":
+        from server.backends.klipper.backend import KlipperBackend  # only when configured
+
+        return KlipperBackend(core)
     return SimBackend(
         core.axis_names,
         [axis.steps_per_mm for axis in core.axes.values()],
@@ -116,7 +120,7 @@ class Machine:
     ) -> None:
         core = config.core
         self.clock, self.events, self.status = clock, events, status
-        status.stop_motion, status.before_unlock = self.stop_now, self.leave_check_mode
+        status.stop_motion, status.before_unlock = self._halt_motion, self.leave_check_mode
         self.core = core
         self.backend = build_backend(core)
         self.codes = CodeTable()
@@ -401,7 +405,7 @@ class Machine:
     def soft_reset(self) -> None:
         """Ctrl-X: stop at once, flush, keep the position; ALARM:3 if it was moving."""
         moving = self.stepgen.state.moving
-        self.stop_now()
+        self._halt_motion()
         self.leave_check_mode()
         self.interpreter.reset()
         self.events.emit(Event.RESET)
@@ -411,6 +415,11 @@ class Machine:
             )
         elif self.status.state not in (MachineState.ALARM,):
             self.status.set_state(MachineState.IDLE)
+
+    def _halt_motion(self) -> None:
+        """Alarm, M112, Ctrl-X: the hardware drops what it has queued, then :meth:`stop_now`."""
+        self.backend.halt()
+        self.stop_now()
 
     def stop_now(self) -> None:
         """Halt motion at once and resynchronise everything to where the steps are."""
@@ -451,7 +460,7 @@ class Machine:
         self.planner.set_overrides(self.feed_override / 100, self.rapid_override / 100)
         steps_per_mm = tuple(axis.steps_per_mm for axis in core.axes.values())
         self.stepgen.set_steps_per_mm(steps_per_mm)
-        if isinstance(self.backend, SimBackend):
+        if hasattr(self.backend, "steps_per_mm"):  # sim and klipper count steps themselves
             self.backend.steps_per_mm = steps_per_mm
 
     def clear_offsets(self) -> None:
@@ -486,11 +495,14 @@ class Machine:
     # -- the task ---------------------------------------------------------------------------
     async def run(self) -> None:
         """The step generator task; also wakes writers waiting for planner room."""
+        backend_task = asyncio.create_task(self.backend.run(), name="backend")
         try:
             await self.stepgen.run(
                 self.clock, self._after_tick, self._backend_fault, give_turn=_give_turn
             )
         finally:
+            backend_task.cancel()
+            await asyncio.gather(backend_task, return_exceptions=True)
             self.backend.close()
 
     def _backend_fault(self, exc: Exception) -> None:

@@ -13,7 +13,7 @@ import sys
 
 from tests.conftest import REPO
 
-NAMES = ("parser", "planner", "offline", "streaming", "grbl")
+NAMES = ("parser", "planner", "offline", "streaming", "grbl", "klipper")
 
 
 def benchmarks(*args: str) -> subprocess.CompletedProcess[str]:

@@ -26,12 +26,26 @@ def test_embedded_default_is_a_simulated_laser_cutter() -> None:
 
 
 @pytest.mark.parametrize(
-    "name", ["laser.toml", "cnc.toml", "plotter.toml", "mqtt.toml", "grbl-link.toml"]
+    "name",
+    ["laser.toml", "cnc.toml", "plotter.toml", "mqtt.toml", "grbl-link.toml", "klipper-laser.toml"],
 )
 def test_example_configs_load(name: str) -> None:
     config = load_config(REPO / "examples" / name)
     assert config.core.axis_names[:2] == ("X", "Y")
     assert config.path == REPO / "examples" / name
+
+
+def test_a_klipper_backend_needs_a_serial_path_and_the_pins_of_every_axis() -> None:
+    pins = {"step_pin": "PB13", "dir_pin": "!PB12"}
+    assert problems_of({**BASE, "backend": {"kind": "klipper", "axes": {"x": pins}}})[0].endswith(
+        'kind = "klipper" needs serial (the MCU\'s device path)')
+    problems = problems_of({**BASE, "backend": {"kind": "klipper", "serial": "/dev/ttyACM0",
+                                                "axes": {"x": pins}}})
+    assert "[backend.axes.*] must give the pins of every axis" in problems[0]
+    bad_pin = {"step_pin": "PB 13", "dir_pin": "PB12"}
+    problems = problems_of({**BASE, "backend": {"kind": "klipper", "serial": "/dev/ttyACM0",
+                                                "axes": {"x": bad_pin}}})
+    assert any("[backend.axes.x] step_pin" in p for p in problems)
 
 
 def test_unknown_key_names_file_section_and_key() -> None:

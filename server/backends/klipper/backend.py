@@ -1,0 +1,394 @@
+"""``[backend] kind = "klipper"``: stock Klipper MCU firmware executes the step generator's steps.
+
+The step generator tells this backend every constant-acceleration piece of the trajectory
+(:meth:`trajectory`) and how far its clock has reached (:meth:`sample`, every tick). Up to that
+time each axis' exact step times are computed (:mod:`.steptimes`), mapped to MCU ticks at
+``t + lead_time_s`` through the fitted clock (:mod:`.clocksync`), and compressed into
+``queue_step`` runs within ``max_error_s`` (:mod:`.stepcompress`) every ``flush_s``, with
+``set_next_step_dir`` on direction changes and ``reset_step_clock`` after a long idle or a
+reconfiguration. A run that may still grow is held back at most ``HOLD_BACK_S``, so a host
+stall of up to ``lead_time_s`` - 50 ms never starves the MCU. Messages leave in order while the
+MCU's move queue (``move_count`` from its config) has room, counting each queued move until its
+first step is due.
+
+Outputs named in ``[backend.outputs]`` become ``queue_pwm_out``/``queue_digital_out`` at the
+MCU time of the last sample (the instant whose speed the laser's power was computed from) plus
+the lead, so power changes land on the steps they belong to. Halt (alarm, M112, Ctrl-X) sends
+``emergency_stop`` at once when the MCU has anything queued or an output on, then re-configures.
+A fault (:class:`~.mcu.KlipperFault`) is raised once from the next :meth:`sample`, which the
+machine turns into an alarm; the backend then reconnects every ``retry_s``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import heapq
+import logging
+import time
+from collections import deque
+
+import numpy as np
+
+from server.backends.base import Piece
+from server.backends.klipper.codec import ProtocolError
+from server.backends.klipper.dictionary import Dictionary
+from server.backends.klipper.mcu import Command, KlipperFault, Mcu
+from server.backends.klipper.pins import Axis, Output, config_commands
+from server.backends.klipper.stepcompress import run_clocks
+from server.backends.klipper.steptimes import FloatArray, crossing_times, step_target
+from server.config import CoreConfig
+
+log = logging.getLogger("motiond.klipper")
+LATE_MARGIN_S = 0.002
+SLEW_S = 2.0
+EXIT_GRACE_S = 0.3
+HOLD_BACK_S = 0.05
+"""The longest a run that may still grow waits before it is sent anyway."""
+MAX_SLEW = 200e-6
+
+
+class KlipperBackend:
+    """See the module docstring."""
+
+    wants_trajectory = True
+
+    def __init__(self, core: CoreConfig, *, record: bool = False, retry_s: float = 1.0,
+                 flush_s: float = 0.02) -> None:
+        cfg = core.backend
+        assert cfg.serial is not None
+        self.cfg, self.retry_s, self.flush_s = cfg, retry_s, flush_s
+        self.lead_s = cfg.lead_time_s
+        self.axis_names = core.axis_names
+        self.axes = [Axis(n, a.steps_per_mm, exact=[] if record else None)
+                     for n, a in zip(core.axis_names, core.axes.values(), strict=True)]
+        self.outputs = {name: Output(name, out) for name, out in cfg.outputs.items()}
+        self.values: dict[str, float] = {}
+        self.pwm_log: list[tuple[float, str, float, int]] | None = [] if record else None
+        self.errors: list[FloatArray] | None = [] if record else None
+        self.mcu: Mcu | None = None
+        self.ready = False
+        self.fault: str | None = None
+        self._fault_to_raise: str | None = None
+        self._pieces: deque[Piece] = deque()
+        self._head: Piece | None = None  # the piece steps are being generated from
+        self._sample_s: float | None = None
+        self._next_flush_s = 0.0
+        self._outbox: deque[tuple[bytes, int | None, int]] = deque()  # msg, slot until, due
+        self._in_use: list[int] = []
+        self._map: tuple[float, float, float] = (0.0, 0.0, 0.0)  # host s, MCU clock, ticks/s
+
+    # -- the Backend seam ---------------------------------------------------------------------
+    @property
+    def steps_per_mm(self) -> tuple[float, ...]:
+        return tuple(a.steps_per_mm for a in self.axes)
+
+    @steps_per_mm.setter
+    def steps_per_mm(self, values: tuple[float, ...]) -> None:
+        for axis, value in zip(self.axes, values, strict=True):
+            axis.position = round(axis.position / axis.steps_per_mm * value)
+            axis.steps_per_mm = value
+
+    def step(self, time_s: float, delta_steps: object) -> None:
+        """Whole steps per tick are not used: the exact times come from :meth:`trajectory`."""
+
+    def trajectory(self, piece: Piece) -> None:
+        if piece.duration_s > 0.0 and not self.ready:
+            raise KlipperFault(self.fault or f"the MCU on {self.cfg.serial} is not connected yet")
+        pieces = self._pieces
+        while pieces and pieces[-1].start_s >= piece.start_s:
+            pieces.pop()
+        if pieces and pieces[-1].start_s + pieces[-1].duration_s > piece.start_s:
+            last = pieces.pop()
+            cut = Piece(last.start_s, piece.start_s - last.start_s, last.start_mm, last.unit,
+                        last.start_mm_s, last.accel_mm_s2)
+            pieces.append(cut)
+            if last is self._head:
+                self._head = cut
+        if piece.duration_s > 0.0:
+            pieces.append(piece)
+
+    def sample(self, time_s: float, position_mm: object, speed_mm_s: float) -> None:
+        if self._fault_to_raise is not None:
+            message, self._fault_to_raise = self._fault_to_raise, None
+            raise KlipperFault(message)
+        self._sample_s = time_s
+        if not self.ready:
+            return
+        if time_s >= self._next_flush_s or self._map[2] == 0.0:
+            self._update_map(time_s + self.lead_s)
+        self._generate(time_s)
+        if time_s >= self._next_flush_s or not self._pieces:
+            self._next_flush_s = time_s + self.flush_s
+            self._flush(time_s)
+        self._pump()
+
+    def set_output(self, name: str, value: float, time_s: float) -> None:
+        self.values[name] = value
+        out = self.outputs.get(name)
+        if out is None or self.mcu is None or not self.ready:
+            return
+        if value == out.value:
+            return
+        when_s = self._sample_s if self._sample_s is not None else time_s
+        clock = max(int(self._motion_clock(when_s + self.lead_s)), out.last_clock + 1)
+        out.last_clock, out.value = clock, value
+        if self.pwm_log is not None:
+            self.pwm_log.append((when_s, name, value, clock))
+        d = self.mcu.dictionary
+        if out.config.pwm:
+            top = d.constant_int("PWM_MAX", 255)
+            level = round(min(1.0, max(0.0, value)) * top)
+            message = d.encode("queue_pwm_out", oid=out.oid, clock=clock & 0xFFFFFFFF,
+                               value=top - level if out.invert else level)
+        else:
+            message = d.encode("queue_digital_out", oid=out.oid, clock=clock & 0xFFFFFFFF,
+                               on_ticks=int((value > 0.5) != out.invert))
+        self._outbox.append((message, clock, clock))
+        self._pump()
+
+    def declare_tool(self, name: str) -> None:
+        if name not in self.outputs:
+            log.warning("tool output %r is not in [backend.outputs]: it drives no pin", name)
+
+    def output(self, name: str) -> float:
+        return self.values.get(name, 0.0)
+
+    def probe_triggered(self, position_mm: object) -> bool:
+        return False
+
+    def switch_triggered(self, name: str) -> bool:
+        return False
+
+    def place_switch(self, name: str, at_mm: float) -> None:
+        pass
+
+    def halt(self) -> None:
+        busy = self._busy()
+        self._drop_motion()
+        for out in self.outputs.values():
+            out.value = 0.0
+        if busy and self.mcu is not None and self.ready:
+            log.warning("emergency stop sent to the MCU")
+            self.mcu.emergency_stop()
+
+    def close(self) -> None:
+        if self.mcu is not None:
+            if self.ready and self._busy():
+                self.mcu.emergency_stop()
+            self.mcu.close()
+            self.mcu = None
+        self.ready = False
+
+    # -- the owned task -----------------------------------------------------------------------
+    async def run(self) -> None:
+        """Connect, configure and watch the MCU; on a fault report it and reconnect."""
+        while True:
+            mcu = Mcu(str(self.cfg.serial), self.cfg.baud, self.cfg.response_timeout_s)
+            mcu.on_configured = self._on_configured
+            self.mcu = mcu
+            try:
+                await mcu.connect(self._config_commands)
+                self.ready, self.fault = True, None
+                log.info("MCU on %s ready (%s, %s)", self.cfg.serial,
+                         mcu.dictionary.constants.get("MCU"), mcu.dictionary.version)
+                await mcu.watch()
+            except (KlipperFault, ProtocolError, ConnectionError) as exc:
+                self._on_fault(str(exc))
+            except asyncio.CancelledError:
+                await self._stop_before_exit(mcu)
+                raise
+            finally:
+                self.ready = False
+                mcu.close()
+            await asyncio.sleep(self.retry_s)
+
+    async def _stop_before_exit(self, mcu: Mcu) -> None:
+        """Shutting down with steps queued or a tool on: the emergency stop gets out first
+        (bounded: at most ``EXIT_GRACE_S``)."""
+        if not (self.ready and self._busy()):
+            return
+        mcu.emergency_stop()
+        deadline = time.monotonic() + EXIT_GRACE_S
+        while (mcu.link.queued_bytes or mcu.link.window.inflight) and not mcu.link.closed:
+            if time.monotonic() > deadline:
+                log.error("the MCU did not acknowledge the emergency stop before exit")
+                return
+            await asyncio.sleep(0.01)
+
+    def _on_fault(self, reason: str) -> None:
+        message = f"klipper MCU on {self.cfg.serial}: {reason}"
+        if message != self.fault:
+            log.error("%s", message)
+            self._fault_to_raise = message
+        self.fault = message
+        self._drop_motion()
+        for out in self.outputs.values():
+            out.value = 0.0
+
+    def _on_configured(self) -> None:
+        for axis in self.axes:
+            axis.needs_reset, axis.sent_dir = True, 0
+        for out in self.outputs.values():
+            out.last_clock, out.value = 0, 0.0
+        self._in_use.clear()
+        self._map = (0.0, 0.0, 0.0)
+
+    def _config_commands(self, d: Dictionary) -> list[Command]:
+        return config_commands(self.cfg, self.axes, self.outputs, d)
+
+    # -- steps --------------------------------------------------------------------------------
+    def _clock_at(self, host_s: float) -> float:
+        """The fitted (live) MCU clock at host time ``host_s``: deadlines, flow control."""
+        assert self.mcu is not None and self.mcu.clock is not None
+        return self.mcu.clock.clock_at(host_s)
+
+    def _motion_clock(self, host_s: float | FloatArray) -> float | FloatArray:
+        """The MCU clock scheduled for host time ``host_s`` (already including the lead)."""
+        ref_s, ref_clock, freq = self._map
+        return ref_clock + freq * (host_s - ref_s)
+
+    def _update_map(self, frontier_s: float) -> None:
+        """Steer the scheduling map towards the live fit without a jump: from ``frontier_s``
+        (the latest time steps were scheduled for) its rate is the fitted rate plus what closes
+        the gap in ``SLEW_S``, so step times stay continuous and in order while the fit moves."""
+        assert self.mcu is not None and self.mcu.clock is not None
+        fit = self.mcu.clock
+        if self._map[2] == 0.0:
+            self._map = (frontier_s, fit.clock_at(frontier_s), fit.freq_hz)
+            return
+        here = float(self._motion_clock(frontier_s))
+        correction = (fit.clock_at(frontier_s) - here) / SLEW_S
+        limit = fit.freq_hz * MAX_SLEW
+        self._map = (frontier_s, here, fit.freq_hz + min(limit, max(-limit, correction)))
+
+    def _now_clock(self) -> float:
+        return self._clock_at(time.monotonic())
+
+    def _generate(self, until_s: float) -> None:
+        """Exact step clocks of every axis for the trajectory up to ``until_s``."""
+        pieces = self._pieces
+        while pieces:
+            piece = pieces[0]
+            end_s = min(until_s, piece.start_s + piece.duration_s)
+            rel_s = end_s - piece.start_s
+            if rel_s < 0.0:
+                break
+            self._piece_steps(piece, rel_s)
+            if end_s < piece.start_s + piece.duration_s:
+                break
+            pieces.popleft()
+
+    def _piece_steps(self, piece: Piece, rel_s: float) -> None:
+        v0, a = piece.start_mm_s, piece.accel_mm_s2
+        if piece is not self._head:  # first look at this piece
+            self._head = piece
+            if self._rebased(piece):
+                return
+        if rel_s == 0.0:
+            return
+        distance = v0 * rel_s + 0.5 * a * rel_s * rel_s
+        base_s = piece.start_s + self.lead_s
+        for axis, start, unit in zip(self.axes, piece.start_mm, piece.unit, strict=True):
+            if unit == 0.0:
+                continue
+            x0, u = start * axis.steps_per_mm, unit * axis.steps_per_mm
+            target = step_target(x0 + u * distance)
+            if target == axis.position:
+                continue
+            times = crossing_times(x0, u, v0, a, rel_s, axis.position, target)
+            clocks = self._motion_clock(base_s + times)
+            assert isinstance(clocks, np.ndarray)
+            axis.add(1 if target > axis.position else -1, clocks)
+            axis.position = target
+
+    def _rebased(self, piece: Piece) -> bool:
+        """A piece that starts away from where the steps are (the position was redefined,
+        as homing does) moves the step count there without stepping."""
+        jumped = False
+        for axis, start in zip(self.axes, piece.start_mm, strict=True):
+            here = start * axis.steps_per_mm
+            if abs(here - axis.position) > 1.0:
+                log.warning("axis %s redefined at %.3f mm: no steps sent", axis.name, start)
+                axis.position = step_target(here)
+                jumped = True
+        return jumped and piece.duration_s == 0.0
+
+    def _flush(self, now_s: float) -> None:
+        """Compress what is due soon (all of it when motion has no more pieces)."""
+        idle = not self._pieces
+        force_clock = self._motion_clock(now_s + self.lead_s - min(HOLD_BACK_S, 0.5 * self.lead_s))
+        for axis in self.axes:
+            while axis.segments:
+                direction, points = axis.segments[0]
+                final = idle or len(axis.segments) > 1 or points[0] < force_clock
+                done = self._emit(axis, direction, points, final)
+                if done < len(points):
+                    axis.segments[0] = (direction, points[done:])
+                    break
+                axis.segments.pop(0)
+
+    def _emit(self, axis: Axis, direction: int, points: FloatArray, final: bool) -> int:
+        assert self.mcu is not None
+        d = self.mcu.dictionary
+        compressor = axis.compressor
+        if axis.needs_reset or points[0] - compressor.last_clock > 2**30:
+            start = int(points[0] - compressor.max_error) - 1
+            compressor.last_clock, compressor.last_exact = start, float(start)
+            self._outbox.append((d.encode("reset_step_clock", oid=axis.oid,
+                                          clock=start & 0xFFFFFFFF), None, start))
+            axis.needs_reset = False
+        if direction != axis.sent_dir:
+            self._outbox.append((d.encode("set_next_step_dir", oid=axis.oid,
+                                          dir=int((direction > 0) != axis.invert_dir)), None, 0))
+            axis.sent_dir = direction
+        last, index = compressor.last_clock, 0
+        runs, done = compressor.compress(points, final)
+        for run in runs:
+            first = last + run.interval
+            self._outbox.append((d.encode("queue_step", oid=axis.oid, interval=run.interval,
+                                          count=run.count, add=run.add), first, first))
+            clocks = run_clocks(last, run)
+            if self.errors is not None:  # how early each step is, in ticks
+                self.errors.append(points[index:index + run.count] - clocks)
+            index += run.count
+            last = int(clocks[-1])
+        return done
+
+    def _pump(self) -> None:
+        """Send queued messages in order while the MCU's move queue has room."""
+        mcu = self.mcu
+        if mcu is None or not self._outbox:
+            return
+        now = self._now_clock()
+        in_use = self._in_use
+        while in_use and in_use[0] <= now:
+            heapq.heappop(in_use)
+        late = now + LATE_MARGIN_S * (mcu.clock.freq_hz if mcu.clock else 0.0)
+        while self._outbox:
+            message, until, due = self._outbox[0]
+            if until is not None:
+                if len(in_use) >= mcu.move_count:
+                    return
+                heapq.heappush(in_use, until)
+            if until is not None and due < late:
+                late_ms = (late - due) / mcu.clock.freq_hz * 1e3 if mcu.clock else 0.0
+                self.halt()
+                self._on_fault(f"steps due {late_ms:.1f} ms ago were not sent in time (host "
+                               "stall or link too slow: raise lead_time_s)")
+                return
+            self._outbox.popleft()
+            mcu.link.send(message)
+
+    def _busy(self) -> bool:
+        """Whether the MCU may still have steps or an output on."""
+        if self.mcu is None or self.mcu.clock is None or not self.ready:
+            return False
+        now = self._now_clock()
+        return (any(until > now for until in self._in_use) or bool(self._outbox)
+                or any(out.value > 0.0 for out in self.outputs.values()))
+
+    def _drop_motion(self) -> None:
+        self._pieces.clear()
+        self._outbox.clear()
+        for axis in self.axes:
+            axis.segments.clear()

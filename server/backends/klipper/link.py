@@ -1,0 +1,222 @@
+"""The serial link to a Klipper MCU: a device or pty path, asyncio, non-blocking.
+
+Outgoing messages are packed in order into message blocks (as many as fit in 59 bytes) while
+the :class:`~.window.SendWindow` has room; incoming blocks acknowledge them and carry the MCU's
+responses, which are decoded with the current :class:`~.dictionary.Dictionary` and handed to
+``on_message`` with their arrival time (``time.monotonic``, the clock the event loop and the
+kernel use). :meth:`Link.request` sends one command and waits for a matching response.
+A closed device, an unreadable block stream or a restarted MCU (a sequence number never sent)
+is reported once to ``on_error``; the link is then dead and must be replaced.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import termios
+import time
+import tty
+from collections import deque
+from collections.abc import Callable
+
+from server.backends.klipper.codec import PAYLOAD_MAX, BlockReader, Params, ProtocolError
+from server.backends.klipper.dictionary import Dictionary
+from server.backends.klipper.window import SendWindow, SequenceError
+
+MessageHandler = Callable[[str, Params, float], None]
+Match = Callable[[Params], bool]
+
+_BAUDS = {9600: termios.B9600, 19200: termios.B19200, 38400: termios.B38400,
+          57600: termios.B57600, 115200: termios.B115200, 230400: termios.B230400,
+          460800: termios.B460800, 921600: termios.B921600}
+
+
+def open_serial(path: str, baud: int) -> int:
+    """Open a device or pty raw and non-blocking; USB CDC ignores the baud rate."""
+    fd = os.open(path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+    try:
+        tty.setraw(fd)
+        speed = _BAUDS.get(baud)
+        if speed is not None:
+            attrs = termios.tcgetattr(fd)
+            attrs[4] = attrs[5] = speed
+            termios.tcsetattr(fd, termios.TCSANOW, attrs)
+    except termios.error:  # not a terminal (a pipe in a test): raw bytes anyway
+        pass
+    return fd
+
+
+class Link:
+    """One open connection to an MCU; see the module docstring."""
+
+    def __init__(self, path: str, baud: int, on_message: MessageHandler,
+                 on_error: Callable[[str], None], window_bytes: int = 192) -> None:
+        self.path, self.baud = path, baud
+        self.dictionary = Dictionary.bootstrap()
+        self.window = SendWindow(window_bytes)
+        self.bytes_sent = 0
+        self.bytes_received = 0
+        self._on_message, self._on_error = on_message, on_error
+        self._reader = BlockReader()
+        self._queue: deque[bytes] = deque()
+        self._keep: deque[bool] = deque()  # per queued message: a request's (never dropped)
+        self._out = bytearray()
+        self._waiters: list[tuple[str, Match, asyncio.Future[Params]]] = []
+        self._timer: asyncio.TimerHandle | None = None
+        self._fd: int | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self.closed = False
+
+    def open(self) -> None:
+        self._loop = asyncio.get_running_loop()
+        self._fd = open_serial(self.path, self.baud)
+        self._loop.add_reader(self._fd, self._on_readable)
+
+    @property
+    def queued_bytes(self) -> int:
+        """Message bytes waiting for room in the window."""
+        return sum(len(m) for m in self._queue)
+
+    def send(self, message: bytes, keep: bool = False) -> None:
+        """Queue one encoded command; it goes out as soon as the window allows."""
+        if not self.closed:
+            self._queue.append(message)
+            self._keep.append(keep)
+            self._pump()
+
+    def send_first(self, message: bytes) -> list[bytes]:
+        """Send ``message`` before everything not yet sent, which is dropped and returned, but
+        for requests (an emergency stop must not wait behind the steps it cancels)."""
+        kept = [(m, k) for m, k in zip(self._queue, self._keep, strict=True) if k]
+        dropped = [m for m, k in zip(self._queue, self._keep, strict=True) if not k]
+        self._queue.clear()
+        self._keep.clear()
+        self.send(message)
+        for queued, _ in kept:
+            self.send(queued, keep=True)
+        return dropped
+
+    async def request(self, message: bytes, response: str, timeout_s: float,
+                      match: Match = lambda _: True) -> Params:
+        """Send ``message`` and wait for the first ``response`` that ``match``es."""
+        assert self._loop is not None
+        future: asyncio.Future[Params] = self._loop.create_future()
+        waiter = (response, match, future)
+        self._waiters.append(waiter)
+        self.send(message, keep=True)
+        try:
+            return await asyncio.wait_for(future, timeout_s)
+        finally:
+            if waiter in self._waiters:
+                self._waiters.remove(waiter)
+
+    def _pump(self) -> None:
+        now_s = time.monotonic()
+        while self._queue and not self.closed:
+            payload = bytearray()
+            while self._queue and len(payload) + len(self._queue[0]) <= PAYLOAD_MAX:
+                payload += self._queue[0]
+                if not self.window.can_send(len(payload) + 5):
+                    payload = payload[:len(payload) - len(self._queue[0])]
+                    break
+                self._queue.popleft()
+                self._keep.popleft()
+            if not payload:
+                break
+            self._write(self.window.make_block(bytes(payload), now_s))
+        self._arm_timer()
+
+    def _arm_timer(self) -> None:
+        deadline = self.window.deadline_s()
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        if deadline is not None and self._loop is not None and not self.closed:
+            delay = max(0.0, deadline - time.monotonic())
+            self._timer = self._loop.call_later(delay, self._on_timer)
+
+    def _on_timer(self) -> None:
+        self._timer = None
+        for block in self.window.on_timer(time.monotonic()):
+            self._write(block)
+        self._arm_timer()
+
+    def _write(self, data: bytes) -> None:
+        self._out += data
+        self.bytes_sent += len(data)
+        self._flush_out()
+
+    def _flush_out(self) -> None:
+        if self._fd is None or self.closed:
+            return
+        try:
+            written = os.write(self._fd, self._out) if self._out else 0
+        except BlockingIOError:
+            written = 0
+        except OSError as exc:
+            self._fail(f"cannot write to {self.path}: {exc.strerror}")
+            return
+        del self._out[:written]
+        assert self._loop is not None
+        if self._out:
+            self._loop.add_writer(self._fd, self._flush_out)
+        else:
+            self._loop.remove_writer(self._fd)
+
+    def _on_readable(self) -> None:
+        assert self._fd is not None
+        try:
+            data = os.read(self._fd, 4096)
+        except BlockingIOError:
+            return
+        except OSError as exc:
+            self._fail(f"cannot read from {self.path}: {exc.strerror}")
+            return
+        if not data:
+            self._fail(f"{self.path} was closed")
+            return
+        self.bytes_received += len(data)
+        now_s = time.monotonic()
+        try:
+            for block in self._reader.feed(data):
+                for again in self.window.on_block(block.seq, not block.payload, now_s):
+                    self._write(again)
+                if block.payload:
+                    self._deliver(self.dictionary.decode(block.payload), now_s)
+        except (SequenceError, ProtocolError) as exc:
+            self._fail(str(exc))
+            return
+        self._pump()
+
+    def _deliver(self, messages: list[tuple[str, Params]], now_s: float) -> None:
+        for name, params in messages:
+            params["#received_s"] = now_s
+            for waiter in list(self._waiters):
+                wanted, match, future = waiter
+                if wanted == name and not future.done() and match(params):
+                    future.set_result(params)
+                    self._waiters.remove(waiter)
+                    break
+            self._on_message(name, params, now_s)
+
+    def _fail(self, reason: str) -> None:
+        if not self.closed:
+            self.close()
+            self._on_error(reason)
+
+    def close(self) -> None:
+        """Stop reading and writing and release the device; safe twice."""
+        if self.closed:
+            return
+        self.closed = True
+        if self._timer is not None:
+            self._timer.cancel()
+        for _, _, future in self._waiters:
+            if not future.done():
+                future.set_exception(ConnectionError(f"link to {self.path} closed"))
+        self._waiters.clear()
+        if self._fd is not None and self._loop is not None:
+            self._loop.remove_reader(self._fd)
+            self._loop.remove_writer(self._fd)
+            os.close(self._fd)
+        self._fd = None

@@ -1,0 +1,100 @@
+"""What the Klipper backend configures on the MCU: axes, outputs, their pins and oids."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from server.backends.klipper.dictionary import Dictionary
+from server.backends.klipper.mcu import Command, KlipperFault
+from server.backends.klipper.stepcompress import StepCompressor
+from server.backends.klipper.steptimes import FloatArray
+from server.config import BackendConfig, KlipperOutput
+
+
+def split_pin(text: str) -> tuple[str, bool]:
+    """``"!PB4"`` -> ``("PB4", True)``."""
+    return text.lstrip("!"), text.startswith("!")
+
+
+@dataclass(slots=True)
+class Axis:
+    """One stepper: its oid, where its steps are, and what waits to be compressed."""
+
+    name: str
+    steps_per_mm: float
+    oid: int = 0
+    invert_dir: bool = False
+    position: int = 0  # whole steps commanded so far
+    segments: list[tuple[int, FloatArray]] = field(default_factory=list)  # (dir, exact clocks)
+    compressor: StepCompressor = field(default_factory=lambda: StepCompressor(1.0))
+    sent_dir: int = 0
+    needs_reset: bool = True
+    exact: list[FloatArray] | None = None  # recorded exact clocks (tests, benchmarks)
+
+    def add(self, direction: int, clocks: FloatArray) -> None:
+        if self.exact is not None:
+            self.exact.append(clocks)
+        if self.segments and self.segments[-1][0] == direction:
+            self.segments[-1] = (direction, np.concatenate((self.segments[-1][1], clocks)))
+        else:
+            self.segments.append((direction, clocks))
+
+
+@dataclass(slots=True)
+class Output:
+    """One output pin and the last value sent to it."""
+
+    name: str
+    config: KlipperOutput
+    oid: int = 0
+    invert: bool = False
+    last_clock: int = 0
+    value: float = 0.0  # the last value sent (0 after a configuration or a stop)
+
+
+def config_commands(cfg: BackendConfig, axes: list[Axis], outputs: dict[str, Output],
+                    d: Dictionary) -> list[Command]:
+    """The MCU's configuration: a ``config_stepper`` (and enable pin) per axis, a
+    ``config_pwm_out`` or ``config_digital_out`` per output; assigns the oids."""
+    freq = d.constant_int("CLOCK_FREQ")
+    commands: list[Command] = []
+    oid = 0
+    for axis, (name, pins) in zip(axes, cfg.axes.items(), strict=True):
+        step, invert_step = split_pin(check_pin(d, f"axes.{name}", pins.step_pin))
+        direction, axis.invert_dir = split_pin(check_pin(d, f"axes.{name}",
+                                                               pins.dir_pin))
+        axis.oid, axis.compressor = oid, StepCompressor(cfg.max_error_s * freq)
+        commands.append(("config_stepper", {
+            "oid": oid, "step_pin": step, "dir_pin": direction,
+            "invert_step": int(invert_step),
+            "step_pulse_ticks": int(pins.step_pulse_s * freq)}))
+        oid += 1
+        if pins.enable_pin:
+            enable, inverted = split_pin(check_pin(d, f"axes.{name}", pins.enable_pin))
+            commands.append(("config_digital_out", {
+                "oid": oid, "pin": enable, "value": int(not inverted),
+                "default_value": int(inverted), "max_duration": 0}))
+            oid += 1
+    for name, out in outputs.items():
+        pin_text = check_pin(d, f"outputs.{name}", out.config.pin or name)
+        pin, out.invert = split_pin(pin_text)
+        out.oid, oid = oid, oid + 1
+        if out.config.pwm:
+            off = d.constant_int("PWM_MAX", 255) if out.invert else 0
+            commands.append(("config_pwm_out", {
+                "oid": out.oid, "pin": pin, "cycle_ticks": int(out.config.cycle_time_s * freq),
+                "value": off, "default_value": off, "max_duration": 0}))
+        else:
+            commands.append(("config_digital_out", {
+                "oid": out.oid, "pin": pin, "value": int(out.invert),
+                "default_value": int(out.invert), "max_duration": 0}))
+    return commands
+
+def check_pin(d: Dictionary, section: str, text: str) -> str:
+    """``text`` if its pin is one the MCU's dictionary names, else a config error."""
+    if split_pin(text)[0] not in d.enumerations.get("pin", {}):
+        raise KlipperFault(f"config error: [backend.{section}]: unknown pin {text!r} on "
+                           f"this MCU ({d.constants.get('MCU', '?')})")
+    return text

@@ -1,0 +1,84 @@
+"""Clock sync, exact step times and step compression (pure cores of the Klipper backend)."""
+
+from __future__ import annotations
+
+import math
+import random
+
+import numpy as np
+
+from server.backends.klipper.clocksync import ClockSync
+from server.backends.klipper.stepcompress import StepCompressor, run_clocks
+from server.backends.klipper.steptimes import crossing_times, step_target
+
+CLOCK_HZ = 72e6
+
+
+def test_clock_fit_recovers_frequency_and_offset_within_a_few_microseconds() -> None:
+    rng = random.Random(3)
+    true_hz, offset = CLOCK_HZ * (1 + 60e-6), 123_456_789.0
+    sync = ClockSync(CLOCK_HZ)
+    sync.reset(0.0, int(offset))
+    for i in range(40):
+        sent = 0.25 * i + rng.uniform(0, 0.01)
+        rtt = 150e-6 + (rng.expovariate(1 / 2e-3) if rng.random() < 0.3 else rng.uniform(0, 5e-5))
+        read_at = sent + rng.uniform(0.45, 0.55) * rtt  # a symmetric link
+        sync.add_sample(sent, sent + rtt, int(offset + true_hz * read_at))
+    for host_s in (5.0, 10.0, 10.5):
+        error_s = (sync.clock_at(host_s) - (offset + true_hz * host_s)) / true_hz
+        assert abs(error_s) < 10e-6
+    assert abs(sync.freq_hz / true_hz - 1) < 2e-6
+
+
+def test_the_32_bit_clock_unwraps_near_the_estimate() -> None:
+    sync = ClockSync(CLOCK_HZ)
+    sync.reset(0.0, 2**32 - 100)
+    assert sync.extend(50) == 2**32 + 50
+    assert sync.extend(2**32 - 200) == 2**32 - 200
+
+
+def brute_force_times(x0: float, u: float, v0: float, a: float, dur: float) -> list[float]:
+    """Steps found by sampling the position densely (the reference)."""
+    times = np.linspace(0.0, dur, 2_000_001)
+    x = x0 + u * (v0 * times + 0.5 * a * times * times)
+    steps = np.floor(x + 0.5)
+    return [float(times[i]) for i in np.flatnonzero(np.diff(steps)) + 1]
+
+
+def test_step_times_match_a_dense_sampling_of_the_trajectory() -> None:
+    for x0, u, v0, a, dur in [(0.2, 80.0, 0.0, 3000.0, 0.05), (10.4, -57.0, 90.0, -1500.0, 0.06),
+                              (-3.0, 400.0, 10.0, 0.0, 0.1)]:
+        end = x0 + u * (v0 * dur + 0.5 * a * dur * dur)
+        exact = crossing_times(x0, u, v0, a, dur, step_target(x0), step_target(end))
+        reference = brute_force_times(x0, u, v0, a, dur)
+        assert len(exact) == len(reference) == abs(step_target(end) - step_target(x0))
+        assert np.max(np.abs(exact - np.array(reference))) < 2 * dur / 2_000_000
+
+
+def test_compression_keeps_every_step_within_the_bound_and_never_late() -> None:
+    rng = np.random.default_rng(5)
+    max_error = 25e-6 * CLOCK_HZ
+    accel = crossing_times(0.0, 80.0, 0.0, 3000.0, 0.2, 0, step_target(80 * 60.0))
+    cruise = crossing_times(0.0, 80.0, 600.0, 0.0, 0.1, 0, 80 * 60)
+    jitter = np.cumsum(rng.uniform(20e-6, 3e-3, 500))  # irregular raster steps
+    points = 1e6 + CLOCK_HZ * np.concatenate([accel, 0.2 + cruise, 0.31 + jitter])
+    compressor = StepCompressor(max_error, last_clock=999_000, last_exact=999_000.0)
+    runs, done = compressor.compress(points, final=True)
+    assert done == len(points)
+    last, clocks = 999_000, []
+    for run in runs:
+        assert 1 <= run.count <= 65535 and -32768 <= run.add <= 32767 and run.interval >= 0
+        clocks.append(run_clocks(last, run))
+        last = int(clocks[-1][-1])
+    error = points - np.concatenate(clocks)
+    assert error.min() >= 0.0 and error.max() <= max_error + 1
+    assert len(runs) < 60 + len(jitter), "9,600 steps of acceleration and cruise take < 60 runs"
+
+
+def test_compression_holds_back_a_run_that_may_still_grow() -> None:
+    points = 1e6 + 72_000.0 * np.arange(1, 101)
+    compressor = StepCompressor(1800.0, last_clock=1_000_000, last_exact=1e6)
+    runs, done = compressor.compress(points, final=False)
+    assert runs == [] and done == 0
+    runs, done = compressor.compress(points, final=True)
+    assert done == 100 and len(runs) == 1 and math.isclose(runs[0].interval, 72_000)

@@ -1,0 +1,52 @@
+"""The host's sequence window: acks, naks, timeouts, restarts, and joining a running MCU."""
+
+from __future__ import annotations
+
+import pytest
+
+from server.backends.klipper.window import SendWindow, SequenceError
+
+
+def sent(window: SendWindow, count: int, now_s: float = 0.0) -> list[bytes]:
+    return [window.make_block(bytes([10, i]), now_s) for i in range(count)]
+
+
+def test_an_ack_releases_the_blocks_before_it_and_measures_the_round_trip() -> None:
+    window = SendWindow()
+    sent(window, 3)
+    assert window.on_block(1, False, 0.002) == []  # a response to block 0: synced
+    assert window.on_block(3, True, 0.004) == []
+    assert not window.inflight and window.srtt_s is not None
+
+
+def test_a_nak_resends_everything_unacknowledged_once() -> None:
+    window = SendWindow()
+    blocks = sent(window, 4)
+    window.on_block(1, False, 0.001)
+    assert window.on_block(1, True, 0.002) == blocks[1:]
+    assert window.on_block(1, True, 0.0021) == [], "the naks a resend causes are not obeyed"
+
+
+def test_a_timeout_resends_with_a_doubled_timeout() -> None:
+    window = SendWindow()
+    blocks = sent(window, 2)
+    rto = window.rto_s
+    assert window.on_timer(rto / 2) == []
+    assert window.on_timer(rto + 0.001) == blocks and window.rto_s == 2 * rto
+
+
+def test_a_number_never_sent_means_the_mcu_restarted() -> None:
+    window = SendWindow()
+    sent(window, 5)
+    window.on_block(5, False, 0.001)
+    sent(window, 2)
+    with pytest.raises(SequenceError):
+        window.on_block(0, True, 0.01)
+
+
+def test_joining_an_mcu_that_served_a_host_before_adopts_its_count() -> None:
+    window = SendWindow()
+    first = sent(window, 1)[0]
+    again = window.on_block(1, True, 0.001)  # a nak that happens to look like an ack of 0
+    assert len(again) == 1 and again[0][1] == 0x10 | 1 and again[0][2:-3] == first[2:-3]
+    assert window.on_block(2, False, 0.002) == [] and not window.inflight
