@@ -147,8 +147,10 @@ class BackendConfig(Strict):
         if self.kind == "grbl" and (self.serial is None) == (self.tcp is None):
             raise ValueError('kind = "grbl" needs exactly one of serial = "/dev/ttyUSB0" '
                              'or tcp = "host:23"')
-        if self.kind == "klipper" and (self.serial is None or self.tcp is not None):
-            raise ValueError('kind = "klipper" needs serial (the MCU\'s device path), not tcp')
+        if self.kind == "klipper" and self.serial is None:
+            raise ValueError('kind = "klipper" needs serial (the MCU\'s device path)')
+        if self.kind == "klipper" and self.tcp is not None:
+            raise ValueError('tcp is an option of kind = "grbl"; a Klipper MCU is on serial')
         if self.kind not in ("grbl", "klipper") and (
             self.serial is not None or self.tcp is not None
         ):

@@ -150,3 +150,16 @@ def test_grbl_backend_options_are_checked_with_file_section_and_key() -> None:
     with pytest.raises(ConfigError, match="cannot also be served"):
         build_config({"axes": axes, "backend": {"kind": "grbl", "serial": "/dev/ttyACM0"},
                       "serial": {"device": "/dev/ttyACM0"}}, "m.toml")
+
+
+def test_backend_links_belong_to_their_kind_and_baud_defaults_by_kind() -> None:
+    pins = {"x": {"step_pin": "PB13", "dir_pin": "!PB12"},
+            "y": {"step_pin": "PB10", "dir_pin": "PB2"}, "z": {"step_pin": "PC1", "dir_pin": "PC2"}}
+    klipper = {"kind": "klipper", "serial": "/dev/ttyACM0", "axes": pins}
+    assert build_config({**BASE, "backend": klipper}, "m.toml").core.backend.baud == 250_000
+    grbl = {"kind": "grbl", "serial": "/dev/ttyUSB0"}
+    assert build_config({**BASE, "backend": grbl}, "m.toml").core.backend.baud == 115_200
+    assert problems_of({**BASE, "backend": {**klipper, "tcp": "mcu:23"}})[0].endswith(
+        'tcp is an option of kind = "grbl"; a Klipper MCU is on serial')
+    assert problems_of({**BASE, "backend": {"serial": "/dev/ttyUSB0"}})[0].endswith(
+        'serial and tcp are options of kind = "grbl" or "klipper"')
