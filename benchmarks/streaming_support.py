@@ -57,17 +57,18 @@ def may_run_realtime() -> bool:
 
 def loop_names() -> list[str]:
     """The configurations to measure side by side: asyncio's loop at ordinary priority; as
-    ``motiond serve`` runs it (real-time priority, when this process may have it); uvloop's when
-    installed."""
-    rt = REALTIME if may_run_realtime() else ""
-    names = ["asyncio"] + [f"asyncio{rt}"] * bool(rt)
-    return names + [f"uvloop{rt}"] * (importlib.util.find_spec("uvloop") is not None)
+    ``motiond serve`` runs it (real-time priority, when this process may have it); uvloop's
+    when installed (``serve`` gives it no real-time priority: see server/runtime/realtime.py)."""
+    rt = may_run_realtime()
+    names = ["asyncio"] + [f"asyncio{REALTIME}"] * rt
+    return names + ["uvloop"] * (importlib.util.find_spec("uvloop") is not None)
 
 
 def default_loop_name() -> str:
     """The configuration ``motiond serve`` runs with its default config."""
-    loop = "uvloop" if loop_factory() is not None else "asyncio"
-    return loop + (REALTIME if may_run_realtime() else "")
+    if loop_factory() is not None:
+        return "uvloop"
+    return "asyncio" + (REALTIME if may_run_realtime() else "")
 
 
 def run_on(loop: str, work: Callable[[], Awaitable[T]]) -> T:

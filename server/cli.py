@@ -231,9 +231,9 @@ async def _serve(config: Config) -> int:
     from server.app import App
     from server.transports import default_transports
 
-    priority = realtime.claim(config.core.stepgen.realtime_priority)
-    app = App(config, transports=default_transports(config))
     loop = asyncio.get_running_loop()
+    priority = realtime.claim_for(loop, config.core.stepgen.realtime_priority)
+    app = App(config, transports=default_transports(config))
     for signum in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(signum, app.request_stop)
     log.info("motiond %s: %s (event loop: %s)", __version__, config.core.machine.name,

@@ -15,12 +15,18 @@ Klipper's Linux MCU process do for their step timing:
 * Linux keeps 5 % of every second for ordinary processes (``sched_rt_runtime_us``), so even a
   runaway loop cannot lock the host up.
 
+Only on asyncio's own event loop: uvloop (libuv) rounds timers to whole milliseconds, so a loop
+waiting less than that polls without sleeping until the time comes; a real-time thread that
+polls uses up Linux's real-time budget and is then stopped for the rest of the second (50 ms
+stalls, measured). uvloop needs no priority to keep its stalls short.
+
 Without the right (``CAP_SYS_NICE``, an ``rtprio`` limit, Docker's ``--ulimit rtprio=10``)
 motiond runs at ordinary priority and says so once.
 """
 
 from __future__ import annotations
 
+import asyncio
 import os
 import sys
 from dataclasses import dataclass
@@ -60,6 +66,16 @@ def claim(priority: int) -> Priority:
                            + HOW_TO_GRANT)
     sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
     return Priority(priority, f"real-time priority {priority} (SCHED_FIFO)")
+
+
+def claim_for(loop: asyncio.AbstractEventLoop, priority: int) -> Priority:
+    """:func:`claim` for the thread running ``loop``, if it is asyncio's own (see the module
+    docstring); another loop keeps the ordinary policy and says why."""
+    if priority > 0 and not isinstance(loop, asyncio.BaseEventLoop):
+        return Priority(0, f"ordinary priority (no real-time priority on {type(loop).__name__}: "
+                           "its millisecond timers can poll, and a polling real-time thread is "
+                           "stopped by Linux for the rest of the second)")
+    return claim(priority)
 
 
 def release(previous_switch_interval_s: float) -> None:

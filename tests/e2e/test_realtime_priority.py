@@ -3,6 +3,7 @@ priority, and a refusal is reported, never raised (server/runtime/realtime.py)."
 
 from __future__ import annotations
 
+import asyncio
 import os
 import subprocess
 import sys
@@ -80,3 +81,31 @@ async def test_motiond_serve_runs_its_loop_fifo_unless_told_not_to(tmp_path: Pat
         assert os.sched_getparam(served.process.pid).sched_priority == 10  # the default
     async with motiond(tmp_path / "off", "[stepgen]\nrealtime_priority = 0\n") as served:
         assert os.sched_getscheduler(served.process.pid) == os.SCHED_OTHER
+
+
+def test_no_real_time_priority_on_a_loop_other_than_asyncios() -> None:
+    class OtherLoop(asyncio.AbstractEventLoop):  # uvloop's Loop is not a BaseEventLoop either
+        pass
+
+    def claim_on_other() -> tuple[realtime.Priority, int]:
+        priority = realtime.claim_for(OtherLoop(), 10)
+        return priority, os.sched_getscheduler(0)
+
+    priority, policy = in_thread(claim_on_other)
+    assert not priority.realtime and "OtherLoop" in priority.detail
+    assert policy == os.SCHED_OTHER
+
+
+async def test_asyncios_loop_gets_it() -> None:
+    def claim_on_asyncio() -> realtime.Priority:
+        loop = asyncio.new_event_loop()
+        try:
+            return realtime.claim_for(loop, 3)
+        finally:
+            loop.close()
+
+    before = sys.getswitchinterval()
+    try:
+        assert in_thread(claim_on_asyncio).priority == 3
+    finally:
+        sys.setswitchinterval(before)
