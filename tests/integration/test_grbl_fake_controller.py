@@ -240,3 +240,22 @@ async def test_a_line_waiting_for_room_when_another_client_resets_is_not_sent_la
         after = fake.lines[reset_at + 1:]
         assert "G0X52" not in after, "the line that waited for room was sent after the reset"
         assert replies[:43] == ["error:45"] * 43
+
+
+async def test_stopping_motiond_mid_job_resets_the_board_so_its_tools_go_off(
+    tmp_path: Path,
+) -> None:
+    """Shutdown turns the tools off at once: the board gets Ctrl-X (Grbl stops motion and turns
+    the spindle and laser off) before motiond lets go of the connection."""
+    async with linked(tmp_path) as (fake, app):
+        client = await client_of(app)
+        try:
+            fake.holding = True  # the board's planner is full: the job is running
+            client.writer.write(b"M3 S1000\nG1 X50 F600\n")
+            await wait_for(lambda: "G1X50F600" in fake.lines, 2.0, "the job on the board")
+            resets = fake.resets
+            app.request_stop()
+            await wait_for(lambda: fake.resets > resets, 2.0, "Ctrl-X at shutdown")
+            assert fake.lines[-1] == "<reset>"
+        finally:
+            await client.close()
