@@ -40,7 +40,7 @@ from server.backends.grbl.link import (
     mismatches,
 )
 from server.config import Config
-from server.errors import ALARM_MEANINGS, Alarm, CommandError, Error, SoftLimitError
+from server.errors import ALARM_MEANINGS, Alarm, CommandError, Error
 from server.gcode.parser import parse_line
 from server.motion.moves import Move, Sync, SyncKind, ToolMode
 from server.motion.stepgen import HoldState
@@ -83,12 +83,7 @@ class GrblMachine(Machine):
 
     # -- lines ------------------------------------------------------------------------------
     async def handle_gcode(self, command: Command) -> list[str]:
-        assert command.line is not None
-        try:
-            outputs = self.interpreter.execute(command.line)
-        except SoftLimitError as exc:
-            self.status.alarm(Alarm.SOFT_LIMIT, f"soft limit: {exc.message}")
-            raise
+        outputs = self.interpret(command)
         syncs = [out for out in outputs if type(out) is Sync]
         if self.check_mode or any(sync.kind in LOCAL_SYNCS for sync in syncs):
             messages: list[str] = []

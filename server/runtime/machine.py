@@ -156,14 +156,18 @@ class Machine:
 
     # -- the G-code handler -----------------------------------------------------------------
     async def handle_gcode(self, command: Command) -> list[str]:
+        outputs = self.interpret(command)
+        self._arm_probe(outputs)
+        return await self._feed(outputs)
+
+    def interpret(self, command: Command) -> list[Output]:
+        """The line's outputs from the interpreter; a target outside the travel alarms."""
         assert command.line is not None
         try:
-            outputs = self.interpreter.execute(command.line)
+            return self.interpreter.execute(command.line)
         except SoftLimitError as exc:
             self.status.alarm(Alarm.SOFT_LIMIT, f"soft limit: {exc.message}")
             raise
-        self._arm_probe(outputs)
-        return await self._feed(outputs)
 
     async def _feed(self, outputs: list[Output]) -> list[str]:
         """Offer the line's outputs to the planner (:func:`~server.motion.feed.offer`, as

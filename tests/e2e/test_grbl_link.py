@@ -15,9 +15,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import sys
 import time
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
@@ -50,13 +49,7 @@ CONTROLLER_PROBE = "[backend]\nprobe_at_mm = { z = -2.0 }\n"  # its probe touche
 STATUS_HZ = 20
 
 
-@pytest.fixture(autouse=True)
-def quick_thread_switches() -> Iterator[None]:
-    """The senders' threads share the GIL with the server's loop: switch more often."""
-    before = sys.getswitchinterval()
-    sys.setswitchinterval(0.0005)
-    yield
-    sys.setswitchinterval(before)
+pytestmark = pytest.mark.usefixtures("quick_thread_switches")
 
 
 def job(count: int = 240) -> list[str]:

@@ -17,8 +17,6 @@ same path with feeds scaled up on a fast machine, so the senders' timers meet re
 from __future__ import annotations
 
 import asyncio
-import sys
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -49,14 +47,7 @@ from tests.support.senders import (
     wait_for,
 )
 
-
-@pytest.fixture(autouse=True)
-def quick_thread_switches() -> Iterator[None]:
-    """The senders' threads share the GIL with the server's loop: switch more often."""
-    before = sys.getswitchinterval()
-    sys.setswitchinterval(0.0005)
-    yield
-    sys.setswitchinterval(before)
+pytestmark = pytest.mark.usefixtures("quick_thread_switches")
 
 
 def job_config(clock: str, tmp_path: Path) -> tuple[Config, Clock]:
