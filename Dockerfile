@@ -10,7 +10,7 @@ COPY pyproject.toml README.md ./
 COPY server ./server
 COPY modules ./modules
 COPY web ./web
-RUN pip install --no-cache-dir .
+RUN pip install --no-cache-dir "./[mqtt,fast]"
 
 USER 10001
 VOLUME ["/data"]
