@@ -11,7 +11,8 @@ acceleration limit; resume re-plans the rest of the interrupted block from stand
 :meth:`run` is the thin asyncio task that calls :meth:`advance` at ``tick_hz``. One call goes
 through at most ``max_blocks_per_call`` blocks: a tick late by many blocks (after a stall, at
 20,000 segments/s a 50 ms stall is 1,000 blocks) is caught up in slices, with the event loop
-running other callbacks in between, instead of in one long call.
+running other callbacks in between, instead of in one long call. A backend that times its own
+steps (a Klipper MCU) also gets the trajectory as pieces (:mod:`server.motion.pieces`).
 """
 
 from __future__ import annotations
@@ -22,8 +23,9 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
-from server.backends.base import Backend, Piece
+from server.backends.base import Backend
 from server.motion.moves import Action, MoveKind, Position, ToolMode
+from server.motion.pieces import PieceReporter
 from server.motion.planner import Block, Planner
 
 
@@ -120,6 +122,8 @@ class StepGenerator:
         )
         self._running = False
         self._last_tick_s: float | None = None
+        # backends that time their own steps get the trajectory as pieces
+        self._pieces = PieceReporter(backend) if backend.wants_trajectory else None
         self._resume_when_stopped = False
 
     # -- control (called by the machine) ----------------------------------------------------
@@ -181,10 +185,8 @@ class StepGenerator:
         self.planner.set_start_speed(0.0)
         self._set_hold(HoldState.NONE)
         self._publish_still()
-        if self._last_tick_s is not None and self.backend.wants_trajectory:  # the rest is dropped
-            zeros = tuple(0.0 for _ in self.state.position_mm)
-            self.backend.trajectory(
-                Piece(self._last_tick_s, 0.0, self.state.position_mm, zeros, 0.0, 0.0))
+        if self._last_tick_s is not None and self._pieces is not None:  # the rest is dropped
+            self._pieces.stop(self._last_tick_s, self.state.position_mm)
         return dropped
 
     # -- the tick ---------------------------------------------------------------------------
@@ -230,8 +232,8 @@ class StepGenerator:
                 if self.state.hold is not HoldState.NONE:  # a pause action stopped us
                     cursor.block, cursor.time_s, cursor.distance_mm = block, 0.0, 0.0
                     return 0.0
-                if self.backend.wants_trajectory:
-                    self._block_pieces(now_s - t, block)
+                if self._pieces is not None:
+                    self._pieces.block(now_s - t, block)
             if t < block.duration_s:
                 break
             if budget <= 0:
@@ -295,8 +297,9 @@ class StepGenerator:
         cursor = self._cursor
         v, a = cursor.hold_speed_mm_s, cursor.hold_accel_mm_s2
         used_s = min(dt, v / a) if a != math.inf else 0.0
-        if self.backend.wants_trajectory:
-            self._hold_pieces(v, a, used_s)
+        if self._pieces is not None:
+            self._pieces.hold(cursor.block, cursor.distance_mm,
+                              self._last_tick_s or 0.0, v, a, used_s)
         cursor.distance_mm += v * used_s - 0.5 * a * used_s * used_s if used_s else 0.0
         cursor.hold_speed_mm_s = max(0.0, v - a * used_s) if used_s else 0.0
         block = cursor.block
@@ -311,8 +314,8 @@ class StepGenerator:
                 for action in block.actions:
                     self.listener.on_action(action)
                 block.actions = []
-                if self.backend.wants_trajectory:
-                    self._hold_piece_into(block, overflow, v, a, used_s)
+                if self._pieces is not None:
+                    self._pieces.hold_into(block, self._last_tick_s or 0.0, overflow, v, a, used_s)
                 cursor.hold_accel_mm_s2 = min(
                     cursor.hold_accel_mm_s2, block.accel_mm_s2 or math.inf
                 )
@@ -322,56 +325,6 @@ class StepGenerator:
             if self._resume_when_stopped:
                 self._resume_when_stopped = False
                 self.resume()
-
-    # -- trajectory pieces for backends that time their own steps (additive) ----------------
-    def _piece(self, start_s: float, duration_s: float, block: Block, from_mm: float,
-               speed_mm_s: float, accel_mm_s2: float) -> None:
-        start = tuple(p + u * from_mm for p, u in zip(block.start_mm, block.unit, strict=True))
-        self.backend.trajectory(
-            Piece(start_s, duration_s, start, block.unit, speed_mm_s, accel_mm_s2))
-
-    def _block_pieces(self, start_s: float, block: Block) -> None:
-        """Tell the backend a block's three phases, starting at ``start_s``."""
-        if block.move is None or block.length_mm <= 0.0:
-            return
-        entry, cruise, t1, t2 = block.entry_mm_s, block.cruise_mm_s, block.accel_s, block.cruise_s
-        d1 = 0.5 * t1 * (entry + cruise)
-        if t1 > 0.0:
-            self._piece(start_s, t1, block, 0.0, entry, (cruise - entry) / t1)
-        if t2 > 0.0:
-            self._piece(start_s + t1, t2, block, d1, cruise, 0.0)
-        if block.decel_s > 0.0:
-            self._piece(start_s + t1 + t2, block.decel_s, block, d1 + cruise * t2, cruise,
-                        (block.exit_mm_s - cruise) / block.decel_s)
-
-    def _hold_pieces(self, v: float, a: float, used_s: float) -> None:
-        """The hold's deceleration this tick within the current block (it replaces the rest
-        of the block's pieces from the last tick on)."""
-        cursor = self._cursor
-        block = cursor.block
-        if block is None or block.move is None:
-            return
-        start_s = self._last_tick_s or 0.0
-        d0 = min(cursor.distance_mm, block.length_mm)
-        if not used_s:
-            self._piece(start_s, 0.0, block, d0, 0.0, 0.0)
-            return
-        end_mm = d0 + v * used_s - 0.5 * a * used_s * used_s
-        overflow = end_mm - block.length_mm
-        inside_s = used_s - _back_s(v - a * used_s, a, overflow) if overflow > 0.0 else used_s
-        self._piece(start_s, inside_s, block, d0, v, -a)
-
-    def _hold_piece_into(self, block: Block, overflow: float, v: float, a: float,
-                         used_s: float) -> None:
-        """The part of this tick's deceleration that ran ``overflow`` mm into ``block``."""
-        if block.move is None or not used_s:
-            return
-        end_s = (self._last_tick_s or 0.0) + used_s
-        v_end = v - a * used_s
-        into_s = _back_s(v_end, a, overflow)
-        beyond_s = _back_s(v_end, a, overflow - block.length_mm) if (
-            overflow > block.length_mm) else 0.0
-        self._piece(end_s - into_s, into_s - beyond_s, block, 0.0, v_end + a * into_s, -a)
 
     # -- output -----------------------------------------------------------------------------
     def _emit(self, now_s: float) -> None:
@@ -494,9 +447,3 @@ class StepGenerator:
             on_fault(exc)
             return True
 
-
-def _back_s(v_end: float, a: float, distance_mm: float) -> float:
-    """Seconds before reaching ``v_end`` (decelerating at ``a``) that ``distance_mm`` remained."""
-    if distance_mm <= 0.0:
-        return 0.0
-    return 2.0 * distance_mm / (v_end + math.sqrt(v_end * v_end + 2.0 * a * distance_mm))

@@ -1,0 +1,85 @@
+"""The trajectory as constant-acceleration pieces, for backends that time their own steps.
+
+Pure (no asyncio, no I/O). The step generator advances on a fixed-rate tick; a backend such as
+a Klipper MCU needs the exact path between ticks to compute every step's time. The
+:class:`PieceReporter` tells it each :class:`~server.backends.base.Piece` (start time,
+duration, start position, unit vector, start speed, acceleration) as the step generator takes a
+block (its three phases), as a feed hold decelerates (each tick's deceleration, split exactly
+at block boundaries) and when motion stops at once (a zero-length piece that cuts the rest).
+Units: seconds on the kernel's clock, mm, mm/s, mm/s².
+"""
+
+from __future__ import annotations
+
+import math
+
+from server.backends.base import Backend, Piece
+from server.motion.moves import Position
+from server.motion.planner import Block
+
+
+class PieceReporter:
+    """Reports the trajectory to ``backend.trajectory``; see the module docstring."""
+
+    def __init__(self, backend: Backend) -> None:
+        self.backend = backend
+
+    def block(self, start_s: float, block: Block) -> None:
+        """A block's three phases, starting at ``start_s``."""
+        if block.move is None or block.length_mm <= 0.0:
+            return
+        entry, cruise, t1, t2 = block.entry_mm_s, block.cruise_mm_s, block.accel_s, block.cruise_s
+        d1 = 0.5 * t1 * (entry + cruise)
+        if t1 > 0.0:
+            self._piece(start_s, t1, block, 0.0, entry, (cruise - entry) / t1)
+        if t2 > 0.0:
+            self._piece(start_s + t1, t2, block, d1, cruise, 0.0)
+        if block.decel_s > 0.0:
+            self._piece(start_s + t1 + t2, block.decel_s, block, d1 + cruise * t2, cruise,
+                        (block.exit_mm_s - cruise) / block.decel_s)
+
+    def hold(self, block: Block | None, distance_mm: float, tick_s: float, v: float, a: float,
+             used_s: float) -> None:
+        """A hold's deceleration this tick (from ``tick_s``, ``distance_mm`` into ``block``, at
+        ``v`` slowing by ``a`` for ``used_s``) within the current block; it replaces the rest of
+        the block's pieces from the tick on."""
+        if block is None or block.move is None:
+            return
+        d0 = min(distance_mm, block.length_mm)
+        if not used_s:
+            self._piece(tick_s, 0.0, block, d0, 0.0, 0.0)
+            return
+        end_mm = d0 + v * used_s - 0.5 * a * used_s * used_s
+        overflow = end_mm - block.length_mm
+        inside_s = used_s - back_s(v - a * used_s, a, overflow) if overflow > 0.0 else used_s
+        self._piece(tick_s, inside_s, block, d0, v, -a)
+
+    def hold_into(self, block: Block, tick_s: float, overflow: float, v: float, a: float,
+                  used_s: float) -> None:
+        """The part of this tick's deceleration that ran ``overflow`` mm into ``block``."""
+        if block.move is None or not used_s:
+            return
+        end_s = tick_s + used_s
+        v_end = v - a * used_s
+        into_s = back_s(v_end, a, overflow)
+        beyond_s = back_s(v_end, a, overflow - block.length_mm) if (
+            overflow > block.length_mm) else 0.0
+        self._piece(end_s - into_s, into_s - beyond_s, block, 0.0, v_end + a * into_s, -a)
+
+    def stop(self, tick_s: float, position_mm: Position) -> None:
+        """Motion stopped at once at ``position_mm``: what was reported after it is dropped."""
+        zeros = tuple(0.0 for _ in position_mm)
+        self.backend.trajectory(Piece(tick_s, 0.0, position_mm, zeros, 0.0, 0.0))
+
+    def _piece(self, start_s: float, duration_s: float, block: Block, from_mm: float,
+               speed_mm_s: float, accel_mm_s2: float) -> None:
+        start = tuple(p + u * from_mm for p, u in zip(block.start_mm, block.unit, strict=True))
+        self.backend.trajectory(
+            Piece(start_s, duration_s, start, block.unit, speed_mm_s, accel_mm_s2))
+
+
+def back_s(v_end: float, a: float, distance_mm: float) -> float:
+    """Seconds before reaching ``v_end`` (decelerating at ``a``) that ``distance_mm`` remained."""
+    if distance_mm <= 0.0:
+        return 0.0
+    return 2.0 * distance_mm / (v_end + math.sqrt(v_end * v_end + 2.0 * a * distance_mm))
