@@ -43,6 +43,7 @@ LATE_MARGIN_S = 0.002
 SLEW_S = 2.0
 EXIT_GRACE_S = 0.3
 HOLD_BACK_S = 0.05
+QUEUE_MARGIN_S = 0.001  # a move-queue slot is reused this long after its move is due
 """The longest a run that may still grow waits before it is sent anyway."""
 MAX_SLEW = 200e-6
 
@@ -361,7 +362,10 @@ class KlipperBackend:
             return
         now = self._now_clock()
         in_use = self._in_use
-        while in_use and in_use[0] <= now:
+        # a slot is free once the MCU has surely reached the move: the clock estimate may run
+        # ahead of the MCU's own by up to the fit's error (tens of µs over a pty or USB)
+        freed = now - QUEUE_MARGIN_S * (mcu.clock.freq_hz if mcu.clock else 0.0)
+        while in_use and in_use[0] <= freed:
             heapq.heappop(in_use)
         late = now + LATE_MARGIN_S * (mcu.clock.freq_hz if mcu.clock else 0.0)
         while self._outbox:
