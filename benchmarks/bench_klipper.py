@@ -31,7 +31,7 @@ from server.config import build_config
 from server.motion.moves import Action, Move, MoveKind, ToolMode
 from server.motion.planner import Planner
 from server.motion.stepgen import StepGenerator
-from server.runtime.machine import planner_settings
+from server.runtime.parts import planner_settings
 
 CLOCK_HZ = 72_000_000
 BAUD_BYTES_S = 250_000 / 10

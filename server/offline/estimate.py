@@ -33,7 +33,7 @@ from server.motion.limits import CRUISE, CUTTING_CODE, DURATION, KIND, LENGTH
 from server.motion.moves import Action, Move, MoveKind, Output, Sync
 from server.motion.planner import Block, Planner, SettledBlocks
 from server.motion.stepgen import StepGenerator
-from server.runtime.machine import interpreter_settings, planner_settings
+from server.runtime.parts import interpreter_settings, planner_settings
 
 CUTTING = (MoveKind.FEED, MoveKind.ARC, MoveKind.PROBE)
 BBOX_BATCH = 4096

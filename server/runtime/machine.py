@@ -13,16 +13,12 @@ import copy
 import logging
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, replace
-from pathlib import Path
 from typing import Any
 
-from server.backends.base import Backend
-from server.backends.null import NullBackend
-from server.backends.sim import SimBackend
-from server.config import Config, CoreConfig
+from server.config import Config
 from server.errors import Alarm, CommandError, Error, SoftLimitError
 from server.gcode.codes import CodeTable
-from server.gcode.interpreter import Interpreter, InterpreterSettings
+from server.gcode.interpreter import Interpreter
 from server.motion.feed import offer
 from server.motion.moves import (
     Action,
@@ -35,13 +31,19 @@ from server.motion.moves import (
     SyncKind,
     ToolMode,
 )
-from server.motion.planner import Planner, PlannerSettings
+from server.motion.planner import Planner
 from server.motion.stepgen import HoldState, StepGenerator
 from server.protocol.lines import Realtime
 from server.protocol.reports import StatusSnapshot
 from server.runtime.clock import Clock
 from server.runtime.dispatcher import Command, Dispatcher
 from server.runtime.events import Event, EventBus, MachineState
+from server.runtime.parts import (
+    build_backend,
+    interpreter_settings,
+    planner_settings,
+    settings_path,
+)
 from server.runtime.settings import Settings
 from server.runtime.state import MachineStatus
 
@@ -56,57 +58,6 @@ class ToolState:
     s: float = 0.0
     flood: bool = False
     mist: bool = False
-
-
-def settings_path(config: Config) -> Path:
-    """Where ``$x=value`` settings persist: beside the config file, else in the data dir."""
-    path = config.path
-    if path is not None:
-        return path.with_name(path.stem + ".settings.toml")
-    return config.core.jobs.data_dir.expanduser() / ".settings.toml"  # not a job
-
-
-def build_backend(core: CoreConfig) -> Backend:
-    """The backend named by ``[backend] kind``."""
-    if core.backend.kind in ("null", "grbl"):  # a Grbl controller steps itself
-        return NullBackend()
-    if core.backend.kind == "klipper":
-        from server.backends.klipper.backend import KlipperBackend  # only when configured
-
-        return KlipperBackend(core)
-    return SimBackend(
-        core.axis_names,
-        [axis.steps_per_mm for axis in core.axes.values()],
-        history_samples=core.backend.history_samples,
-        trace_csv=core.backend.trace_csv,
-        probe_at_mm=core.backend.probe_at_mm,
-    )
-
-
-def interpreter_settings(core: CoreConfig, spin_up_delay_s: float = 0.0) -> InterpreterSettings:
-    axes = list(core.axes.values())
-    return InterpreterSettings(
-        axis_names=core.axis_names,
-        min_mm=tuple(axis.min_mm for axis in axes),
-        max_mm=tuple(axis.max_mm for axis in axes),
-        soft_limits=core.machine.soft_limits,
-        arc_tolerance_mm=core.planner.arc_tolerance_mm,
-        spin_up_delay_s=spin_up_delay_s,
-    )
-
-
-def planner_settings(core: CoreConfig) -> PlannerSettings:
-    """Planner settings from the ``[axes.*]`` and ``[planner]`` sections."""
-    axes = list(core.axes.values())
-    planner = core.planner
-    return PlannerSettings(
-        max_rate_mm_s=tuple(axis.max_rate_mm_s for axis in axes),
-        accel_mm_s2=tuple(axis.accel_mm_s2 for axis in axes),
-        junction_deviation_mm=planner.junction_deviation_mm,
-        max_blocks=planner.max_blocks,
-        max_planned_s=planner.max_planned_s,
-        min_feed_mm_s=planner.min_feed_mm_s,
-    )
 
 
 SyncHandler = Callable[[dict[str, Any]], Awaitable[list[str]]]

@@ -35,7 +35,7 @@ from server.motion.stepgen import StepGenerator
 from server.offline import estimate as offline
 from server.runtime.clock import RealClock, VirtualClock
 from server.runtime.gcpacer import GcPacer
-from server.runtime.machine import planner_settings
+from server.runtime.parts import planner_settings
 from server.transports.tcp import TcpTransport
 from tests.conftest import REPO, make_config
 from tests.integration.test_stepgen import POLYLINE, Quiet

@@ -11,7 +11,7 @@ from server.backends.null import NullBackend
 from server.motion.moves import Move, MoveKind
 from server.motion.planner import Planner
 from server.motion.stepgen import HoldState, StepGenerator
-from server.runtime.machine import planner_settings
+from server.runtime.parts import planner_settings
 from tests.conftest import make_config
 from tests.integration.test_stepgen import Quiet, Ticker
 

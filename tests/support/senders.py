@@ -28,7 +28,7 @@ from server.errors import CommandError
 from server.gcode.interpreter import Interpreter
 from server.gcode.parser import parse_line
 from server.motion.moves import Move, Position
-from server.runtime.machine import interpreter_settings
+from server.runtime.parts import interpreter_settings
 
 if TYPE_CHECKING:
     from server.runtime.machine import Machine
