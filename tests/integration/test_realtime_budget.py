@@ -287,5 +287,8 @@ def test_motiond_estimate_runs_without_garbage_collection_and_restores_it(
     frozen, enabled = gc.get_freeze_count(), gc.isenabled()
     assert main(["estimate", str(job), "--json", "--no-limits"]) == 0
     assert collections == []  # 200-250 collections (a few full ones) otherwise
-    assert gc.isenabled() == enabled and gc.get_freeze_count() == frozen
+    assert gc.isenabled() == enabled
+    # nothing frozen: the permanent generation did not grow by the job's objects (it may shrink:
+    # objects an earlier server froze can be freed by reference counting at any time)
+    assert gc.get_freeze_count() <= frozen
     assert json.loads(capsys.readouterr().out)["moves"] == 30_000
