@@ -121,6 +121,16 @@ def test_junk_without_newline_is_bounded() -> None:
     assert link.receive(b"\nok\n") == [Answered(token, (), None)]
 
 
+def test_a_garbled_or_non_finite_status_report_is_dropped_and_the_link_goes_on() -> None:
+    link = connected()
+    token, _ = link.send("G0X1")
+    noisy = b"<Run|MPos:1.0,x2,3|FS:0,0>\n<Run|MPos:nan,0,0>\n<Idle|Bf:1e999,0>\n"
+    assert link.receive(noisy + b"ok\n") == [Answered(token, (), None)]
+    assert link.garbled_reports == 3
+    (report,) = link.receive(b"<Idle|MPos:4.000,5.000,6.000>\n")
+    assert isinstance(report, StatusReport) and report.status.machine_mm == (4.0, 5.0, 6.0)
+
+
 def test_status_report_fields() -> None:
     status = parse_status(
         "<Hold:1|MPos:1.000,-2.500,3.000|Bf:15,128|Ln:42|FS:1200,300|Pn:XZ|WCO:1.000,0,0|"

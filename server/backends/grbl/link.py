@@ -20,6 +20,7 @@ Units: positions mm, feed mm/min as the controller reports it.
 
 from __future__ import annotations
 
+import math
 import re
 from collections import deque
 from collections.abc import Mapping
@@ -111,6 +112,7 @@ class Link:
         self._in_flight: deque[_InFlight] = deque()
         self._next_token = 0
         self._partial = bytearray()
+        self.garbled_reports = 0  # status reports that did not parse (dropped)
         self._wco: tuple[float, ...] | None = None
 
     # -- sending ----------------------------------------------------------------------------
@@ -174,7 +176,11 @@ class Link:
 
     def _line(self, text: str) -> LinkEvent | None:
         if text.startswith("<") and text.endswith(">"):
-            status = parse_status(text, self._wco)
+            try:
+                status = parse_status(text, self._wco)
+            except ValueError:  # noise on the wire: the next report (a poll away) will do
+                self.garbled_reports += 1
+                return None
             if status.wco_mm is not None:
                 self._wco = status.wco_mm
             return StatusReport(status)
@@ -257,11 +263,15 @@ def _feed(values: Mapping[str, str]) -> tuple[float, float]:
 
 
 def _numbers(text: str) -> tuple[float, ...]:
-    return tuple(float(part) for part in text.split(",") if part)
+    """Comma-separated finite numbers; ValueError for anything else (``nan``, ``1e999``)."""
+    numbers = tuple(float(part) for part in text.split(",") if part)
+    if not all(map(math.isfinite, numbers)):
+        raise ValueError(f"not a finite number in {text!r}")
+    return numbers
 
 
 def _ints(text: str) -> list[int]:
-    return [int(float(part)) for part in text.split(",") if part]
+    return [int(number) for number in _numbers(text)]
 
 
 def parse_settings(lines: tuple[str, ...] | list[str]) -> dict[int, float]:
