@@ -15,9 +15,10 @@ import asyncio
 import os
 import termios
 import time
-import tty
 from collections import deque
 from collections.abc import Callable
+
+import serial
 
 from server.backends.klipper.codec import PAYLOAD_MAX, BlockReader, Params, ProtocolError
 from server.backends.klipper.dictionary import Dictionary
@@ -26,23 +27,18 @@ from server.backends.klipper.window import SendWindow, SequenceError
 MessageHandler = Callable[[str, Params, float], None]
 Match = Callable[[Params], bool]
 
-_BAUDS = {9600: termios.B9600, 19200: termios.B19200, 38400: termios.B38400,
-          57600: termios.B57600, 115200: termios.B115200, 230400: termios.B230400,
-          460800: termios.B460800, 921600: termios.B921600}
-
-
 def open_serial(path: str, baud: int) -> int:
-    """Open a device or pty raw and non-blocking; USB CDC ignores the baud rate."""
-    fd = os.open(path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+    """Open a device or pty raw and non-blocking at ``baud`` (any rate, 250000 included:
+    pyserial sets rates termios has no constant for); USB CDC ignores the rate."""
     try:
-        tty.setraw(fd)
-        speed = _BAUDS.get(baud)
-        if speed is not None:
-            attrs = termios.tcgetattr(fd)
-            attrs[4] = attrs[5] = speed
-            termios.tcsetattr(fd, termios.TCSANOW, attrs)
-    except termios.error:  # not a terminal (a pipe in a test): raw bytes anyway
-        pass
+        port = serial.Serial(path, baud, timeout=0)
+    except (serial.SerialException, termios.error, ValueError):  # not a terminal (a pipe)
+        return os.open(path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+    try:
+        fd = os.dup(port.fileno())  # the settings belong to the device; the copy keeps them
+    finally:
+        port.close()
+    os.set_blocking(fd, False)
     return fd
 
 
