@@ -8,6 +8,7 @@ against the exact step times the backend computed from the step generator's traj
 from __future__ import annotations
 
 import asyncio
+import threading
 import time
 from collections.abc import Iterator
 from typing import Any
@@ -145,7 +146,9 @@ async def test_laser_pwm_follows_speed_at_each_sample_m4(mcu: VirtualMcu) -> Non
         sent = [(clock, round(value * 255)) for _, name, value, clock in backend.pwm_log
                 if name == "PA8"]
         assert events == sent, "every update reached the MCU at the clock it was given"
-        assert len(events) > 40  # one per sample while the speed (so the power) changes
+        # one per laser sample while the speed (so the power) changes: 48 on a quiet machine,
+        # fewer when a busy one delays samples (38 seen), so the bound is only "many"
+        assert len(events) > 20
         checked = 0
         for when_s, _, value, _ in backend.pwm_log:
             speed = speed_at(pieces, when_s)
@@ -153,7 +156,7 @@ async def test_laser_pwm_follows_speed_at_each_sample_m4(mcu: VirtualMcu) -> Non
                 continue
             assert abs(round(value * 255) / 255 - 0.8 * speed / 50.0) <= 0.01, (when_s, speed)
             checked += 1
-        assert checked > 40 and events[-1][1] == 0
+        assert checked > 20 and events[-1][1] == 0
 
 
 def speed_at(pieces: list[Piece], when_s: float) -> float | None:
@@ -260,6 +263,36 @@ async def test_a_stall_beyond_the_lead_time_alarms_and_never_sends_a_late_step(
         assert mcu.shutdowns in ([], ["Command request"])  # stopped if it still had moves
 
 
+async def test_a_status_reply_from_before_an_emergency_stop_does_not_make_its_shutdown_a_fault(
+    mcu: VirtualMcu
+) -> None:
+    """The MCU answered a config poll just before the host sent an emergency stop; that
+    answer (configured, running) arrives after the stop and must not end the stop's grace,
+    or the shutdown the stop causes reads as a new fault (seen once in CI, under load)."""
+    async with klipper_machine(mcu) as app:
+        machine = app.kernel.machine
+        backend = machine.backend
+        assert isinstance(backend, KlipperBackend)
+        await submit_all(app, ["G1 X150 F6000"])
+        await asyncio.sleep(0.3)
+        release = threading.Event()
+        mcu.hold_config = release
+        assert await asyncio.to_thread(mcu.holding_config.wait, 2.0)
+        machine.soft_reset()  # the stop is sent while the stale reply is held
+        await asyncio.sleep(0.05)
+        release.set()
+        for _ in range(100):
+            if mcu.shutdowns and backend.mcu is not None and not backend.mcu.stopping:
+                break
+            await asyncio.sleep(0.01)
+        assert mcu.shutdowns == ["Command request"]
+        await asyncio.sleep(0.3)  # two more polls
+        assert backend.fault is None and backend.ready
+        await submit_all(app, ["$X", "G91", "G1 X-5 F3000"])
+        await machine.wait_idle()
+        assert backend.fault is None and app.kernel.state is MachineState.IDLE
+
+
 async def test_stopping_the_server_mid_move_stops_the_mcu_before_it_lets_go(
     mcu: VirtualMcu
 ) -> None:
@@ -274,11 +307,15 @@ async def test_stopping_the_server_mid_move_stops_the_mcu_before_it_lets_go(
 
 
 async def test_flow_control_keeps_a_small_move_queue_full_but_never_overflowing() -> None:
-    small = VirtualMcu(move_count=24).start()
+    # 40 moves of this raster cover about 90 ms, less than the 200 ms lead time, so the queue
+    # is the limit; a smaller queue would cover so little time that a shared machine's
+    # ordinary stalls would starve it (24 moves at 4x feed covered 17 ms)
+    small = VirtualMcu(move_count=40).start()
     try:
         async with klipper_machine(small, machine={"soft_limits": False}) as app:
-            await run_job(app, excerpt("laser-raster-tree.nc", 120, 4.0))
-            assert small.max_moves_in_use == 24, "the queue was the limit, and was respected"
+            await run_job(app, excerpt("laser-raster-tree.nc", 120))
+            # full, as the MCU counts it; one or two slots short when the host sent late
+            assert 36 <= small.max_moves_in_use <= 40, "the queue was the limit, and respected"
             assert check_steps(app, small) > 1000
     finally:
         small.stop()

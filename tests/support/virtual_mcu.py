@@ -74,6 +74,8 @@ class VirtualMcu:
         self.path = os.ttyname(self._slave)
         self.lock = threading.RLock()
         self.muted = False
+        self.hold_config: threading.Event | None = None  # a get_config reply waits for it
+        self.holding_config = threading.Event()  # ...and this says one is waiting
         self.drop_blocks = 0
         self.corrupt_blocks = 0
         self.naks_sent = 0
@@ -266,8 +268,13 @@ class VirtualMcu:
         self.respond("clock clock=%u", now & 0xFFFFFFFF)
 
     def _cmd_get_config(self, now: int) -> None:
-        self.respond("config is_config=%c crc=%u is_shutdown=%c move_count=%hu",
-                     int(self.configured), self.crc, int(self.shutdown_reason is not None),
+        state = (int(self.configured), self.crc, int(self.shutdown_reason is not None))
+        hold = self.hold_config
+        if hold is not None:  # the reply is on the wire while the host goes on: a race, held
+            self.hold_config = None
+            self.holding_config.set()
+            hold.wait(5.0)
+        self.respond("config is_config=%c crc=%u is_shutdown=%c move_count=%hu", *state,
                      self.move_count)
 
     def _cmd_allocate_oids(self, now: int, count: int) -> None:

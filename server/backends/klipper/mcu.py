@@ -53,6 +53,7 @@ class Mcu:
         self.move_count = 0
         self.crc = 0
         self.stopping = False  # an emergency stop we sent: its shutdown is expected
+        self._stops = 0  # emergency stops sent: a reply to a query asked before one is stale
         self.shutdown_reason: str | None = None
         self._fault: asyncio.Future[str] | None = None
         self._last_heard_s = time.monotonic()
@@ -161,8 +162,11 @@ class Mcu:
                 raise
 
     async def _poll(self) -> None:
+        stops = self._stops
         poll = asyncio.gather(self.sample_clock(), self._ask("get_config", "config"))
         _, config = await poll
+        if self._stops != stops:  # asked before the latest emergency stop: says nothing of it
+            return
         if self.stopping:
             self.stopping = not (config["is_config"] and not config["is_shutdown"])
             return
@@ -177,6 +181,7 @@ class Mcu:
         """``emergency_stop`` now (every queued step and output dropped, outputs to their
         defaults), then ``config_reset`` and the same configuration, sent in order at once."""
         self.stopping = True
+        self._stops += 1
         self.link.send_first(self.dictionary.encode("emergency_stop"))
         self.link.send(self.dictionary.encode("config_reset"))
         self._send_config()
