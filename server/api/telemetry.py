@@ -142,8 +142,10 @@ class Publisher:
                     moving = False
                 await asyncio.sleep(max(0.0, started + self.period_s - loop.time()))
                 if not moving:
+                    # asyncio.timeout, not wait_for: on 3.11 wait_for can swallow a cancel
                     with contextlib.suppress(TimeoutError):
-                        await asyncio.wait_for(self._wake.wait(), self.idle_period_s)
+                        async with asyncio.timeout(self.idle_period_s):
+                            await self._wake.wait()
         finally:
             for unsubscribe in self._unsubscribe:
                 unsubscribe()

@@ -169,13 +169,15 @@ async def serve_stream(
         await _finish_writing(writer_task)
         writer.close()
         with contextlib.suppress(Exception):
-            await asyncio.wait_for(writer.wait_closed(), 1.0)
+            async with asyncio.timeout(1.0):
+                await writer.wait_closed()
 
 
 async def _finish_writing(writer_task: asyncio.Task[None]) -> None:
     """Let the writer send what is queued (a last message), for a bounded time."""
     with contextlib.suppress(TimeoutError, asyncio.CancelledError, ConnectionError, OSError):
-        await asyncio.wait_for(writer_task, DRAIN_ON_CLOSE_S)
+        async with asyncio.timeout(DRAIN_ON_CLOSE_S):
+            await writer_task
 
 
 async def _write_loop(session: Session, writer: asyncio.StreamWriter) -> None:
