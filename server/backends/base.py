@@ -51,6 +51,11 @@ class Backend(Protocol):
         """Set an output pin (laser PWM, spindle, fan) to a duty cycle in [0, 1]."""
         ...
 
+    def motors(self, enabled: bool, time_s: float) -> None:
+        """Stepper drivers on or off (M17, M18/M84, ``$SLP``) when motion reaches ``time_s``;
+        hardware turns them on again by itself before the next step."""
+        ...
+
     def declare_tool(self, name: str) -> None:
         """The output ``name`` drives the tool (laser, spindle): traces record it as power."""
         ...

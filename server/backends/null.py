@@ -24,6 +24,9 @@ class NullBackend:
     def halt(self) -> None:
         pass
 
+    def motors(self, enabled: bool, time_s: float) -> None:
+        pass
+
     async def run(self) -> None:
         pass
 

@@ -59,6 +59,9 @@ class SimBackend:
     def halt(self) -> None:
         pass
 
+    def motors(self, enabled: bool, time_s: float) -> None:
+        pass
+
     async def run(self) -> None:
         pass
 

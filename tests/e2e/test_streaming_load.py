@@ -177,7 +177,8 @@ async def _flood_and_stream(payload: bytes) -> tuple[int, float | None]:
         try:
             result = await streamer.stream(lines)
             await asyncio.wait_for(app.kernel.machine.wait_idle(), 30.0)
-            stall_s = app.kernel.loop_monitor.worst_stall_s
+            monitor = app.kernel.loop_monitor
+            stall_s, own_stall_s = monitor.worst_stall_s, monitor.worst_cpu_stall_s
         finally:
             done.set()
             await polling
@@ -185,12 +186,15 @@ async def _flood_and_stream(payload: bytes) -> tuple[int, float | None]:
         assert result.replies == ["ok"] * len(lines) and result.extra_replies == 0
         assert spy.targets == expected.targets
         assert backend_steps(app.kernel.machine) == expected.end_steps(config.core)
-        # the poller was answered in time throughout, and the loop never stalled for long
+        # the poller was answered throughout, and the server's own work never held the loop
+        # for long; wall-clock bounds are loose, as a shared machine may take the CPU away
+        # (114 ms seen in CI) -- a loop blocked by the flood would take seconds
         slowest_s = max(poller.latencies_s)
-        assert slowest_s < 0.15, (
+        assert slowest_s < 0.5, (
             f"a status report took {slowest_s * 1000:.0f} ms (median "
             f"{statistics.median(poller.latencies_s) * 1000:.1f} ms) during the flood")
-        assert stall_s < 0.1, f"the event loop stalled for {stall_s * 1000:.0f} ms"
+        assert own_stall_s < 0.05, f"the loop's own work held it {own_stall_s * 1000:.0f} ms"
+        assert stall_s < 1.0, f"the event loop stalled for {stall_s * 1000:.0f} ms"
         # the server still serves new clients
         late = await CharCountingClient.connect(HOST, port)
         assert await late.command("G4 P0") == ["ok"]

@@ -319,3 +319,30 @@ async def test_flow_control_keeps_a_small_move_queue_full_but_never_overflowing(
             assert check_steps(app, small) > 1000
     finally:
         small.stop()
+
+
+async def test_m18_turns_the_drivers_off_after_motion_and_the_next_move_turns_them_on_first(
+    mcu: VirtualMcu
+) -> None:
+    async with klipper_machine(mcu) as app:
+        machine = app.kernel.machine
+        backend = machine.backend
+        assert isinstance(backend, KlipperBackend)
+        await run_job(app, ["G1 X10 F3000", "M18"])
+        await asyncio.sleep(backend.lead_s + 0.1)
+        enable = mcu.output_events("PB14")  # "!PB14": low enables the driver
+        assert enable[0][1] == 0 and enable[-1][1] == 1, "on at configuration, off after M18"
+        first_move, _ = mcu.step_clocks(backend.axes[0].oid)
+        assert len(first_move) == 800 and enable[-1][0] >= first_move[-1]
+        assert mcu.output_events("PB11")[-1][1] == 1 and mcu.output_events("PB1")[-1][1] == 1
+        await run_job(app, ["G1 X20"])
+        await asyncio.sleep(backend.lead_s + 0.1)
+        clocks, _ = mcu.step_clocks(backend.axes[0].oid)
+        second_move = clocks[len(first_move):]
+        on_again = mcu.output_events("PB14")[-1]
+        assert len(second_move) == 800 and on_again[1] == 0
+        assert first_move[-1] < on_again[0] <= second_move[0], "on before its first step"
+        check_steps(app, mcu)
+        await submit_all(app, ["$SLP"])
+        await asyncio.sleep(backend.lead_s + 0.1)
+        assert mcu.output_events("PB14")[-1][1] == 1, "$SLP turns them off too"

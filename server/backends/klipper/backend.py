@@ -8,8 +8,7 @@ time each axis' exact step times are computed (:mod:`.steptimes`), mapped to MCU
 ``set_next_step_dir`` on direction changes and ``reset_step_clock`` after a long idle or a
 reconfiguration. A run that may still grow is held back at most ``HOLD_BACK_S``, so a host
 stall of up to ``lead_time_s`` - 50 ms never starves the MCU. Messages leave in order while the
-MCU's move queue (``move_count`` from its config) has room, counting each queued move until its
-first step is due.
+MCU's move queue (``move_count`` from its config) has room (:mod:`.movequeue`).
 
 Outputs named in ``[backend.outputs]`` become ``queue_pwm_out``/``queue_digital_out`` at the
 MCU time of the last sample (the instant whose speed the laser's power was computed from) plus
@@ -22,7 +21,6 @@ machine turns into an alarm; the backend then reconnects every ``retry_s``.
 from __future__ import annotations
 
 import asyncio
-import heapq
 import logging
 import time
 from collections import deque
@@ -33,17 +31,16 @@ from server.backends.base import Piece
 from server.backends.klipper.codec import ProtocolError
 from server.backends.klipper.dictionary import Dictionary
 from server.backends.klipper.mcu import Command, KlipperFault, Mcu
+from server.backends.klipper.movequeue import MoveQueue
 from server.backends.klipper.pins import Axis, Output, config_commands
 from server.backends.klipper.stepcompress import run_clocks
 from server.backends.klipper.steptimes import FloatArray, crossing_times, step_target
 from server.config import CoreConfig
 
 log = logging.getLogger("motiond.klipper")
-LATE_MARGIN_S = 0.002
 SLEW_S = 2.0
 EXIT_GRACE_S = 0.3
 HOLD_BACK_S = 0.05
-QUEUE_MARGIN_S = 0.001  # a move-queue slot is reused this long after its move is due
 """The longest a run that may still grow waits before it is sent anyway."""
 MAX_SLEW = 200e-6
 
@@ -64,6 +61,7 @@ class KlipperBackend:
                      for n, a in zip(core.axis_names, core.axes.values(), strict=True)]
         self.outputs = {name: Output(name, out) for name, out in cfg.outputs.items()}
         self.values: dict[str, float] = {}
+        self.motors_on, self._enable_clock = True, 0
         self.pwm_log: list[tuple[float, str, float, int]] | None = [] if record else None
         self.errors: list[FloatArray] | None = [] if record else None
         self.mcu: Mcu | None = None
@@ -74,8 +72,7 @@ class KlipperBackend:
         self._head: Piece | None = None  # the piece steps are being generated from
         self._sample_s: float | None = None
         self._next_flush_s = 0.0
-        self._outbox: deque[tuple[bytes, int | None, int]] = deque()  # msg, slot until, due
-        self._in_use: list[int] = []
+        self._queue = MoveQueue()
         self._map: tuple[float, float, float] = (0.0, 0.0, 0.0)  # host s, MCU clock, ticks/s
 
     # -- the Backend seam ---------------------------------------------------------------------
@@ -141,11 +138,32 @@ class KlipperBackend:
             level = round(min(1.0, max(0.0, value)) * top)
             message = d.encode("queue_pwm_out", oid=out.oid, clock=clock & 0xFFFFFFFF,
                                value=top - level if out.invert else level)
+            self._queue.add(message, clock, clock)
         else:
-            message = d.encode("queue_digital_out", oid=out.oid, clock=clock & 0xFFFFFFFF,
-                               on_ticks=int((value > 0.5) != out.invert))
-        self._outbox.append((message, clock, clock))
+            self._digital_out(out.oid, value > 0.5, out.invert, clock)
         self._pump()
+
+    def motors(self, enabled: bool, time_s: float) -> None:
+        """M17 / M18, M84, ``$SLP``: the enable pins switch when motion reaches ``time_s``
+        (off lets the axes be moved by hand; the next move turns them on again first)."""
+        if self.mcu is None or not self.ready or enabled == self.motors_on:
+            return
+        when_s = self._sample_s if self._sample_s is not None else time_s
+        self._switch_motors(enabled, int(self._motion_clock(when_s + self.lead_s)))
+        self._pump()
+
+    def _switch_motors(self, enabled: bool, clock: int) -> None:
+        clock = self._enable_clock = max(clock, self._enable_clock + 1)  # in order, per pin
+        self.motors_on = enabled
+        for axis in self.axes:
+            if axis.enable_oid is not None:
+                self._digital_out(axis.enable_oid, enabled, axis.enable_inverted, clock)
+
+    def _digital_out(self, oid: int, on: bool, inverted: bool, clock: int) -> None:
+        assert self.mcu is not None
+        message = self.mcu.dictionary.encode("queue_digital_out", oid=oid,
+                                             clock=clock & 0xFFFFFFFF, on_ticks=int(on != inverted))
+        self._queue.add(message, clock, clock)
 
     def declare_tool(self, name: str) -> None:
         if name not in self.outputs:
@@ -227,11 +245,12 @@ class KlipperBackend:
             out.value = 0.0
 
     def _on_configured(self) -> None:
+        self.motors_on, self._enable_clock = True, 0  # the configuration turns them on
         for axis in self.axes:
             axis.needs_reset, axis.sent_dir = True, 0
         for out in self.outputs.values():
             out.last_clock, out.value = 0, 0.0
-        self._in_use.clear()
+        self._queue.in_use.clear()
         self._map = (0.0, 0.0, 0.0)
 
     def _config_commands(self, d: Dictionary) -> list[Command]:
@@ -285,6 +304,8 @@ class KlipperBackend:
             self._head = piece
             if self._rebased(piece):
                 return
+            if not self.motors_on and piece.duration_s > 0.0:  # enabled as it starts
+                self._switch_motors(True, int(self._motion_clock(piece.start_s + self.lead_s)))
         if rel_s == 0.0:
             return
         distance = v0 * rel_s + 0.5 * a * rel_s * rel_s
@@ -335,19 +356,19 @@ class KlipperBackend:
         if axis.needs_reset or points[0] - compressor.last_clock > 2**30:
             start = int(points[0] - compressor.max_error) - 1
             compressor.last_clock, compressor.last_exact = start, float(start)
-            self._outbox.append((d.encode("reset_step_clock", oid=axis.oid,
-                                          clock=start & 0xFFFFFFFF), None, start))
+            self._queue.add(d.encode("reset_step_clock", oid=axis.oid,
+                                     clock=start & 0xFFFFFFFF), None, start)
             axis.needs_reset = False
         if direction != axis.sent_dir:
-            self._outbox.append((d.encode("set_next_step_dir", oid=axis.oid,
-                                          dir=int((direction > 0) != axis.invert_dir)), None, 0))
+            self._queue.add(d.encode("set_next_step_dir", oid=axis.oid,
+                                     dir=int((direction > 0) != axis.invert_dir)), None, 0)
             axis.sent_dir = direction
         last, index = compressor.last_clock, 0
         runs, done = compressor.compress(points, final)
         for run in runs:
             first = last + run.interval
-            self._outbox.append((d.encode("queue_step", oid=axis.oid, interval=run.interval,
-                                          count=run.count, add=run.add), first, first))
+            self._queue.add(d.encode("queue_step", oid=axis.oid, interval=run.interval,
+                                     count=run.count, add=run.add), first, first)
             clocks = run_clocks(last, run)
             if self.errors is not None:  # how early each step is, in ticks
                 self.errors.append(points[index:index + run.count] - clocks)
@@ -358,41 +379,23 @@ class KlipperBackend:
     def _pump(self) -> None:
         """Send queued messages in order while the MCU's move queue has room."""
         mcu = self.mcu
-        if mcu is None or not self._outbox:
+        if mcu is None or not self._queue.waiting:
             return
-        now = self._now_clock()
-        in_use = self._in_use
-        # a slot is free once the MCU has surely reached the move: the clock estimate may run
-        # ahead of the MCU's own by up to the fit's error (tens of µs over a pty or USB)
-        freed = now - QUEUE_MARGIN_S * (mcu.clock.freq_hz if mcu.clock else 0.0)
-        while in_use and in_use[0] <= freed:
-            heapq.heappop(in_use)
-        late = now + LATE_MARGIN_S * (mcu.clock.freq_hz if mcu.clock else 0.0)
-        while self._outbox:
-            message, until, due = self._outbox[0]
-            if until is not None:
-                if len(in_use) >= mcu.move_count:
-                    return
-                heapq.heappush(in_use, until)
-            if until is not None and due < late:
-                late_ms = (late - due) / mcu.clock.freq_hz * 1e3 if mcu.clock else 0.0
-                self.halt()
-                self._on_fault(f"steps due {late_ms:.1f} ms ago were not sent in time (host "
-                               "stall or link too slow: raise lead_time_s)")
-                return
-            self._outbox.popleft()
-            mcu.link.send(message)
+        late_ms = self._queue.pump(mcu, self._now_clock())
+        if late_ms is not None:
+            self.halt()
+            self._on_fault(f"steps due {late_ms:.1f} ms ago were not sent in time (host "
+                           "stall or link too slow: raise lead_time_s)")
 
     def _busy(self) -> bool:
         """Whether the MCU may still have steps or an output on."""
         if self.mcu is None or self.mcu.clock is None or not self.ready:
             return False
-        now = self._now_clock()
-        return (any(until > now for until in self._in_use) or bool(self._outbox)
+        return (self._queue.busy(self._now_clock())
                 or any(out.value > 0.0 for out in self.outputs.values()))
 
     def _drop_motion(self) -> None:
         self._pieces.clear()
-        self._outbox.clear()
+        self._queue.waiting.clear()
         for axis in self.axes:
             axis.segments.clear()

@@ -28,6 +28,7 @@ from server.backends.klipper.link import Link
 
 log = logging.getLogger("motiond.klipper")
 Command = tuple[str, dict[str, Any]]
+CONNECT_TIMEOUT_S = 2.0  # patience for the first answers: a host busy starting up, a slow USB
 IDENTIFY_CHUNK = 40
 SYNC_BURST = 8
 
@@ -78,10 +79,10 @@ class Mcu:
         await self._configure()
 
     async def _ask(self, name: str, response: str, match: Callable[[Params], bool] = lambda _: True,
-                   **params: Any) -> Params:
+                   timeout_s: float | None = None, **params: Any) -> Params:
         try:
             return await self.link.request(self.dictionary.encode(name, **params), response,
-                                           self.timeout_s, match)
+                                           timeout_s or self.timeout_s, match)
         except TimeoutError as exc:
             raise KlipperFault(f"the MCU on {self.path} does not answer {name}") from exc
 
@@ -91,6 +92,7 @@ class Mcu:
             offset = len(blob)
             reply = await self._ask("identify", "identify_response",
                                     lambda p, o=offset: p["offset"] == o,  # type: ignore[misc]
+                                    max(self.timeout_s, CONNECT_TIMEOUT_S),
                                     offset=offset, count=IDENTIFY_CHUNK)
             if not reply["data"]:
                 return bytes(blob)

@@ -31,6 +31,8 @@ class Axis:
     compressor: StepCompressor = field(default_factory=lambda: StepCompressor(1.0))
     sent_dir: int = 0
     needs_reset: bool = True
+    enable_oid: int | None = None  # its enable pin's digital output, if it has one
+    enable_inverted: bool = False
     exact: list[FloatArray] | None = None  # recorded exact clocks (tests, benchmarks)
 
     def add(self, direction: int, clocks: FloatArray) -> None:
@@ -73,6 +75,7 @@ def config_commands(cfg: BackendConfig, axes: list[Axis], outputs: dict[str, Out
         oid += 1
         if pins.enable_pin:
             enable, inverted = split_pin(check_pin(d, f"axes.{name}", pins.enable_pin))
+            axis.enable_oid, axis.enable_inverted = oid, inverted
             commands.append(("config_digital_out", {
                 "oid": oid, "pin": enable, "value": int(not inverted),
                 "default_value": int(inverted), "max_duration": 0}))

@@ -1,0 +1,55 @@
+"""The MCU's move queue, seen from the host: messages leave in order while it has room.
+
+Every ``queue_step`` and scheduled output takes one of the MCU's ``move_count`` slots until
+the MCU has reached it. The host counts a slot as taken from sending the message until its
+clock has passed (plus ``QUEUE_MARGIN_S``, the clock fit's possible lead over the MCU's own),
+so the queue never overflows. A message that would arrive less than ``LATE_MARGIN_S`` before
+it is due is never sent: the caller halts instead (a late step is worse than none).
+"""
+
+from __future__ import annotations
+
+import heapq
+from collections import deque
+
+from server.backends.klipper.mcu import Mcu
+
+LATE_MARGIN_S = 0.002
+QUEUE_MARGIN_S = 0.001  # a move-queue slot is reused this long after its move is due
+
+
+class MoveQueue:
+    """Messages waiting for the MCU, each with the slot it takes (if any) and when it is due."""
+
+    def __init__(self) -> None:
+        self.waiting: deque[tuple[bytes, int | None, int]] = deque()  # msg, slot until, due
+        self.in_use: list[int] = []  # a heap of the clocks the taken slots free at
+
+    def add(self, message: bytes, until: int | None, due: int) -> None:
+        """Queue ``message``; ``until`` is the MCU clock its slot frees at (None: no slot)."""
+        self.waiting.append((message, until, due))
+
+    def pump(self, mcu: Mcu, now: float) -> float | None:
+        """Send what the queue has room for at MCU clock ``now``; returns how many ms late
+        the next message would be (nothing more is sent), or None."""
+        freq = mcu.clock.freq_hz if mcu.clock else 0.0
+        in_use, waiting = self.in_use, self.waiting
+        freed = now - QUEUE_MARGIN_S * freq
+        while in_use and in_use[0] <= freed:
+            heapq.heappop(in_use)
+        late = now + LATE_MARGIN_S * freq
+        while waiting:
+            message, until, due = waiting[0]
+            if until is not None:
+                if len(in_use) >= mcu.move_count:
+                    return None
+                if due < late:
+                    return (late - due) / freq * 1e3 if freq else 0.0
+                heapq.heappush(in_use, until)
+            waiting.popleft()
+            mcu.link.send(message)
+        return None
+
+    def busy(self, now: float) -> bool:
+        """Whether a message waits or a slot is still taken at MCU clock ``now``."""
+        return bool(self.waiting) or any(until > now for until in self.in_use)
