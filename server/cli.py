@@ -154,11 +154,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         if getattr(args, "no_limits", False):
             config.core.machine.soft_limits = False
         if args.command == "estimate":
-            from server.offline.estimate import estimate_command
+            from server.offline.commands import estimate_command
 
             return estimate_command(args, config)
         if args.command == "render":
-            from server.offline.estimate import render_command
+            from server.offline.commands import render_command
 
             return render_command(args, config)
         return serve(args, config)
