@@ -12,7 +12,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from server import __version__
-from server.config import Config, load_config
+from server.config import Config
+from server.config_loader import load_config
 from server.errors import ConfigError
 from server.runtime import realtime
 
