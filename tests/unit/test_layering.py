@@ -51,3 +51,23 @@ def test_the_runtime_does_not_import_transports_or_the_api() -> None:
     for path in sorted((SERVER / "runtime").rglob("*.py")):
         ours = {n for n in imports(path) if n.startswith(("server.transports", "server.api"))}
         assert not ours, f"runtime/{path.name} imports {sorted(ours)}"
+
+
+def test_the_line_protocol_points_one_way_events_scanner_lines() -> None:
+    """The events know no protocol code; the byte scanner knows the events, no line meaning."""
+    protocol = SERVER / "protocol"
+    ours = {n for n in imports(protocol / "events.py") if n.startswith("server.protocol")}
+    assert not ours, f"protocol/events.py imports {sorted(ours)}"
+    ours = {n for n in imports(protocol / "scanner.py") if n.startswith("server.protocol")}
+    assert ours == {"server.protocol.events"}, f"protocol/scanner.py imports {sorted(ours)}"
+
+
+def test_only_the_cli_imports_the_commands_and_the_config_loader() -> None:
+    """The offline pipeline and the server never depend on the command-line front end; the
+    config models read no file."""
+    leaves = {"server.offline.commands", "server.config_loader"}
+    for path in sorted(SERVER.rglob("*.py")):
+        if str(path.relative_to(SERVER)) in ("cli.py", "offline/commands.py", "config_loader.py"):
+            continue
+        found = imports(path) & leaves
+        assert not found, f"{path.relative_to(SERVER)} imports {sorted(found)}"
