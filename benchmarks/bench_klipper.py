@@ -27,7 +27,7 @@ from server.backends.klipper.clocksync import ClockSync
 from server.backends.klipper.codec import PAYLOAD_MAX
 from server.backends.klipper.dictionary import Dictionary
 from server.backends.klipper.stepcompress import StepCompressor
-from server.config import build_config
+from server.config_loader import build_config
 from server.motion.moves import Action, Move, MoveKind, ToolMode
 from server.motion.planner import Planner
 from server.motion.stepgen import StepGenerator

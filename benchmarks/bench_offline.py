@@ -27,9 +27,12 @@ from pygcode import Line as PygcodeLine
 
 from benchmarks.common import BenchResult, corpus_files, side_by_side, standalone
 from server.backends.sim import SimBackend
-from server.config import CoreConfig, load_config
+from server.config import CoreConfig
+from server.config_loader import load_config
 from server.gcode.parser import parse_line
-from server.offline.estimate import JobStats, collection_paused, estimate, execute
+from server.offline.commands import collection_paused
+from server.offline.estimate import estimate, execute
+from server.offline.stats import JobStats
 
 QUICK_MAX_BLOCKS = 20_000  # quick: files with more blocks are estimated, not executed
 RASTER_LINES = 300_000

@@ -21,7 +21,8 @@ from typing import Any, TypeVar
 
 from benchmarks.stream_client import HOST
 from server.cli import loop_factory
-from server.config import Config, StepgenConfig, build_config
+from server.config import Config, StepgenConfig
+from server.config_loader import build_config
 from server.runtime import realtime
 
 CLIENT = Path(__file__).resolve().with_name("stream_client.py")

@@ -12,7 +12,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from server import __version__
-from server.config import Config, load_config
+from server.config import Config
+from server.config_loader import load_config
 from server.errors import ConfigError
 from server.runtime import realtime
 
@@ -154,11 +155,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         if getattr(args, "no_limits", False):
             config.core.machine.soft_limits = False
         if args.command == "estimate":
-            from server.offline.estimate import estimate_command
+            from server.offline.commands import estimate_command
 
             return estimate_command(args, config)
         if args.command == "render":
-            from server.offline.estimate import render_command
+            from server.offline.commands import render_command
 
             return render_command(args, config)
         return serve(args, config)

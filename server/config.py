@@ -1,25 +1,22 @@
-"""The machine configuration: pydantic models, TOML loading and readable errors.
+"""The machine configuration: the pydantic models of every core section.
 
 One TOML file describes the machine. Core sections are ``[machine]``, ``[axes.X]``,
 ``[planner]``, ``[stepgen]``, ``[backend]``, ``[tcp]``, ``[http]``, ``[serial]``, ``[protocol]``
 and ``[jobs]``; every other section configures a module (``[laser]``, ``[switch.fan]``) and is
-validated by that module's own model. Every problem is reported as
-``FILE: [section] key: message``; unknown sections and keys are errors.
+validated by that module's own model. Unknown sections and keys are errors. Reading a file into
+a :class:`Config`, and reporting every problem as ``FILE: [section] key: message``, is
+:mod:`server.config_loader`.
 """
 
 from __future__ import annotations
 
-import tomllib
-from collections.abc import Mapping
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from server.errors import ConfigError
-from server.runtime.module import Module, available_modules
+from server.runtime.module import Module
 
 AXIS_LETTERS = "XYZABC"
 
@@ -300,124 +297,3 @@ class Config:
     modules: tuple[ModuleSpec, ...]
     path: Path | None = None
 
-
-CORE_SECTIONS = frozenset(CoreConfig.model_fields)
-
-
-def default_config_text() -> str:
-    """The embedded default machine: a laser cutter on the simulated backend."""
-    return resources.files("server").joinpath("default.toml").read_text()
-
-
-def load_config(
-    path: Path | None = None, registry: Mapping[str, type[Module]] | None = None
-) -> Config:
-    """Load and validate a config file (the embedded default when ``path`` is None)."""
-    label = str(path) if path else "<default config>"
-    try:
-        text = path.read_text() if path else default_config_text()
-    except OSError as exc:
-        raise ConfigError([f"{label}: cannot read: {exc.strerror}"]) from exc
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError([f"{label}: not valid TOML: {exc}"]) from exc
-    return build_config(data, label, registry, path)
-
-
-def build_config(
-    data: Mapping[str, Any],
-    label: str = "<config>",
-    registry: Mapping[str, type[Module]] | None = None,
-    path: Path | None = None,
-) -> Config:
-    """Validate a parsed config mapping; raise :class:`ConfigError` listing every problem."""
-    modules_available = available_modules() if registry is None else registry
-    core_data = {key: value for key, value in data.items() if key in CORE_SECTIONS}
-    problems: list[str] = []
-    core: CoreConfig | None = None
-    try:
-        core = CoreConfig.model_validate(core_data)
-    except ValidationError as exc:
-        problems += _describe(label, exc, ())
-    specs: list[ModuleSpec] = []
-    for section, body in data.items():
-        if section in CORE_SECTIONS:
-            continue
-        specs += _module_specs(label, section, body, modules_available, problems)
-    if problems or core is None:
-        raise ConfigError(problems)
-    return Config(core, tuple(specs), path)
-
-
-def _module_specs(
-    label: str,
-    section: str,
-    body: Any,
-    registry: Mapping[str, type[Module]],
-    problems: list[str],
-) -> list[ModuleSpec]:
-    cls = registry.get(section)
-    if cls is None:
-        known = ", ".join(sorted([*CORE_SECTIONS, *registry]))
-        problems.append(f"{label}: [{section}]: unknown section (known: {known})")
-        return []
-    if not isinstance(body, dict):
-        problems.append(f"{label}: [{section}]: must be a table")
-        return []
-    if not cls.named:
-        return _one_spec(label, cls, section, None, body, problems)
-    if not body:
-        problems.append(f"{label}: [{section}]: name each instance, as [{section}.NAME]")
-    specs: list[ModuleSpec] = []
-    for instance, instance_body in body.items():
-        if not isinstance(instance_body, dict):
-            problems.append(f"{label}: [{section}] {instance}: expected a [{section}.NAME] table")
-            continue
-        specs += _one_spec(label, cls, f"{section}.{instance}", instance, instance_body, problems)
-    return specs
-
-
-def _one_spec(
-    label: str,
-    cls: type[Module],
-    section: str,
-    instance: str | None,
-    body: dict[str, Any],
-    problems: list[str],
-) -> list[ModuleSpec]:
-    try:
-        config = cls.Config.model_validate(body)
-    except ValidationError as exc:
-        problems += _describe(label, exc, (section,))
-        return []
-    return [ModuleSpec(cls, section, instance, config)]
-
-
-def _describe(label: str, exc: ValidationError, prefix: tuple[str, ...]) -> list[str]:
-    """One line per pydantic error: ``FILE: [section] key: message``."""
-    lines = []
-    for error in exc.errors():
-        loc = prefix + tuple(str(part) for part in error["loc"])
-        message = _message(error)
-        if isinstance(error.get("input"), dict) and error["type"] != "missing":
-            lines.append(f"{label}: [{'.'.join(loc)}]: {message}" if loc else f"{label}: {message}")
-        elif len(loc) == 0:
-            lines.append(f"{label}: {message}")
-        elif len(loc) == 1:
-            lines.append(f"{label}: [{loc[0]}]: {message}")
-        else:
-            lines.append(f"{label}: [{'.'.join(loc[:-1])}] {loc[-1]}: {message}")
-    return lines
-
-
-def _message(error: Mapping[str, Any]) -> str:
-    kind = error["type"]
-    if kind == "extra_forbidden":
-        return "unknown key"
-    if kind == "missing":
-        return "missing required value"
-    text = str(error["msg"]).removeprefix("Value error, ")
-    if "input" in error and not isinstance(error["input"], dict):
-        return f"{text} (got {error['input']!r})"
-    return text

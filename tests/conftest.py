@@ -11,7 +11,8 @@ from typing import Any
 
 import pytest
 
-from server.config import Config, build_config
+from server.config import Config
+from server.config_loader import build_config
 
 REPO = Path(__file__).resolve().parent.parent
 CORPUS = Path(os.environ.get("MOTIOND_CORPUS", REPO.parent / "shared" / "corpus"))

@@ -24,7 +24,7 @@ from server import __version__
 from server.api.telemetry import TOPICS
 from server.errors import ERROR_MEANINGS, CommandError, Error
 from server.gcode.parser import check_length
-from server.protocol.lines import Realtime
+from server.protocol.events import Realtime
 from server.protocol.reports import StatusScheduler
 from server.runtime.control import MachineControl, halts_at_once
 from server.runtime.module import ApiMethod

@@ -5,22 +5,17 @@ server (:meth:`StepGenerator.pop_block`), refilling the planner to full before e
 sender that keeps up would. :func:`iterate_blocks` yields the planned blocks in execution
 order and sums their durations; :func:`execute` runs the actual step generator tick by tick on
 virtual time with a backend. The two agree to within a tick: the estimate is the execution.
+
+The figures summed are :class:`~server.offline.stats.JobStats`; the ``motiond estimate`` and
+``motiond render`` commands are :mod:`server.offline.commands`.
 """
 
 from __future__ import annotations
 
-import contextlib
-import gc
-import json
-import math
-import sys
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import asdict, dataclass, field, replace
-from itertools import chain
+from dataclasses import replace
 from pathlib import Path
-from typing import Any, TextIO
-
-import numpy as np
+from typing import TextIO
 
 from server.backends.base import Backend
 from server.backends.null import NullBackend
@@ -29,89 +24,14 @@ from server.errors import CommandError
 from server.gcode.interpreter import Interpreter
 from server.gcode.parser import check_length, parse_line
 from server.motion.feed import offer
-from server.motion.limits import CRUISE, CUTTING_CODE, DURATION, KIND, LENGTH
-from server.motion.moves import Action, Move, MoveKind, Output, Sync
-from server.motion.planner import Block, Planner, SettledBlocks
+from server.motion.moves import Action, Move, Output, Sync
+from server.motion.planner import Block, Planner
 from server.motion.stepgen import StepGenerator
+from server.offline.stats import JobStats
 from server.runtime.parts import interpreter_settings, planner_settings
 
-CUTTING = (MoveKind.FEED, MoveKind.ARC, MoveKind.PROBE)
-BBOX_BATCH = 4096
 OFFLINE_SYNC_BLOCKS = 1024  # no event loop to keep: fewer, larger syncs (the same plan)
 SKIP_CHUNK_CHARS = 1 << 16
-
-
-@dataclass(slots=True)
-class JobStats:
-    """What a job does. Times in seconds, distances in mm, speeds in mm/s."""
-
-    duration_s: float = 0.0
-    cut_mm: float = 0.0
-    rapid_mm: float = 0.0
-    moves: int = 0
-    blocks: int = 0
-    lines: int = 0
-    max_speed_mm_s: float = 0.0
-    bbox_min_mm: list[float] = field(default_factory=list)
-    bbox_max_mm: list[float] = field(default_factory=list)
-    error: str | None = None
-    error_line: int | None = None
-    _points: list[float] = field(default_factory=list, repr=False)  # end points, flat
-    _axes: int = field(default=0, repr=False)
-
-    def add(self, block: Block) -> None:
-        self.duration_s += block.duration_s
-        self.blocks += 1
-        move = block.move
-        if move is None:
-            return
-        if move.kind in CUTTING:
-            self.cut_mm += block.length_mm
-        else:
-            self.rapid_mm += block.length_mm
-        if block.cruise_mm_s > self.max_speed_mm_s:
-            self.max_speed_mm_s = block.cruise_mm_s
-        self._add_point(block.start_mm, block.end_mm)
-
-    def add_settled(self, settled: SettledBlocks) -> None:
-        """:meth:`add` for many blocks at once, with numpy."""
-        rows = settled.rows
-        durations, lengths, cutting = rows[DURATION], rows[LENGTH], rows[KIND] == CUTTING_CODE
-        self.duration_s += float(np.add.reduce(durations))
-        self.blocks += durations.shape[0]
-        self.cut_mm += float(np.add.reduce(lengths[cutting]))
-        self.rapid_mm += float(np.add.reduce(lengths[~cutting]))  # action blocks: no length
-        self.max_speed_mm_s = max(self.max_speed_mm_s, float(np.maximum.reduce(rows[CRUISE])))
-        moving = [(start, end) for move, _, start, end, _ in settled.geometry if move is not None]
-        if not moving:
-            return
-        if not self._axes:  # the first move: its start counts too
-            self._axes = len(moving[0][0])
-            self._points += moving[0][0]
-        self._points += chain.from_iterable([end for _, end in moving])
-        if len(self._points) >= BBOX_BATCH * self._axes:
-            self.finish()
-
-    def _add_point(self, start: tuple[float, ...], end: tuple[float, ...]) -> None:
-        points = self._points
-        if not self._axes:  # the first move: its start counts too
-            self._axes = len(start)
-            points += start
-        points += end
-        if len(points) >= BBOX_BATCH * self._axes:
-            self.finish()
-
-    def finish(self) -> None:
-        """Fold the collected end points into the bounding box (done in batches, with numpy)."""
-        if not self._points:
-            return
-        points = np.fromiter(self._points, np.float64, len(self._points)).reshape(-1, self._axes)
-        self._points.clear()
-        low, high = points.min(axis=0).tolist(), points.max(axis=0).tolist()
-        if self.bbox_min_mm:
-            low = [min(a, b) for a, b in zip(low, self.bbox_min_mm, strict=True)]
-            high = [max(a, b) for a, b in zip(high, self.bbox_max_mm, strict=True)]
-        self.bbox_min_mm, self.bbox_max_mm = low, high
 
 
 class _Listener:
@@ -296,19 +216,6 @@ def execute(
     return stats
 
 
-def format_duration(seconds: float) -> str:
-    """``1h 02m 03.4s`` style."""
-    if not math.isfinite(seconds):
-        return "∞"
-    hours, rest = divmod(seconds, 3600)
-    minutes, secs = divmod(rest, 60)
-    if hours:
-        return f"{int(hours)}h {int(minutes):02d}m {secs:04.1f}s"
-    if minutes:
-        return f"{int(minutes)}m {secs:04.1f}s"
-    return f"{secs:.2f}s"
-
-
 def machine_interpreter(config: Config) -> Interpreter:
     """The interpreter the configured machine would read a job with: its settings and the
     M-codes its modules claim (the modules are built, never started).
@@ -344,120 +251,3 @@ def read_file_lines(path: Path, limit_chars: int) -> list[str]:
     with path.open(errors="replace") as handle:
         return list(file_lines(handle, limit_chars))
 
-
-# -- the CLI commands -----------------------------------------------------------------------
-@contextlib.contextmanager
-def collection_paused() -> Iterator[None]:
-    """No automatic garbage collection during a one-shot command (``motiond estimate``).
-
-    The pipeline makes no reference cycles (blocks are freed by reference counting as they
-    are popped), so a collection finds nothing; but each full one re-scans everything loaded,
-    the list of the job's lines among it: 15 % of a 300,000-line raster's estimate.
-    """
-    enabled = gc.isenabled()
-    gc.disable()
-    try:
-        yield
-    finally:
-        if enabled:
-            gc.enable()
-
-
-def _read_lines(path: Path) -> list[str]:
-    return path.read_text(errors="replace").splitlines()
-
-
-def _progress(total: int, label: str, enabled: bool) -> tuple[Callable[[int], None], Any]:
-    from tqdm import tqdm
-
-    bar = tqdm(
-        total=total, unit="line", desc=label, disable=not enabled, leave=False, mininterval=0.2
-    )
-    last = [0]
-
-    def update(number: int) -> None:
-        if number - last[0] >= 2000 or number == total:
-            bar.update(number - last[0])
-            last[0] = number
-
-    return update, bar
-
-
-def estimate_command(args: Any, config: Config) -> int:
-    """``motiond estimate FILE``."""
-    path: Path = args.file
-    try:
-        lines = _read_lines(path)
-    except OSError as exc:
-        print(f"motiond: cannot read {path}: {exc.strerror}", file=sys.stderr)
-        return 1
-    show = not args.no_progress and not args.json and sys.stderr.isatty() and len(lines) > 5000
-    update, bar = _progress(len(lines), path.name, show)
-    with collection_paused():
-        stats = estimate(lines, config.core, update if show else None, machine_interpreter(config))
-    bar.close()
-    if args.json:
-        print(json.dumps({"file": str(path), **_public(asdict(stats))}, indent=2))
-    else:
-        print(describe(path, stats, config.core.axis_names))
-    return 1 if stats.error else 0
-
-
-def _public(fields: dict[str, Any]) -> dict[str, Any]:
-    return {key: value for key, value in fields.items() if not key.startswith("_")}
-
-
-def _count(number: int, noun: str) -> str:
-    return f"{number:,} {noun}{'' if number == 1 else 's'}"
-
-
-def describe(path: Path, stats: JobStats, axis_names: tuple[str, ...]) -> str:
-    rows = [
-        f"{path}",
-        f"  time        {format_duration(stats.duration_s)}",
-        f"  cutting     {stats.cut_mm:,.1f} mm",
-        f"  rapids      {stats.rapid_mm:,.1f} mm",
-        f"  moves       {stats.moves:,} ({_count(stats.blocks, 'planned block')}, "
-        f"{_count(stats.lines, 'line')})",
-        f"  max speed   {stats.max_speed_mm_s * 60:,.0f} mm/min",
-    ]
-    if stats.bbox_min_mm:
-        extent = "  ".join(
-            f"{name} {low:.3f}..{high:.3f}"
-            for name, low, high in zip(
-                axis_names, stats.bbox_min_mm, stats.bbox_max_mm, strict=True
-            )
-        )
-        rows.append(f"  extent      {extent}")
-    if stats.error:
-        rows.append(f"  STOPPED at line {stats.error_line}: {stats.error}")
-    return "\n".join(rows)
-
-
-def render_command(args: Any, config: Config) -> int:
-    """``motiond render FILE -o OUT``."""
-    from server.offline.render import collect, draw
-
-    path: Path = args.file
-    output: Path = args.output
-    if output.suffix.lower() not in (".svg", ".png"):
-        print("motiond: the output must end in .svg or .png", file=sys.stderr)
-        return 2
-    try:
-        lines = _read_lines(path)
-    except OSError as exc:
-        print(f"motiond: cannot read {path}: {exc.strerror}", file=sys.stderr)
-        return 1
-    stats = JobStats()
-    blocks = iterate_blocks(lines, config.core, stats, interpreter=machine_interpreter(config))
-    toolpath = collect(blocks, config.core.machine.laser_mode)
-    title = f"{path.name} — {format_duration(stats.duration_s)}, {stats.cut_mm:,.0f} mm cut"
-    if stats.error:
-        title += f" (stopped at line {stats.error_line})"
-    draw(toolpath, output, title)
-    print(
-        f"wrote {output} ({len(toolpath.feed):,} feed and {len(toolpath.rapid):,} rapid segments)"
-    )
-    if stats.error:
-        print(f"  stopped at line {stats.error_line}: {stats.error}", file=sys.stderr)
-    return 1 if stats.error else 0

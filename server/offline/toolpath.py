@@ -24,7 +24,8 @@ from typing import Any
 from server.config import CoreConfig
 from server.gcode.interpreter import Interpreter
 from server.motion.moves import MoveKind, ToolMode
-from server.offline.estimate import JobStats, iterate_blocks
+from server.offline.estimate import iterate_blocks
+from server.offline.stats import JobStats
 
 RAPID, CUT, GAP = 0, 1, 2
 TRAVEL_KINDS = frozenset({MoveKind.RAPID, MoveKind.JOG, MoveKind.HOMING})

@@ -19,7 +19,8 @@ then fills); realtime bytes already received are still acted on.
 
 from __future__ import annotations
 
-from server.protocol.lines import Event, LineProtocol
+from server.protocol.events import Event
+from server.protocol.lines import LineProtocol
 
 
 class Backlog:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import re
 from typing import TYPE_CHECKING
 
-from server.protocol.lines import Realtime
+from server.protocol.events import Realtime
 
 if TYPE_CHECKING:
     from server.runtime.jobs import Jobs

@@ -44,7 +44,7 @@ from server.errors import ALARM_MEANINGS, Alarm, CommandError, Error
 from server.gcode.parser import parse_line
 from server.motion.moves import Move, Sync, SyncKind, ToolMode
 from server.motion.stepgen import HoldState
-from server.protocol.lines import Realtime
+from server.protocol.events import Realtime
 from server.protocol.reports import StatusSnapshot
 from server.runtime.clock import Clock
 from server.runtime.dispatcher import Command, Dispatcher

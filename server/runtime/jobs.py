@@ -30,7 +30,8 @@ from typing import TYPE_CHECKING, BinaryIO
 
 from server.errors import CommandError, Error
 from server.gcode.parser import check_length
-from server.offline.estimate import estimate, format_duration, read_file_lines
+from server.offline.estimate import estimate, read_file_lines
+from server.offline.stats import format_duration
 from server.runtime.dispatcher import Command
 from server.runtime.events import Event, MachineState
 

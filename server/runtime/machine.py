@@ -33,7 +33,7 @@ from server.motion.moves import (
 )
 from server.motion.planner import Planner
 from server.motion.stepgen import HoldState, StepGenerator
-from server.protocol.lines import Realtime
+from server.protocol.events import Realtime
 from server.protocol.reports import StatusSnapshot
 from server.runtime.clock import Clock
 from server.runtime.dispatcher import Command, Dispatcher

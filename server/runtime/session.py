@@ -41,14 +41,14 @@ from collections import deque
 from typing import TYPE_CHECKING
 
 from server.errors import Alarm, CommandError, Error
-from server.protocol.lines import (
+from server.protocol.events import (
     Event,
-    LineProtocol,
     LineReceived,
     LineRejected,
     Realtime,
     RealtimeReceived,
 )
+from server.protocol.lines import LineProtocol
 from server.protocol.reports import StatusScheduler
 from server.runtime.backlog import Backlog
 from server.runtime.control import halts_at_once

@@ -25,7 +25,8 @@ import pytest
 from server.api.telemetry import build_status
 from server.app import App
 from server.backends.grbl.link import parse_status
-from server.config import Config, build_config
+from server.config import Config
+from server.config_loader import build_config
 from server.runtime.clock import RealClock
 from server.runtime.grbl import GrblMachine
 from server.transports.serial import SerialTransport

@@ -22,7 +22,7 @@ import pytest
 
 from server.api.server import API_KEY
 from server.app import App
-from server.config import load_config
+from server.config_loader import load_config
 from server.errors import CommandError
 from server.runtime.events import MachineState
 from server.transports.tcp import TcpTransport
@@ -38,7 +38,7 @@ HUGE = "1" + "0" * 400  # float() makes it infinity
 WRITER = """
 import sys
 from pathlib import Path
-from server.config import build_config
+from server.config_loader import build_config
 from server.runtime.settings import Settings
 
 axis = {"steps_per_mm": 80, "max_rate_mm_s": 500, "accel_mm_s2": 3000, "max_mm": 400}

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from server.config import load_config
+from server.config_loader import load_config
 from server.errors import CommandError
 from server.runtime.events import MachineState
 from tests.conftest import REPO, make_config

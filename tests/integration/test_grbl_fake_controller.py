@@ -11,7 +11,7 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 
 from server.app import App
-from server.config import build_config
+from server.config_loader import build_config
 from server.runtime.clock import RealClock
 from server.runtime.events import MachineState
 from server.runtime.grbl import GrblMachine

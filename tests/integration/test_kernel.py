@@ -14,7 +14,7 @@ import pytest
 from pydantic import Field
 
 from server.app import App
-from server.config import build_config
+from server.config_loader import build_config
 from server.errors import CommandError
 from server.runtime.clock import VirtualClock
 from server.runtime.dispatcher import Command

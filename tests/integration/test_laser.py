@@ -16,7 +16,7 @@ import pytest
 from modules.laser import LaserConfig
 from server.app import App
 from server.backends.sim import SimBackend
-from server.config import load_config
+from server.config_loader import load_config
 from server.errors import CommandError, ConfigError
 from server.motion.moves import MoveKind, ToolMode
 from server.motion.stepgen import HoldState

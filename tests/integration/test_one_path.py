@@ -14,7 +14,8 @@ from server.cli import main
 from server.errors import CommandError, ConfigError
 from server.motion.moves import Action, Move
 from server.motion.planner import Planner
-from server.offline.estimate import JobStats, estimate, machine_interpreter
+from server.offline.estimate import estimate, machine_interpreter
+from server.offline.stats import JobStats
 from tests.conftest import CORPUS, make_config
 from tests.support.helpers import running, submit_all
 

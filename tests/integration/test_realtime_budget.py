@@ -32,7 +32,8 @@ from server.cli import main
 from server.motion.moves import Move, MoveKind
 from server.motion.planner import Planner, PlannerSettings
 from server.motion.stepgen import StepGenerator
-from server.offline import estimate as offline
+from server.offline import commands
+from server.offline.stats import JobStats
 from server.runtime.clock import RealClock, VirtualClock
 from server.runtime.gcpacer import GcPacer
 from server.runtime.parts import planner_settings
@@ -270,20 +271,20 @@ def test_motiond_estimate_runs_without_garbage_collection_and_restores_it(
     job = tmp_path / "raster.nc"
     job.write_text("\n".join(raster_lines(30_000)) + "\n")
     collections: list[int] = []
-    estimate = offline.estimate
+    estimate = commands.estimate  # as the command calls it
 
     def count(phase: str, info: dict[str, int]) -> None:
         if phase == "start":
             collections.append(info["generation"])
 
-    def counted_estimate(*args: Any, **kwargs: Any) -> offline.JobStats:
+    def counted_estimate(*args: Any, **kwargs: Any) -> JobStats:
         gc.callbacks.append(count)
         try:
             return estimate(*args, **kwargs)
         finally:
             gc.callbacks.remove(count)
 
-    monkeypatch.setattr(offline, "estimate", counted_estimate)
+    monkeypatch.setattr(commands, "estimate", counted_estimate)
     frozen, enabled = gc.get_freeze_count(), gc.isenabled()
     assert main(["estimate", str(job), "--json", "--no-limits"]) == 0
     assert collections == []  # 200-250 collections (a few full ones) otherwise

@@ -11,7 +11,7 @@ from server.app import App
 from server.backends.sim import SimBackend
 from server.errors import CommandError, ConfigError
 from server.motion.moves import ToolMode
-from server.protocol.lines import Realtime
+from server.protocol.events import Realtime
 from tests.conftest import make_config
 from tests.support.helpers import running, submit_all
 

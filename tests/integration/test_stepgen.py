@@ -15,7 +15,8 @@ from server.gcode.parser import parse_line
 from server.motion.moves import Move, MoveKind
 from server.motion.planner import Planner
 from server.motion.stepgen import HoldState, StepGenerator
-from server.offline.estimate import JobStats, estimate, execute, iterate_blocks
+from server.offline.estimate import estimate, execute, iterate_blocks
+from server.offline.stats import JobStats
 from server.runtime.events import MachineState
 from server.runtime.parts import interpreter_settings, planner_settings
 from tests.conftest import CORPUS, make_config

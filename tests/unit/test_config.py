@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from server.cli import main
-from server.config import build_config, load_config
+from server.config_loader import build_config, load_config
 from server.errors import ConfigError
 from tests.conftest import BASE, REPO, make_config
 

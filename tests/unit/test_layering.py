@@ -51,3 +51,25 @@ def test_the_runtime_does_not_import_transports_or_the_api() -> None:
     for path in sorted((SERVER / "runtime").rglob("*.py")):
         ours = {n for n in imports(path) if n.startswith(("server.transports", "server.api"))}
         assert not ours, f"runtime/{path.name} imports {sorted(ours)}"
+
+
+def test_the_line_protocol_points_one_way_events_scanner_lines() -> None:
+    """The events know no protocol code; the byte scanner knows the events, no line meaning."""
+    protocol = SERVER / "protocol"
+    ours = {n for n in imports(protocol / "events.py") if n.startswith("server.protocol")}
+    assert not ours, f"protocol/events.py imports {sorted(ours)}"
+    ours = {n for n in imports(protocol / "scanner.py") if n.startswith("server.protocol")}
+    assert ours == {"server.protocol.events"}, f"protocol/scanner.py imports {sorted(ours)}"
+
+
+def test_only_the_cli_imports_the_estimate_and_render_commands() -> None:
+    """The offline pipeline and the server never depend on the command-line front end."""
+    for path in sorted(SERVER.rglob("*.py")):
+        if str(path.relative_to(SERVER)) in ("cli.py", "offline/commands.py"):
+            continue
+        assert "server.offline.commands" not in imports(path), f"{path.name} imports the CLI"
+
+
+def test_the_config_models_read_no_file() -> None:
+    found = imports(SERVER / "config.py") & {"tomllib", "importlib", "server.config_loader"}
+    assert not found, f"config.py imports {sorted(found)}: loading is config_loader.py"

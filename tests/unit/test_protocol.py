@@ -10,16 +10,16 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from server.errors import CommandError, Error
-from server.protocol.lines import (
+from server.protocol.events import (
     Dialect,
     FramedLine,
-    LineProtocol,
     LineReceived,
     LineRejected,
     Realtime,
     RealtimeReceived,
     ResendError,
 )
+from server.protocol.lines import LineProtocol
 
 
 def frame(number: int, command: str) -> bytes:
