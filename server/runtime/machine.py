@@ -1,9 +1,15 @@
 """The motion pipeline: interpreter -> planner -> step generator -> backend, owned by the kernel.
 
-:class:`Machine` is the default G-code handler of the dispatcher. It runs the interpreter, feeds
-moves and ordered actions to the planner (waiting while it is full: that wait is the flow
-control that delays a sender's ``ok``), carries out the interpreter's sync requests, and applies
-realtime commands (hold, resume, reset, jog cancel, overrides) at once.
+:class:`Machine` is the default G-code handler of the dispatcher. It builds the pipeline, runs
+the step generator task, listens to what motion reaches (tool state, program end, idle) and
+holds the settings and modes (``$x=``, ``$RST``, ``$C``). Its two other parts are base classes
+in their own modules, on the same state:
+
+* :class:`~server.runtime.machine_feed.GcodeFeed` takes lines in: it runs the interpreter,
+  feeds moves and ordered actions to the planner (waiting while it is full: that wait is the
+  flow control that delays a sender's ``ok``) and carries out the interpreter's sync requests;
+* :class:`~server.runtime.machine_realtime.RealtimeCommands` acts at once: hold, resume, reset,
+  jog cancel, overrides, M112.
 """
 
 from __future__ import annotations
@@ -16,28 +22,18 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 from server.config import Config
-from server.errors import Alarm, CommandError, Error, SoftLimitError
+from server.errors import Alarm
 from server.gcode.codes import CodeTable
 from server.gcode.interpreter import Interpreter
-from server.motion.feed import offer
-from server.motion.moves import (
-    Action,
-    ActionName,
-    Move,
-    MoveKind,
-    Output,
-    Position,
-    Sync,
-    SyncKind,
-    ToolMode,
-)
+from server.motion.moves import Action, ActionName, SyncKind, ToolMode
 from server.motion.planner import Planner
 from server.motion.stepgen import HoldState, StepGenerator
-from server.protocol.events import Realtime
 from server.protocol.reports import StatusSnapshot
 from server.runtime.clock import Clock
-from server.runtime.dispatcher import Command, Dispatcher
+from server.runtime.dispatcher import Dispatcher
 from server.runtime.events import Event, EventBus, MachineState
+from server.runtime.machine_feed import GcodeFeed
+from server.runtime.machine_realtime import RealtimeCommands
 from server.runtime.parts import (
     build_backend,
     interpreter_settings,
@@ -63,7 +59,7 @@ class ToolState:
 SyncHandler = Callable[[dict[str, Any]], Awaitable[list[str]]]
 
 
-class Machine:
+class Machine(GcodeFeed, RealtimeCommands):
     """Owns the motion pipeline; see the module docstring."""
 
     def __init__(
@@ -105,85 +101,7 @@ class Machine:
             is_idle=lambda: self.stepgen.idle, apply=self.apply_settings,
         )
 
-    # -- the G-code handler -----------------------------------------------------------------
-    async def handle_gcode(self, command: Command) -> list[str]:
-        outputs = self.interpret(command)
-        self._arm_probe(outputs)
-        return await self._feed(outputs)
-
-    def interpret(self, command: Command) -> list[Output]:
-        """The line's outputs from the interpreter; a target outside the travel alarms."""
-        assert command.line is not None
-        try:
-            return self.interpreter.execute(command.line)
-        except SoftLimitError as exc:
-            self.status.alarm(Alarm.SOFT_LIMIT, f"soft limit: {exc.message}")
-            raise
-
-    async def _feed(self, outputs: list[Output]) -> list[str]:
-        """Offer the line's outputs to the planner (:func:`~server.motion.feed.offer`, as
-        ``estimate`` does), waiting for room and carrying out sync requests in order."""
-        messages: list[str] = []
-        index, epoch = 0, self.epoch
-        while index < len(outputs):
-            if self.check_mode:  # interpreted, never planned
-                while index < len(outputs) and type(outputs[index]) is not Sync:
-                    index += 1
-            else:
-                taken = offer(self.planner, outputs, index)
-                if taken > index:
-                    self._note_input(MachineState.RUN)
-                index = taken
-            if index == len(outputs):
-                break
-            output = outputs[index]
-            if type(output) is Sync:
-                messages += await self.sync(output)
-                index += 1
-            else:
-                await self._wait_for_room(epoch)
-        return messages
-
-    def _arm_probe(self, outputs: list[Output]) -> None:
-        for output in outputs:
-            if type(output) is Sync and output.kind is SyncKind.PROBE:
-                self.stepgen.probe_towards = bool(output.params.get("towards", True))
-                self.stepgen.probe_hit = False
-
-    async def queue_move(self, move: Move) -> None:
-        """Append a move, waiting while the planner is full."""
-        if self.check_mode:
-            return
-        await self._wait_for_room()
-        self.planner.append(move)
-        self._note_input(MachineState.JOG if move.kind is MoveKind.JOG else MachineState.RUN)
-
-    async def queue_action(self, action: Action) -> None:
-        """Append an ordered action, waiting while the planner is full."""
-        if self.check_mode:
-            return
-        await self._wait_for_room()
-        self.planner.append_action(action)
-        self._note_input(MachineState.RUN)
-
-    async def _wait_for_room(self, epoch: int | None = None) -> None:
-        """Wait while the planner is full; refuse the line if motion was reset meanwhile
-        (``epoch``: the machine's epoch when the line began; default now)."""
-        epoch = self.epoch if epoch is None else epoch
-        while self.planner.is_full():
-            self.room.clear()
-            await self.room.wait()
-        if epoch != self.epoch:
-            raise CommandError(
-                Error.BUSY, "motion was reset while this line waited; it was not run"
-            )
-
-    def _note_input(self, state: MachineState) -> None:
-        self.idle_event.clear()
-        self.stepgen.note_input(self.clock.now_s())
-        if self.status.state is MachineState.IDLE:
-            self.status.set_state(state)
-
+    # -- what the machine is ---------------------------------------------------------------
     @property
     def busy(self) -> bool:
         """Motion is queued or running (its source owns the machine until it ends)."""
@@ -195,13 +113,6 @@ class Machine:
     def status_snapshot(self, rx_free_bytes: int) -> StatusSnapshot | None:
         """A status report from elsewhere (a downstream controller), or None: motiond's own."""
         return None
-
-    async def wait_idle(self) -> None:
-        """Wait until every queued move has been executed."""
-        if not self.stepgen.idle:
-            self.idle_event.clear()
-            self.stepgen.request_start()
-            await self.idle_event.wait()
 
     def new_interpreter(self, *, soft_limits: bool = True) -> Interpreter:
         """A fresh interpreter at the origin that reads G-code exactly as this machine does
@@ -218,50 +129,6 @@ class Machine:
         """Motion waits ``seconds`` after M3/M4 starts a stopped spindle."""
         self.spin_up_delay_s = seconds
         self.interpreter.settings = replace(self.interpreter.settings, spin_up_delay_s=seconds)
-
-    async def sync(self, request: Sync) -> list[str]:
-        """Carry out an interpreter request that needs the machine."""
-        kind = request.kind
-        if kind is SyncKind.HALT:
-            self.emergency_stop()
-            return []
-        if kind is SyncKind.CLEAR_HALT:
-            self.status.clear_alarm()
-            return []
-        if kind is SyncKind.MESSAGE:
-            return list(request.params["lines"])
-        handler = self.sync_handlers.get(kind)
-        if handler is not None:
-            return await handler(request.params)
-        if kind is SyncKind.HOME:  # no module carries it out
-            raise CommandError(
-                Error.SETTING_DISABLED, "homing is not configured: add an [endstops] section"
-            )
-        await self.wait_idle()
-        if kind is SyncKind.REPORT_POSITION:
-            return [self.position_report()]
-        return self._finish_probe(request)
-
-    def _finish_probe(self, request: Sync) -> list[str]:
-        position = self.stepgen.state.position_mm
-        success = self.stepgen.probe_hit
-        self.interpreter.set_position(position)
-        self.planner.set_position(position)
-        self.interpreter.record_probe(position, success)
-        coords = ",".join(f"{v:.3f}" for v in position)
-        report = f"[PRB:{coords}:{int(success)}]"
-        if not success and request.params.get("error_on_fail", True):
-            self.status.alarm(5, "probe fail: the probe did not change state within the move")
-        return [report]
-
-    def position_report(self) -> str:
-        """Smoothie's M114 answer: work position, then machine position."""
-        machine = self.stepgen.state.position_mm
-        work = self.interpreter.work_position(machine)
-        names = self.core.axis_names
-        wpos = " ".join(f"{n}:{v:.4f}" for n, v in zip(names, work, strict=True))
-        mpos = " ".join(f"{n}:{v:.4f}" for n, v in zip(names, machine, strict=True))
-        return f"C: {wpos} MPos: {mpos}"
 
     # -- motion listener (called by the step generator) --------------------------------------
     def on_action(self, action: Action) -> None:
@@ -289,122 +156,6 @@ class Machine:
         if self._cancelling_jog:
             self._finish_jog_cancel()
         self.events.emit(Event.HOLD_STOPPED)
-
-    # -- realtime commands ------------------------------------------------------------------
-    def spindle_stop(self) -> None:
-        """Grbl's spindle stop override (0x9E): the spindle module toggles during a hold."""
-        self.events.emit(Event.SPINDLE_STOP)
-
-    def realtime(self, command: Realtime) -> None:
-        """Act on a realtime byte at once (status and reset are the session's)."""
-        action = _REALTIME_ACTIONS.get(command)
-        if action is not None:
-            action(self)
-            return
-        feed, rapid, spindle = _OVERRIDE_STEPS.get(command, (None, None, None))
-        self.set_overrides(
-            feed=None if feed is None else (100 if feed == 0 else self.feed_override + feed),
-            rapid=rapid,
-            spindle=None
-            if spindle is None
-            else (100 if spindle == 0 else self.spindle_override + spindle),
-        )
-
-    def toggle_coolant(self, which: str) -> None:
-        """Realtime flood/mist toggle (0xA0/0xA1): at once, reflected in status ``A:``."""
-        if which == "flood":
-            self.tool.flood = not self.tool.flood
-        else:
-            self.tool.mist = not self.tool.mist
-        self.events.emit(Event.TOGGLE_COOLANT, which)
-
-    def emergency_stop(self) -> None:
-        """M112: halt at once, before the lines queued ahead of it run."""
-        if self.status.state is not MachineState.ALARM:
-            self.status.alarm(Alarm.HALT, "emergency stop (M112): $X or M999 to unlock")
-
-    def feed_hold(self) -> None:
-        if self.status.state is MachineState.HOME:  # as in Grbl: homing ignores feed hold
-            return
-        if self.stepgen.idle and self.status.state is MachineState.IDLE:
-            self.events.emit(Event.HOLD)  # nothing moves, but a focusing `fire` stops
-            return
-        if self.status.state in (MachineState.RUN, MachineState.JOG) or not self.stepgen.idle:
-            if self.status.state is MachineState.JOG:
-                self.cancel_jog()
-                return
-            self.stepgen.hold()
-            self.status.set_state(MachineState.HOLD)
-            self.events.emit(Event.HOLD)
-
-    def cycle_start(self) -> None:
-        if self.status.state is MachineState.HOLD:
-            self.stepgen.resume()
-            self.status.set_state(MachineState.IDLE if self.stepgen.idle else MachineState.RUN)
-            self.events.emit(Event.RESUME)
-
-    def cancel_jog(self) -> None:
-        """Jog cancel: decelerate to a stop, then drop the remaining jog moves."""
-        if self.status.state is not MachineState.JOG:
-            return
-        self._cancelling_jog = True
-        self.stepgen.hold()
-        if self.stepgen.state.hold is not HoldState.DECELERATING:
-            self._finish_jog_cancel()
-
-    def _finish_jog_cancel(self) -> None:
-        self._cancelling_jog = False
-        self.stop_now()
-        self.status.set_state(MachineState.IDLE)
-
-    def soft_reset(self) -> None:
-        """Ctrl-X: stop at once, flush, keep the position; ALARM:3 if it was moving."""
-        moving = self.stepgen.state.moving
-        self._halt_motion()
-        self.leave_check_mode()
-        self.interpreter.reset()
-        self.events.emit(Event.RESET)
-        if moving:
-            self.status.alarm(
-                Alarm.ABORT_CYCLE, "reset while in motion: position may be lost, re-home"
-            )
-        elif self.status.state not in (MachineState.ALARM,):
-            self.status.set_state(MachineState.IDLE)
-
-    def _halt_motion(self) -> None:
-        """Alarm, M112, Ctrl-X: the hardware drops what it has queued, then :meth:`stop_now`."""
-        self.backend.halt()
-        self.stop_now()
-
-    def stop_now(self) -> None:
-        """Halt motion at once and resynchronise everything to where the steps are."""
-        self.epoch += 1
-        self.stepgen.stop_now()
-        position = self.stepgen.state.position_mm
-        self.interpreter.set_position(position)
-        self.room.set()
-        self.idle_event.set()
-
-    def set_machine_position(self, position_mm: Position) -> None:
-        """Redefine where the machine is without moving it (homing sets the axes' ends)."""
-        self.stop_now()
-        self.stepgen.rebase(position_mm)
-        self.planner.set_position(position_mm)
-        self.interpreter.set_position(position_mm)
-
-    def set_overrides(
-        self, feed: int | None = None, rapid: int | None = None, spindle: int | None = None
-    ) -> None:
-        if feed is not None:
-            self.feed_override = max(10, min(200, feed))
-        if rapid is not None:
-            self.rapid_override = rapid
-        if spindle is not None:
-            self.spindle_override = max(10, min(200, spindle))
-        self.planner.set_overrides(self.feed_override / 100, self.rapid_override / 100)
-        self.events.emit(
-            "override", self.feed_override, self.rapid_override, self.spindle_override
-        )
 
     # -- settings and modes -----------------------------------------------------------------
     def apply_settings(self) -> None:
@@ -471,33 +222,6 @@ class Machine:
     def _after_tick(self) -> None:
         if not self.room.is_set() and not self.planner.is_full():
             self.room.set()
-
-
-_REALTIME_ACTIONS: dict[Realtime, Callable[[Machine], None]] = {
-    Realtime.HOLD: Machine.feed_hold,
-    Realtime.DOOR: Machine.feed_hold,
-    Realtime.RESUME: Machine.cycle_start,
-    Realtime.JOG_CANCEL: Machine.cancel_jog,
-    Realtime.SPINDLE_STOP: Machine.spindle_stop,
-    Realtime.FLOOD: lambda m: m.toggle_coolant("flood"),
-    Realtime.MIST: lambda m: m.toggle_coolant("mist"),
-}
-# (feed step, rapid value, spindle step); a step of 0 means "back to 100%".
-_OVERRIDE_STEPS: dict[Realtime, tuple[int | None, int | None, int | None]] = {
-    Realtime.FEED_100: (0, None, None),
-    Realtime.FEED_PLUS_10: (10, None, None),
-    Realtime.FEED_MINUS_10: (-10, None, None),
-    Realtime.FEED_PLUS_1: (1, None, None),
-    Realtime.FEED_MINUS_1: (-1, None, None),
-    Realtime.RAPID_100: (None, 100, None),
-    Realtime.RAPID_50: (None, 50, None),
-    Realtime.RAPID_25: (None, 25, None),
-    Realtime.SPINDLE_100: (None, None, 0),
-    Realtime.SPINDLE_PLUS_10: (None, None, 10),
-    Realtime.SPINDLE_MINUS_10: (None, None, -10),
-    Realtime.SPINDLE_PLUS_1: (None, None, 1),
-    Realtime.SPINDLE_MINUS_1: (None, None, -1),
-}
 
 
 async def _give_turn() -> None:

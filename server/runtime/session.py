@@ -1,32 +1,25 @@
 """One client connection, whatever the transport: protocol in, dispatcher, replies out.
 
 A transport creates a :class:`Session`, feeds it bytes (or WebSocket text) and drains its
-:class:`Outbox`. The session:
+:class:`~server.runtime.session_output.Outbox`. The session has three parts on one state:
 
-* acts on realtime bytes at once (status, hold, resume, reset, overrides, jog cancel), even
-  while lines wait for planner room, and on ``M112`` the moment its line arrives;
-* queues complete lines (bounded) and executes them one at a time through the dispatcher,
-  answering each with exactly one ``ok`` or ``error:N`` in order. A line answered downstream
-  (a Grbl controller behind motiond) is deferred: the next lines execute while it sits in the
-  controller's buffer, and the replies behind it wait for its answer (at most
-  :data:`INBOUND_LINES` of them), so the order holds;
-* keeps taking bytes while its line queue is full: they wait in a
-  :class:`~server.runtime.backlog.Backlog` (``[protocol] backlog_bytes``) whose realtime bytes
-  are acted on as they arrive, so a sender that streams ahead without character counting can
-  still hold (``!``) or reset (Ctrl-X) at once. Byte transports stop reading only while the
-  backlog is full (:meth:`wait_input_room`). WebSocket messages (whose end ends a line) are
-  never held back: that transport stops reading while the line queue is full
-  (:meth:`wait_room`);
-* answers ``?`` at most ``[protocol] status_reports_per_s`` times a second per connection
-  (bursts of :data:`STATUS_BURST`); requests beyond that share the next report, sent as soon
-  as one is allowed: at most one report is ever pending, nothing queues up;
-* ``$AUTH=token`` logs in (see :mod:`server.runtime.login_guard`: constant-time comparison, wrong
-  tokens answered ever later per client address, the connection closed after
-  ``auth_failures_per_connection``). An observer never logs in. A session on probation (it got
-  a TCP slot reserved for logged-in connections) must log in with its first line;
-* bounds what it sends: a client that stops reading overflows its outbox and is disconnected,
-  never slowing motion or other clients. :meth:`end` says why in a ``[MSG:]`` line, then the
-  transport hangs up once that is sent.
+* its input, :class:`~server.runtime.session_input.LineAdmission`: realtime bytes acted on at
+  once (``M112`` the moment its line arrives), complete lines queued (bounded), bytes beyond
+  that held in a bounded backlog whose realtime bytes still act at once;
+* this module: its lifecycle, logging in, and the executor, which runs the queued lines one at
+  a time through the dispatcher;
+* its output, :class:`~server.runtime.session_output.SessionOutput`: exactly one ``ok`` or
+  ``error:N`` per line, in order (deferred replies included), rate-limited status reports,
+  pushes, all bounded.
+
+Logging in: ``$AUTH=token`` (see :mod:`server.runtime.login_guard`: constant-time comparison,
+wrong tokens answered ever later per client address, the connection closed after
+``auth_failures_per_connection``). An observer never logs in. A session on probation (it got
+a TCP slot reserved for logged-in connections) must log in with its first line.
+
+A client that stops reading overflows its outbox and is disconnected, never slowing motion or
+other clients. :meth:`Session.end` says why in a ``[MSG:]`` line, then the transport hangs up
+once that is sent.
 """
 
 from __future__ import annotations
@@ -41,46 +34,27 @@ from collections import deque
 from typing import TYPE_CHECKING
 
 from server.errors import Alarm, CommandError, Error
-from server.protocol.events import (
-    Event,
-    LineReceived,
-    LineRejected,
-    Realtime,
-    RealtimeReceived,
-)
+from server.protocol.events import LineReceived, LineRejected
 from server.protocol.lines import LineProtocol
 from server.protocol.reports import StatusScheduler
 from server.runtime.backlog import Backlog
-from server.runtime.control import halts_at_once
 from server.runtime.events import Event as BusEvent
 from server.runtime.login_guard import LoginGuard, token_matches
-from server.runtime.outbox import BoundedQueue
 from server.runtime.ratelimit import TokenBucket
-from server.runtime.status import snapshot
+from server.runtime.session_input import INBOUND_LINES, LineAdmission, line_size
+from server.runtime.session_output import STATUS_BURST, Outbox, SessionOutput
 
 if TYPE_CHECKING:
     from server.runtime.kernel import Kernel
 
 log = logging.getLogger("motiond.session")
 _AUTH = re.compile(r"^\s*\$AUTH=(.*)$", re.I)
-INBOUND_LINES = 64
-REFILL_BYTES = 1024  # held-back input is fed to the protocol in slices of this size
-STATUS_BURST = 5
 PROBATION_REFUSED = "this slot is reserved for logged-in connections: send $AUTH=<token> first"
 YIELD_AFTER_S = 0.001  # the executor gives other tasks a turn at least this often
-__all__ = ["INBOUND_LINES", "Outbox", "Session", "line_token", "token_matches"]
+__all__ = ["Session", "line_token", "login_guard", "token_matches"]
 
 
-class Outbox(BoundedQueue[bytes]):
-    """What one line-protocol client is sent, bounded in bytes, drained as one chunk."""
-
-    async def get(self) -> bytes | None:
-        """Everything queued so far as one chunk, or None once closed."""
-        chunks = await self.get_all()
-        return None if chunks is None else b"".join(chunks)
-
-
-class Session:
+class Session(LineAdmission, SessionOutput):
     """See the module docstring. Owns one task: the line executor.
 
     Args:
@@ -193,154 +167,6 @@ class Session:
     def closed(self) -> bool:
         return self.outbox.closed
 
-    @property
-    def backlog_full(self) -> bool:
-        """Input is held back up to its bound: the transport should stop reading."""
-        return not self._input_room.is_set()
-
-    # -- input ------------------------------------------------------------------------------
-    def receive_data(self, data: bytes) -> None:
-        """Bytes from the client (TCP, serial, pty; a binary WebSocket message)."""
-        while data:
-            if self._websocket or not (self._backlog or len(self._lines) >= INBOUND_LINES):
-                self._handle(self.protocol.receive_data(data))
-                return
-            reset_at = data.find(b"\x18") if self.can_control else -1
-            if reset_at < 0:
-                self._hold_back(data)
-                return
-            self._hold_back(data[:reset_at])
-            self._realtime(Realtime.RESET)  # drops what is held, as Grbl empties its buffer
-            data = data[reset_at + 1 :]
-
-    def receive_text(self, text: str) -> None:
-        """A WebSocket text frame."""
-        self._handle(self.protocol.receive_text(text))
-
-    async def wait_room(self) -> None:
-        """Wait while too many lines are queued (the WebSocket transport stops reading)."""
-        await self._room.wait()
-
-    async def wait_input_room(self) -> None:
-        """Wait while the backlog is full (a byte transport stops reading meanwhile)."""
-        await self._input_room.wait()
-
-    def _hold_back(self, data: bytes) -> None:
-        """The line queue is full: keep the bytes, act on their realtime commands now."""
-        reported = False
-        for event in self._backlog.hold(self.protocol, data):
-            if isinstance(event, RealtimeReceived):
-                reported = self._on_realtime(event.command, reported)
-            elif self._is_emergency_stop(event):
-                self.kernel.control.emergency_stop()
-        if self._backlog.full:
-            self._input_room.clear()
-
-    def _handle(self, events: list[Event], *, replayed: bool = False) -> None:
-        """Protocol events in stream order; ``replayed``: from held-back bytes, whose realtime
-        commands and M112 were acted on when they arrived."""
-        reported = False
-        for event in events:
-            if isinstance(event, RealtimeReceived):
-                if not replayed:
-                    reported = self._on_realtime(event.command, reported)
-                continue
-            if not replayed and self._is_emergency_stop(event):
-                self.kernel.control.emergency_stop()
-            self._lines.append((self._epoch, event))
-            self._queued_bytes += _size(event)
-            if len(self._lines) >= INBOUND_LINES:
-                self._room.clear()
-        self._lines_ready.set()
-
-    def _on_realtime(self, command: Realtime, reported: bool) -> bool:
-        """Act on one realtime byte; like Grbl's status flag, one report per batch of '?'."""
-        if command is Realtime.STATUS:
-            if not reported:
-                self._realtime(command)
-            return True
-        self._realtime(command)
-        return reported
-
-    def _is_emergency_stop(self, event: Event) -> bool:
-        """M112 from a connection that may control: acted on the moment its line arrives."""
-        if not isinstance(event, LineReceived) or not self.can_control:
-            return False
-        return halts_at_once(event.text)
-
-    def _refill(self) -> None:
-        """Feed held-back bytes to the protocol until the line queue is full again."""
-        while self._backlog and len(self._lines) < INBOUND_LINES:
-            self._handle(self.protocol.receive_data(self._backlog.take(REFILL_BYTES)),
-                         replayed=True)
-        if not self._backlog.full:
-            self._input_room.set()
-
-    def _realtime(self, command: Realtime) -> None:
-        if not self.may_observe:
-            return
-        if command is Realtime.STATUS:
-            self._request_status()
-            return
-        if not self.can_control:
-            return
-        if command is Realtime.RESET:
-            self._epoch += 1
-            self._lines.clear()
-            self._queued_bytes = 0
-            self._backlog.clear()
-            self._room.set()
-            self._input_room.set()
-            self.protocol.reset()
-            self._scheduler.refresh()
-            self.kernel.control.reset()
-            self.outbox.put(self.protocol.banner())
-            return
-        self.kernel.control.realtime(command)
-
-    # -- status reports ---------------------------------------------------------------------
-    def _request_status(self) -> None:
-        """Report now if this connection's rate allows, else once as soon as it does."""
-        if self._status_timer is not None or self._closing:
-            return  # shares the report already pending
-        wait_s = self._status_bucket.take(time.monotonic())
-        if wait_s <= 0:
-            self.outbox.put(self.protocol.push(self._status()))
-            return
-        loop = asyncio.get_running_loop()
-        self._status_timer = loop.call_later(wait_s, self._pending_status)
-
-    def _pending_status(self) -> None:
-        self._status_timer = None
-        self._request_status()
-
-    def _status(self) -> str:
-        core = self.kernel.config.core
-        held = self._queued_bytes + len(self._backlog)
-        free = max(0, core.protocol.rx_buffer_bytes - held)
-        return self._scheduler.report(
-            snapshot(self.kernel, free),
-            report_mask=core.machine.status_report_mask,
-            inches=core.machine.report_inches,
-        )
-
-    # -- output -----------------------------------------------------------------------------
-    def push(self, message: str) -> None:
-        """An unsolicited line for this client (kernel ``push`` event)."""
-        if not self.may_observe:
-            return
-        try:
-            self.outbox.put(self.protocol.push(message))
-        except ValueError:
-            log.warning("dropped a push message that is not safe for senders: %r", message)
-
-    def _reply_ok(self, messages: list[str]) -> bytes:
-        try:
-            return self.protocol.reply_ok(messages)
-        except ValueError:
-            log.warning("%s: dropped reply lines not safe for senders: %r", self.name, messages)
-            return self.protocol.reply_ok()
-
     # -- logging in -------------------------------------------------------------------------
     async def _login(self, given: str) -> bytes:
         """``$AUTH=token``: this connection may control the machine from now on."""
@@ -382,7 +208,7 @@ class Session:
             if len(self._lines) < INBOUND_LINES // 2:
                 self._room.set()
             if epoch == self._epoch:
-                self._queued_bytes = max(0, self._queued_bytes - _size(event))
+                self._queued_bytes = max(0, self._queued_bytes - line_size(event))
                 self._answer(reply, epoch)
             while len(self._replies) >= INBOUND_LINES and not self._closing:
                 self._replies_room.clear()
@@ -393,54 +219,6 @@ class Session:
             if loop.time() - turn_s > YIELD_AFTER_S:  # lines that never wait must not hog
                 await asyncio.sleep(0)
                 turn_s = loop.time()
-
-    def _answer(self, reply: bytes | asyncio.Future[bytes], epoch: int) -> None:
-        """Send a line's reply, or queue it behind the deferred replies still pending."""
-        if isinstance(reply, bytes):
-            if not self._replies:
-                self.outbox.put(reply)
-                return
-            ready: asyncio.Future[bytes] = asyncio.get_running_loop().create_future()
-            ready.set_result(reply)
-            reply = ready
-        self._replies.append((epoch, reply))
-        reply.add_done_callback(self._flush_replies)
-
-    def _flush_replies(self, _: object = None) -> None:
-        """Send the replies at the head of the queue that are ready, in order."""
-        while self._replies and self._replies[0][1].done():
-            epoch, reply = self._replies.popleft()
-            if epoch == self._epoch and not reply.cancelled():
-                self.outbox.put(reply.result())
-        if len(self._replies) < INBOUND_LINES:
-            self._replies_room.set()
-
-    def _later(self, messages: list[str],
-               deferred: list[asyncio.Future[list[str]]]) -> asyncio.Future[bytes]:
-        """The reply of a deferred line: ``messages`` and its answers, or the first error."""
-        reply: asyncio.Future[bytes] = asyncio.get_running_loop().create_future()
-
-        def done(_: object) -> None:
-            if reply.done() or not all(future.done() for future in deferred):
-                return
-            lines = list(messages)
-            for future in deferred:
-                error = CommandError(Error.BUSY, "cancelled") if future.cancelled() else (
-                    future.exception())
-                if isinstance(error, CommandError):
-                    reply.set_result(self.protocol.reply_error(error))
-                    return
-                if error is not None:
-                    log.error("deferred line failed: %r", error)
-                    reply.set_result(self.protocol.reply_error(
-                        CommandError(Error.UNSUPPORTED, "internal error")))
-                    return
-                lines += future.result()
-            reply.set_result(self._reply_ok(lines))
-
-        for future in deferred:
-            future.add_done_callback(done)
-        return reply
 
     async def _execute(
         self, event: LineReceived | LineRejected, epoch: int
@@ -483,7 +261,3 @@ def login_guard(kernel: Kernel) -> LoginGuard:
     config = kernel.config.core.protocol
     return LoginGuard(config.auth_delay_s, config.auth_max_delay_s)
 
-
-def _size(event: LineReceived | LineRejected) -> int:
-    """Bytes a line took in the client's view of our input buffer (newline included)."""
-    return len(event.text) + 1 if isinstance(event, LineReceived) else 1

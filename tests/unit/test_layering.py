@@ -18,8 +18,12 @@ FORBIDDEN_LIBRARIES = {"asyncio", "socket", "selectors", "threading", "subproces
 
 
 def imports(path: Path) -> set[str]:
+    return imports_in(ast.parse(path.read_text()))
+
+
+def imports_in(tree: ast.AST) -> set[str]:
     names: set[str] = set()
-    for node in ast.walk(ast.parse(path.read_text())):
+    for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             names |= {alias.name for alias in node.names}
         elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
@@ -73,3 +77,41 @@ def test_only_the_cli_imports_the_estimate_and_render_commands() -> None:
 def test_the_config_models_read_no_file() -> None:
     found = imports(SERVER / "config.py") & {"tomllib", "importlib", "server.config_loader"}
     assert not found, f"config.py imports {sorted(found)}: loading is config_loader.py"
+
+
+# A class split into parts along a seam: the parts are base classes of the whole, on its state.
+PARTS = {
+    "server.runtime.machine": ("server.runtime.machine_feed", "server.runtime.machine_realtime"),
+    "server.runtime.session": ("server.runtime.session_input", "server.runtime.session_output"),
+}
+
+
+def runtime_imports(path: Path) -> set[str]:
+    """What a module imports when it runs: :func:`imports` without ``if TYPE_CHECKING:``."""
+    tree = ast.parse(path.read_text())
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and getattr(node.test, "id", "") == "TYPE_CHECKING":
+            node.body = []
+    return imports_in(tree)
+
+
+def module_name(path: Path) -> str:
+    return ".".join(path.relative_to(SERVER.parent).with_suffix("").parts)
+
+
+def test_the_parts_of_a_split_class_import_their_whole_only_for_type_checking() -> None:
+    for whole, parts in PARTS.items():
+        for part in parts:
+            path = SERVER.parent / (part.replace(".", "/") + ".py")
+            assert whole not in runtime_imports(path), f"{part} imports {whole} at run time"
+
+
+def test_only_the_whole_and_its_parts_import_a_part() -> None:
+    packages = [SERVER, SERVER.parent / "modules"]
+    for path in sorted(p for package in packages for p in package.rglob("*.py")):
+        name = module_name(path)
+        for whole, parts in PARTS.items():
+            if name == whole or name in parts:
+                continue
+            used = imports(path) & set(parts)
+            assert not used, f"{name} imports {sorted(used)}: use {whole}"

@@ -1,0 +1,179 @@
+"""The machine's G-code feed: interpreter -> planner, with flow control and sync requests.
+
+:class:`GcodeFeed` is the part of :class:`~server.runtime.machine.Machine` (a base class of it)
+that takes a line in: it runs the interpreter, feeds moves and ordered actions to the planner
+(waiting while it is full: that wait is the flow control that delays a sender's ``ok``) and
+carries out the interpreter's sync requests (M112, M999, messages, probing, ``M114``, and what
+modules registered). Its state is the machine's, created by ``Machine.__init__``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from typing import TYPE_CHECKING
+
+from server.errors import Alarm, CommandError, Error, SoftLimitError
+from server.motion.feed import offer
+from server.motion.moves import Action, Move, MoveKind, Output, Sync, SyncKind
+from server.runtime.events import MachineState
+
+if TYPE_CHECKING:
+    from server.config import CoreConfig
+    from server.gcode.interpreter import Interpreter
+    from server.motion.planner import Planner
+    from server.motion.stepgen import StepGenerator
+    from server.runtime.clock import Clock
+    from server.runtime.dispatcher import Command
+    from server.runtime.machine import SyncHandler
+    from server.runtime.state import MachineStatus
+
+
+class GcodeFeed:
+    """Lines into the planner; see the module docstring."""
+
+    # The machine's state this part reads and writes (set by Machine.__init__).
+    core: CoreConfig
+    clock: Clock
+    status: MachineStatus
+    interpreter: Interpreter
+    planner: Planner
+    stepgen: StepGenerator
+    room: asyncio.Event
+    idle_event: asyncio.Event
+    check_mode: bool
+    epoch: int
+    sync_handlers: dict[SyncKind, SyncHandler]
+
+    if TYPE_CHECKING:
+        def emergency_stop(self) -> None: ...  # the machine's realtime commands
+
+    # -- the G-code handler -----------------------------------------------------------------
+    async def handle_gcode(self, command: Command) -> list[str]:
+        outputs = self.interpret(command)
+        self._arm_probe(outputs)
+        return await self._feed(outputs)
+
+    def interpret(self, command: Command) -> list[Output]:
+        """The line's outputs from the interpreter; a target outside the travel alarms."""
+        assert command.line is not None
+        try:
+            return self.interpreter.execute(command.line)
+        except SoftLimitError as exc:
+            self.status.alarm(Alarm.SOFT_LIMIT, f"soft limit: {exc.message}")
+            raise
+
+    async def _feed(self, outputs: list[Output]) -> list[str]:
+        """Offer the line's outputs to the planner (:func:`~server.motion.feed.offer`, as
+        ``estimate`` does), waiting for room and carrying out sync requests in order."""
+        messages: list[str] = []
+        index, epoch = 0, self.epoch
+        while index < len(outputs):
+            if self.check_mode:  # interpreted, never planned
+                while index < len(outputs) and type(outputs[index]) is not Sync:
+                    index += 1
+            else:
+                taken = offer(self.planner, outputs, index)
+                if taken > index:
+                    self._note_input(MachineState.RUN)
+                index = taken
+            if index == len(outputs):
+                break
+            output = outputs[index]
+            if type(output) is Sync:
+                messages += await self.sync(output)
+                index += 1
+            else:
+                await self._wait_for_room(epoch)
+        return messages
+
+    def _arm_probe(self, outputs: list[Output]) -> None:
+        for output in outputs:
+            if type(output) is Sync and output.kind is SyncKind.PROBE:
+                self.stepgen.probe_towards = bool(output.params.get("towards", True))
+                self.stepgen.probe_hit = False
+
+    async def queue_move(self, move: Move) -> None:
+        """Append a move, waiting while the planner is full."""
+        if self.check_mode:
+            return
+        await self._wait_for_room()
+        self.planner.append(move)
+        self._note_input(MachineState.JOG if move.kind is MoveKind.JOG else MachineState.RUN)
+
+    async def queue_action(self, action: Action) -> None:
+        """Append an ordered action, waiting while the planner is full."""
+        if self.check_mode:
+            return
+        await self._wait_for_room()
+        self.planner.append_action(action)
+        self._note_input(MachineState.RUN)
+
+    async def _wait_for_room(self, epoch: int | None = None) -> None:
+        """Wait while the planner is full; refuse the line if motion was reset meanwhile
+        (``epoch``: the machine's epoch when the line began; default now)."""
+        epoch = self.epoch if epoch is None else epoch
+        while self.planner.is_full():
+            self.room.clear()
+            await self.room.wait()
+        if epoch != self.epoch:
+            raise CommandError(
+                Error.BUSY, "motion was reset while this line waited; it was not run"
+            )
+
+    def _note_input(self, state: MachineState) -> None:
+        self.idle_event.clear()
+        self.stepgen.note_input(self.clock.now_s())
+        if self.status.state is MachineState.IDLE:
+            self.status.set_state(state)
+
+    async def wait_idle(self) -> None:
+        """Wait until every queued move has been executed."""
+        if not self.stepgen.idle:
+            self.idle_event.clear()
+            self.stepgen.request_start()
+            await self.idle_event.wait()
+
+    # -- sync requests ----------------------------------------------------------------------
+    async def sync(self, request: Sync) -> list[str]:
+        """Carry out an interpreter request that needs the machine."""
+        kind = request.kind
+        if kind is SyncKind.HALT:
+            self.emergency_stop()
+            return []
+        if kind is SyncKind.CLEAR_HALT:
+            self.status.clear_alarm()
+            return []
+        if kind is SyncKind.MESSAGE:
+            return list(request.params["lines"])
+        handler = self.sync_handlers.get(kind)
+        if handler is not None:
+            return await handler(request.params)
+        if kind is SyncKind.HOME:  # no module carries it out
+            raise CommandError(
+                Error.SETTING_DISABLED, "homing is not configured: add an [endstops] section"
+            )
+        await self.wait_idle()
+        if kind is SyncKind.REPORT_POSITION:
+            return [self.position_report()]
+        return self._finish_probe(request)
+
+    def _finish_probe(self, request: Sync) -> list[str]:
+        position = self.stepgen.state.position_mm
+        success = self.stepgen.probe_hit
+        self.interpreter.set_position(position)
+        self.planner.set_position(position)
+        self.interpreter.record_probe(position, success)
+        coords = ",".join(f"{v:.3f}" for v in position)
+        report = f"[PRB:{coords}:{int(success)}]"
+        if not success and request.params.get("error_on_fail", True):
+            self.status.alarm(5, "probe fail: the probe did not change state within the move")
+        return [report]
+
+    def position_report(self) -> str:
+        """Smoothie's M114 answer: work position, then machine position."""
+        machine = self.stepgen.state.position_mm
+        work = self.interpreter.work_position(machine)
+        names = self.core.axis_names
+        wpos = " ".join(f"{n}:{v:.4f}" for n, v in zip(names, work, strict=True))
+        mpos = " ".join(f"{n}:{v:.4f}" for n, v in zip(names, machine, strict=True))
+        return f"C: {wpos} MPos: {mpos}"

@@ -1,0 +1,196 @@
+"""The machine's realtime commands: hold, resume, jog cancel, reset, stop, overrides, at once.
+
+:class:`RealtimeCommands` is the part of :class:`~server.runtime.machine.Machine` (a base class
+of it) that acts without waiting for the line queue: feed hold and cycle start, jog cancel,
+soft reset and M112, the coolant and spindle-stop toggles, the feed/rapid/spindle overrides, and
+the halts that resynchronise the pipeline to where the steps are. Every entry point reaches it
+through :class:`~server.runtime.control.MachineControl`. Its state is the machine's, created by
+``Machine.__init__``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+from server.errors import Alarm
+from server.motion.moves import Position
+from server.motion.stepgen import HoldState
+from server.protocol.events import Realtime
+from server.runtime.events import Event, MachineState
+
+if TYPE_CHECKING:
+    import asyncio
+
+    from server.backends.base import Backend
+    from server.gcode.interpreter import Interpreter
+    from server.motion.planner import Planner
+    from server.motion.stepgen import StepGenerator
+    from server.runtime.events import EventBus
+    from server.runtime.machine import ToolState
+    from server.runtime.state import MachineStatus
+
+
+class RealtimeCommands:
+    """Realtime commands and halts; see the module docstring."""
+
+    # The machine's state this part reads and writes (set by Machine.__init__).
+    events: EventBus
+    status: MachineStatus
+    backend: Backend
+    interpreter: Interpreter
+    planner: Planner
+    stepgen: StepGenerator
+    room: asyncio.Event
+    idle_event: asyncio.Event
+    epoch: int
+    tool: ToolState
+    feed_override: int
+    rapid_override: int
+    spindle_override: int
+    _cancelling_jog: bool
+
+    if TYPE_CHECKING:
+        def leave_check_mode(self) -> None: ...  # the machine's modes
+
+    def spindle_stop(self) -> None:
+        """Grbl's spindle stop override (0x9E): the spindle module toggles during a hold."""
+        self.events.emit(Event.SPINDLE_STOP)
+
+    def realtime(self, command: Realtime) -> None:
+        """Act on a realtime byte at once (status and reset are the session's)."""
+        action = _REALTIME_ACTIONS.get(command)
+        if action is not None:
+            action(self)
+            return
+        feed, rapid, spindle = _OVERRIDE_STEPS.get(command, (None, None, None))
+        self.set_overrides(
+            feed=None if feed is None else (100 if feed == 0 else self.feed_override + feed),
+            rapid=rapid,
+            spindle=None
+            if spindle is None
+            else (100 if spindle == 0 else self.spindle_override + spindle),
+        )
+
+    def toggle_coolant(self, which: str) -> None:
+        """Realtime flood/mist toggle (0xA0/0xA1): at once, reflected in status ``A:``."""
+        if which == "flood":
+            self.tool.flood = not self.tool.flood
+        else:
+            self.tool.mist = not self.tool.mist
+        self.events.emit(Event.TOGGLE_COOLANT, which)
+
+    def emergency_stop(self) -> None:
+        """M112: halt at once, before the lines queued ahead of it run."""
+        if self.status.state is not MachineState.ALARM:
+            self.status.alarm(Alarm.HALT, "emergency stop (M112): $X or M999 to unlock")
+
+    def feed_hold(self) -> None:
+        if self.status.state is MachineState.HOME:  # as in Grbl: homing ignores feed hold
+            return
+        if self.stepgen.idle and self.status.state is MachineState.IDLE:
+            self.events.emit(Event.HOLD)  # nothing moves, but a focusing `fire` stops
+            return
+        if self.status.state in (MachineState.RUN, MachineState.JOG) or not self.stepgen.idle:
+            if self.status.state is MachineState.JOG:
+                self.cancel_jog()
+                return
+            self.stepgen.hold()
+            self.status.set_state(MachineState.HOLD)
+            self.events.emit(Event.HOLD)
+
+    def cycle_start(self) -> None:
+        if self.status.state is MachineState.HOLD:
+            self.stepgen.resume()
+            self.status.set_state(MachineState.IDLE if self.stepgen.idle else MachineState.RUN)
+            self.events.emit(Event.RESUME)
+
+    def cancel_jog(self) -> None:
+        """Jog cancel: decelerate to a stop, then drop the remaining jog moves."""
+        if self.status.state is not MachineState.JOG:
+            return
+        self._cancelling_jog = True
+        self.stepgen.hold()
+        if self.stepgen.state.hold is not HoldState.DECELERATING:
+            self._finish_jog_cancel()
+
+    def _finish_jog_cancel(self) -> None:
+        self._cancelling_jog = False
+        self.stop_now()
+        self.status.set_state(MachineState.IDLE)
+
+    def soft_reset(self) -> None:
+        """Ctrl-X: stop at once, flush, keep the position; ALARM:3 if it was moving."""
+        moving = self.stepgen.state.moving
+        self._halt_motion()
+        self.leave_check_mode()
+        self.interpreter.reset()
+        self.events.emit(Event.RESET)
+        if moving:
+            self.status.alarm(
+                Alarm.ABORT_CYCLE, "reset while in motion: position may be lost, re-home"
+            )
+        elif self.status.state not in (MachineState.ALARM,):
+            self.status.set_state(MachineState.IDLE)
+
+    def _halt_motion(self) -> None:
+        """Alarm, M112, Ctrl-X: the hardware drops what it has queued, then :meth:`stop_now`."""
+        self.backend.halt()
+        self.stop_now()
+
+    def stop_now(self) -> None:
+        """Halt motion at once and resynchronise everything to where the steps are."""
+        self.epoch += 1
+        self.stepgen.stop_now()
+        position = self.stepgen.state.position_mm
+        self.interpreter.set_position(position)
+        self.room.set()
+        self.idle_event.set()
+
+    def set_machine_position(self, position_mm: Position) -> None:
+        """Redefine where the machine is without moving it (homing sets the axes' ends)."""
+        self.stop_now()
+        self.stepgen.rebase(position_mm)
+        self.planner.set_position(position_mm)
+        self.interpreter.set_position(position_mm)
+
+    def set_overrides(
+        self, feed: int | None = None, rapid: int | None = None, spindle: int | None = None
+    ) -> None:
+        if feed is not None:
+            self.feed_override = max(10, min(200, feed))
+        if rapid is not None:
+            self.rapid_override = rapid
+        if spindle is not None:
+            self.spindle_override = max(10, min(200, spindle))
+        self.planner.set_overrides(self.feed_override / 100, self.rapid_override / 100)
+        self.events.emit(
+            "override", self.feed_override, self.rapid_override, self.spindle_override
+        )
+
+
+_REALTIME_ACTIONS: dict[Realtime, Callable[[RealtimeCommands], None]] = {
+    Realtime.HOLD: RealtimeCommands.feed_hold,
+    Realtime.DOOR: RealtimeCommands.feed_hold,
+    Realtime.RESUME: RealtimeCommands.cycle_start,
+    Realtime.JOG_CANCEL: RealtimeCommands.cancel_jog,
+    Realtime.SPINDLE_STOP: RealtimeCommands.spindle_stop,
+    Realtime.FLOOD: lambda m: m.toggle_coolant("flood"),
+    Realtime.MIST: lambda m: m.toggle_coolant("mist"),
+}
+# (feed step, rapid value, spindle step); a step of 0 means "back to 100%".
+_OVERRIDE_STEPS: dict[Realtime, tuple[int | None, int | None, int | None]] = {
+    Realtime.FEED_100: (0, None, None),
+    Realtime.FEED_PLUS_10: (10, None, None),
+    Realtime.FEED_MINUS_10: (-10, None, None),
+    Realtime.FEED_PLUS_1: (1, None, None),
+    Realtime.FEED_MINUS_1: (-1, None, None),
+    Realtime.RAPID_100: (None, 100, None),
+    Realtime.RAPID_50: (None, 50, None),
+    Realtime.RAPID_25: (None, 25, None),
+    Realtime.SPINDLE_100: (None, None, 0),
+    Realtime.SPINDLE_PLUS_10: (None, None, 10),
+    Realtime.SPINDLE_MINUS_10: (None, None, -10),
+    Realtime.SPINDLE_PLUS_1: (None, None, 1),
+    Realtime.SPINDLE_MINUS_1: (None, None, -1),
+}
