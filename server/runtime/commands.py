@@ -17,7 +17,7 @@ from server.gcode.parser import parse_line
 from server.motion.moves import Output, Sync, SyncKind
 from server.protocol.reports import format_build_info, format_help, format_settings
 from server.runtime.dispatcher import Command, Dispatcher, Handler
-from server.runtime.events import Event, MachineState
+from server.runtime.events import MachineState
 
 if TYPE_CHECKING:
     from server.runtime.kernel import Kernel
@@ -134,7 +134,7 @@ class CoreCommands:
         if not self.machine.stepgen.idle:
             raise CommandError(Error.NOT_IDLE, "sleep needs an idle machine")
         self.machine.stop_now()
-        self.kernel.events.emit(Event.MOTORS_DISABLE)
+        self.machine.motors(False)
         self.kernel.set_state(MachineState.SLEEP)
         self.kernel.push("[MSG:Sleeping]")
 

@@ -144,8 +144,13 @@ class Machine(GcodeFeed, RealtimeCommands):
             events.emit(Event.PROGRAM_END)
             self.status.push("[MSG:Pgm End]")
         elif action.name == ActionName.MOTORS:
-            events.emit(Event.MOTORS_ENABLE if action.params.get("enabled") else "motors_disable")
+            self.motors(bool(action.params.get("enabled")))
         events.emit(Event.ACTION, action)
+
+    def motors(self, enabled: bool) -> None:
+        """M17 / M18, M84, ``$SLP``: the stepper drivers on or off where motion is now."""
+        self.backend.motors(enabled, self.clock.now_s())
+        self.events.emit(Event.MOTORS_ENABLE if enabled else Event.MOTORS_DISABLE)
 
     def on_idle(self) -> None:
         self.idle_event.set()
