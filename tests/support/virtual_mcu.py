@@ -9,15 +9,22 @@ src/stepper.c does (step ``k`` at ``last + (k+1)·interval + add·k(k+1)/2``, di
 full the move queue got and how early each move arrived. Every byte from the host is decoded
 with Klipper's own host-side parser (``klippy.msgproto``), the reference decoder.
 
+A microcontroller runs on its own core whatever the host does; this one is a thread of the
+test process, so while it runs it asks for the CPU first: real-time priority for its thread
+(when allowed, as in CI) and a 0.5 ms GIL switch interval, or a loaded machine would make it
+read the host's messages late and shut down ("Stepper too far in past") where no MCU would.
+
 Faults for tests: :meth:`mute` (stops answering), :meth:`restart` (clock, sequence and config
 start over), ``drop_blocks``/``corrupt_blocks`` (the next N host blocks are lost or damaged).
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import pty
 import select
+import sys
 import threading
 import time
 import tty
@@ -92,12 +99,15 @@ class VirtualMcu:
 
     # -- lifecycle and faults -----------------------------------------------------------------
     def start(self) -> VirtualMcu:
+        self._switch_interval_s = sys.getswitchinterval()
+        sys.setswitchinterval(min(self._switch_interval_s, 0.0005))
         self._thread.start()
         return self
 
     def stop(self) -> None:
         self._stop.set()
         self._thread.join(2.0)
+        sys.setswitchinterval(self._switch_interval_s)
         os.close(self.master)
         os.close(self._slave)
 
@@ -156,6 +166,8 @@ class VirtualMcu:
 
     # -- the serial side ----------------------------------------------------------------------
     def _serve(self) -> None:
+        with contextlib.suppress(OSError):  # not allowed: an ordinary thread, as before
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(5))  # this thread only
         while not self._stop.is_set():
             ready, _, _ = select.select([self.master], [], [], 0.02)
             if not ready:
