@@ -314,7 +314,7 @@ async def test_flow_control_keeps_a_small_move_queue_full_but_never_overflowing(
     try:
         async with klipper_machine(small, machine={"soft_limits": False}) as app:
             await run_job(app, excerpt("laser-raster-tree.nc", 120))
-            # full, as the MCU counts it; one or two slots short when the host sent late
+            # full, as the MCU counts it; a few slots short when a busy host sent late
             assert 36 <= small.max_moves_in_use <= 40, "the queue was the limit, and respected"
             assert check_steps(app, small) > 1000
     finally:
@@ -346,3 +346,40 @@ async def test_m18_turns_the_drivers_off_after_motion_and_the_next_move_turns_th
         await submit_all(app, ["$SLP"])
         await asyncio.sleep(backend.lead_s + 0.1)
         assert mcu.output_events("PB14")[-1][1] == 1, "$SLP turns them off too"
+
+
+async def test_m18_after_a_move_ending_between_steps_waits_for_its_last_step(
+    mcu: VirtualMcu
+) -> None:
+    """M18 acts when the step generator starts the next block, which may be up to a tick
+    before the last step of a move that ends between two steps: the drivers stay on for it."""
+    async with klipper_machine(mcu) as app:
+        backend = app.kernel.machine.backend
+        assert isinstance(backend, KlipperBackend)
+        enable_oid = backend.axes[0].enable_oid
+        for i in range(8):
+            # just past a step (80 steps/mm, a step at each half): the last step comes
+            # about 0.1 ms before the end of the deceleration, so within its last tick
+            x_mm = ((320 if i % 2 else 640) + i + 0.5 + 0.001) / 80
+            await run_job(app, [f"G1 X{x_mm:.7f} F3000", "M18"])
+            await asyncio.sleep(backend.lead_s + 0.05)
+            clocks, _ = mcu.step_clocks(backend.axes[0].oid)
+            off_clock, value = mcu.output_events("PB14")[-1]
+            assert value == 1 and off_clock >= clocks[-1], (i, off_clock - clocks[-1])
+        assert enable_oid is not None and mcu.shutdowns == []
+
+
+async def test_motors_off_right_after_an_emergency_stop_is_no_fault(mcu: VirtualMcu) -> None:
+    """Ctrl-X then ``$SLP`` before the next tick: the re-configured backend has no step map
+    yet, and the enable pins' change must not read as a message already late."""
+    async with klipper_machine(mcu, laser=LASER) as app:
+        machine = app.kernel.machine
+        backend = machine.backend
+        assert isinstance(backend, KlipperBackend)
+        await submit_all(app, ["M3 S500", "G1 X50 F3000"])
+        await asyncio.sleep(0.3)
+        machine.soft_reset()
+        machine.motors(False)  # in the same turn of the loop
+        await asyncio.sleep(0.3)
+        assert backend.fault is None and mcu.shutdowns == ["Command request"]
+        assert mcu.output_events("PB14")[-1][1] == 1

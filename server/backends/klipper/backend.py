@@ -128,7 +128,7 @@ class KlipperBackend:
         if value == out.value:
             return
         when_s = self._sample_s if self._sample_s is not None else time_s
-        clock = max(int(self._motion_clock(when_s + self.lead_s)), out.last_clock + 1)
+        clock = max(self._scheduled_clock(when_s), out.last_clock + 1)
         out.last_clock, out.value = clock, value
         if self.pwm_log is not None:
             self.pwm_log.append((when_s, name, value, clock))
@@ -149,8 +149,17 @@ class KlipperBackend:
         if self.mcu is None or not self.ready or enabled == self.motors_on:
             return
         when_s = self._sample_s if self._sample_s is not None else time_s
-        self._switch_motors(enabled, int(self._motion_clock(when_s + self.lead_s)))
+        if self._pieces:  # the motion it waited for has steps still to come: after them
+            last = self._pieces[-1]
+            when_s = max(when_s, last.start_s + last.duration_s)
+        self._switch_motors(enabled, self._scheduled_clock(when_s))
         self._pump()
+
+    def _scheduled_clock(self, when_s: float) -> int:
+        """The MCU clock at which what the machine does at ``when_s`` happens."""
+        if self._map[2] == 0.0:  # just (re)configured: no step has set the map yet
+            self._update_map(when_s + self.lead_s)
+        return int(self._motion_clock(when_s + self.lead_s))
 
     def _switch_motors(self, enabled: bool, clock: int) -> None:
         clock = self._enable_clock = max(clock, self._enable_clock + 1)  # in order, per pin
