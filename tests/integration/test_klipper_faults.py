@@ -134,6 +134,19 @@ async def test_an_mcu_shutdown_becomes_an_alarm_naming_its_reason_tools_off(
         assert mcu.output_events("PA8")[-1][1] == 0
 
 
+async def test_a_shutdown_a_busy_host_reads_late_keeps_its_reason(mcu: VirtualMcu) -> None:
+    """The shutdown message waits in the pty while the host's loop is busy: its clock is
+    then well behind the fit, which is no restart (a restarted MCU's clock goes backwards)."""
+    async with klipper_machine(mcu, laser=LASER) as app:
+        await submit_all(app, ["M3 S800", "G1 X100 F3000"])
+        await asyncio.sleep(0.4)
+        with mcu.lock:
+            mcu.shutdown("Rescheduled timer in the past")
+        time.sleep(0.1)  # noqa: ASYNC251 - the host's loop is busy while the message waits
+        await wait_for_alarm(app)
+        assert "the MCU shut down: Rescheduled timer in the past" in app.kernel.alarm_message
+
+
 async def test_the_emergency_stop_goes_before_every_message_not_yet_sent(mcu: VirtualMcu) -> None:
     async with klipper_machine(mcu) as app:
         backend = app.kernel.machine.backend

@@ -39,6 +39,11 @@ class ClockSync:
         self._ref_s, self._offset = host_s, float(clock64)
         self._last_clock = clock64
 
+    @property
+    def last_clock(self) -> int:
+        """The latest MCU clock read so far (64-bit)."""
+        return self._last_clock
+
     def extend(self, clock32: int) -> int:
         """The 64-bit clock whose low 32 bits are ``clock32``, nearest the last one seen."""
         delta = (clock32 - self._last_clock) & 0xFFFFFFFF

@@ -200,11 +200,14 @@ class Mcu:
                 self._report(f"the MCU shut down: {reason}")
 
     def _clock_jumped(self, clock32: int | None, now_s: float) -> bool:
-        """Whether a clock the MCU reported is far (50 ms) from the fitted one."""
+        """Whether a clock the MCU reported cannot be its running clock: earlier than one it
+        reported before (it started over), or 50 ms ahead of the fit. A late one is not a
+        jump: a busy host may read a message well after it was sent."""
         if clock32 is None or self.clock is None or not self.clock.synced:
             return False
-        error = self.clock.extend(clock32) - self.clock.clock_at(now_s)
-        return abs(error) > 0.05 * self.clock.freq_hz
+        clock = self.clock.extend(clock32)
+        ahead = clock - self.clock.clock_at(now_s)
+        return clock < self.clock.last_clock or ahead > 0.05 * self.clock.freq_hz
 
     def _on_link_error(self, reason: str) -> None:
         self._report(reason)
