@@ -67,7 +67,7 @@ def loop_names() -> list[str]:
 
 def default_loop_name() -> str:
     """The configuration ``motiond serve`` runs with its default config."""
-    if loop_factory() is not None:
+    if importlib.util.find_spec("uvloop") is not None:  # serve's default when installed
         return "uvloop"
     return "asyncio" + (REALTIME if may_run_realtime() else "")
 

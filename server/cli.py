@@ -207,17 +207,20 @@ def apply_overrides(args: argparse.Namespace, config: Config) -> Config:
     return config
 
 
-def loop_factory(name: str = "auto") -> LoopFactory | None:
+def loop_factory(name: str = "auto") -> LoopFactory:
     """The event loop ``serve`` runs on: uvloop's when it is installed (``auto``) or asked for,
-    else asyncio's default (None). Asking for uvloop without it installed is a ConfigError."""
+    else asyncio's with microsecond timers (:mod:`server.runtime.selector`). Asking for uvloop
+    without it installed is a ConfigError."""
+    from server.runtime.selector import asyncio_loop
+
     if name == "asyncio":
-        return None
+        return asyncio_loop
     try:
         import uvloop
     except ImportError:
         if name == "uvloop":
             raise ConfigError(["uvloop is not installed: pip install 'motiond[fast]'"]) from None
-        return None
+        return asyncio_loop
     factory: LoopFactory = uvloop.new_event_loop
     return factory
 

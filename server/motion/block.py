@@ -263,7 +263,11 @@ class BlockColumns:
             capacity *= 2
         if capacity != data.shape[1]:
             data = np.zeros((data.shape[0], capacity))
-        data[:, front : front + synced - head] = self.data[:, head:synced]  # numpy minds overlap
+        if data is self.data and front + synced - head > head:  # overlapping: numpy minds it
+            data[:, front : front + synced - head] = data[:, head:synced]
+        else:  # row by row, which numpy sees cannot overlap: no temporary copy of the window
+            for target, source in zip(data, self.data, strict=True):
+                target[front : front + synced - head] = source[head:synced]
         self.data = data
         self._read = []
         shift = front - head

@@ -50,7 +50,7 @@ if TYPE_CHECKING:
 log = logging.getLogger("motiond.session")
 _AUTH = re.compile(r"^\s*\$AUTH=(.*)$", re.I)
 PROBATION_REFUSED = "this slot is reserved for logged-in connections: send $AUTH=<token> first"
-YIELD_AFTER_S = 0.001  # the executor gives other tasks a turn at least this often
+YIELD_AFTER_S = 0.0003  # the executor gives other tasks a turn at least this often
 __all__ = ["Session", "line_token", "login_guard", "token_matches"]
 
 
