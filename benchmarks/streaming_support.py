@@ -12,7 +12,6 @@ import gc
 import importlib.util
 import json
 import sys
-import threading
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
@@ -48,12 +47,8 @@ REALTIME = "+rt"  # a loop name's suffix: its thread at the real-time priority `
 
 
 def may_run_realtime() -> bool:
-    """Whether this process may give a thread real-time priority (tried in a throw-away one)."""
-    granted: list[bool] = []
-    thread = threading.Thread(target=lambda: granted.append(realtime.claim(1).realtime))
-    thread.start()
-    thread.join()
-    return granted[0]
+    """Whether this process may give a thread real-time priority (``motiond serve``'s default)."""
+    return realtime.allowed(StepgenConfig().realtime_priority)
 
 
 def loop_names() -> list[str]:
@@ -66,10 +61,10 @@ def loop_names() -> list[str]:
 
 
 def default_loop_name() -> str:
-    """The configuration ``motiond serve`` runs with its default config."""
-    if importlib.util.find_spec("uvloop") is not None:  # serve's default when installed
-        return "uvloop"
-    return "asyncio" + (REALTIME if may_run_realtime() else "")
+    """The configuration ``motiond serve`` runs with its default config (``--loop auto``)."""
+    if may_run_realtime():
+        return f"asyncio{REALTIME}"
+    return "uvloop" if importlib.util.find_spec("uvloop") is not None else "asyncio"
 
 
 def run_on(loop: str, work: Callable[[], Awaitable[T]]) -> T:

@@ -123,8 +123,8 @@ def _serve_options(parser: argparse.ArgumentParser) -> None:
         "--loop",
         choices=LOOPS,
         default="auto",
-        help="event loop: uvloop's when installed (pip install 'motiond[fast]'), else asyncio's "
-        "(default: auto)",
+        help="event loop: asyncio's when its thread may run at real-time priority, else "
+        "uvloop's when installed (pip install 'motiond[fast]'), else asyncio's (default: auto)",
     )
     parser.add_argument(
         "--data-dir",
@@ -207,13 +207,14 @@ def apply_overrides(args: argparse.Namespace, config: Config) -> Config:
     return config
 
 
-def loop_factory(name: str = "auto") -> LoopFactory:
-    """The event loop ``serve`` runs on: uvloop's when it is installed (``auto``) or asked for,
-    else asyncio's with microsecond timers (:mod:`server.runtime.selector`). Asking for uvloop
+def loop_factory(name: str = "auto", realtime_priority: int = 0) -> LoopFactory:
+    """The event loop ``serve`` runs on: asyncio's with microsecond timers
+    (:mod:`server.runtime.selector`) when asked for, or for ``auto`` when the loop may run at
+    real-time priority; else uvloop's when installed (``auto``) or asked for. Asking for uvloop
     without it installed is a ConfigError."""
     from server.runtime.selector import asyncio_loop
 
-    if name == "asyncio":
+    if name == "asyncio" or (name == "auto" and realtime.allowed(realtime_priority)):
         return asyncio_loop
     try:
         import uvloop
@@ -227,7 +228,8 @@ def loop_factory(name: str = "auto") -> LoopFactory:
 
 def serve(args: argparse.Namespace, config: Config) -> int:
     config = apply_overrides(args, config)
-    with asyncio.Runner(loop_factory=loop_factory(getattr(args, "loop", "auto"))) as runner:
+    factory = loop_factory(getattr(args, "loop", "auto"), config.core.stepgen.realtime_priority)
+    with asyncio.Runner(loop_factory=factory) as runner:
         return runner.run(_serve(config))
 
 

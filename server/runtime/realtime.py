@@ -18,7 +18,10 @@ Klipper's Linux MCU process do for their step timing:
 Only on asyncio's own event loop: uvloop (libuv) rounds timers to whole milliseconds, so a loop
 waiting less than that polls without sleeping until the time comes; a real-time thread that
 polls uses up Linux's real-time budget and is then stopped for the rest of the second (50 ms
-stalls, measured). uvloop needs no priority to keep its stalls short.
+stalls, measured). asyncio's loop, on :mod:`server.runtime.selector`, sleeps to the
+microsecond instead. So ``--loop auto`` takes asyncio's loop whenever real-time priority is
+allowed (it then keeps the stall goal with other programs busy, which uvloop at ordinary
+priority does not, measured), and uvloop when installed only otherwise.
 
 Without the right (``CAP_SYS_NICE``, an ``rtprio`` limit, Docker's ``--ulimit rtprio=10``)
 motiond runs at ordinary priority and says so once.
@@ -29,6 +32,7 @@ from __future__ import annotations
 import asyncio
 import os
 import sys
+import threading
 from dataclasses import dataclass
 
 GIL_SWITCH_INTERVAL_S = 0.0005
@@ -66,6 +70,27 @@ def claim(priority: int) -> Priority:
                            + HOW_TO_GRANT)
     sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
     return Priority(priority, f"real-time priority {priority} (SCHED_FIFO)")
+
+
+def allowed(priority: int) -> bool:
+    """Whether this process may run a thread at real-time ``priority`` (tried in a throw-away
+    thread, whose policy ends with it)."""
+    if priority <= 0 or not hasattr(os, "sched_setscheduler"):
+        return False
+    granted: list[bool] = []
+
+    def attempt() -> None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        except OSError:
+            granted.append(False)
+        else:
+            granted.append(True)
+
+    thread = threading.Thread(target=attempt, name="realtime-check")
+    thread.start()
+    thread.join()
+    return granted[0]
 
 
 def claim_for(loop: asyncio.AbstractEventLoop, priority: int) -> Priority:

@@ -3,12 +3,12 @@
 The server is a real ``motiond`` process with the strictest sensible config (a token, other
 connections read-only); the latency probe is a third process that logged in and polls ``?``
 every 10 ms (tests/support/latency_probe.py), at real-time priority below the server's when
-allowed, so that what it times is the server and not its own wait for a CPU. Each attack
-runs from this test process for at least a second; the probe must miss no report, 90 % of its round trips must stay under 10 ms,
-and the worst under 50 ms. Measured on this 2-core machine the worst is 0.7-9.5 ms per attack
-and the 99th percentile 0.6-8.8 ms (the old code: a 7 s freeze, 261 ms status times...); the
-bounds leave room for the scheduling noise of a shared CI machine, which runs the attacker,
-the server and the probe on two cores.
+allowed, so that what it times is the server and not its own wait for a CPU. Each attack runs
+from this test process for at least a second; the probe must miss no report, 90 % of its round
+trips must stay under 10 ms, and the worst under 50 ms. Measured on this 2-core machine the
+worst is 0.7-9.5 ms per attack and the 99th percentile 0.6-8.8 ms (the old code: a 7 s freeze,
+261 ms status times...); the bounds leave room for the scheduling noise of a shared CI machine,
+which runs the attacker, the server and the probe on two cores.
 """
 
 from __future__ import annotations

@@ -1,5 +1,6 @@
-"""``motiond serve`` runs on uvloop when it is installed (``pip install 'motiond[fast]'``) and
-on asyncio's own loop otherwise; ``--loop`` chooses.
+"""``motiond serve`` runs on asyncio's own loop when its thread may have real-time priority,
+else on uvloop when it is installed (``pip install 'motiond[fast]'``), else on asyncio's;
+``--loop`` chooses.
 
 uvloop is an optional extra, so these tests put a stand-in ``uvloop`` package (a subclass of
 asyncio's loop, defined in a module named ``uvloop``) or a broken one on the path of a real
@@ -18,6 +19,8 @@ from pathlib import Path
 
 import pytest
 
+from server.config import StepgenConfig
+from server.runtime import realtime
 from tests.conftest import REPO
 
 STAND_IN = """\
@@ -72,9 +75,27 @@ def serve(env: dict[str, str], *options: str) -> tuple[str, bytes]:
     return log + process.stderr.read(), report
 
 
-def test_serve_picks_uvloop_when_it_is_installed(tmp_path: Path) -> None:
-    log, report = serve(fake_uvloop(tmp_path, STAND_IN))
+def test_serve_picks_uvloop_when_it_is_installed_and_no_real_time_priority_is_asked(
+    tmp_path: Path
+) -> None:
+    config = tmp_path / "ordinary.toml"
+    default = (REPO / "server" / "default.toml").read_text()
+    config.write_text(default.replace("[stepgen]\n", "[stepgen]\nrealtime_priority = 0\n"))
+    log, report = serve(fake_uvloop(tmp_path, STAND_IN), "--config", str(config))
     assert "(event loop: uvloop)" in log
+    assert report.startswith(b"<Idle|")
+
+
+def test_serve_prefers_asyncio_at_real_time_priority_over_uvloop_when_it_may_have_it(
+    tmp_path: Path
+) -> None:
+    """asyncio's loop with microsecond timers at real-time priority keeps the stall goal under
+    load, which uvloop at ordinary priority does not (the streaming benchmark)."""
+    log, report = serve(fake_uvloop(tmp_path, STAND_IN))
+    if realtime.allowed(StepgenConfig().realtime_priority):  # root, as in CI
+        assert "(event loop: asyncio)" in log and "real-time priority 10" in log, log
+    else:
+        assert "(event loop: uvloop)" in log, log
     assert report.startswith(b"<Idle|")
 
 
