@@ -294,6 +294,19 @@ class Interpreter:
         offsets.probe, offsets.probe_ok = tuple(float(v) for v in machine_mm), success
         self._offsets = offsets
 
+    def adopt_offsets(self, points: dict[str, Position], tlo_mm: float | None = None) -> None:
+        """Take the stored points another controller reports (``$#``: ``G28``, ``G30`` and
+        ``G92``, machine mm, missing axes zero) and its tool length offset as this one's."""
+        offsets = self._offsets.copy()
+        axes = len(self.position)
+        for name, point in points.items():
+            value = tuple(float(v) for v in point[:axes]) + (0.0,) * (axes - len(point))
+            setattr(offsets, name.lower(), value)
+        if tlo_mm is not None:
+            offsets.tlo_mm = float(tlo_mm)
+        self._offsets = offsets
+        self._wco = offsets.wco(self._modal.wcs, self._geo.z_axis)
+
     def reset(self) -> None:
         """Soft reset (Ctrl-X): Grbl's power-on modal state; G92 and the tool length offset are
         cleared, stored coordinate systems, G28/G30, the probe result and the position kept."""

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import re
 from dataclasses import replace
 
@@ -41,6 +42,7 @@ from server.backends.grbl.link import (
 )
 from server.config import Config
 from server.errors import ALARM_MEANINGS, Alarm, CommandError, Error
+from server.gcode.modal import MM_PER_INCH
 from server.gcode.parser import parse_line
 from server.motion.moves import Move, Sync, SyncKind, ToolMode
 from server.motion.stepgen import HoldState
@@ -61,6 +63,7 @@ _STATES = {"Idle": MachineState.IDLE, "Run": MachineState.RUN, "Hold": MachineSt
 _MOVING = frozenset({"Run", "Jog", "Home"})
 _STILL = frozenset({"Idle", "Alarm", "Check", "Sleep"})  # nothing will move without a command
 _WCS_REPORT = re.compile(r"^\[G(5[4-9]):([-0-9.,]+)\]$")
+_POINT_REPORT = re.compile(r"^\[(G28|G30|G92|TLO):([-0-9.,]+)\]$")
 _ADOPTED_MODES = frozenset({"G54", "G55", "G56", "G57", "G58", "G59", "G17", "G18", "G19",
                             "G20", "G21", "G90", "G91", "G93", "G94"})
 
@@ -270,6 +273,28 @@ class GrblMachine(Machine):
                 self.interpreter.execute(parse_line(line))
             except CommandError as exc:
                 log.warning("cannot adopt the controller's %r: %s", line, exc.message)
+        self._adopt_points(handshake, MM_PER_INCH if inches else 1.0)
+
+    def _adopt_points(self, handshake: Handshake, mm_per_unit: float) -> None:
+        """The board's G28/G30 positions, G92 offset and tool length offset (``$#``)."""
+        points: dict[str, tuple[float, ...]] = {}
+        tlo_mm = None
+        for text in handshake.offsets:
+            match = _POINT_REPORT.match(text)
+            if match is None:
+                continue
+            try:
+                values = tuple(float(v) * mm_per_unit for v in match.group(2).split(",") if v)
+            except ValueError:
+                log.warning("cannot read the controller's %r", text)
+                continue
+            if not all(math.isfinite(v) for v in values):
+                continue
+            if match.group(1) == "TLO":
+                tlo_mm = values[0] if values else None
+            else:
+                points[match.group(1)] = values
+        self.interpreter.adopt_offsets(points, tlo_mm)
 
     # -- realtime commands ------------------------------------------------------------------
     def realtime(self, command: Realtime) -> None:

@@ -37,6 +37,7 @@ class FakeController:
         self.connections = 0
         self.held: list[bytes] = []  # answers held back while ``holding``
         self.holding = False
+        self.offsets: list[str] = []  # its $# report, before the ok
         self.writer: asyncio.StreamWriter | None = None
         self.server: asyncio.Server | None = None
 
@@ -75,6 +76,8 @@ class FakeController:
         self.lines.append(line)
         if line == "$$":
             return "".join(f"${n}={v:.3f}\r\n" for n, v in SETTINGS.items()).encode() + b"ok\r\n"
+        if line == "$#":
+            return "".join(f"{text}\r\n" for text in self.offsets).encode() + b"ok\r\n"
         if line == "G0X3":
             return b"error:79\r\n"  # a grblHAL number Grbl 1.1 does not have
         return b"ok\r\n"
@@ -97,9 +100,10 @@ class FakeController:
 
 
 @contextlib.asynccontextmanager
-async def linked(tmp_path: Path, reply_timeout_s: float = 10.0
+async def linked(tmp_path: Path, reply_timeout_s: float = 10.0, offsets: tuple[str, ...] = ()
                  ) -> AsyncIterator[tuple[FakeController, App]]:
     fake = FakeController()
+    fake.offsets = list(offsets)
     port = await fake.start()
     config = build_config({
         "axes": {axis: {"steps_per_mm": 80, "max_rate_mm_s": 100, "accel_mm_s2": 1000,
@@ -140,6 +144,22 @@ async def test_a_silent_controller_gets_ctrl_x_and_its_buffer_and_settings_are_a
             assert (await client.command("G0 Y160"))[-1] == "error:40"
         finally:
             await client.close()
+
+
+async def test_the_controllers_g92_stored_positions_and_tool_offset_are_adopted(
+        tmp_path: Path) -> None:
+    """Offsets set on the board before motiond connected: motiond's work positions and soft
+    limits must use them, as the board does with the lines motiond sends."""
+    board = ("[G54:10.000,5.000]", "[G28:1.000,2.000]", "[G30:3.000,4.000]",
+             "[G92:20.000,-5.000]", "[TLO:1.500]", "[PRB:0.000,0.000:0]")
+    async with linked(tmp_path, offsets=board) as (fake, app):
+        interpreter = app.kernel.machine.interpreter
+        report = interpreter.offsets_report()
+        assert report[:4] == ["[G54:10.000,5.000]", "[G55:0.000,0.000]", "[G56:0.000,0.000]",
+                              "[G57:0.000,0.000]"]
+        assert report[6:10] == ["[G28:1.000,2.000]", "[G30:3.000,4.000]",
+                                "[G92:20.000,-5.000]", "[TLO:1.500]"]
+        assert interpreter.wco() == (30.0, 0.0), "G54 + G92 (no Z for the tool offset)"
 
 
 async def test_an_unknown_controller_error_is_error_20_with_its_number(tmp_path: Path) -> None:
