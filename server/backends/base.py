@@ -87,3 +87,22 @@ class Backend(Protocol):
     def close(self) -> None:
         """Release the hardware; safe to call twice."""
         ...
+
+
+class NoHardware:
+    """What a backend with nothing below the step generator does not need (the simulated and
+    null machines): no trajectory, nothing queued to halt, no drivers, no task to run."""
+
+    wants_trajectory = False
+
+    def trajectory(self, piece: Piece) -> None:
+        pass
+
+    def halt(self) -> None:
+        pass
+
+    def motors(self, enabled: bool, time_s: float) -> None:
+        pass
+
+    async def run(self) -> None:
+        pass

@@ -4,30 +4,16 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from server.backends.base import Piece
+from server.backends.base import NoHardware
 
 
-class NullBackend:
+class NullBackend(NoHardware):
     """Discards steps and samples; remembers outputs so tools can be checked off."""
-
-    wants_trajectory = False
 
     def __init__(self) -> None:
         self._outputs: dict[str, float] = {}
 
     def step(self, time_s: float, delta_steps: Sequence[int]) -> None:
-        pass
-
-    def trajectory(self, piece: Piece) -> None:
-        pass
-
-    def halt(self) -> None:
-        pass
-
-    def motors(self, enabled: bool, time_s: float) -> None:
-        pass
-
-    async def run(self) -> None:
         pass
 
     def sample(self, time_s: float, position_mm: Sequence[float], speed_mm_s: float) -> None:

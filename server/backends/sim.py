@@ -14,13 +14,11 @@ from collections import deque
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-from server.backends.base import Piece
+from server.backends.base import NoHardware
 
 
-class SimBackend:
+class SimBackend(NoHardware):
     """A machine made of counters; see the module docstring."""
-
-    wants_trajectory = False
 
     def __init__(
         self,
@@ -52,18 +50,6 @@ class SimBackend:
         for axis, delta in enumerate(delta_steps):
             steps[axis] += delta
             self.steps_travelled += abs(delta)
-
-    def trajectory(self, piece: Piece) -> None:
-        pass
-
-    def halt(self) -> None:
-        pass
-
-    def motors(self, enabled: bool, time_s: float) -> None:
-        pass
-
-    async def run(self) -> None:
-        pass
 
     def sample(self, time_s: float, position_mm: Sequence[float], speed_mm_s: float) -> None:
         power = max((self._outputs.get(name, 0.0) for name in self._tools), default=0.0)

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import math
 import re
 from dataclasses import replace
 
@@ -43,7 +42,7 @@ from server.backends.grbl.link import (
 from server.config import Config
 from server.errors import ALARM_MEANINGS, Alarm, CommandError, Error
 from server.gcode.modal import MM_PER_INCH
-from server.gcode.parser import parse_line
+from server.gcode.parser import MAX_MAGNITUDE, parse_line
 from server.motion.moves import Move, Sync, SyncKind, ToolMode
 from server.motion.stepgen import HoldState
 from server.protocol.events import Realtime
@@ -288,7 +287,8 @@ class GrblMachine(Machine):
             except ValueError:
                 log.warning("cannot read the controller's %r", text)
                 continue
-            if not all(math.isfinite(v) for v in values):
+            if not all(abs(v) <= MAX_MAGNITUDE for v in values):  # also refuses nan and inf
+                log.warning("cannot adopt the controller's %r: out of range", text)
                 continue
             if match.group(1) == "TLO":
                 tlo_mm = values[0] if values else None

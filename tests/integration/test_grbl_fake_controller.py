@@ -150,14 +150,14 @@ async def test_the_controllers_g92_stored_positions_and_tool_offset_are_adopted(
         tmp_path: Path) -> None:
     """Offsets set on the board before motiond connected: motiond's work positions and soft
     limits must use them, as the board does with the lines motiond sends."""
-    board = ("[G54:10.000,5.000]", "[G28:1.000,2.000]", "[G30:3.000,4.000]",
+    board = ("[G54:10.000,5.000]", "[G28:1.000,2.000]", "[G30:3.000,99999999999.000]",
              "[G92:20.000,-5.000]", "[TLO:1.500]", "[PRB:0.000,0.000:0]")
     async with linked(tmp_path, offsets=board) as (fake, app):
         interpreter = app.kernel.machine.interpreter
         report = interpreter.offsets_report()
         assert report[:4] == ["[G54:10.000,5.000]", "[G55:0.000,0.000]", "[G56:0.000,0.000]",
                               "[G57:0.000,0.000]"]
-        assert report[6:10] == ["[G28:1.000,2.000]", "[G30:3.000,4.000]",
+        assert report[6:10] == ["[G28:1.000,2.000]", "[G30:0.000,0.000]",  # out of range
                                 "[G92:20.000,-5.000]", "[TLO:1.500]"]
         assert interpreter.wco() == (30.0, 0.0), "G54 + G92 (no Z for the tool offset)"
 
