@@ -95,29 +95,35 @@ class GrblMachine(Machine):
             return messages
         if any(sync.kind is SyncKind.PROBE for sync in syncs):
             return await self._probe(command)
-        return await self.forward(compact(command.text), command)
+        motion = any(isinstance(out, Move) for out in outputs)
+        return await self.forward(compact(command.text), command, motion=motion)
 
     async def _probe(self, command: Command) -> list[str]:
         """G38.x: the board probes; motiond waits for it (Grbl's parser does too), then takes
         the position it stopped at."""
-        messages = await self.forward(compact(command.text), replace(command, defer=None))
+        messages = await self.forward(compact(command.text), replace(command, defer=None),
+                                      motion=True)
         await self.wait_idle()
         self.interpreter.set_position(self.stepgen.state.position_mm)
         return messages
 
-    async def forward(self, text: str, command: Command) -> list[str]:
-        """Send one line to the controller; its reply is deferred when the caller allows."""
+    async def forward(self, text: str, command: Command, *, motion: bool = False) -> list[str]:
+        """Send one line to the controller; its reply is deferred when the caller allows.
+        Only a ``motion`` line makes the machine busy (Run, its sender the owner) until the
+        board reports it done; ``$X``, ``G21`` or ``M5`` leave it as the board has it."""
         if not text:
             return []
         epoch = self.epoch
         try:
-            answer = await self.controller.send_line(text, lambda: epoch == self.epoch)
+            answer = await self.controller.send_line(
+                text, lambda: epoch == self.epoch, motion=motion)
         except LineDropped as exc:
             raise CommandError(Error.BUSY, str(exc)) from exc
-        self._idle.clear()
-        self.idle_event.clear()
-        if self.status.state is MachineState.IDLE:
-            self.status.set_state(MachineState.RUN)
+        if motion:
+            self._idle.clear()
+            self.idle_event.clear()
+            if self.status.state is MachineState.IDLE:
+                self.status.set_state(MachineState.RUN)
         reply: asyncio.Future[list[str]] = asyncio.get_running_loop().create_future()
         answer.add_done_callback(lambda done: self._settle(done, reply, text))
         if command.defer is not None:
@@ -130,8 +136,9 @@ class GrblMachine(Machine):
         the line, and refuses a setting it does not know), the controller's turn."""
         if command.name in ("$X", "$H"):
             self._controller_alarm = False
+        motion = command.name in ("$H", "$J=")
         try:
-            return await self.forward(compact(command.text), command)
+            return await self.forward(compact(command.text), command, motion=motion)
         except CommandError:
             if command.name == "$X" and not self.controller.ready:  # nothing to unlock yet
                 self.status.alarm(Alarm.BACKEND_FAILED, "the controller is not connected")
@@ -161,7 +168,7 @@ class GrblMachine(Machine):
         self.status.push(f"[MSG:controller connected: {handshake.banner}]")
 
     def on_answer(self) -> None:
-        self._idle.clear()  # a status report after this answer says whether it is idle
+        """An answer alone says nothing about motion: the next report does."""
 
     def on_status(self, report: ControllerStatus) -> None:
         self.controller_status = report
@@ -176,10 +183,12 @@ class GrblMachine(Machine):
                                   "the controller is in alarm: $X (or $H) to unlock")
         elif self.status.state not in (MachineState.ALARM, MachineState.CHECK):
             state = _STATES.get(base)
+            if state is MachineState.IDLE and self.controller.motion_pending:
+                state = MachineState.RUN  # lines with motion are in the board's buffer
             if state is not None:
                 self.status.set_state(state)
         self._previous_state = base
-        if self.controller.link.in_flight == 0 and base in _STILL:
+        if base in _STILL and not self.controller.motion_pending:
             self._sync_position(report)
             self._idle.set()
             self.idle_event.set()
@@ -347,6 +356,8 @@ class GrblMachine(Machine):
         wco = report.wco_mm or self.interpreter.wco()
         axes = len(self.core.axis_names)
         state = "Alarm" if self.status.state is MachineState.ALARM else report.state
+        if state == "Idle" and self.controller.motion_pending:
+            state = "Run"  # the board has not started (or not reported) the motion sent
         return StatusSnapshot(
             state=state,
             machine_mm=motion.position_mm,

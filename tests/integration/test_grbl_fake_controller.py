@@ -40,6 +40,8 @@ class FakeController:
         self.offsets: list[str] = []  # its $# report, before the ok
         self.writer: asyncio.StreamWriter | None = None
         self.server: asyncio.Server | None = None
+        self.report = b"<Idle|MPos:0.000,0.000|Bf:15,255|FS:0,0>\r\n"  # its answer to '?'
+        self.polls_answered = True
 
     async def start(self) -> int:
         self.server = await asyncio.start_server(self._serve, "127.0.0.1", 0)
@@ -63,7 +65,8 @@ class FakeController:
                 self.mute_next_reset = False
             if b"?" in pending:
                 pending = pending.replace(b"?", b"")
-                writer.write(b"<Idle|MPos:0.000,0.000|Bf:15,255|FS:0,0>\r\n")
+                if self.polls_answered:
+                    writer.write(self.report)
             *lines, pending = pending.split(b"\n")
             for line in lines:
                 answer = self._answer(line.decode().strip())

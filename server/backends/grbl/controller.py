@@ -18,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
@@ -42,6 +43,8 @@ log = logging.getLogger("motiond.grbl")
 READ_BYTES = 4096
 RESET = 0x18
 STATUS = 0x3F
+_STILL = frozenset({"Idle", "Alarm", "Check", "Sleep"})  # nothing moves without a command
+POLLS_REMEMBERED = 32  # '?' sent and not yet answered by a report (Grbl may merge some)
 
 
 class LineDropped(Exception):
@@ -97,6 +100,9 @@ class Controller:
         self._reset_sent = False  # a banner after our own Ctrl-X is expected
         self._banner_watch: asyncio.TimerHandle | None = None
         self._buffer_from_report = config.buffer_bytes is None
+        self.motion_pending = False  # a motion line sent, not yet seen completed by the board
+        self._motion_lines = 0  # motion lines sent on this connection (a generation count)
+        self._polls: deque[tuple[int, bool]] = deque(maxlen=POLLS_REMEMBERED)
 
     @property
     def where(self) -> str:
@@ -179,9 +185,18 @@ class Controller:
         self.listener.on_connected(self.handshake)
         period_s = 1.0 / self.config.status_hz
         while True:
-            self.realtime(STATUS)
-            self.status_polls += 1
+            self.poll()
             await asyncio.sleep(period_s)
+
+    def poll(self) -> None:
+        """Send ``?``, remembering whether every line sent so far had been answered: only a
+        report to such a poll can say that the board finished the motion it was sent (Grbl
+        starts a cycle once its input is empty, before it reads the next ``?``)."""
+        if self._writer is None:
+            return
+        self._polls.append((self._motion_lines, self.link.in_flight == 0))
+        self.realtime(STATUS)
+        self.status_polls += 1
 
     async def _wait_banner(self) -> str:
         try:
@@ -206,6 +221,7 @@ class Controller:
             self.listener.on_alarm(event.code)
         elif isinstance(event, Banner):
             self._fail(event.dropped, "the controller restarted")
+            self._forget_motion()
             self._banner_text = event.text
             expected, self._reset_sent = self._reset_sent, False
             self._stop_banner_watch()
@@ -221,6 +237,10 @@ class Controller:
 
     def _status(self, status: ControllerStatus) -> None:
         self.status = status
+        poll = self._polls.popleft() if self._polls else None
+        if (status.base_state in _STILL and poll == (self._motion_lines, True)
+                and self.link.in_flight == 0):
+            self.motion_pending = False
         idle = status.base_state == "Idle" and self.link.in_flight == 0
         if self._buffer_from_report and idle and status.rx_free_bytes:
             self.link.buffer_bytes = status.rx_free_bytes  # the whole buffer, when empty
@@ -230,17 +250,22 @@ class Controller:
 
     # -- sending ----------------------------------------------------------------------------
     async def send_line(
-        self, text: str, still_valid: Callable[[], bool] = lambda: True
+        self, text: str, still_valid: Callable[[], bool] = lambda: True, *, motion: bool = False
     ) -> asyncio.Future[Answered]:
         """Wait for room in the controller's buffer, write ``text``; the future resolves with
         its answer. Raises :class:`LineDropped` at once while the controller is not connected,
-        and if ``still_valid()`` no longer holds once there is room (a reset meanwhile)."""
+        and if ``still_valid()`` no longer holds once there is room (a reset meanwhile).
+        ``motion``: the line moves the machine, which is busy until a report says it is done."""
         while not self.ready:
             if self._writer is None:
                 raise LineDropped(f"the controller at {self.where} is not connected")
             self._room.clear()
             await self._room.wait()
-        return await self._send(text, still_valid)
+        future = await self._send(text, still_valid)
+        if motion:
+            self._motion_lines += 1
+            self.motion_pending = True
+        return future
 
     async def _send(
         self, text: str, still_valid: Callable[[], bool] = lambda: True
@@ -274,6 +299,7 @@ class Controller:
             return
         self._writer.write(bytes((RESET,)))
         self._reset_sent = True
+        self._forget_motion()
         self._fail(self.link.reset(), "reset")
         if self.ready and self._banner_watch is None:
             self._banner_watch = asyncio.get_running_loop().call_later(
@@ -293,6 +319,11 @@ class Controller:
             self._banner_watch.cancel()
             self._banner_watch = None
 
+    def _forget_motion(self) -> None:
+        """A reset or a lost connection: the board's buffer is empty, earlier polls moot."""
+        self.motion_pending = False
+        self._polls.clear()
+
     def _fail(self, tokens: list[int] | tuple[int, ...], reason: str) -> None:
         for token in tokens:
             future = self._futures.pop(token, None)
@@ -306,6 +337,7 @@ class Controller:
         was_ready, self.ready = self.ready, False
         self._stop_banner_watch()
         self.status = None
+        self._forget_motion()
         self._fail(self.link.lost(), f"controller connection lost: {reason}")
         if writer is not None:
             with contextlib.suppress(Exception):
