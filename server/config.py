@@ -120,6 +120,9 @@ class BackendConfig(Strict):
         "this long means the controller is not answering: the connection is retried")
     reconnect_s: float = Field(
         0.5, gt=0, le=60, description="grbl: retry opening a lost controller this often")
+    silent_timeout_s: float = Field(
+        2.0, ge=0.2, le=60, description="grbl: a connected controller that answers neither "
+        "'?' nor a line this long is not answering: ALARM:42, Ctrl-X (tools off), reconnect")
     # -- klipper
     lead_time_s: float = Field(
         0.2, ge=0.02, le=2.0,

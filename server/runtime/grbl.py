@@ -34,11 +34,11 @@ from dataclasses import replace
 from server.backends.grbl.controller import Controller, Handshake, LineDropped
 from server.backends.grbl.link import (
     Answered,
-    ControllerStatus,
     adopted_numbers,
     compact,
     mismatches,
 )
+from server.backends.grbl.reports import ControllerStatus
 from server.config import Config
 from server.errors import ALARM_MEANINGS, Alarm, CommandError, Error
 from server.gcode.modal import MM_PER_INCH
@@ -50,6 +50,7 @@ from server.protocol.reports import StatusSnapshot
 from server.runtime.clock import Clock
 from server.runtime.dispatcher import Command, Dispatcher
 from server.runtime.events import EventBus, MachineState
+from server.runtime.grbl_feedback import FeedbackGate, clean_reply
 from server.runtime.machine import Machine
 from server.runtime.state import MachineStatus
 
@@ -82,6 +83,7 @@ class GrblMachine(Machine):
         self._overrides = (100, 100, 100)  # Grbl reports Ov: only now and then
         self._idle = asyncio.Event()
         self._idle.set()
+        self._feedback = FeedbackGate(clock.now_s())
 
     # -- lines ------------------------------------------------------------------------------
     async def handle_gcode(self, command: Command) -> list[str]:
@@ -171,6 +173,8 @@ class GrblMachine(Machine):
         """An answer alone says nothing about motion: the next report does."""
 
     def on_status(self, report: ControllerStatus) -> None:
+        for line in self._feedback.flush(self.clock.now_s()):
+            self.status.push(line)
         self.controller_status = report
         self._overrides = report.overrides or self._overrides
         self.feed_override, self.rapid_override, self.spindle_override = self._overrides
@@ -202,10 +206,12 @@ class GrblMachine(Machine):
         self.status.alarm(code, f"controller ALARM:{code}: {meaning}")
 
     def on_feedback(self, text: str) -> None:
-        if text.startswith("[") and text.endswith("]"):
-            self.status.push(text)
-        elif text.lower() != "ok" and not text.lower().startswith("error:"):
-            self.status.push(f"[MSG:controller: {text}]")
+        """A line the board printed on its own: pushed to every client, cleaned and at a
+        bounded rate (a summary line counts what was held back)."""
+        if text.lower() == "ok" or text.lower().startswith("error:"):
+            return  # the answer to a line a reset dropped
+        for line in self._feedback.offer(text, self.clock.now_s()):
+            self.status.push(line)
 
     def on_lost(self, reason: str) -> None:
         self.controller_status = None
@@ -385,7 +391,7 @@ class GrblMachine(Machine):
         elif error is not None:
             reply.set_exception(error)
         elif answer.result().error is None:
-            reply.set_result(list(answer.result().messages))
+            reply.set_result([clean_reply(text) for text in answer.result().messages])
         else:
             code = answer.result().error
             assert code is not None

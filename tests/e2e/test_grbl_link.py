@@ -24,7 +24,7 @@ import pytest
 
 from server.api.telemetry import build_status
 from server.app import App
-from server.backends.grbl.link import parse_status
+from server.backends.grbl.reports import parse_status
 from server.config import Config
 from server.config_loader import build_config
 from server.runtime.clock import RealClock

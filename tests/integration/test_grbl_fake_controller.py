@@ -246,6 +246,7 @@ async def test_a_line_waiting_for_room_when_another_client_resets_is_not_sent_la
         assert isinstance(machine, GrblMachine)
         streamer, other = await client_of(app), await client_of(app)
         lines = [f"G0 X{n}" for n in range(10, 90)]  # 6 bytes each on the wire: 42 fit in 255
+        await wait_for(lambda: machine.controller.link.buffer_bytes == 255, 2.0, "Bf: confirmed")
         try:
             fake.holding = True
             streamer.writer.write("".join(f"{line}\n" for line in lines).encode())

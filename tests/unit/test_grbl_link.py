@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 
 from server.backends.grbl import link as link_module
+from server.backends.grbl import reports as reports_module
 from server.backends.grbl.link import (
     AlarmReport,
     Answered,
@@ -19,8 +20,8 @@ from server.backends.grbl.link import (
     compact,
     mismatches,
     parse_settings,
-    parse_status,
 )
+from server.backends.grbl.reports import parse_status
 
 BANNER = b"\r\nGrbl 1.1h ['$' for help]\r\n"
 
@@ -165,10 +166,14 @@ def test_settings_and_their_mismatches() -> None:
     assert mismatches(settings, ours, numbers) == [(100, 80.0, 250.0)]
 
 
-def test_the_link_core_does_no_io() -> None:
-    tree = ast.parse(Path(link_module.__file__).read_text())
-    names = {alias.name.split(".")[0] for node in ast.walk(tree)
+@pytest.mark.parametrize("module", [link_module, reports_module])
+def test_the_link_core_does_no_io(module: object) -> None:
+    tree = ast.parse(Path(module.__file__).read_text())  # type: ignore[attr-defined]
+    names = {alias.name for node in ast.walk(tree)
              if isinstance(node, ast.Import | ast.ImportFrom)
              for alias in (node.names if isinstance(node, ast.Import) else
                            [ast.alias(node.module or "")])}
-    assert not names & {"asyncio", "socket", "serial", "serial_asyncio", "server"}
+    assert not {name.split(".")[0] for name in names} & {
+        "asyncio", "socket", "serial", "serial_asyncio"}
+    ours = {name for name in names if name.startswith("server")}
+    assert ours <= {"server.backends.grbl.reports"}, "only the link's own report parser"

@@ -28,13 +28,14 @@ from server.backends.grbl.link import (
     AlarmReport,
     Answered,
     Banner,
-    ControllerStatus,
     Feedback,
     Link,
     LinkEvent,
     StatusReport,
+    parse_build_options,
     parse_settings,
 )
+from server.backends.grbl.reports import MAX_RX_BYTES, ControllerStatus
 
 if TYPE_CHECKING:
     from server.config import BackendConfig
@@ -44,6 +45,7 @@ READ_BYTES = 4096
 RESET = 0x18
 STATUS = 0x3F
 _STILL = frozenset({"Idle", "Alarm", "Check", "Sleep"})  # nothing moves without a command
+SUMMARY_PERIOD_S = 10.0  # at most one warning this often about a noisy board
 POLLS_REMEMBERED = 32  # '?' sent and not yet answered by a report (Grbl may merge some)
 
 
@@ -100,6 +102,9 @@ class Controller:
         self._reset_sent = False  # a banner after our own Ctrl-X is expected
         self._banner_watch: asyncio.TimerHandle | None = None
         self._buffer_from_report = config.buffer_bytes is None
+        self._rx_bytes_cap = MAX_RX_BYTES  # $I's [OPT:...,bytes] - 1, once known
+        self._rx_seen: int | None = None  # a Bf: figure waiting for its confirmation
+        self._heard_s = 0.0  # loop time of the last report or answer
         self.motion_pending = False  # a motion line sent, not yet seen completed by the board
         self._motion_lines = 0  # motion lines sent on this connection (a generation count)
         self._polls: deque[tuple[int, bool]] = deque(maxlen=POLLS_REMEMBERED)
@@ -146,6 +151,9 @@ class Controller:
         self._writer = writer
         self._banner.clear()
         self.link.lost()
+        if self.config.buffer_bytes is None:  # the board's figure is learnt again
+            self.link.buffer_bytes = DEFAULT_BUFFER_BYTES
+            self._buffer_from_report, self._rx_seen = True, None
         reading = asyncio.create_task(self._read(reader), name="grbl-read")
         talking = asyncio.create_task(self._talk(), name="grbl-talk")
         try:
@@ -179,14 +187,41 @@ class Controller:
             replies.append(answer.messages if answer.error is None else ())
         self.handshake = Handshake(banner, replies[0], parse_settings(replies[1]), replies[2],
                                    replies[3])
+        options = parse_build_options(replies[0])
+        self._rx_bytes_cap = options[1] - 1 if options else MAX_RX_BYTES
         self.ready = True
         self._room.set()
         log.info("controller at %s: %s", self.where, banner)
         self.listener.on_connected(self.handshake)
+        return await self._poll_while_answering()
+
+    async def _poll_while_answering(self) -> str:
+        """Poll ``?`` at ``status_hz``; a board silent for ``silent_timeout_s`` (hung, or its
+        USB chip alive and its MCU not) gets Ctrl-X, which stops it and turns its tools off if
+        it still listens, and the connection ends (ALARM:42, then a reconnect)."""
+        loop = asyncio.get_running_loop()
         period_s = 1.0 / self.config.status_hz
+        self._heard_s = summary_s = loop.time()
+        counts = (self.link.garbled_reports, self.link.dropped_lines)
         while True:
             self.poll()
             await asyncio.sleep(period_s)
+            if loop.time() - summary_s >= SUMMARY_PERIOD_S:
+                summary_s, counts = loop.time(), self._summarise(counts)
+            silent_s = loop.time() - self._heard_s
+            if silent_s > self.config.silent_timeout_s:
+                if self._writer is not None:
+                    self._writer.write(bytes((RESET,)))
+                return f"the controller is not answering (silent for {silent_s:.1f} s)"
+
+    def _summarise(self, before: tuple[int, int]) -> tuple[int, int]:
+        """One warning for what the board sent that was dropped since ``before``."""
+        now = (self.link.garbled_reports, self.link.dropped_lines)
+        if now != before:
+            log.warning("controller at %s: %d status reports did not parse and %d lines were "
+                        "dropped (too long, or too many) in the last %.0f s", self.where,
+                        now[0] - before[0], now[1] - before[1], SUMMARY_PERIOD_S)
+        return now
 
     def poll(self) -> None:
         """Send ``?``, remembering whether every line sent so far had been answered: only a
@@ -209,6 +244,8 @@ class Controller:
 
     # -- events from the controller ---------------------------------------------------------
     def _event(self, event: LinkEvent) -> None:
+        if not isinstance(event, Feedback):  # a chatty board that answers nothing is not alive
+            self._heard_s = asyncio.get_running_loop().time()
         if isinstance(event, Answered):
             future = self._futures.pop(event.token, None)
             if future is not None and not future.done():
@@ -241,12 +278,22 @@ class Controller:
         if (status.base_state in _STILL and poll == (self._motion_lines, True)
                 and self.link.in_flight == 0):
             self.motion_pending = False
-        idle = status.base_state == "Idle" and self.link.in_flight == 0
-        if self._buffer_from_report and idle and status.rx_free_bytes:
-            self.link.buffer_bytes = status.rx_free_bytes  # the whole buffer, when empty
-            self._buffer_from_report = False
-            log.info("controller receive buffer: %d bytes (from Bf:)", status.rx_free_bytes)
+        self._adopt_buffer(status)
         self.listener.on_status(status)
+
+    def _adopt_buffer(self, status: ControllerStatus) -> None:
+        """The receive buffer from ``Bf:`` (free bytes while idle with nothing in flight): the
+        same figure in two reports in a row, at most what ``$I`` says, adopted once per
+        connection and never grown after (one noisy report must not overflow the board)."""
+        if not self._buffer_from_report:
+            return
+        idle = status.base_state == "Idle" and self.link.in_flight == 0
+        seen = status.rx_free_bytes if idle and status.rx_free_bytes else None
+        confirmed, self._rx_seen = seen is not None and seen == self._rx_seen, seen
+        if confirmed and seen is not None:
+            self.link.buffer_bytes = max(16, min(seen, self._rx_bytes_cap))
+            self._buffer_from_report = False
+            log.info("controller receive buffer: %d bytes (from Bf:)", self.link.buffer_bytes)
 
     # -- sending ----------------------------------------------------------------------------
     async def send_line(

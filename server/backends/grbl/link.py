@@ -20,42 +20,24 @@ Units: positions mm, feed mm/min as the controller reports it.
 
 from __future__ import annotations
 
-import math
 import re
 from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
+from server.backends.grbl.reports import ControllerStatus, parse_status
+
 DEFAULT_BUFFER_BYTES = 127  # Grbl's 128-byte serial buffer, one byte kept free
 MAX_LINE_BYTES = 1024  # a controller line longer than this is junk (noise on the wire)
+MAX_MESSAGES_PER_LINE = 256  # lines kept for one line in flight ($$ prints about 35)
+MAX_MESSAGE_BYTES = 16384  # and their bytes; the rest is counted and dropped
 _BANNER = re.compile(r"^Grbl(?:HAL)?\s+\S+.*\[.*\]", re.I)
 _ANSWER = re.compile(r"^(?:ok|error:(\d+))$", re.I)
 _ALARM = re.compile(r"^ALARM:(\d+)$", re.I)
 _SETTING = re.compile(r"^\$(\d+)=([-+]?[0-9]*\.?[0-9]+)")
+_OPTIONS = re.compile(r"^\[OPT:[^,\]]*,(\d{1,5}),(\d{1,5})\b")
 _COMMENT = re.compile(r"\([^)]*\)|;.*")
 _SPACE = re.compile(r"\s+")
-
-
-@dataclass(frozen=True, slots=True)
-class ControllerStatus:
-    """One ``<...>`` report, decoded. ``machine_mm`` is None if it carried no position."""
-
-    state: str  # "Idle", "Run", "Hold:0", "Alarm", "Door:1"...
-    machine_mm: tuple[float, ...] | None
-    wco_mm: tuple[float, ...] | None
-    feed_mm_min: float = 0.0
-    spindle_s: float = 0.0
-    planner_free_blocks: int | None = None
-    rx_free_bytes: int | None = None
-    line_number: int | None = None
-    pins: str = ""
-    overrides: tuple[int, int, int] | None = None
-    accessories: str = ""
-
-    @property
-    def base_state(self) -> str:
-        """The state without its sub-state: ``Hold:0`` -> ``Hold``."""
-        return self.state.partition(":")[0]
 
 
 @dataclass(frozen=True, slots=True)
@@ -100,6 +82,23 @@ class _InFlight:
     token: int
     size_bytes: int
     messages: list[str] = field(default_factory=list)
+    message_bytes: int = 0
+    dropped: int = 0  # lines printed for it beyond the bounds
+
+    def keep(self, text: str) -> bool:
+        """Keep a line the controller printed before answering this one, within bounds."""
+        if (len(self.messages) >= MAX_MESSAGES_PER_LINE
+                or self.message_bytes + len(text) > MAX_MESSAGE_BYTES):
+            self.dropped += 1
+            return False
+        self.messages.append(text)
+        self.message_bytes += len(text)
+        return True
+
+    def answered(self) -> tuple[str, ...]:
+        if self.dropped:
+            return (*self.messages, f"[MSG:{self.dropped} more lines from the controller]")
+        return tuple(self.messages)
 
 
 class Link:
@@ -113,6 +112,8 @@ class Link:
         self._next_token = 0
         self._partial = bytearray()
         self.garbled_reports = 0  # status reports that did not parse (dropped)
+        self.dropped_lines = 0  # too long, or printed beyond the bounds of a line in flight
+        self._discarding = False  # inside a line already too long: drop up to its end
         self._wco: tuple[float, ...] | None = None
 
     # -- sending ----------------------------------------------------------------------------
@@ -165,11 +166,17 @@ class Link:
             if end < 0:
                 if len(self._partial) > MAX_LINE_BYTES:
                     self._partial.clear()
+                    self._discarding = True
+                    self.dropped_lines += 1
                 return events
             raw = bytes(self._partial[:end])
             del self._partial[: end + 1]
+            discarding, self._discarding = self._discarding, False
+            if len(raw) > MAX_LINE_BYTES:
+                self.dropped_lines += 1
+                continue
             text = raw.decode("ascii", "replace").strip()
-            if text:
+            if text and not discarding:
                 event = self._line(text)
                 if event is not None:
                     events.append(event)
@@ -195,7 +202,8 @@ class Link:
         if answer:
             return self._answer(text, None if answer.group(1) is None else int(answer.group(1)))
         if self._in_flight and not self.awaiting_banner:
-            self._in_flight[0].messages.append(text)
+            if not self._in_flight[0].keep(text):
+                self.dropped_lines += 1
             return None
         return Feedback(text)
 
@@ -204,7 +212,7 @@ class Link:
             return Feedback(text)  # an answer to a line dropped by a reset
         line = self._in_flight.popleft()
         self.used_bytes -= line.size_bytes
-        return Answered(line.token, tuple(line.messages), error)
+        return Answered(line.token, line.answered(), error)
 
 
 # -- line and report parsing ------------------------------------------------------------------
@@ -213,65 +221,13 @@ def compact(text: str) -> str:
     return _SPACE.sub("", _COMMENT.sub("", text))
 
 
-def parse_status(text: str, wco_mm: tuple[float, ...] | None = None) -> ControllerStatus:
-    """Decode ``<Idle|MPos:1,2,3|FS:0,0|WCO:0,0,0>``; ``wco_mm``: the last offset reported
-    (Grbl sends ``WCO:`` only now and then), used to turn ``WPos:`` into machine position."""
-    fields = text.strip("<>").split("|")
-    values: dict[str, str] = {}
-    for item in fields[1:]:
-        key, _, value = item.partition(":")
-        values[key] = value
-    wco = _numbers(values["WCO"]) if "WCO" in values else None
-    machine = _machine_position(values, wco or wco_mm)
-    feed, spindle = _feed(values)
-    buffers = _ints(values.get("Bf", ""))
-    overrides = _ints(values.get("Ov", ""))
-    return ControllerStatus(
-        state=fields[0],
-        machine_mm=machine,
-        wco_mm=wco,
-        feed_mm_min=feed,
-        spindle_s=spindle,
-        planner_free_blocks=buffers[0] if len(buffers) >= 1 else None,
-        rx_free_bytes=buffers[1] if len(buffers) >= 2 else None,
-        line_number=int(values["Ln"]) if values.get("Ln", "").isdigit() else None,
-        pins=values.get("Pn", ""),
-        overrides=(overrides[0], overrides[1], overrides[2]) if len(overrides) >= 3 else None,
-        accessories=values.get("A", ""),
-    )
-
-
-def _machine_position(
-    values: Mapping[str, str], wco_mm: tuple[float, ...] | None
-) -> tuple[float, ...] | None:
-    if "MPos" in values:
-        return _numbers(values["MPos"])
-    if "WPos" in values:
-        work = _numbers(values["WPos"])
-        offset = wco_mm or tuple(0.0 for _ in work)
-        return tuple(w + o for w, o in zip(work, offset, strict=False))
+def parse_build_options(lines: tuple[str, ...] | list[str]) -> tuple[int, int] | None:
+    """``$I``'s ``[OPT:V,15,128]``: (planner blocks, receive buffer bytes), or None."""
+    for line in lines:
+        match = _OPTIONS.match(line.strip())
+        if match:
+            return int(match.group(1)), int(match.group(2))
     return None
-
-
-def _feed(values: Mapping[str, str]) -> tuple[float, float]:
-    if "FS" in values:
-        numbers = _numbers(values["FS"]) + (0.0, 0.0)
-        return numbers[0], numbers[1]
-    if "F" in values:
-        return _numbers(values["F"])[0], 0.0
-    return 0.0, 0.0
-
-
-def _numbers(text: str) -> tuple[float, ...]:
-    """Comma-separated finite numbers; ValueError for anything else (``nan``, ``1e999``)."""
-    numbers = tuple(float(part) for part in text.split(",") if part)
-    if not all(map(math.isfinite, numbers)):
-        raise ValueError(f"not a finite number in {text!r}")
-    return numbers
-
-
-def _ints(text: str) -> list[int]:
-    return [int(number) for number in _numbers(text)]
 
 
 def parse_settings(lines: tuple[str, ...] | list[str]) -> dict[int, float]:
