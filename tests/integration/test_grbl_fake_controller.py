@@ -41,7 +41,9 @@ class FakeController:
         self.writer: asyncio.StreamWriter | None = None
         self.server: asyncio.Server | None = None
         self.report = b"<Idle|MPos:0.000,0.000|Bf:15,255|FS:0,0>\r\n"  # its answer to '?'
+        self.next_reports: list[bytes] = []  # answers to the next polls, before ``report``
         self.polls_answered = True
+        self.noise = b""  # written before each report (a noisy line, a chatty board)
 
     async def start(self) -> int:
         self.server = await asyncio.start_server(self._serve, "127.0.0.1", 0)
@@ -66,7 +68,8 @@ class FakeController:
             if b"?" in pending:
                 pending = pending.replace(b"?", b"")
                 if self.polls_answered:
-                    writer.write(self.report)
+                    writer.write(self.noise)
+                    writer.write(self.next_reports.pop(0) if self.next_reports else self.report)
             *lines, pending = pending.split(b"\n")
             for line in lines:
                 answer = self._answer(line.decode().strip())
@@ -103,10 +106,11 @@ class FakeController:
 
 
 @contextlib.asynccontextmanager
-async def linked(tmp_path: Path, reply_timeout_s: float = 10.0, offsets: tuple[str, ...] = ()
-                 ) -> AsyncIterator[tuple[FakeController, App]]:
+async def linked(tmp_path: Path, reply_timeout_s: float = 10.0, offsets: tuple[str, ...] = (),
+                 reports: tuple[bytes, ...] = ()) -> AsyncIterator[tuple[FakeController, App]]:
     fake = FakeController()
     fake.offsets = list(offsets)
+    fake.next_reports = list(reports)
     port = await fake.start()
     config = build_config({
         "axes": {axis: {"steps_per_mm": 80, "max_rate_mm_s": 100, "accel_mm_s2": 1000,
