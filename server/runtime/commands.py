@@ -7,7 +7,6 @@ moves; leaving it resets the modal state as Grbl does).
 
 from __future__ import annotations
 
-import asyncio
 from typing import TYPE_CHECKING
 
 from server import __version__
@@ -77,10 +76,8 @@ class CoreCommands:
     def settings(self, command: Command) -> list[str]:
         return format_settings(self.machine.settings.values())
 
-    async def write_setting(self, command: Command) -> None:
-        settings = self.machine.settings
-        settings.write(command.args)
-        await asyncio.to_thread(settings.save, settings.file_text())
+    async def write_setting(self, command: Command) -> list[str]:
+        return await self.machine.write_setting(command)
 
     def offsets(self, command: Command) -> list[str]:
         return self.machine.interpreter.offsets_report()

@@ -28,21 +28,16 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import re
 from dataclasses import replace
 
 from server.backends.grbl.controller import Controller, Handshake, LineDropped
 from server.backends.grbl.link import (
     Answered,
-    adopted_numbers,
     compact,
-    mismatches,
 )
 from server.backends.grbl.reports import ControllerStatus
 from server.config import Config
 from server.errors import ALARM_MEANINGS, Alarm, CommandError, Error
-from server.gcode.modal import MM_PER_INCH
-from server.gcode.parser import MAX_MAGNITUDE, parse_line
 from server.motion.moves import Move, Sync, SyncKind, ToolMode
 from server.motion.stepgen import HoldState
 from server.protocol.events import Realtime
@@ -50,6 +45,7 @@ from server.protocol.reports import StatusSnapshot
 from server.runtime.clock import Clock
 from server.runtime.dispatcher import Command, Dispatcher
 from server.runtime.events import EventBus, MachineState
+from server.runtime.grbl_adopt import adopt_offsets, adopt_settings, adopt_space
 from server.runtime.grbl_feedback import FeedbackGate, clean_reply
 from server.runtime.machine import Machine
 from server.runtime.state import MachineStatus
@@ -62,10 +58,7 @@ _STATES = {"Idle": MachineState.IDLE, "Run": MachineState.RUN, "Hold": MachineSt
            "Sleep": MachineState.SLEEP, "Check": MachineState.CHECK}
 _MOVING = frozenset({"Run", "Jog", "Home"})
 _STILL = frozenset({"Idle", "Alarm", "Check", "Sleep"})  # nothing will move without a command
-_WCS_REPORT = re.compile(r"^\[G(5[4-9]):([-0-9.,]+)\]$")
-_POINT_REPORT = re.compile(r"^\[(G28|G30|G92|TLO):([-0-9.,]+)\]$")
-_ADOPTED_MODES = frozenset({"G54", "G55", "G56", "G57", "G58", "G59", "G17", "G18", "G19",
-                            "G20", "G21", "G90", "G91", "G93", "G94"})
+
 
 
 class GrblMachine(Machine):
@@ -84,6 +77,8 @@ class GrblMachine(Machine):
         self._idle = asyncio.Event()
         self._idle.set()
         self._feedback = FeedbackGate(clock.now_s())
+        self._board_settings: dict[int, float] = {}  # $$ at the connection, then $x= sent
+        self._explicit_limits = "soft_limits" in self._defaults.machine.model_fields_set
 
     # -- lines ------------------------------------------------------------------------------
     async def handle_gcode(self, command: Command) -> list[str]:
@@ -146,8 +141,23 @@ class GrblMachine(Machine):
                 self.status.alarm(Alarm.BACKEND_FAILED, "the controller is not connected")
             raise
 
+    async def write_setting(self, command: Command) -> list[str]:
+        """``$x=value`` is the board's to judge (``$22=1`` included): sent first; once it
+        accepts, motiond adopts it as at a connection (travel, soft limits, rates...)."""
+        number, _, value = command.args.partition("=")
+        messages = await self.forward(compact(command.text), replace(command, defer=None))
+        try:
+            board = {int(number): float(value)}
+        except ValueError:
+            return messages  # the board took what motiond cannot read: nothing to adopt
+        self._board_settings.update(board)
+        adopt_settings(self.settings, board, len(self.core.axis_names))
+        adopt_space(self.core, self._board_settings, keep_soft_limits=self._explicit_limits)
+        self.apply_settings()
+        return messages
+
     def register_commands(self, dispatcher: Dispatcher) -> None:
-        for name in ("$X", "$H", "$="):  # $=: a setting motiond took is the board's too
+        for name in ("$X", "$H"):
             dispatcher.register(name, self._forward_command, when_locked=True)
         dispatcher.register("$J=", self._forward_command)
 
@@ -164,8 +174,11 @@ class GrblMachine(Machine):
 
     # -- the controller's reports (ControllerListener) ---------------------------------------
     def on_connected(self, handshake: Handshake) -> None:
-        self._adopt(handshake.settings)
-        self._adopt_offsets(handshake)
+        self._board_settings = dict(handshake.settings)
+        adopt_settings(self.settings, handshake.settings, len(self.core.axis_names))
+        adopt_space(self.core, handshake.settings, keep_soft_limits=self._explicit_limits)
+        self.apply_settings()
+        adopt_offsets(self.interpreter, self.core.axis_names, handshake)
         self._position_synced = False
         self.status.push(f"[MSG:controller connected: {handshake.banner}]")
 
@@ -251,65 +264,6 @@ class GrblMachine(Machine):
         self._position_synced = True
         self.interpreter.set_position(self.stepgen.state.position_mm)
         self.planner.set_position(self.stepgen.state.position_mm)
-
-    def _adopt(self, settings: dict[int, float]) -> None:
-        """Take the controller's steps, rates, accelerations, travel, junction deviation and
-        laser mode; warn about each value that differs from motiond's config."""
-        numbers = adopted_numbers(len(self.core.axis_names))
-        ours = self.settings.values()
-        for number, mine, theirs in mismatches(settings, ours, numbers):
-            description = self.settings.table[number].description
-            log.warning("controller $%d=%g (%s) differs from motiond's config (%g): using "
-                        "the controller's", number, theirs, description, mine)
-            try:
-                self.settings.set(number, theirs)
-            except CommandError as exc:
-                log.warning("cannot adopt $%d=%g: %s", number, theirs, exc.message)
-
-    def _adopt_offsets(self, handshake: Handshake) -> None:
-        """The board's work offsets (``$#``: G54-G59, kept in its EEPROM) and modal state
-        (``$G``: coordinate system, plane, units, distance and feed modes), run through
-        motiond's interpreter as G-code, so work positions and soft limits agree."""
-        inches = handshake.settings.get(13, 0.0) >= 1  # $13=1: $# reports inches
-        lines = ["G20" if inches else "G21"]
-        for text in handshake.offsets:
-            match = _WCS_REPORT.match(text)
-            if match:
-                values = [float(v) for v in match.group(2).split(",") if v]
-                words = " ".join(f"{axis}{value:.4f}" for axis, value in
-                                 zip(self.core.axis_names, values, strict=False))
-                lines.append(f"G10 L2 P{int(match.group(1)) - 53} {words}")
-        modal = [word for text in handshake.modal for word in text.strip("[]").split()[1:]
-                 if word in _ADOPTED_MODES]
-        lines.append(" ".join(modal or ["G21"]))
-        for line in lines:
-            try:
-                self.interpreter.execute(parse_line(line))
-            except CommandError as exc:
-                log.warning("cannot adopt the controller's %r: %s", line, exc.message)
-        self._adopt_points(handshake, MM_PER_INCH if inches else 1.0)
-
-    def _adopt_points(self, handshake: Handshake, mm_per_unit: float) -> None:
-        """The board's G28/G30 positions, G92 offset and tool length offset (``$#``)."""
-        points: dict[str, tuple[float, ...]] = {}
-        tlo_mm = None
-        for text in handshake.offsets:
-            match = _POINT_REPORT.match(text)
-            if match is None:
-                continue
-            try:
-                values = tuple(float(v) * mm_per_unit for v in match.group(2).split(",") if v)
-            except ValueError:
-                log.warning("cannot read the controller's %r", text)
-                continue
-            if not all(abs(v) <= MAX_MAGNITUDE for v in values):  # also refuses nan and inf
-                log.warning("cannot adopt the controller's %r: out of range", text)
-                continue
-            if match.group(1) == "TLO":
-                tlo_mm = values[0] if values else None
-            else:
-                points[match.group(1)] = values
-        self.interpreter.adopt_offsets(points, tlo_mm)
 
     # -- realtime commands ------------------------------------------------------------------
     def realtime(self, command: Realtime) -> None:

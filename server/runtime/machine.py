@@ -30,7 +30,7 @@ from server.motion.planner import Planner
 from server.motion.stepgen import HoldState, StepGenerator
 from server.protocol.reports import StatusSnapshot
 from server.runtime.clock import Clock
-from server.runtime.dispatcher import Dispatcher
+from server.runtime.dispatcher import Command, Dispatcher
 from server.runtime.events import Event, EventBus, MachineState
 from server.runtime.machine_feed import GcodeFeed
 from server.runtime.machine_realtime import RealtimeCommands
@@ -106,6 +106,12 @@ class Machine(GcodeFeed, RealtimeCommands):
     def busy(self) -> bool:
         """Motion is queued or running (its source owns the machine until it ends)."""
         return not self.stepgen.idle
+
+    async def write_setting(self, command: Command) -> list[str]:
+        """``$x=value``: checked, applied live and saved (a downstream board: its own)."""
+        self.settings.write(command.args)
+        await asyncio.to_thread(self.settings.save, self.settings.file_text())
+        return []
 
     def register_commands(self, dispatcher: Dispatcher) -> None:
         """Commands this machine adds to the core's (a downstream controller's); none here."""

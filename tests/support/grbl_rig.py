@@ -1,0 +1,150 @@
+"""Real Grbl 1.1h for the tests: the grbl-sim rig in ``../shared/rigs/grbl-sim``.
+
+:func:`rig_executable` builds it once into the repository's ignored ``build/`` folder (never
+the user's home) and returns the simulator; :func:`grbl_on_pty` runs a fresh board (its EEPROM
+in a temporary folder) on a pseudo-terminal and yields the path motiond opens;
+:class:`GrblClient` talks to a Grbl-speaking stream line by line (send-response, ``?`` polls),
+the board directly or motiond's front.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import subprocess
+import tty
+from collections.abc import AsyncIterator, Sequence
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+RIG = REPO.parent / "shared" / "rigs" / "grbl-sim"
+BUILD = REPO / "build" / "grbl-sim"
+# Fast axes, so the edge cases' moves take milliseconds (Grbl's defaults: 500 mm/min, 10 mm/s²).
+FAST_SETTINGS = ("$110=20000", "$111=20000", "$112=20000", "$120=2000", "$121=2000",
+                 "$122=2000")
+
+
+def rig_executable() -> Path:
+    """The built simulator; skips the test only when the rigs folder is absent."""
+    if not (RIG / "build").exists():
+        pytest.skip(f"the grbl-sim rig is absent ({RIG})")
+    done = subprocess.run([str(RIG / "build"), str(BUILD)], capture_output=True, text=True,
+                          timeout=600, check=True)
+    return Path(done.stdout.strip().splitlines()[-1])
+
+
+def _command(exe: Path) -> list[str]:
+    return ["stdbuf", "-o0", str(exe), "-n", "-b", "/dev/null", "-s", "/dev/null"]
+
+
+@contextlib.asynccontextmanager
+async def grbl_on_pty(tmp_path: Path, name: str = "grbl") -> AsyncIterator[str]:
+    """A fresh Grbl board on a pseudo-terminal; yields the device path to open."""
+    exe = rig_executable()
+    eeprom = tmp_path / f"{name}-eeprom"
+    eeprom.mkdir()
+    board, device = os.openpty()
+    tty.setraw(device)
+    process = await asyncio.create_subprocess_exec(
+        *_command(exe), stdin=board, stdout=board, stderr=subprocess.DEVNULL, cwd=eeprom)
+    os.close(board)
+    try:
+        yield os.ttyname(device)
+    finally:
+        await _stop(process)
+        os.close(device)
+
+
+@contextlib.asynccontextmanager
+async def grbl_direct(tmp_path: Path, name: str = "direct") -> AsyncIterator[GrblClient]:
+    """A fresh Grbl board on pipes, already past its banner."""
+    exe = rig_executable()
+    eeprom = tmp_path / f"{name}-eeprom"
+    eeprom.mkdir()
+    process = await asyncio.create_subprocess_exec(
+        *_command(exe), stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL, cwd=eeprom)
+    assert process.stdin is not None and process.stdout is not None
+    client = GrblClient(process.stdout, process.stdin)
+    try:
+        await client.banner()
+        yield client
+    finally:
+        await _stop(process)
+
+
+async def _stop(process: asyncio.subprocess.Process) -> None:
+    if process.returncode is None:
+        process.kill()
+    await process.wait()
+
+
+class GrblClient:
+    """Send-response over a Grbl stream: a line's messages and its ``ok`` / ``error:N``."""
+
+    def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        self.reader, self.writer = reader, writer
+        self.pushed: list[str] = []  # lines that were neither a reply nor a report
+
+    @classmethod
+    async def connect(cls, port: int) -> GrblClient:
+        reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        client = cls(reader, writer)
+        await client.banner()
+        return client
+
+    async def line(self, timeout_s: float = 30.0) -> str:
+        while True:
+            data = await asyncio.wait_for(self.reader.readline(), timeout_s)
+            if not data:
+                raise ConnectionError("the stream closed")
+            text = data.decode("ascii", "replace").strip()
+            if text:
+                return text
+
+    async def banner(self) -> str:
+        while not (text := await self.line()).startswith("Grbl "):
+            pass
+        return text
+
+    async def send(self, text: str, timeout_s: float = 30.0) -> list[str]:
+        """One line; returns what came back up to and including its reply."""
+        self.writer.write(text.encode() + b"\n")
+        out = []
+        while True:
+            line = await self.line(timeout_s)
+            if line.startswith("<"):
+                continue
+            out.append(line)
+            if line == "ok" or line.startswith("error:"):
+                return out
+
+    async def report(self) -> str:
+        self.writer.write(b"?")
+        while not (line := await self.line()).startswith("<"):
+            self.pushed.append(line)
+        return line
+
+    async def settle(self, timeout_s: float = 30.0) -> str:
+        """Poll until Idle or Alarm; the last report."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout_s
+        while True:
+            report = await self.report()
+            if report.startswith(("<Idle", "<Alarm")) or loop.time() > deadline:
+                return report
+            await asyncio.sleep(0.02)
+
+    async def each(self, lines: Sequence[str]) -> list[tuple[str, ...]]:
+        """Every line sent alone, waiting for the machine to settle after it."""
+        replies = []
+        for text in lines:
+            replies.append(tuple(await self.send(text)))
+            await self.settle()
+        return replies
+
+    def close(self) -> None:
+        self.writer.close()
