@@ -271,8 +271,10 @@ class Interpreter:
                 modes[group] = code
             else:
                 raise CommandError(Error.INVALID_JOG, f"{letter}{value:g} is not allowed in a jog")
-        if not axes or not feed:
-            raise CommandError(Error.INVALID_JOG, "a jog needs axis words and a positive F")
+        if not feed:
+            raise CommandError(Error.UNDEFINED_FEED, "a jog needs a positive F")
+        if not axes:
+            raise CommandError(Error.INVALID_JOG, "a jog needs axis words")
         return modes, axes, feed
 
     # -- position, offsets and probing -------------------------------------------------------

@@ -164,7 +164,11 @@ def read_words(
     block = Words()
     for letter, value in words:
         if letter == "G":
-            _add_group(block, "g", _g_code(value))
+            code = _g_code(value)
+            if code[1] in AXIS_COMMANDS and _axis_command(block) is not None:
+                raise CommandError(  # Grbl checks this before the modal groups
+                    Error.AXIS_COMMAND_CONFLICT, "two commands on one line use axis words")
+            _add_group(block, "g", code)
         elif letter == "M":
             _add_m_code(block, value, codes)
         elif letter in axis_index:
@@ -184,6 +188,14 @@ def read_words(
     if len(commands) > 1:
         raise CommandError(Error.AXIS_COMMAND_CONFLICT, "two commands on one line use axis words")
     return block
+
+
+def _axis_command(block: Words) -> int | None:
+    """The command of the line so far that takes the axis words, if any."""
+    for name, code in block.groups.items():
+        if not name.startswith("m_") and code in AXIS_COMMANDS:
+            return code
+    return None
 
 
 def _unknown_letter(letter: str) -> str:
@@ -218,7 +230,14 @@ def _g_code(value: float) -> tuple[str, int]:
         )
     if value == 73 or 81 <= value <= 89:
         raise CommandError(Error.UNSUPPORTED, f"G{value:g} canned cycles are not supported")
+    whole = int(value) * 10
+    if value != int(value) and whole in G_GROUPS and int(value) not in _DECIMAL_G_CODES:
+        raise CommandError(Error.INTEGER_REQUIRED, f"G{value:g}: G{int(value)} has no decimals")
     raise CommandError(Error.UNSUPPORTED, f"unsupported G code G{value:g}")
+
+
+# G codes whose decimals Grbl reads itself (G28.1, G38.2, G43.1, G92.1): others are error 20.
+_DECIMAL_G_CODES = frozenset({28, 30, 38, 43, 92})
 
 
 def _add_m_code(block: Words, value: float, codes: CodeTable | None) -> None:

@@ -58,10 +58,10 @@ class NonModal:
         values = self.words.values
         if not self.words.axes:
             raise CommandError(Error.NO_AXIS_WORDS, "G10 needs axis words")
-        if "L" not in values or "P" not in values:
-            raise CommandError(Error.VALUE_WORD_MISSING, "G10 needs L and P words")
+        if "L" not in values:
+            raise CommandError(Error.VALUE_WORD_MISSING, "G10 needs an L word")
         self.values_used.update("LP")
-        number, kind = values["P"], int(values["L"])
+        number, kind = values.get("P", 0.0), int(values["L"])  # no P: P0, the active system
         if kind not in (2, 20):
             raise CommandError(Error.UNSUPPORTED, f"G10 L{kind} is not supported (only L2 and L20)")
         if kind == 2 and "R" in values:

@@ -221,9 +221,10 @@ def _strip_comments(line: Line, body: str) -> str:
         position = match.end()
     kept.append(body[position:])
     rest = "".join(kept)
+    if "(" in rest:  # unclosed: a comment to the end of the line, as Grbl reads it
+        rest, _, comment = rest.partition("(")
+        comments.append(comment.strip())
     line.comments = tuple(comments)
-    if "(" in rest:
-        line.error = CommandError(Error.EXPECTED_COMMAND_LETTER, "unclosed '(' comment")
     return rest
 
 

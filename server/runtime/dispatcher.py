@@ -210,8 +210,8 @@ class Dispatcher:
 
     async def _run(self, name: str, command: Command) -> list[str]:
         entry = self._entries.get(name)
-        if entry is None:
-            code = Error.INVALID_STATEMENT if name.startswith("$") else Error.UNKNOWN_COMMAND
+        if entry is None:  # Grbl reads a number after an unknown '$' letter: error 2
+            code = Error.BAD_NUMBER_FORMAT if name.startswith("$") else Error.UNKNOWN_COMMAND
             raise CommandError(code, f"unknown command {name}")
         self._check_source(command.source, query=entry.query, job_control=name in self._immediate)
         if self._is_locked() and not entry.when_locked:

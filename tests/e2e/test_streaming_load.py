@@ -44,7 +44,7 @@ from tests.support.senders import (
 
 HOST = "127.0.0.1"
 # Refused lines, each with its own Grbl error number, so that a reply out of place shows.
-BAD_LINES = [("G1 X1 X2", 25), ("G81 X1 Y1 Z-1 R1", 20), ("G0 G1 X1", 21), ("G4", 28),
+BAD_LINES = [("G1 X1 X2", 25), ("G81 X1 Y1 Z-1 R1", 20), ("G0 G1 X1", 24), ("G4", 28),
              ("G1 Y-", 2), ("M3 S-1", 4)]
 
 

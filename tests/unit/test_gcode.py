@@ -72,7 +72,6 @@ def test_bad_checksum_is_reported_not_executed() -> None:
         ("G1 X1 X2", 25),  # repeated word
         ("G1 N5", 27),  # line number not first
         ("N1.5 G1", 27),
-        ("G1 (unclosed", 1),
         ("G1 X1*", 41),
     ],
 )
@@ -80,6 +79,12 @@ def test_malformed_lines_get_grbl_error_numbers(text: str, code: int) -> None:
     error = parse_line(text).error
     assert isinstance(error, CommandError)
     assert error.code == code
+
+
+def test_an_unclosed_comment_runs_to_the_end_of_the_line_as_in_grbl() -> None:
+    line = parse_line("G1 X1 (unclosed Y2")
+    assert line.error is None and line.words == [("G", 1.0), ("X", 1.0)]
+    assert line.comments == ("unclosed Y2",)
 
 
 def test_repeated_g_and_m_words_are_left_to_the_interpreter() -> None:

@@ -120,7 +120,8 @@ TABLE: dict[str, Case] = {
     "m30 ends too": Case(["G91", "M30"], gc=("G1 G54 G17 G21 G90 G94",)),
     "g38.2 probes": Case(["G38.2 Z-10 F100"], (0, 0, -10), gc=("G38.2",)),
     # errors
-    "g0 g1 is a modal group violation": Case(["G0 G1 X1"], error=21),
+    "g0 g1: two axis commands, as Grbl checks first": Case(["G0 G1 X1"], error=24),
+    "g80 g0 is a modal group violation": Case(["G80 G0 X1"], error=21),
     "g90 g91 is a modal group violation": Case(["G90 G91"], error=21),
     "m3 m4 is a modal group violation": Case(["M3 M4"], error=21),
     "m7 m8 on one line is a modal group violation": Case(["M7 M8"], error=21),
@@ -143,7 +144,9 @@ TABLE: dict[str, Case] = {
     "t1.5 needs an integer": Case(["T1.5"], error=23),
     "g10 l2.5 needs an integer": Case(["G10 L2.5 P1 X0"], error=23),
     "g10 p1.5 needs an integer": Case(["G10 L2 P1.5 X0"], error=23),
-    "g1.5 does not exist": Case(["G1.5 X1"], error=20),
+    "g1.5: g1 takes no decimals": Case(["G1.5 X1"], error=23),
+    "g38.1 does not exist": Case(["G38.1 Z1 F10"], error=20),
+    "g90.5: g90 takes no decimals": Case(["G90.5"], error=23),
     "g38.6 does not exist": Case(["G38.6 X1 F10"], error=20),
     "negative f": Case(["F-1"], error=4),
     "negative s": Case(["S-1"], error=4),
@@ -156,7 +159,8 @@ TABLE: dict[str, Case] = {
     "probe without axes": Case(["G38.2 F100"], error=26),
     "g4 without p": Case(["G4"], error=28),
     "g10 without l": Case(["G10 P1 X0"], error=28),
-    "g10 without p": Case(["G10 L2 X0"], error=28),
+    "g10 without p is the active system": Case(["G55", "G10 L2 X5", "G0 X0"], (5, 0, 0)),
+    "g10 without l": Case(["G10 P1 X0"], error=28),
     "g10 p10": Case(["G10 L2 P10 X0"], error=29),
     "g10 l20 p12": Case(["G10 L20 P12 X0"], error=29),
     "g10 l1 tool table": Case(["G10 L1 P1 X0"], error=20),
@@ -201,7 +205,7 @@ TABLE: dict[str, Case] = {
     "soft limit on an arc bulge": Case(["G0 X999", "G3 X999 Y10 R5 F100"], error=40),
     "soft limit on g28 intermediate point": Case(["G28 X2000"], error=40),
     "error after state changes": Case(["G20 G91 G55 M3 S100 T2 G43.1 Z1 G92.1", "G0 G1 X1"],
-                                      error=21),
+                                      error=24),
 }
 
 
@@ -534,12 +538,19 @@ def test_jog_with_g53_is_in_machine_coordinates() -> None:
     assert jog(interpreter, "G53 X3 F100")[0].target_mm == (3.0, 0.0, 0.0)
 
 
-@pytest.mark.parametrize("body", ["X1", "F100", "G1 X1 F100", "M3 X1 F100", "X1 S5 F100",
-                                  "G2 X1 I1 F100", "X1 F0", "E1 F100"])
+@pytest.mark.parametrize("body", ["F100", "G1 X1 F100", "M3 X1 F100", "X1 S5 F100",
+                                  "G2 X1 I1 F100", "E1 F100"])
 def test_invalid_jogs_are_error_16(body: str) -> None:
     with pytest.raises(CommandError) as caught:
         jog(Interpreter(XYZ), body)
     assert caught.value.code == 16
+
+
+@pytest.mark.parametrize("body", ["X1", "X1 F0"])
+def test_a_jog_without_a_feed_is_error_22_as_in_grbl(body: str) -> None:
+    with pytest.raises(CommandError) as caught:
+        jog(Interpreter(XYZ), body)
+    assert caught.value.code == 22
 
 
 def test_jog_beyond_the_travel_is_error_15_and_changes_nothing() -> None:
