@@ -132,11 +132,17 @@ class GrblClient:
                 out[-1] = "garbled:" + line
                 return out
 
-    async def report(self) -> str:
-        self.writer.write(b"?")
-        while not (line := await self.line()).startswith("<"):
-            self.pushed.append(line)
-        return line
+    async def report(self, attempts: int = 30) -> str:
+        """A status report; asked again after a second without one (a garbled report)."""
+        for _ in range(attempts):
+            self.writer.write(b"?")
+            try:
+                while not (line := await self.line(1.0)).startswith("<"):
+                    self.pushed.append(line)
+            except TimeoutError:
+                continue
+            return line
+        raise TimeoutError("no status report")
 
     async def settle(self, timeout_s: float = 30.0) -> str:
         """Poll until Idle or Alarm; the last report."""

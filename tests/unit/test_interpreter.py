@@ -160,7 +160,6 @@ TABLE: dict[str, Case] = {
     "g4 without p": Case(["G4"], error=28),
     "g10 without l": Case(["G10 P1 X0"], error=28),
     "g10 without p is the active system": Case(["G55", "G10 L2 X5", "G0 X0"], (5, 0, 0)),
-    "g10 without l": Case(["G10 P1 X0"], error=28),
     "g10 p10": Case(["G10 L2 P10 X0"], error=29),
     "g10 l20 p12": Case(["G10 L20 P12 X0"], error=29),
     "g10 l1 tool table": Case(["G10 L1 P1 X0"], error=20),
