@@ -145,9 +145,8 @@ class StepGenerator:
         cursor = self._cursor
         if self.state.hold is not HoldState.NONE:
             return
-        if cursor.block is None:
-            if len(self.planner):
-                self._set_hold(HoldState.STOPPED)
+        if cursor.block is None:  # nothing running: held at once (Grbl's Hold:0 when idle)
+            self._set_hold(HoldState.STOPPED)
             return
         cursor.distance_mm = cursor.block.distance_at(cursor.time_s)
         cursor.hold_speed_mm_s = cursor.block.speed_at(cursor.time_s)

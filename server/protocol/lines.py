@@ -28,7 +28,7 @@ from collections.abc import Sequence
 from functools import reduce
 from operator import xor
 
-from server.errors import CommandError, Error
+from server.errors import CommandError, Error, SoftLimitError
 from server.protocol.events import (
     M110,
     Dialect,
@@ -96,8 +96,12 @@ class LineProtocol(ByteScanner):
         return _encode(lines)
 
     def reply_error(self, error: CommandError) -> bytes:
-        """The answer to a refused line: ``error:N`` (GRBL) or Marlin-style lines (REPRAP)."""
+        """The answer to a refused line: ``error:N`` (GRBL) or Marlin-style lines (REPRAP).
+        A soft limit is answered, as by Grbl, by its ``ALARM:2`` alone (pushed to everyone):
+        senders count that line as the reply (``b""`` here)."""
         if self.dialect is Dialect.GRBL:
+            if isinstance(error, SoftLimitError):
+                return b""
             return f"error:{error.code}\r\n".encode()
         last = error.last_line if isinstance(error, ResendError) else self._last_line
         return _encode(format_reprap_error(error.code, error.message, last))

@@ -47,6 +47,7 @@ Classifier = Callable[[Line], LineKind]
 
 _NAMED = re.compile(r"([A-Za-z][A-Za-z_\-]+)(?:\s+(.*))?$", re.S)
 _GM_NAME = re.compile(r"[GMgm]\d")
+_GRBL_DOLLAR_LETTERS = "$#CGHIJNRSX"  # Grbl 1.1's $ commands: $$ $# $C $G $H $I $J= $N $RST $SLP $X
 _DOLLAR = re.compile(r"\$([$#]|[A-Za-z]*)\s*(.*)$", re.S)
 _SETTING = re.compile(r"\$(\d+)\s*=\s*(.*)$")
 _STARTUP = re.compile(r"\$[Nn](\d)\s*=(.*)$", re.S)
@@ -210,8 +211,11 @@ class Dispatcher:
 
     async def _run(self, name: str, command: Command) -> list[str]:
         entry = self._entries.get(name)
-        if entry is None:  # Grbl reads a number after an unknown '$' letter: error 2
-            code = Error.BAD_NUMBER_FORMAT if name.startswith("$") else Error.UNKNOWN_COMMAND
+        if entry is None:
+            code = Error.UNKNOWN_COMMAND
+            if name.startswith("$"):  # a letter Grbl has, badly used: 3; else Grbl reads a
+                known = name[1:2] != "" and name[1:2] in _GRBL_DOLLAR_LETTERS  # number: 2
+                code = Error.INVALID_STATEMENT if known else Error.BAD_NUMBER_FORMAT
             raise CommandError(code, f"unknown command {name}")
         self._check_source(command.source, query=entry.query, job_control=name in self._immediate)
         if self._is_locked() and not entry.when_locked:

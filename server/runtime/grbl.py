@@ -51,6 +51,7 @@ from server.runtime.machine import Machine
 from server.runtime.state import MachineStatus
 
 log = logging.getLogger("motiond.grbl")
+CAUTION_UNLOCKED = "[MSG:Caution: Unlocked]"
 LOCAL_SYNCS = frozenset({SyncKind.HALT, SyncKind.CLEAR_HALT, SyncKind.MESSAGE,
                          SyncKind.REPORT_POSITION})  # M112, M999, messages, M114: motiond's own
 _STATES = {"Idle": MachineState.IDLE, "Run": MachineState.RUN, "Hold": MachineState.HOLD,
@@ -74,6 +75,7 @@ class GrblMachine(Machine):
         self._previous_state = ""
         self._position_synced = False
         self._overrides = (100, 100, 100)  # Grbl reports Ov: only now and then
+        self._accessories = ""  # and A: only beside Ov:
         self._idle = asyncio.Event()
         self._idle.set()
         self._feedback = FeedbackGate(clock.now_s())
@@ -135,6 +137,9 @@ class GrblMachine(Machine):
             self._controller_alarm = False
         motion = command.name in ("$H", "$J=")
         try:
+            if command.name == "$X":  # motiond's own unlock said it already: said once
+                messages = await self.forward(compact(command.text), replace(command, defer=None))
+                return [text for text in messages if text != CAUTION_UNLOCKED]
             return await self.forward(compact(command.text), command, motion=motion)
         except CommandError:
             if command.name == "$X" and not self.controller.ready:  # nothing to unlock yet
@@ -189,7 +194,8 @@ class GrblMachine(Machine):
         for line in self._feedback.flush(self.clock.now_s()):
             self.status.push(line)
         self.controller_status = report
-        self._overrides = report.overrides or self._overrides
+        if report.overrides is not None:
+            self._overrides, self._accessories = report.overrides, report.accessories
         self.feed_override, self.rapid_override, self.spindle_override = self._overrides
         self._publish_motion(report)
         base = report.base_state
@@ -296,8 +302,11 @@ class GrblMachine(Machine):
         self.rapid_override = self.rapid_override if rapid is None else rapid
 
     def soft_reset(self) -> None:
+        """Ctrl-X: the board resets its overrides and turns its tools off; so does the front
+        until the board's next report says otherwise."""
         self._controller_alarm = False
         super().soft_reset()
+        self._overrides, self._accessories = (100, 100, 100), ""
 
     def stop_now(self) -> None:
         """Stop the controller (Ctrl-X) unless the alarm is its own; lines in flight fail."""
@@ -329,7 +338,7 @@ class GrblMachine(Machine):
             line_number=report.line_number,
             pins=report.pins,
             overrides=self._overrides,
-            accessories=report.accessories,
+            accessories=self._accessories,
         )
 
     def _settle(self, answer: asyncio.Future[Answered], reply: asyncio.Future[list[str]],

@@ -14,7 +14,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from server.errors import Alarm
-from server.motion.moves import Position
+from server.motion.moves import Position, ToolMode
 from server.motion.stepgen import HoldState
 from server.protocol.events import Realtime
 from server.runtime.events import Event, MachineState
@@ -89,7 +89,9 @@ class RealtimeCommands:
         if self.status.state is MachineState.HOME:  # as in Grbl: homing ignores feed hold
             return
         if self.stepgen.idle and self.status.state is MachineState.IDLE:
-            self.events.emit(Event.HOLD)  # nothing moves, but a focusing `fire` stops
+            self.stepgen.hold()  # Hold:0 at once, as Grbl: queued motion waits for '~'
+            self.status.set_state(MachineState.HOLD)
+            self.events.emit(Event.HOLD)  # a focusing `fire` stops too
             return
         if self.status.state in (MachineState.RUN, MachineState.JOG) or not self.stepgen.idle:
             if self.status.state is MachineState.JOG:
@@ -120,9 +122,12 @@ class RealtimeCommands:
         self.status.set_state(MachineState.IDLE)
 
     def soft_reset(self) -> None:
-        """Ctrl-X: stop at once, flush, keep the position; ALARM:3 if it was moving."""
-        moving = self.stepgen.state.moving
+        """Ctrl-X: stop at once, flush, keep the position; ALARM:3 if motion was interrupted
+        (not after a hold that had stopped, as Grbl); overrides back to 100 %."""
+        state = self.stepgen.state
+        moving = state.moving and state.hold is not HoldState.STOPPED
         self._halt_motion()
+        self.set_overrides(100, 100, 100)
         self.leave_check_mode()
         self.interpreter.reset()
         self.events.emit(Event.RESET)
@@ -134,9 +139,12 @@ class RealtimeCommands:
             self.status.set_state(MachineState.IDLE)
 
     def _halt_motion(self) -> None:
-        """Alarm, M112, Ctrl-X: the hardware drops what it has queued, then :meth:`stop_now`."""
+        """Alarm, M112, Ctrl-X: the hardware drops what it has queued, then :meth:`stop_now`;
+        the spindle, laser and coolant are off (and reported so)."""
         self.backend.halt()
         self.stop_now()
+        tool = self.tool
+        tool.mode, tool.s, tool.flood, tool.mist = ToolMode.OFF, 0.0, False, False
 
     def stop_now(self) -> None:
         """Halt motion at once and resynchronise everything to where the steps are."""

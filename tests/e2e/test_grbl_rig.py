@@ -162,8 +162,14 @@ async def test_soft_limits_are_the_boards_own_in_its_machine_space(tmp_path: Pat
             assert app.kernel.config.core.machine.soft_limits
             assert (await client.send("G0 X-150"))[-1] == "ok"
             await client.settle()
-            reply = await client.send("G0 X10")
-            assert "ALARM:2" in reply
+            client.writer.write(b"G0 X10\n")
+            assert await client.line() == "ALARM:2", "Grbl's one reply to a soft-limit line"
+            assert (await client.line()).startswith("[MSG:")
+            client.writer.write(b"?")
+            assert (await client.line()).startswith("<Alarm|"), "no error:N after it"
             assert app.kernel.alarm_code == 2
+            unlocked = await client.send("$X")
+            assert unlocked[-1] == "ok"
+            assert unlocked.count("[MSG:Caution: Unlocked]") == 1, unlocked
         finally:
             client.close()
