@@ -61,7 +61,6 @@ _MOVING = frozenset({"Run", "Jog", "Home"})
 _STILL = frozenset({"Idle", "Alarm", "Check", "Sleep"})  # nothing will move without a command
 
 
-
 class GrblMachine(Machine):
     """The motion pipeline ends at a Grbl controller; see the module docstring."""
 
@@ -131,8 +130,8 @@ class GrblMachine(Machine):
         return await reply
 
     async def _forward_command(self, command: Command) -> list[str]:
-        """``$X``, ``$H``, ``$J=``, ``$100=80``: after motiond's own handler (which checks
-        the line, and refuses a setting it does not know), the controller's turn."""
+        """``$X``, ``$H``, ``$J=``: after motiond's own handler (which checks the line), the
+        controller's turn."""
         if command.name in ("$X", "$H"):
             self._controller_alarm = False
         motion = command.name in ("$H", "$J=")
