@@ -35,6 +35,7 @@ from typing import TYPE_CHECKING
 
 from server.errors import Alarm, CommandError, Error
 from server.protocol.events import LineReceived, LineRejected
+from server.protocol.http_sniff import HttpSniffer
 from server.protocol.lines import LineProtocol
 from server.protocol.reports import StatusScheduler
 from server.runtime.backlog import Backlog
@@ -90,6 +91,7 @@ class Session(LineAdmission, SessionOutput):
         if self.on_probation:
             self.can_control = self.may_observe = False
         self._websocket = websocket
+        self._sniffer = None if websocket else HttpSniffer()
         self.protocol = LineProtocol(
             line_limit=core.protocol.line_limit, dialect=core.protocol.dialect, websocket=websocket
         )

@@ -3,6 +3,8 @@
 :class:`LineAdmission` is the part of :class:`~server.runtime.session.Session` (a base class of
 it) that admits what the client sends. It:
 
+* closes a byte stream that starts as an HTTP request (:mod:`server.protocol.http_sniff`)
+  before any of its bytes is acted on: a web page cannot drive the machine through the port;
 * acts on realtime bytes at once (status, hold, resume, reset, overrides, jog cancel), even
   while lines wait for planner room, and on ``M112`` the moment its line arrives;
 * queues complete lines, at most :data:`INBOUND_LINES` of them, for the session's executor;
@@ -19,6 +21,7 @@ Its state is the session's, created by ``Session.__init__``.
 
 from __future__ import annotations
 
+import logging
 from typing import TYPE_CHECKING
 
 from server.protocol.events import (
@@ -28,6 +31,7 @@ from server.protocol.events import (
     Realtime,
     RealtimeReceived,
 )
+from server.protocol.http_sniff import HttpSniffer
 from server.runtime.control import halts_at_once
 
 if TYPE_CHECKING:
@@ -40,6 +44,8 @@ if TYPE_CHECKING:
     from server.runtime.kernel import Kernel
     from server.runtime.session_output import Outbox
 
+log = logging.getLogger("motiond.session")
+HTTP_REFUSED = "this port speaks the Grbl line protocol, not HTTP: closing"
 INBOUND_LINES = 64
 REFILL_BYTES = 1024  # held-back input is fed to the protocol in slices of this size
 
@@ -49,6 +55,7 @@ class LineAdmission:
 
     # The session's state this part reads and writes (set by Session.__init__).
     kernel: Kernel
+    name: str
     protocol: LineProtocol
     outbox: Outbox
     can_control: bool
@@ -62,9 +69,11 @@ class LineAdmission:
     _epoch: int
     _queued_bytes: int
     _scheduler: StatusScheduler
+    _sniffer: HttpSniffer | None
 
     if TYPE_CHECKING:
         def _request_status(self) -> None: ...  # the session's output
+        def end(self, reason: str) -> None: ...  # the session's lifecycle
 
     @property
     def backlog_full(self) -> bool:
@@ -72,7 +81,17 @@ class LineAdmission:
         return not self._input_room.is_set()
 
     def receive_data(self, data: bytes) -> None:
-        """Bytes from the client (TCP, serial, pty; a binary WebSocket message)."""
+        """Bytes from the client (TCP, serial, pty; a binary WebSocket message).
+
+        A byte stream that starts with an HTTP request line (a web page ``fetch()``-ing the
+        port) ends the session before any of it is acted on."""
+        if self._sniffer is not None:
+            data = self._sniffer.feed(data)
+            if self._sniffer.http:
+                self._stop_http()
+                return
+            if self._sniffer.decided:
+                self._sniffer = None
         while data:
             if self._websocket or not (self._backlog or len(self._lines) >= INBOUND_LINES):
                 self._handle(self.protocol.receive_data(data))
@@ -84,6 +103,12 @@ class LineAdmission:
             self._hold_back(data[:reset_at])
             self._realtime(Realtime.RESET)  # drops what is held, as Grbl empties its buffer
             data = data[reset_at + 1 :]
+
+    def _stop_http(self) -> None:
+        if not self.outbox.closed:
+            log.warning("%s: an HTTP request on the line protocol port (a web page?): closed",
+                        self.name)
+            self.end(HTTP_REFUSED)
 
     def receive_text(self, text: str) -> None:
         """A WebSocket text frame."""
