@@ -101,8 +101,6 @@ class Session(LineAdmission, SessionOutput):
         self._ending: str | None = None
         self._lines: deque[tuple[int, LineReceived | LineRejected]] = deque()
         self._lines_ready = asyncio.Event()
-        self._room = asyncio.Event()
-        self._room.set()
         self._backlog = Backlog(core.protocol.backlog_bytes)
         self._input_room = asyncio.Event()
         self._input_room.set()
@@ -161,7 +159,6 @@ class Session(LineAdmission, SessionOutput):
         self._lines.clear()
         self._backlog.clear()
         self._lines_ready.set()
-        self._room.set()
         self._input_room.set()
         self._replies_room.set()
 
@@ -207,8 +204,6 @@ class Session(LineAdmission, SessionOutput):
             if self._backlog and len(self._lines) < INBOUND_LINES // 2:
                 self._refill()
             reply = await self._execute(event, epoch)
-            if len(self._lines) < INBOUND_LINES // 2:
-                self._room.set()
             if epoch == self._epoch:
                 self._queued_bytes = max(0, self._queued_bytes - line_size(event))
                 self._answer(reply, epoch)

@@ -11,10 +11,10 @@ it) that admits what the client sends. It:
 * keeps taking bytes while its line queue is full: they wait in a
   :class:`~server.runtime.backlog.Backlog` (``[protocol] backlog_bytes``) whose realtime bytes
   are acted on as they arrive, so a sender that streams ahead without character counting can
-  still hold (``!``) or reset (Ctrl-X) at once. Byte transports stop reading only while the
-  backlog is full (:meth:`~LineAdmission.wait_input_room`). WebSocket messages (whose end ends
-  a line) are never held back: that transport stops reading while the line queue is full
-  (:meth:`~LineAdmission.wait_room`).
+  still hold (``!``) or reset (Ctrl-X) at once. This is the one realtime path of every
+  transport: TCP, serial, pty and WebSocket messages (held with their ends, which end lines).
+  A transport stops reading only while the backlog is full
+  (:meth:`~LineAdmission.wait_input_room`).
 
 Its state is the session's, created by ``Session.__init__``.
 """
@@ -63,7 +63,6 @@ class LineAdmission:
     _websocket: bool
     _lines: deque[tuple[int, LineReceived | LineRejected]]
     _lines_ready: asyncio.Event
-    _room: asyncio.Event
     _backlog: Backlog
     _input_room: asyncio.Event
     _epoch: int
@@ -80,8 +79,10 @@ class LineAdmission:
         """Input is held back up to its bound: the transport should stop reading."""
         return not self._input_room.is_set()
 
-    def receive_data(self, data: bytes) -> None:
-        """Bytes from the client (TCP, serial, pty; a binary WebSocket message).
+    def receive_data(self, data: bytes, *, final: bool = True) -> None:
+        """Bytes from the client: a byte stream's next bytes (TCP, serial, pty), or part of a
+        WebSocket message (text frames UTF-8 encoded; ``final``: its last part, whose end ends
+        its last line). Realtime bytes are acted on now, whatever is queued in front of them.
 
         A byte stream that starts with an HTTP request line (a web page ``fetch()``-ing the
         port) ends the session before any of it is acted on."""
@@ -92,15 +93,16 @@ class LineAdmission:
                 return
             if self._sniffer.decided:
                 self._sniffer = None
+        final = final and self._websocket
         while data:
-            if self._websocket or not (self._backlog or len(self._lines) >= INBOUND_LINES):
-                self._handle(self.protocol.receive_data(data))
+            if not (self._backlog or len(self._lines) >= INBOUND_LINES):
+                self._handle(self.protocol.receive_data(data, final=final))
                 return
             reset_at = data.find(b"\x18") if self.can_control else -1
             if reset_at < 0:
-                self._hold_back(data)
+                self._hold_back(data, final)
                 return
-            self._hold_back(data[:reset_at])
+            self._hold_back(data[:reset_at], False)
             self._realtime(Realtime.RESET)  # drops what is held, as Grbl empties its buffer
             data = data[reset_at + 1 :]
 
@@ -110,22 +112,14 @@ class LineAdmission:
                         self.name)
             self.end(HTTP_REFUSED)
 
-    def receive_text(self, text: str) -> None:
-        """A WebSocket text frame."""
-        self._handle(self.protocol.receive_text(text))
-
-    async def wait_room(self) -> None:
-        """Wait while too many lines are queued (the WebSocket transport stops reading)."""
-        await self._room.wait()
-
     async def wait_input_room(self) -> None:
         """Wait while the backlog is full (a byte transport stops reading meanwhile)."""
         await self._input_room.wait()
 
-    def _hold_back(self, data: bytes) -> None:
+    def _hold_back(self, data: bytes, final: bool) -> None:
         """The line queue is full: keep the bytes, act on their realtime commands now."""
         reported = False
-        for event in self._backlog.hold(self.protocol, data):
+        for event in self._backlog.hold(self.protocol, data, final):
             if isinstance(event, RealtimeReceived):
                 reported = self._on_realtime(event.command, reported)
             elif self._is_emergency_stop(event):
@@ -146,8 +140,6 @@ class LineAdmission:
                 self.kernel.control.emergency_stop()
             self._lines.append((self._epoch, event))
             self._queued_bytes += line_size(event)
-            if len(self._lines) >= INBOUND_LINES:
-                self._room.clear()
         self._lines_ready.set()
 
     def _on_realtime(self, command: Realtime, reported: bool) -> bool:
@@ -168,8 +160,8 @@ class LineAdmission:
     def _refill(self) -> None:
         """Feed held-back bytes to the protocol until the line queue is full again."""
         while self._backlog and len(self._lines) < INBOUND_LINES:
-            self._handle(self.protocol.receive_data(self._backlog.take(REFILL_BYTES)),
-                         replayed=True)
+            piece, final = self._backlog.take(REFILL_BYTES)
+            self._handle(self.protocol.receive_data(piece, final=final), replayed=True)
         if not self._backlog.full:
             self._input_room.set()
 
@@ -186,7 +178,6 @@ class LineAdmission:
             self._lines.clear()
             self._queued_bytes = 0
             self._backlog.clear()
-            self._room.set()
             self._input_room.set()
             self.protocol.reset()
             self._scheduler.refresh()

@@ -65,11 +65,11 @@ class LineSocketSession(Session):
     """A session fed a WebSocket message a slice at a time."""
 
     def receive_slice(self, piece: str | bytes, *, final: bool) -> None:
-        """Part of one message; ``final`` for its last part (which ends its last line)."""
-        if isinstance(piece, str):
-            self._handle(self.protocol.receive_text(piece, final=final))
-        else:
-            self._handle(self.protocol.receive_data(piece, final=final))
+        """Part of one message; ``final`` for its last part (which ends its last line).
+        Text goes the byte path UTF-8 encoded (a realtime code point such as U+0091 is then
+        ``C2 91``, which the protocol reads as that realtime byte)."""
+        data = piece.encode("utf-8", "surrogatepass") if isinstance(piece, str) else piece
+        self.receive_data(data, final=final)
 
 
 class HttpTransport:
@@ -245,15 +245,16 @@ class HttpTransport:
 async def _feed(
     session: LineSocketSession, data: str | bytes, gone: Callable[[], bool]
 ) -> None:
-    """One message, a slice per loop turn, waiting while the session's line queue is full;
-    the rest is dropped once the client is gone."""
+    """One message, a slice per loop turn, waiting while the session's backlog is full (its
+    realtime bytes are acted on as they arrive, whatever lines wait in front of them); the
+    rest is dropped once the client is gone."""
     size = len(data)
     for start in range(0, max(size, 1), SLICE_CHARS):
         if gone():
             return
         end = start + SLICE_CHARS
         session.receive_slice(data[start:end], final=end >= size)
-        await session.wait_room()
+        await session.wait_input_room()
         await asyncio.sleep(0)  # a large message must not hold the loop: one slice a turn
 
 
