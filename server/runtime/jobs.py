@@ -186,10 +186,7 @@ class Jobs:
 
     def play(self, name: str) -> None:
         """Start playing a stored file."""
-        if self.running:
-            raise CommandError(Error.BUSY, "a job is already running; abort it first")
-        if self.kernel.state not in (MachineState.IDLE, MachineState.RUN):
-            raise CommandError(Error.BUSY, f"cannot start a job in state {self.kernel.state.value}")
+        self._check_free()
         path = self.path(name)
         if not path.is_file():
             raise CommandError(Error.FILE_ERROR, f"no job file {path.name}")
@@ -200,6 +197,17 @@ class Jobs:
             self._run(path, self._progress, source), name=f"job:{path.name}"
         )
         self._announce()
+
+    def _check_free(self) -> None:
+        """A job starts only on an idle machine nobody else is using (every path: ``play``,
+        the JSON API, MQTT): a sender's stream is never cut by a job (error 45)."""
+        if self.running:
+            raise CommandError(Error.BUSY, "a job is already running; abort it first")
+        state = self.kernel.state
+        if state is not MachineState.IDLE:
+            raise CommandError(Error.BUSY, f"cannot start a job in state {state.value}")
+        if self.kernel.machine.busy:
+            raise CommandError(Error.BUSY, "cannot start a job while motion is queued")
 
     def abort(self) -> None:
         """Stop the job and all motion at once; tools off."""
