@@ -223,6 +223,14 @@ class ProtocolConfig(Strict):
         2 << 20, ge=4096, le=1 << 30,
         description="input held per connection while its line queue is full; realtime bytes "
         "in it are acted on at once; beyond it the transport stops reading")
+    read_only_input_bytes_per_s: float = Field(
+        2048.0, gt=0, le=1 << 30,
+        description="what a connection that may not control (not logged in, an observer) may "
+        "send: beyond it its bytes wait unread, realtime bytes included")
+    read_only_input_total_bytes_per_s: float = Field(
+        8192.0, gt=0, le=1 << 30,
+        description="the same, all such connections together (their loop time stays bounded "
+        "whatever their number)")
     status_reports_per_s: float = Field(
         200.0, gt=0, le=1000,
         description="per connection (senders poll at 5-100 Hz); further '?' share the next report")

@@ -42,7 +42,7 @@ from server.runtime.backlog import Backlog
 from server.runtime.events import Event as BusEvent
 from server.runtime.login_guard import LoginGuard, token_matches
 from server.runtime.ratelimit import TokenBucket
-from server.runtime.session_input import INBOUND_LINES, LineAdmission, line_size
+from server.runtime.session_input import INBOUND_LINES, LineAdmission, input_budget, line_size
 from server.runtime.session_output import STATUS_BURST, Outbox, SessionOutput
 
 if TYPE_CHECKING:
@@ -111,6 +111,7 @@ class Session(LineAdmission, SessionOutput):
         self._status_bucket = TokenBucket(
             core.protocol.status_reports_per_s, STATUS_BURST, time.monotonic())
         self._status_timer: asyncio.TimerHandle | None = None
+        self._input_budget = input_budget(core.protocol.read_only_input_bytes_per_s)
         self._unsubscribe = kernel.events.subscribe(BusEvent.PUSH, self.push)
         self._task: asyncio.Task[None] | None = None
         self._replies: deque[tuple[int, asyncio.Future[bytes]]] = deque()  # behind a deferred

@@ -5,6 +5,7 @@ it) that admits what the client sends. It:
 
 * closes a byte stream that starts as an HTTP request (:mod:`server.protocol.http_sniff`)
   before any of its bytes is acted on: a web page cannot drive the machine through the port;
+* paces what a connection that may not control sends (:meth:`LineAdmission.pace_input`);
 * acts on realtime bytes at once (status, hold, resume, reset, overrides, jog cancel), even
   while lines wait for planner room, and on ``M112`` the moment its line arrives;
 * queues complete lines, at most :data:`INBOUND_LINES` of them, for the session's executor;
@@ -21,7 +22,9 @@ Its state is the session's, created by ``Session.__init__``.
 
 from __future__ import annotations
 
+import asyncio
 import logging
+import time
 from typing import TYPE_CHECKING
 
 from server.protocol.events import (
@@ -33,9 +36,9 @@ from server.protocol.events import (
 )
 from server.protocol.http_sniff import HttpSniffer
 from server.runtime.control import halts_at_once
+from server.runtime.ratelimit import TokenBucket
 
 if TYPE_CHECKING:
-    import asyncio
     from collections import deque
 
     from server.protocol.lines import LineProtocol
@@ -46,8 +49,12 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("motiond.session")
 HTTP_REFUSED = "this port speaks the Grbl line protocol, not HTTP: closing"
+READ_ONLY_CHUNK = 256  # bytes of a connection that may not control examined at a time
+BURST_BYTES = 1024  # what such a connection may send at once (then at its rate)
+TOTAL_BURST_BYTES = 2048  # what all of them may send at once
 INBOUND_LINES = 64
 REFILL_BYTES = 1024  # held-back input is fed to the protocol in slices of this size
+READ_CHUNK = 4096  # bytes a transport reads at a time (then gives the loop a turn)
 
 
 class LineAdmission:
@@ -69,6 +76,7 @@ class LineAdmission:
     _queued_bytes: int
     _scheduler: StatusScheduler
     _sniffer: HttpSniffer | None
+    _input_budget: TokenBucket
 
     if TYPE_CHECKING:
         def _request_status(self) -> None: ...  # the session's output
@@ -105,6 +113,28 @@ class LineAdmission:
             self._hold_back(data[:reset_at], False)
             self._realtime(Realtime.RESET)  # drops what is held, as Grbl empties its buffer
             data = data[reset_at + 1 :]
+
+    @property
+    def read_size(self) -> int:
+        """How many bytes a transport should read (and feed) at a time."""
+        return READ_CHUNK if self.can_control else READ_ONLY_CHUNK
+
+    async def pace_input(self, size_bytes: int) -> None:
+        """Wait until ``size_bytes`` more may be examined. A connection that may not control
+        gets ``[protocol] read_only_input_bytes_per_s``, and all of them together
+        ``read_only_input_total_bytes_per_s``: their bytes (realtime ones too: a flood of
+        ``!`` or ``0x91``) cost a bounded share of the loop whatever their number; what they
+        send beyond that waits unread (the transport's buffers fill, then the client's)."""
+        total = self.kernel.read_only_input
+        while not self.can_control and not self.outbox.closed:
+            now_s = time.monotonic()
+            wait_s = max(self._input_budget.wait_s(now_s, size_bytes),
+                         total.wait_s(now_s, size_bytes))
+            if wait_s == 0.0:
+                self._input_budget.take(now_s, size_bytes)
+                total.take(now_s, size_bytes)
+                return
+            await asyncio.sleep(wait_s)
 
     def _stop_http(self) -> None:
         if not self.outbox.closed:
@@ -185,6 +215,11 @@ class LineAdmission:
             self.outbox.put(self.protocol.banner())
             return
         self.kernel.control.realtime(command)
+
+
+def input_budget(rate_bytes_per_s: float, burst_bytes: float = BURST_BYTES) -> TokenBucket:
+    """A budget of input bytes for connections that may not control (see ``pace_input``)."""
+    return TokenBucket(rate_bytes_per_s, burst_bytes, time.monotonic())
 
 
 def line_size(event: LineReceived | LineRejected) -> int:

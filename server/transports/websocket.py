@@ -248,14 +248,18 @@ async def _feed(
     """One message, a slice per loop turn, waiting while the session's backlog is full (its
     realtime bytes are acted on as they arrive, whatever lines wait in front of them); the
     rest is dropped once the client is gone."""
-    size = len(data)
-    for start in range(0, max(size, 1), SLICE_CHARS):
+    size, start = len(data), 0
+    while True:
         if gone():
             return
-        end = start + SLICE_CHARS
+        end = start + min(SLICE_CHARS, session.read_size)
+        await session.pace_input(min(end, size) - start)
         session.receive_slice(data[start:end], final=end >= size)
         await session.wait_input_room()
         await asyncio.sleep(0)  # a large message must not hold the loop: one slice a turn
+        if end >= size:
+            return
+        start = end
 
 
 async def _write_lines(session: Session, socket: web.WebSocketResponse) -> None:

@@ -98,6 +98,20 @@ async def status_flood(served: Served) -> None:
     await asyncio.gather(*(one() for _ in range(15)))
 
 
+async def realtime_flood(served: Served) -> None:
+    """Fifteen clients without the token sending ``!`` and ``0x91`` as fast as they can (a
+    ``?`` took 354-405 ms and motion ticks 284-329 ms; the operator's ``?`` went unanswered)."""
+    async def one() -> None:
+        reader, writer = await asyncio.open_connection("127.0.0.1", served.tcp_port)
+        for _ in range(100):
+            writer.write(b"!\x91" * 2048)
+            await writer.drain()
+            await asyncio.sleep(0.01)
+        writer.close()
+
+    await asyncio.gather(*(one() for _ in range(15)))
+
+
 async def stream_ahead(served: Served) -> None:
     """2 MB of moves without waiting for ``ok`` (``nc < job.nc``), from a logged-in sender,
     then a feed hold and a reset, which must act at once."""
@@ -140,6 +154,7 @@ ATTACKS: dict[str, Attack] = {
     "32 x 2 MiB /api frames": big_api_frames,
     "deeply nested JSON": nested_json,
     "a ? flood from 15 clients": status_flood,
+    "a ! and 0x91 flood from 15 clients": realtime_flood,
     "20,000 $AUTH guesses": auth_guessing,
     "2 MB streamed ahead, then ! and Ctrl-X": stream_ahead,
     "idle sockets": idle_sockets,
