@@ -240,6 +240,8 @@ async def test_wrong_tokens_are_slowed_per_address_capped_per_connection_and_sum
 
 # -- 3a. a flood of '?' -----------------------------------------------------------------------
 async def test_a_status_flood_gets_paced_reports_and_other_clients_stay_prompt() -> None:
+    """The flooder may not control: its input is read at its paced rate (what it sends beyond
+    that waits unread in the socket buffers), so it gets few reports; the other stays prompt."""
     async with running(strict(), transports=[TcpTransport]) as app:
         flooder, other = await Tcp.open(tcp_port(app)), await Tcp.open(tcp_port(app))
         flood_s = 1.0
@@ -247,8 +249,7 @@ async def test_a_status_flood_gets_paced_reports_and_other_clients_stay_prompt()
         latencies_s: list[float] = []
         while time.monotonic() - started_s < flood_s:
             for _ in range(8):
-                flooder.writer.write(b"?" * 4096)
-            await flooder.writer.drain()
+                flooder.writer.write(b"?" * 4096)  # no drain: the server reads it slowly
             before = len([line for line in other.received.lines if is_status(line)])
             asked_s = time.monotonic()
             await other.send(b"?")
@@ -258,9 +259,9 @@ async def test_a_status_flood_gets_paced_reports_and_other_clients_stay_prompt()
         elapsed_s = time.monotonic() - started_s
         await asyncio.sleep(0.3)
         reports = [line for line in flooder.received.lines if is_status(line)]
-        rate = app.kernel.config.core.protocol.status_reports_per_s
-        assert len(reports) <= rate * (elapsed_s + 0.3) + 5 + 5, len(reports)  # rate + burst
-        assert reports and is_status(flooder.received.lines[-1])  # the last '?' was answered
+        protocol = app.kernel.config.core.protocol
+        examined_bytes = protocol.read_only_input_bytes_per_s * (elapsed_s + 0.3) + 1024
+        assert 0 < len(reports) <= examined_bytes / 256 + 1, len(reports)  # a report a read
         assert max(latencies_s) < 0.5, max(latencies_s)
         flooder.close()
         other.close()
