@@ -259,6 +259,10 @@ class JsonApi:
     # -- /upload ----------------------------------------------------------------------------
     async def upload(self, request: web.Request) -> web.Response:
         """``POST /upload?name=NAME``: the body, streamed into the job folder."""
+        encoding = request.headers.get("Content-Encoding", "identity").strip().lower()
+        if encoding != "identity":  # inflating would cost loop time before any check
+            return _json_error(415, 44, f"Content-Encoding {encoding!r} is not accepted: "
+                               "upload the file as it is")
         if not self.transport.origin_allowed(request):
             return _json_error(403, Error.AUTH_REQUIRED, "origin not allowed")
         if not self.token_ok(presented_token(request)):
@@ -295,7 +299,10 @@ async def _write(connection: Connection) -> None:
 
 
 def _json_error(status: int, code: int, message: str) -> web.Response:
-    return web.json_response({"error": {"code": code, "message": message}}, status=status)
+    """A refusal; the connection then closes without reading the rest of the body."""
+    response = web.json_response({"error": {"code": code, "message": message}}, status=status)
+    response.force_close()
+    return response
 
 
 API_KEY = web.AppKey("motiond.api", JsonApi)

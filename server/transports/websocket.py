@@ -10,6 +10,8 @@ the token and those that did not are counted apart, and the latter are closed af
 ``[http] idle_timeout_s`` without a message. A message is bounded once decompressed
 (``ws_max_message_bytes``: close 1009) and fed to the session a slice at a time, so one large
 message never holds the loop. A request's headers must arrive within ``request_timeout_s``.
+Request bodies are never inflated (``Content-Encoding`` is refused where a body is read) and
+never drained after a refusal: the connection is closed instead.
 """
 
 from __future__ import annotations
@@ -109,6 +111,8 @@ class HttpTransport:
             handle_signals=False,
             shutdown_timeout=0.5,
             keepalive_timeout=self.config.request_timeout_s,
+            auto_decompress=False,  # never inflate a body on the loop (uploads refuse encodings)
+            lingering_time=0,  # a refused request's body is never drained: the connection closes
         )
         await self._runner.setup()
         site = web.TCPSite(self._runner, self.config.host, self.config.port)
