@@ -31,7 +31,7 @@ from server.runtime.grbl import GrblMachine
 from server.runtime.jobs import Jobs
 from server.runtime.machine import Machine, SyncHandler
 from server.runtime.module import ApiHandler, ApiMethod, ApiParams, Module
-from server.runtime.session_input import TOTAL_BURST_BYTES, input_budget
+from server.runtime.session import TOTAL_BURST_BYTES, input_budget
 from server.runtime.state import MachineStatus
 from server.runtime.status import build_status
 

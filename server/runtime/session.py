@@ -42,7 +42,13 @@ from server.runtime.backlog import Backlog
 from server.runtime.events import Event as BusEvent
 from server.runtime.login_guard import LoginGuard, token_matches
 from server.runtime.ratelimit import TokenBucket
-from server.runtime.session_input import INBOUND_LINES, LineAdmission, input_budget, line_size
+from server.runtime.session_input import (
+    INBOUND_LINES,
+    TOTAL_BURST_BYTES,
+    LineAdmission,
+    input_budget,
+    line_size,
+)
 from server.runtime.session_output import STATUS_BURST, Outbox, SessionOutput
 
 if TYPE_CHECKING:
@@ -52,7 +58,8 @@ log = logging.getLogger("motiond.session")
 _AUTH = re.compile(r"^\s*\$AUTH=(.*)$", re.I)
 PROBATION_REFUSED = "this slot is reserved for logged-in connections: send $AUTH=<token> first"
 YIELD_AFTER_S = 0.0003  # the executor gives other tasks a turn at least this often
-__all__ = ["Session", "line_token", "login_guard", "token_matches"]
+__all__ = ["TOTAL_BURST_BYTES", "Session", "input_budget", "line_token", "login_guard",
+           "token_matches"]
 
 
 class Session(LineAdmission, SessionOutput):
