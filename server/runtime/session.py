@@ -12,10 +12,12 @@ A transport creates a :class:`Session`, feeds it bytes (or WebSocket text) and d
   ``error:N`` per line, in order (deferred replies included), rate-limited status reports,
   pushes, all bounded.
 
-Logging in: ``$AUTH=token`` (see :mod:`server.runtime.login_guard`: constant-time comparison,
-wrong tokens answered ever later per client address, the connection closed after
-``auth_failures_per_connection``). An observer never logs in. A session on probation (it got
-a TCP slot reserved for logged-in connections) must log in with its first line.
+A client whose address is in ``[protocol] trusted_clients`` controls without the token (senders
+that cannot log in). Logging in: ``$AUTH=token`` (see :mod:`server.runtime.login_guard`:
+constant-time comparison, wrong tokens answered ever later per client address, the connection
+closed after ``auth_failures_per_connection``). An observer never logs in. A session on
+probation (it got a TCP slot reserved for logged-in connections) must log in with its first
+line.
 
 A client that stops reading overflows its outbox and is disconnected, never slowing motion or
 other clients. :meth:`Session.end` says why in a ``[MSG:]`` line, then the transport hangs up
@@ -33,6 +35,7 @@ import time
 from collections import deque
 from typing import TYPE_CHECKING
 
+from server.config import trusted_client
 from server.errors import Alarm, CommandError, Error
 from server.protocol.events import LineReceived, LineRejected
 from server.protocol.http_sniff import HttpSniffer
@@ -90,8 +93,10 @@ class Session(LineAdmission, SessionOutput):
         self.peer = peer
         self._token = line_token(kernel)
         self._observer = observer
-        self.on_probation = must_login and self._token is not None
-        self.can_control = self._token is None or token_matches(token, self._token)
+        trusted = trusted_client(peer, core.protocol.trusted_clients)
+        self.on_probation = must_login and self._token is not None and not trusted
+        self.can_control = (self._token is None or trusted
+                            or token_matches(token, self._token))
         self.may_observe = self.can_control or core.protocol.unauthenticated == "read-only"
         if observer:  # asked to only watch: status and pushes, never control
             self.can_control = False

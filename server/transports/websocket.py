@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING
 
 from aiohttp import WSCloseCode, WSMsgType, web
 
+from server.config import trusted_client
 from server.runtime.session import Session, line_token, login_guard
 from server.transports.access import (
     ConnectionSlots,
@@ -153,6 +154,10 @@ class HttpTransport:
             self.hosts,
         )
 
+    def trusted(self, request: web.Request) -> bool:
+        """The client's address is in ``[protocol] trusted_clients``: no token needed."""
+        return trusted_client(request.remote, self.kernel.config.core.protocol.trusted_clients)
+
     def admit(self, request: web.Request, authenticated: bool) -> None:
         """Refuse a WebSocket from a foreign origin (403), or beyond the connection limit for
         those with (``max_connections``) or without the token (503); else take a slot."""
@@ -189,7 +194,7 @@ class HttpTransport:
 
     async def _line_socket(self, request: web.Request) -> web.WebSocketResponse:
         token, expected = presented_token(request), line_token(self.kernel)
-        authenticated = expected is None or tokens_equal(token, expected)
+        authenticated = expected is None or self.trusted(request) or tokens_equal(token, expected)
         self.admit(request, authenticated)
         socket = web.WebSocketResponse(
             heartbeat=HEARTBEAT_S, max_msg_size=self.config.ws_max_message_bytes
