@@ -228,7 +228,13 @@ def loop_factory(name: str = "auto", realtime_priority: int = 0) -> LoopFactory:
 
 def serve(args: argparse.Namespace, config: Config) -> int:
     config = apply_overrides(args, config)
-    _no_open_door(config)
+    try:
+        _no_open_door(config)
+    except OSError as exc:
+        print(f"motiond listens beyond this machine without a token and cannot store one: "
+              f"{exc}; set [protocol] token and [http] token (or $MOTIOND_TOKEN), or listen on "
+              f"127.0.0.1", file=sys.stderr)
+        return 1
     factory = loop_factory(getattr(args, "loop", "auto"), config.core.stepgen.realtime_priority)
     with asyncio.Runner(loop_factory=factory) as runner:
         return runner.run(_serve(config))
