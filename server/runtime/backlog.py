@@ -52,6 +52,8 @@ class Backlog:
         ``final``: the end of a WebSocket message."""
         if b"\x18" in data:
             raise ValueError("Ctrl-X is never held back: split the input at it")
+        if not data:
+            return []
         if self._twin is None:
             self._twin = protocol.copy()
         if self._segments and not self._segments[-1][1]:
