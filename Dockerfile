@@ -1,4 +1,6 @@
-# Headless motiond: docker build -t motiond . && docker run -p 2323:2323 -p 8080:8080 -v motiond-data:/data motiond
+# Headless motiond: docker build -t motiond . && docker run -p 127.0.0.1:2323:2323 -p 127.0.0.1:8080:8080 -v motiond-data:/data motiond
+# It listens on every interface inside the container, so it never runs without a token: the first
+# start makes one in /data/jobs/.token and prints it (docker logs); or pass -e MOTIOND_TOKEN=...
 FROM python:3.11-slim
 
 RUN useradd --create-home --uid 10001 motiond \

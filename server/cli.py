@@ -228,9 +228,34 @@ def loop_factory(name: str = "auto", realtime_priority: int = 0) -> LoopFactory:
 
 def serve(args: argparse.Namespace, config: Config) -> int:
     config = apply_overrides(args, config)
+    try:
+        _no_open_door(config)
+    except OSError as exc:
+        print(f"motiond listens beyond this machine without a token and cannot store one: "
+              f"{exc}; set [protocol] token and [http] token (or $MOTIOND_TOKEN), or listen on "
+              f"127.0.0.1", file=sys.stderr)
+        return 1
     factory = loop_factory(getattr(args, "loop", "auto"), config.core.stepgen.realtime_priority)
     with asyncio.Runner(loop_factory=factory) as runner:
         return runner.run(_serve(config))
+
+
+def _no_open_door(config: Config) -> None:
+    """A port open beyond loopback without a token gets the stored one: say so, with the
+    token (as Jupyter prints its URL), once at every start."""
+    from server.transports.access import close_open_door
+
+    core = config.core
+    path = close_open_door(core)
+    if path is None:
+        return
+    token = core.protocol.token or core.http.token
+    print(f"motiond listens beyond this machine without a token set: control needs the token "
+          f"in {path}:\n    {token}\n"
+          f"  senders: send $AUTH={token} first (or list their addresses in [protocol] "
+          f"trusted_clients);\n"
+          f"  web UI: http://<this machine>:{core.http.port}/?token={token}",
+          file=sys.stderr, flush=True)
 
 
 async def _serve(config: Config) -> int:

@@ -10,11 +10,12 @@ a :class:`Config`, and reporting every problem as ``FILE: [section] key: message
 
 from __future__ import annotations
 
+import ipaddress
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from server.runtime.module import Module
 
@@ -226,6 +227,18 @@ class ProtocolConfig(Strict):
         2 << 20, ge=4096, le=1 << 30,
         description="input held per connection while its line queue is full; realtime bytes "
         "in it are acted on at once; beyond it the transport stops reading")
+    read_only_input_bytes_per_s: float = Field(
+        2048.0, gt=0, le=1 << 30,
+        description="what a connection that may not control (not logged in, an observer) may "
+        "send: beyond it its bytes wait unread, realtime bytes included")
+    read_only_input_total_bytes_per_s: float = Field(
+        8192.0, gt=0, le=1 << 30,
+        description="the same, all such connections together (their loop time stays bounded "
+        "whatever their number)")
+    trusted_clients: list[str] = Field(
+        default_factory=list,
+        description="addresses and subnets (192.168.1.0/24) that control without the token: "
+        "for senders that cannot log in (LightBurn, most Grbl senders)")
     status_reports_per_s: float = Field(
         200.0, gt=0, le=1000,
         description="per connection (senders poll at 5-100 Hz); further '?' share the next report")
@@ -236,6 +249,34 @@ class ProtocolConfig(Strict):
         description="a wrong token is answered this late, doubling with each recent failure "
         "from the same address")
     auth_max_delay_s: float = Field(8.0, ge=0, le=300, description="cap of that delay")
+
+    @field_validator("trusted_clients")
+    @classmethod
+    def _networks(cls, entries: list[str]) -> list[str]:
+        for entry in entries:
+            try:
+                client_networks([entry])
+            except ValueError as exc:
+                raise ValueError(f"not an address or subnet: {entry!r}") from exc
+        return entries
+
+
+def client_networks(entries: list[str]) -> list[ipaddress.IPv4Network | ipaddress.IPv6Network]:
+    """``[protocol] trusted_clients`` as networks (an address is a network of one)."""
+    return [ipaddress.ip_network(entry.strip(), strict=False) for entry in entries]
+
+
+def trusted_client(address: str | None, entries: list[str]) -> bool:
+    """Whether a client's address is in ``[protocol] trusted_clients``."""
+    if not entries or not address:
+        return False
+    try:
+        ip = ipaddress.ip_address(address.split("%")[0])
+    except ValueError:
+        return False
+    if isinstance(ip, ipaddress.IPv6Address) and ip.ipv4_mapped is not None:
+        ip = ip.ipv4_mapped
+    return any(ip in network for network in client_networks(entries))
 
 
 class JobsConfig(Strict):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
+from typing import Literal
 from urllib.parse import urlsplit
 
 from pydantic import Field, FilePath, field_validator, model_validator
@@ -88,6 +89,9 @@ class MqttConfig(ModuleConfig):
         1000, ge=16, le=100_000,
         description="replies and events held while the broker is slow or away (oldest dropped)")
     reconnect_max_s: float = Field(30.0, ge=0.5, le=3600, description="cap of the back-off")
+    protocol: Literal["5", "3.1.1"] = Field(
+        "5", description="MQTT version: 5 keeps retained commands from being sent at all; "
+        "3.1.1 for brokers without it (retained commands are then refused as they arrive)")
 
     @field_validator("url")
     @classmethod

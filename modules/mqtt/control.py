@@ -2,8 +2,10 @@
 
 Every message gets a reply on ``<prefix>/reply`` (one per G-code line), carrying the request's
 ``id``. With ``allow_control = false`` every command is refused (``control_disabled``); a
-malformed payload is refused whole (``invalid_payload``) and changes nothing. The broker's ACLs
-decide who may publish here: this module obeys whatever the broker delivers.
+malformed payload is refused whole (``invalid_payload``) and changes nothing. A retained
+message (published with the retain flag) is refused (``retained``) and never executed, and the
+same stored message is not answered again when the broker sends it after a reconnect. The
+broker's ACLs decide who may publish here: this module obeys whatever the broker delivers.
 
 G-code lines run through ``ModuleContext.run_gcode``, the one ordered path of every source,
 so they wait their turn, are refused while another source's motion or a job runs (error 45),
@@ -17,6 +19,7 @@ of the lines waiting, as it does from a sender or the JSON API.
 from __future__ import annotations
 
 import asyncio
+import hashlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -37,6 +40,10 @@ from server.runtime.control import halts_at_once
 from server.runtime.module import ModuleContext
 
 PENDING_BATCHES = 16
+RETAINED_REMEMBERED = 256  # retained commands already refused, not answered again
+RETAINED_REFUSED = ("a retained command is never executed (it would run again at every start "
+                    "and reconnect): publish commands without the retain flag, and clear this "
+                    "one with an empty retained message")
 Reply = Callable[[dict[str, Any]], None]
 
 
@@ -58,9 +65,17 @@ class Control:
         self.refused = 0  # messages refused whole (disabled, malformed, busy)
         self._batches: asyncio.Queue[_Batch] = asyncio.Queue(PENDING_BATCHES)
         self._generation = 0
+        self._retained_seen: dict[tuple[str, bytes], None] = {}  # refused, oldest first
 
-    def on_command(self, command: str, payload: bytes) -> None:
-        """One message on ``cmd/<command>``; never waits, never raises for a bad message."""
+    def on_command(self, command: str, payload: bytes, *, retained: bool = False) -> None:
+        """One message on ``cmd/<command>``; never waits, never raises for a bad message.
+
+        A retained message is never executed: it would run again at every start and every
+        reconnect. It is refused once (``retained``), and not again when the broker sends
+        the same stored message after a reconnect."""
+        if retained:
+            self._refuse_retained(command, payload)
+            return
         if not self.allowed:
             self._refuse(peek_id(payload[:4096]), command, "control_disabled",
                          "control is disabled on this machine (allow_control = false)",
@@ -79,6 +94,17 @@ class Control:
             self._start_job(request)
         else:
             self._queue_gcode(request)
+
+    def _refuse_retained(self, command: str, payload: bytes) -> None:
+        if not payload:
+            return  # an empty retained message clears the stored one: nothing to answer
+        key = (command, hashlib.sha256(payload).digest())
+        if key in self._retained_seen:
+            return
+        self._retained_seen[key] = None
+        while len(self._retained_seen) > RETAINED_REMEMBERED:
+            self._retained_seen.pop(next(iter(self._retained_seen)))
+        self._refuse(peek_id(payload[:4096]), command, "retained", RETAINED_REFUSED)
 
     def _refuse(self, request_id: str | int | None, command: str, reason: str, message: str,
                 code: int | None = None) -> None:

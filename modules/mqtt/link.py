@@ -4,8 +4,13 @@ capped exponential back-off. Nothing here ever raises for a broker that is down 
 One connection at a time: on connect it publishes ``online`` (retained; the last will says
 ``offline``), the greeting messages (Home Assistant discovery) and the current status, then
 subscribes to the command topics and runs a sender (draining the :class:`Outbox`) beside a
-receiver (handing each message to ``on_message``, a plain function that never waits). When
-cancelled (shutdown), it publishes ``offline`` before it disconnects.
+receiver (handing each message, with its retain flag, to ``on_message``, a plain function that
+never waits). When cancelled (shutdown), it publishes ``offline`` before it disconnects.
+
+Retained commands: with MQTT 5 (the default) the command topics are subscribed with retain
+handling 2 (the broker sends no stored message when subscribing) and retain-as-published (a
+message published with the retain flag arrives with it), so the receiver can refuse it; with
+MQTT 3.1.1 the broker sends stored messages with the flag set on each (re)subscription.
 
 Connecting, publishing, subscribing and disconnecting are each bounded by ``asyncio.timeout``
 around aiomqtt calls made without a timeout of their own (``math.inf``): aiomqtt's timeouts use
@@ -24,8 +29,10 @@ import random
 import ssl
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import aiomqtt
+from paho.mqtt.subscribeoptions import SubscribeOptions
 
 from modules.mqtt.config import BrokerAddress, Topics
 from modules.mqtt.outbox import Outbox, Outgoing
@@ -69,6 +76,7 @@ class Link:
     def __init__(
         self, broker: BrokerAddress, topics: Topics, outbox: Outbox, *, client_id: str,
         qos: int, keepalive_s: int, reconnect_max_s: float, log: logging.Logger,
+        mqtt5: bool = True,
     ) -> None:
         self.broker, self.topics, self.outbox = broker, topics, outbox
         self.client_id, self.qos, self.keepalive_s = client_id, qos, keepalive_s
@@ -77,7 +85,8 @@ class Link:
         self.connected = False
         self.connections = 0  # successful connections so far
         self.greeting: Callable[[], list[Outgoing]] = list
-        self.on_message: Callable[[str, bytes], None] = lambda topic, payload: None
+        self.on_message: Callable[[str, bytes, bool], None] = lambda topic, data, retained: None
+        self.mqtt5 = mqtt5
         self._drops = _CountDrops()
         self._client_log = log.getChild("client")
         self._client_log.addFilter(self._drops)
@@ -114,7 +123,8 @@ class Link:
             password=login.password, identifier=self.client_id, tls_context=login.tls,
             will=aiomqtt.Will(self.topics.availability, b"offline", self.qos, retain=True),
             keepalive=self.keepalive_s, timeout=math.inf, logger=self._client_log,
-            max_queued_incoming_messages=INCOMING_LIMIT, clean_session=True,
+            max_queued_incoming_messages=INCOMING_LIMIT,
+            **_session_options(self.mqtt5),
         )
         async with asyncio.timeout(CONNECT_TIMEOUT_S):
             await client.__aenter__()
@@ -151,7 +161,10 @@ class Link:
         for message in self.greeting():
             await self._publish(client, message)
         async with asyncio.timeout(PUBLISH_TIMEOUT_S):
-            granted = await client.subscribe(self.topics.commands, self.qos, timeout=math.inf)
+            options = _command_options(self.qos, self.mqtt5)  # carries the QoS, if any
+            granted = await client.subscribe(
+                self.topics.commands, self.qos if options is None else 0, options=options,
+                timeout=math.inf)
         if any(_refused(code) for code in granted):
             self.log.warning("the broker refused %s to this user (its ACL): commands cannot "
                              "be received or answered", self.topics.commands)
@@ -175,13 +188,28 @@ class Link:
                 data = bytes(payload)
             else:
                 data = b"" if payload is None else str(payload).encode()
-            self.on_message(str(message.topic), data)
+            self.on_message(str(message.topic), data, bool(message.retain))
 
     async def _farewell(self, client: aiomqtt.Client) -> None:
         """Shutdown: say ``offline`` (the will is only for a connection that breaks)."""
         with contextlib.suppress(*NOT_CONNECTED):
             offline = Outgoing(self.topics.availability, b"offline", True)
             await self._publish(client, offline, FAREWELL_TIMEOUT_S)
+
+
+def _session_options(mqtt5: bool) -> dict[str, Any]:
+    """A clean session on every connection, in either protocol version's terms."""
+    if mqtt5:
+        return {"protocol": aiomqtt.ProtocolVersion.V5, "clean_start": True}
+    return {"protocol": aiomqtt.ProtocolVersion.V311, "clean_session": True}
+
+
+def _command_options(qos: int, mqtt5: bool) -> SubscribeOptions | None:
+    """MQTT 5: no stored (retained) message on subscribing; the retain flag as published."""
+    if not mqtt5:
+        return None
+    return SubscribeOptions(qos=qos, retainAsPublished=True,
+                            retainHandling=SubscribeOptions.RETAIN_DO_NOT_SEND)
 
 
 def _refused(code: object) -> bool:

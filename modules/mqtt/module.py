@@ -13,7 +13,8 @@ Topics, under ``topic_prefix`` (default ``motiond/<machine slug>``):
   changes, at most ``status_hz`` times a second;
 - ``event/alarm``, ``event/job``: an alarm (code, message, meaning); a job's ``start``,
   ``pause``, ``resume`` and ``end`` (done, failed or aborted);
-- ``cmd/...`` and ``reply``: see :mod:`modules.mqtt.control`;
+- ``cmd/...`` and ``reply``: see :mod:`modules.mqtt.control` (a retained command is never
+  executed); replies and events are never retained;
 - Home Assistant discovery under ``discovery_prefix`` (:mod:`modules.mqtt.discovery`).
 
 The broker never slows the machine: samples and events go to a bounded :class:`Outbox` that
@@ -85,7 +86,8 @@ class Mqtt(Module):
         config = self.config
         link = Link(self.broker, self.topics, self.outbox, client_id=self.client_id,
                     qos=config.qos, keepalive_s=config.keepalive_s,
-                    reconnect_max_s=config.reconnect_max_s, log=self.ctx.log)
+                    reconnect_max_s=config.reconnect_max_s, log=self.ctx.log,
+                    mqtt5=config.protocol == "5")
         link.greeting = self._greeting
         link.on_message = self._on_message
         self.link = link
@@ -173,10 +175,10 @@ class Mqtt(Module):
         self.outbox.put(Outgoing(self.topics.event(name), encode(message)))
 
     # -- commands -------------------------------------------------------------------------
-    def _on_message(self, topic: str, payload: bytes) -> None:
+    def _on_message(self, topic: str, payload: bytes, retained: bool = False) -> None:
         command = self.topics.command_of(topic)
         if command is not None:
-            self.control.on_command(command, payload)
+            self.control.on_command(command, payload, retained=retained)
 
     def _reply(self, reply: dict[str, Any]) -> None:
         self.outbox.put(Outgoing(self.topics.reply, encode(reply)))

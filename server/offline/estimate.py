@@ -14,7 +14,6 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import replace
-from pathlib import Path
 from typing import TextIO
 
 from server.backends.base import Backend
@@ -244,10 +243,3 @@ def file_lines(handle: TextIO, limit_chars: int) -> Iterator[str]:
             while rest and not rest.endswith("\n"):
                 rest = handle.readline(SKIP_CHUNK_CHARS)
             yield line[: limit_chars + 1]
-
-
-def read_file_lines(path: Path, limit_chars: int) -> list[str]:
-    """Every line of a job file (see :func:`file_lines`); call it in a thread."""
-    with path.open(errors="replace") as handle:
-        return list(file_lines(handle, limit_chars))
-

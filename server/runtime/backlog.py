@@ -1,7 +1,8 @@
 """Input held back while a connection's line queue is full, with its realtime bytes found at once.
 
 Grbl acts on ``!``, ``~``, ``?``, Ctrl-X and the extended bytes the moment they arrive, even
-when its serial buffer is full. A sender that streams ahead without character counting fills
+when its serial buffer is full; motiond does the same on every transport (TCP, serial, pty and
+WebSocket messages alike). A sender that streams ahead without character counting fills
 motiond's line queue; if the transport stopped reading then, a later ``!`` would wait behind
 the whole stream. So the session keeps taking bytes into a :class:`Backlog`, bounded in bytes:
 
@@ -19,43 +20,66 @@ then fills); realtime bytes already received are still acted on.
 
 from __future__ import annotations
 
+from collections import deque
+
 from server.protocol.events import Event
 from server.protocol.lines import LineProtocol
 
 
 class Backlog:
-    """Bytes not yet fed to the protocol, and the twin protocol that has already read them."""
+    """Bytes not yet fed to the protocol, and the twin protocol that has already read them.
+
+    Bytes are kept in segments: a WebSocket message's last part ends a segment (``final``:
+    the message's end ends its last line), so they are fed to the protocol as they came;
+    a byte stream's bytes form one segment."""
 
     def __init__(self, limit_bytes: int) -> None:
         self.limit_bytes = limit_bytes
-        self._data = bytearray()
+        self._segments: deque[tuple[bytearray, bool]] = deque()
+        self._size = 0
         self._twin: LineProtocol | None = None
 
     def __len__(self) -> int:
-        return len(self._data)
+        return self._size
 
     @property
     def full(self) -> bool:
-        return len(self._data) >= self.limit_bytes
+        return self._size >= self.limit_bytes
 
-    def hold(self, protocol: LineProtocol, data: bytes) -> list[Event]:
+    def hold(self, protocol: LineProtocol, data: bytes, final: bool = False) -> list[Event]:
         """Keep ``data`` (no ``0x18`` in it) after what is held; return what the twin of
-        ``protocol`` finds in it: realtime commands to act on now, lines only to look at."""
+        ``protocol`` finds in it: realtime commands to act on now, lines only to look at.
+        ``final``: the end of a WebSocket message."""
         if b"\x18" in data:
             raise ValueError("Ctrl-X is never held back: split the input at it")
+        if not data:
+            return []
         if self._twin is None:
             self._twin = protocol.copy()
-        self._data += data
-        return self._twin.receive_data(data)
+        if self._segments and not self._segments[-1][1]:
+            self._segments[-1][0].extend(data)
+            self._segments[-1] = (self._segments[-1][0], final)
+        else:
+            self._segments.append((bytearray(data), final))
+        self._size += len(data)
+        return self._twin.receive_data(data, final=final)
 
-    def take(self, size_bytes: int) -> bytes:
-        """The oldest held bytes, at most ``size_bytes``, for the protocol itself."""
-        piece = bytes(self._data[:size_bytes])
-        del self._data[:size_bytes]
-        if not self._data:
+    def take(self, size_bytes: int) -> tuple[bytes, bool]:
+        """The oldest held bytes, at most ``size_bytes``, for the protocol itself, and whether
+        they end a WebSocket message."""
+        segment, final = self._segments[0]
+        piece = bytes(segment[:size_bytes])
+        del segment[:size_bytes]
+        self._size -= len(piece)
+        if segment:
+            final = False
+        else:
+            self._segments.popleft()
+        if not self._segments:
             self._twin = None  # the protocol has caught up with its twin
-        return piece
+        return piece, final
 
     def clear(self) -> None:
-        self._data.clear()
+        self._segments.clear()
+        self._size = 0
         self._twin = None

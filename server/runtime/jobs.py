@@ -10,7 +10,10 @@ Playing a file streams its lines through the same dispatcher a sender uses, so t
 executed, flow-controlled and error-checked exactly like streamed G-code; the first line that
 is refused stops the job with a message naming the line. A line answered downstream (a Grbl
 controller) is deferred by the dispatcher: the job sends on while it is in the controller's
-buffer and stops at the first answer that is an error. File I/O runs in a thread.
+buffer and stops at the first answer that is an error. File I/O runs in a thread. A job file
+is never held in memory whole: its lines are read as they are sent (the first moves at once,
+whatever the file's size), and its estimate reads it again beside, in a thread that stops
+with the job.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import logging
 import os
 import re
 import tempfile
+import threading
 import time
 from collections import deque
 from collections.abc import AsyncIterator, Callable
@@ -30,10 +34,10 @@ from typing import TYPE_CHECKING, BinaryIO
 
 from server.errors import CommandError, Error
 from server.gcode.parser import check_length
-from server.offline.estimate import estimate, read_file_lines
 from server.offline.stats import format_duration
 from server.runtime.dispatcher import Command
 from server.runtime.events import Event, MachineState
+from server.runtime.job_reading import estimate_file, read_lines
 
 if TYPE_CHECKING:
     from server.runtime.kernel import Kernel
@@ -186,10 +190,7 @@ class Jobs:
 
     def play(self, name: str) -> None:
         """Start playing a stored file."""
-        if self.running:
-            raise CommandError(Error.BUSY, "a job is already running; abort it first")
-        if self.kernel.state not in (MachineState.IDLE, MachineState.RUN):
-            raise CommandError(Error.BUSY, f"cannot start a job in state {self.kernel.state.value}")
+        self._check_free()
         path = self.path(name)
         if not path.is_file():
             raise CommandError(Error.FILE_ERROR, f"no job file {path.name}")
@@ -200,6 +201,17 @@ class Jobs:
             self._run(path, self._progress, source), name=f"job:{path.name}"
         )
         self._announce()
+
+    def _check_free(self) -> None:
+        """A job starts only on an idle machine nobody else is using (every path: ``play``,
+        the JSON API, MQTT): a sender's stream is never cut by a job (error 45)."""
+        if self.running:
+            raise CommandError(Error.BUSY, "a job is already running; abort it first")
+        state = self.kernel.state
+        if state is not MachineState.IDLE:
+            raise CommandError(Error.BUSY, f"cannot start a job in state {state.value}")
+        if self.kernel.machine.busy:
+            raise CommandError(Error.BUSY, "cannot start a job while motion is queued")
 
     def abort(self) -> None:
         """Stop the job and all motion at once; tools off."""
@@ -243,26 +255,46 @@ class Jobs:
                 await self._task
 
     async def _run(self, path: Path, progress: JobProgress, source: _JobSource) -> None:
+        """Stream the file's lines as they are read, with the estimate beside (both stop with
+        the job): memory stays bounded whatever the file's size, and motion starts at once."""
+        stop = threading.Event()
+        estimator = asyncio.get_running_loop().create_task(
+            self._estimate(path, progress, stop), name=f"estimate:{path.name}")
         try:
-            core = self.kernel.config.core
-            lines = await asyncio.to_thread(read_file_lines, path, core.protocol.line_limit)
-            progress.lines_total = len(lines)
-            interpreter = self.kernel.machine.new_interpreter()
-            stats = await asyncio.to_thread(
-                estimate, lines, core.model_copy(deep=True), None, interpreter
-            )
-            progress.estimate_s = stats.duration_s
-            await self._stream(lines, progress, source)
+            limit = self.kernel.config.core.protocol.line_limit
+            async with contextlib.aclosing(read_lines(path, limit, progress)) as lines:
+                await self._stream(lines, progress, source)
         except OSError as exc:
             self._fail(progress, f"cannot read {path.name}: {exc.strerror}")
+        finally:
+            stop.set()
+            estimator.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await estimator
 
-    async def _stream(self, lines: list[str], progress: JobProgress, source: _JobSource) -> None:
+    async def _estimate(self, path: Path, progress: JobProgress, stop: threading.Event) -> None:
+        """The job's duration (``progress.estimate_s``) and line count, computed in a thread
+        reading the file as it goes (bounded memory); ``stop`` ends it early."""
+        core = self.kernel.config.core.model_copy(deep=True)
+        interpreter = self.kernel.machine.new_interpreter()
+        try:
+            stats = await asyncio.to_thread(estimate_file, path, core, interpreter, stop)
+        except OSError:
+            return  # the stream reports the unreadable file
+        if stats is not None:
+            progress.estimate_s, progress.lines_total = stats.duration_s, stats.lines
+
+    async def _stream(
+        self, lines: AsyncIterator[str], progress: JobProgress, source: _JobSource
+    ) -> None:
         dispatcher, machine = self.kernel.dispatcher, self.kernel.machine
         loop = asyncio.get_running_loop()
         turn_s = loop.time()
         limit = self.kernel.config.core.protocol.line_limit
         pending: deque[tuple[int, asyncio.Future[list[str]]]] = deque()
-        for number, line in enumerate(lines, 1):
+        number = 0
+        async for line in lines:
+            number += 1
             try:
                 check_length(line, limit)  # error 11, as a stream refuses it
                 await dispatcher.submit(line, source, defer=_deferring(pending, number))
@@ -274,10 +306,12 @@ class Jobs:
                 self._fail(progress, f"line {number}: error:{exc.code} {exc.message}")
                 return
             progress.lines_done = number
-            progress.percent = 100.0 * number / max(1, len(lines))
+            if progress.lines_total:
+                progress.percent = min(100.0, 100.0 * number / progress.lines_total)
             if loop.time() - turn_s > YIELD_AFTER_S:  # lines that never wait must not hog
                 await asyncio.sleep(0)
                 turn_s = loop.time()
+        progress.lines_total = number
         try:
             await _settle(pending, wait=True)
         except _LineFailed as failed:

@@ -14,12 +14,18 @@ class TokenBucket:
         self._tokens = burst
         self._last_s = now_s
 
-    def take(self, now_s: float) -> float:
-        """Take a token: 0.0 if one was free, else the seconds until one will be (none taken)."""
+    def take(self, now_s: float, amount: float = 1.0) -> float:
+        """Take ``amount`` tokens (at most ``burst``): 0.0 if they were free, else the seconds
+        until they will be (none taken)."""
+        wait_s = self.wait_s(now_s, amount)
+        if wait_s == 0.0:
+            self._tokens -= min(amount, self.burst)
+        return wait_s
+
+    def wait_s(self, now_s: float, amount: float = 1.0) -> float:
+        """The seconds until ``amount`` tokens (at most ``burst``) are free; none taken."""
         elapsed_s = max(0.0, now_s - self._last_s)
         self._tokens = min(self.burst, self._tokens + elapsed_s * self.rate_per_s)
         self._last_s = now_s
-        if self._tokens >= 1.0:
-            self._tokens -= 1.0
-            return 0.0
-        return (1.0 - self._tokens) / self.rate_per_s
+        missing = min(amount, self.burst) - self._tokens
+        return 0.0 if missing <= 0 else missing / self.rate_per_s

@@ -12,10 +12,12 @@ A transport creates a :class:`Session`, feeds it bytes (or WebSocket text) and d
   ``error:N`` per line, in order (deferred replies included), rate-limited status reports,
   pushes, all bounded.
 
-Logging in: ``$AUTH=token`` (see :mod:`server.runtime.login_guard`: constant-time comparison,
-wrong tokens answered ever later per client address, the connection closed after
-``auth_failures_per_connection``). An observer never logs in. A session on probation (it got
-a TCP slot reserved for logged-in connections) must log in with its first line.
+A client whose address is in ``[protocol] trusted_clients`` controls without the token (senders
+that cannot log in). Logging in: ``$AUTH=token`` (see :mod:`server.runtime.login_guard`:
+constant-time comparison, wrong tokens answered ever later per client address, the connection
+closed after ``auth_failures_per_connection``). An observer never logs in. A session on
+probation (it got a TCP slot reserved for logged-in connections) must log in with its first
+line.
 
 A client that stops reading overflows its outbox and is disconnected, never slowing motion or
 other clients. :meth:`Session.end` says why in a ``[MSG:]`` line, then the transport hangs up
@@ -33,15 +35,23 @@ import time
 from collections import deque
 from typing import TYPE_CHECKING
 
+from server.config import trusted_client
 from server.errors import Alarm, CommandError, Error
 from server.protocol.events import LineReceived, LineRejected
+from server.protocol.http_sniff import HttpSniffer
 from server.protocol.lines import LineProtocol
 from server.protocol.reports import StatusScheduler
 from server.runtime.backlog import Backlog
 from server.runtime.events import Event as BusEvent
 from server.runtime.login_guard import LoginGuard, token_matches
 from server.runtime.ratelimit import TokenBucket
-from server.runtime.session_input import INBOUND_LINES, LineAdmission, line_size
+from server.runtime.session_input import (
+    INBOUND_LINES,
+    TOTAL_BURST_BYTES,
+    LineAdmission,
+    input_budget,
+    line_size,
+)
 from server.runtime.session_output import STATUS_BURST, Outbox, SessionOutput
 
 if TYPE_CHECKING:
@@ -51,7 +61,8 @@ log = logging.getLogger("motiond.session")
 _AUTH = re.compile(r"^\s*\$AUTH=(.*)$", re.I)
 PROBATION_REFUSED = "this slot is reserved for logged-in connections: send $AUTH=<token> first"
 YIELD_AFTER_S = 0.0003  # the executor gives other tasks a turn at least this often
-__all__ = ["Session", "line_token", "login_guard", "token_matches"]
+__all__ = ["TOTAL_BURST_BYTES", "Session", "input_budget", "line_token", "login_guard",
+           "token_matches"]
 
 
 class Session(LineAdmission, SessionOutput):
@@ -82,14 +93,17 @@ class Session(LineAdmission, SessionOutput):
         self.peer = peer
         self._token = line_token(kernel)
         self._observer = observer
-        self.on_probation = must_login and self._token is not None
-        self.can_control = self._token is None or token_matches(token, self._token)
+        trusted = trusted_client(peer, core.protocol.trusted_clients)
+        self.on_probation = must_login and self._token is not None and not trusted
+        self.can_control = (self._token is None or trusted
+                            or token_matches(token, self._token))
         self.may_observe = self.can_control or core.protocol.unauthenticated == "read-only"
         if observer:  # asked to only watch: status and pushes, never control
             self.can_control = False
         if self.on_probation:
             self.can_control = self.may_observe = False
         self._websocket = websocket
+        self._sniffer = None if websocket else HttpSniffer()
         self.protocol = LineProtocol(
             line_limit=core.protocol.line_limit, dialect=core.protocol.dialect, websocket=websocket
         )
@@ -99,8 +113,6 @@ class Session(LineAdmission, SessionOutput):
         self._ending: str | None = None
         self._lines: deque[tuple[int, LineReceived | LineRejected]] = deque()
         self._lines_ready = asyncio.Event()
-        self._room = asyncio.Event()
-        self._room.set()
         self._backlog = Backlog(core.protocol.backlog_bytes)
         self._input_room = asyncio.Event()
         self._input_room.set()
@@ -111,6 +123,7 @@ class Session(LineAdmission, SessionOutput):
         self._status_bucket = TokenBucket(
             core.protocol.status_reports_per_s, STATUS_BURST, time.monotonic())
         self._status_timer: asyncio.TimerHandle | None = None
+        self._input_budget = input_budget(core.protocol.read_only_input_bytes_per_s)
         self._unsubscribe = kernel.events.subscribe(BusEvent.PUSH, self.push)
         self._task: asyncio.Task[None] | None = None
         self._replies: deque[tuple[int, asyncio.Future[bytes]]] = deque()  # behind a deferred
@@ -159,7 +172,6 @@ class Session(LineAdmission, SessionOutput):
         self._lines.clear()
         self._backlog.clear()
         self._lines_ready.set()
-        self._room.set()
         self._input_room.set()
         self._replies_room.set()
 
@@ -205,8 +217,6 @@ class Session(LineAdmission, SessionOutput):
             if self._backlog and len(self._lines) < INBOUND_LINES // 2:
                 self._refill()
             reply = await self._execute(event, epoch)
-            if len(self._lines) < INBOUND_LINES // 2:
-                self._room.set()
             if epoch == self._epoch:
                 self._queued_bytes = max(0, self._queued_bytes - line_size(event))
                 self._answer(reply, epoch)

@@ -3,22 +3,28 @@
 :class:`LineAdmission` is the part of :class:`~server.runtime.session.Session` (a base class of
 it) that admits what the client sends. It:
 
+* closes a byte stream that starts as an HTTP request (:mod:`server.protocol.http_sniff`)
+  before any of its bytes is acted on: a web page cannot drive the machine through the port;
+* paces what a connection that may not control sends (:meth:`LineAdmission.pace_input`);
 * acts on realtime bytes at once (status, hold, resume, reset, overrides, jog cancel), even
   while lines wait for planner room, and on ``M112`` the moment its line arrives;
 * queues complete lines, at most :data:`INBOUND_LINES` of them, for the session's executor;
 * keeps taking bytes while its line queue is full: they wait in a
   :class:`~server.runtime.backlog.Backlog` (``[protocol] backlog_bytes``) whose realtime bytes
   are acted on as they arrive, so a sender that streams ahead without character counting can
-  still hold (``!``) or reset (Ctrl-X) at once. Byte transports stop reading only while the
-  backlog is full (:meth:`~LineAdmission.wait_input_room`). WebSocket messages (whose end ends
-  a line) are never held back: that transport stops reading while the line queue is full
-  (:meth:`~LineAdmission.wait_room`).
+  still hold (``!``) or reset (Ctrl-X) at once. This is the one realtime path of every
+  transport: TCP, serial, pty and WebSocket messages (held with their ends, which end lines).
+  A transport stops reading only while the backlog is full
+  (:meth:`~LineAdmission.wait_input_room`).
 
 Its state is the session's, created by ``Session.__init__``.
 """
 
 from __future__ import annotations
 
+import asyncio
+import logging
+import time
 from typing import TYPE_CHECKING
 
 from server.protocol.events import (
@@ -28,10 +34,11 @@ from server.protocol.events import (
     Realtime,
     RealtimeReceived,
 )
+from server.protocol.http_sniff import HttpSniffer
 from server.runtime.control import halts_at_once
+from server.runtime.ratelimit import TokenBucket
 
 if TYPE_CHECKING:
-    import asyncio
     from collections import deque
 
     from server.protocol.lines import LineProtocol
@@ -40,8 +47,14 @@ if TYPE_CHECKING:
     from server.runtime.kernel import Kernel
     from server.runtime.session_output import Outbox
 
+log = logging.getLogger("motiond.session")
+HTTP_REFUSED = "this port speaks the Grbl line protocol, not HTTP: closing"
+READ_ONLY_CHUNK = 256  # bytes of a connection that may not control examined at a time
+BURST_BYTES = 1024  # what such a connection may send at once (then at its rate)
+TOTAL_BURST_BYTES = 2048  # what all of them may send at once
 INBOUND_LINES = 64
 REFILL_BYTES = 1024  # held-back input is fed to the protocol in slices of this size
+READ_CHUNK = 4096  # bytes a transport reads at a time (then gives the loop a turn)
 
 
 class LineAdmission:
@@ -49,6 +62,7 @@ class LineAdmission:
 
     # The session's state this part reads and writes (set by Session.__init__).
     kernel: Kernel
+    name: str
     protocol: LineProtocol
     outbox: Outbox
     can_control: bool
@@ -56,51 +70,86 @@ class LineAdmission:
     _websocket: bool
     _lines: deque[tuple[int, LineReceived | LineRejected]]
     _lines_ready: asyncio.Event
-    _room: asyncio.Event
     _backlog: Backlog
     _input_room: asyncio.Event
     _epoch: int
     _queued_bytes: int
     _scheduler: StatusScheduler
+    _sniffer: HttpSniffer | None
+    _input_budget: TokenBucket
 
     if TYPE_CHECKING:
         def _request_status(self) -> None: ...  # the session's output
+        def end(self, reason: str) -> None: ...  # the session's lifecycle
 
     @property
     def backlog_full(self) -> bool:
         """Input is held back up to its bound: the transport should stop reading."""
         return not self._input_room.is_set()
 
-    def receive_data(self, data: bytes) -> None:
-        """Bytes from the client (TCP, serial, pty; a binary WebSocket message)."""
+    def receive_data(self, data: bytes, *, final: bool = True) -> None:
+        """Bytes from the client: a byte stream's next bytes (TCP, serial, pty), or part of a
+        WebSocket message (text frames UTF-8 encoded; ``final``: its last part, whose end ends
+        its last line). Realtime bytes are acted on now, whatever is queued in front of them.
+
+        A byte stream that starts with an HTTP request line (a web page ``fetch()``-ing the
+        port) ends the session before any of it is acted on."""
+        if self._sniffer is not None:
+            data = self._sniffer.feed(data)
+            if self._sniffer.http:
+                self._stop_http()
+                return
+            if self._sniffer.decided:
+                self._sniffer = None
+        final = final and self._websocket
         while data:
-            if self._websocket or not (self._backlog or len(self._lines) >= INBOUND_LINES):
-                self._handle(self.protocol.receive_data(data))
+            if not (self._backlog or len(self._lines) >= INBOUND_LINES):
+                self._handle(self.protocol.receive_data(data, final=final))
                 return
             reset_at = data.find(b"\x18") if self.can_control else -1
             if reset_at < 0:
-                self._hold_back(data)
+                self._hold_back(data, final)
                 return
-            self._hold_back(data[:reset_at])
+            self._hold_back(data[:reset_at], False)
             self._realtime(Realtime.RESET)  # drops what is held, as Grbl empties its buffer
             data = data[reset_at + 1 :]
 
-    def receive_text(self, text: str) -> None:
-        """A WebSocket text frame."""
-        self._handle(self.protocol.receive_text(text))
+    @property
+    def read_size(self) -> int:
+        """How many bytes a transport should read (and feed) at a time."""
+        return READ_CHUNK if self.can_control else READ_ONLY_CHUNK
 
-    async def wait_room(self) -> None:
-        """Wait while too many lines are queued (the WebSocket transport stops reading)."""
-        await self._room.wait()
+    async def pace_input(self, size_bytes: int) -> None:
+        """Wait until ``size_bytes`` more may be examined. A connection that may not control
+        gets ``[protocol] read_only_input_bytes_per_s``, and all of them together
+        ``read_only_input_total_bytes_per_s``: their bytes (realtime ones too: a flood of
+        ``!`` or ``0x91``) cost a bounded share of the loop whatever their number; what they
+        send beyond that waits unread (the transport's buffers fill, then the client's)."""
+        total = self.kernel.read_only_input
+        while not self.can_control and not self.outbox.closed:
+            now_s = time.monotonic()
+            wait_s = max(self._input_budget.wait_s(now_s, size_bytes),
+                         total.wait_s(now_s, size_bytes))
+            if wait_s == 0.0:
+                self._input_budget.take(now_s, size_bytes)
+                total.take(now_s, size_bytes)
+                return
+            await asyncio.sleep(wait_s)
+
+    def _stop_http(self) -> None:
+        if not self.outbox.closed:
+            log.warning("%s: an HTTP request on the line protocol port (a web page?): closed",
+                        self.name)
+            self.end(HTTP_REFUSED)
 
     async def wait_input_room(self) -> None:
         """Wait while the backlog is full (a byte transport stops reading meanwhile)."""
         await self._input_room.wait()
 
-    def _hold_back(self, data: bytes) -> None:
+    def _hold_back(self, data: bytes, final: bool) -> None:
         """The line queue is full: keep the bytes, act on their realtime commands now."""
         reported = False
-        for event in self._backlog.hold(self.protocol, data):
+        for event in self._backlog.hold(self.protocol, data, final):
             if isinstance(event, RealtimeReceived):
                 reported = self._on_realtime(event.command, reported)
             elif self._is_emergency_stop(event):
@@ -121,8 +170,6 @@ class LineAdmission:
                 self.kernel.control.emergency_stop()
             self._lines.append((self._epoch, event))
             self._queued_bytes += line_size(event)
-            if len(self._lines) >= INBOUND_LINES:
-                self._room.clear()
         self._lines_ready.set()
 
     def _on_realtime(self, command: Realtime, reported: bool) -> bool:
@@ -143,8 +190,8 @@ class LineAdmission:
     def _refill(self) -> None:
         """Feed held-back bytes to the protocol until the line queue is full again."""
         while self._backlog and len(self._lines) < INBOUND_LINES:
-            self._handle(self.protocol.receive_data(self._backlog.take(REFILL_BYTES)),
-                         replayed=True)
+            piece, final = self._backlog.take(REFILL_BYTES)
+            self._handle(self.protocol.receive_data(piece, final=final), replayed=True)
         if not self._backlog.full:
             self._input_room.set()
 
@@ -161,7 +208,6 @@ class LineAdmission:
             self._lines.clear()
             self._queued_bytes = 0
             self._backlog.clear()
-            self._room.set()
             self._input_room.set()
             self.protocol.reset()
             self._scheduler.refresh()
@@ -169,6 +215,11 @@ class LineAdmission:
             self.outbox.put(self.protocol.banner())
             return
         self.kernel.control.realtime(command)
+
+
+def input_budget(rate_bytes_per_s: float, burst_bytes: float = BURST_BYTES) -> TokenBucket:
+    """A budget of input bytes for connections that may not control (see ``pace_input``)."""
+    return TokenBucket(rate_bytes_per_s, burst_bytes, time.monotonic())
 
 
 def line_size(event: LineReceived | LineRejected) -> int:

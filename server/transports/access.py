@@ -14,11 +14,19 @@ import asyncio
 import hmac
 import ipaddress
 import logging
+import os
 import re
+import secrets
 import socket
+from pathlib import Path
+from typing import TYPE_CHECKING
 from urllib.parse import urlsplit
 
+if TYPE_CHECKING:
+    from server.config import CoreConfig
+
 log = logging.getLogger("motiond.http")
+TOKEN_FILE = ".token"  # in the data directory (hidden: never listed or served as a job)
 IpAddress = ipaddress.IPv4Address | ipaddress.IPv6Address
 LOCAL_NAMES = ("localhost", "127.0.0.1", "::1", "*.localhost")
 NAME_LOOKUP_TIMEOUT_S = 2.0
@@ -168,3 +176,49 @@ class ConnectionSlots:
     @property
     def total(self) -> int:
         return self.open[True] + self.open[False]
+
+
+def is_loopback(host: str) -> bool:
+    """Whether a bind address only reaches this machine."""
+    if host.lower() in ("localhost", "localhost."):
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+def close_open_door(core: CoreConfig) -> Path | None:
+    """No open door: when the TCP or HTTP port listens beyond loopback without a token, use
+    the token stored in the data directory (made at the first such start, readable by this
+    user only) for every port that has none. Returns the token file when it did so."""
+    env = os.environ.get("MOTIOND_TOKEN") or None
+    line_token, http_token = core.protocol.token or env, core.http.token or env
+    open_tcp = core.tcp.enabled and not is_loopback(core.tcp.host) and line_token is None
+    open_http = core.http.enabled and not is_loopback(core.http.host) and http_token is None
+    if not (open_tcp or open_http):
+        return None
+    path = core.jobs.data_dir.expanduser() / TOKEN_FILE
+    token = _stored_token(path)
+    if line_token is None:
+        core.protocol.token = token
+    if http_token is None:
+        core.http.token = token
+    return path
+
+
+def _stored_token(path: Path) -> str:
+    """The token in ``path``, made (random, mode 0600) when the file does not exist yet."""
+    try:
+        token = path.read_text().strip()
+    except FileNotFoundError:
+        token = ""
+    if len(token) >= 8:
+        return token
+    path.parent.mkdir(parents=True, exist_ok=True)
+    token = secrets.token_urlsafe(24)
+    descriptor = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(descriptor, "w") as handle:
+        handle.write(token + "\n")
+    os.chmod(path, 0o600)
+    return token

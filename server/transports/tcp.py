@@ -1,7 +1,8 @@
 """Raw TCP ("telnet") transport: one :class:`~server.runtime.session.Session` per client.
 
-Reading: bytes are read in slices of :data:`READ_CHUNK` with a loop turn between slices, so a
-flood from one client never holds the loop; the session takes every slice (holding lines back
+Reading: bytes are read in slices (``session.read_size``: 4096 bytes, 256 from a connection
+that may not control, whose input is also paced) with a loop turn between slices, so a flood
+from one client never holds the loop; the session takes every slice (holding lines back
 in its bounded backlog when its line queue is full, acting on realtime bytes at once) and the
 read loop pauses only while that backlog is full.
 
@@ -37,7 +38,6 @@ if TYPE_CHECKING:
     from server.runtime.kernel import Kernel
 
 log = logging.getLogger("motiond.tcp")
-READ_CHUNK = 4096
 DRAIN_ON_CLOSE_S = 1.0
 # A read deadline: seconds to wait for the next byte and the reason given when none comes.
 ReadDeadline = Callable[[int], "tuple[float, str] | None"]
@@ -151,7 +151,7 @@ async def serve_stream(
             limit = None if deadline is None else deadline(received_bytes)
             try:
                 async with asyncio.timeout(None if limit is None else max(0.0, limit[0])):
-                    data = await reader.read(READ_CHUNK)
+                    data = await reader.read(session.read_size)
             except TimeoutError:
                 assert limit is not None
                 session.end(f"closing: {limit[1]}")
@@ -159,6 +159,7 @@ async def serve_stream(
             if not data:
                 break
             received_bytes += len(data)
+            await session.pace_input(len(data))
             session.receive_data(data)
             await session.wait_input_room()
             await asyncio.sleep(0)  # buffered input must not hold the loop: one slice a turn

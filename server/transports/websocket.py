@@ -10,6 +10,8 @@ the token and those that did not are counted apart, and the latter are closed af
 ``[http] idle_timeout_s`` without a message. A message is bounded once decompressed
 (``ws_max_message_bytes``: close 1009) and fed to the session a slice at a time, so one large
 message never holds the loop. A request's headers must arrive within ``request_timeout_s``.
+Request bodies are never inflated (``Content-Encoding`` is refused where a body is read) and
+never drained after a refusal: the connection is closed instead.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from typing import TYPE_CHECKING
 
 from aiohttp import WSCloseCode, WSMsgType, web
 
+from server.config import trusted_client
 from server.runtime.session import Session, line_token, login_guard
 from server.transports.access import (
     ConnectionSlots,
@@ -65,11 +68,11 @@ class LineSocketSession(Session):
     """A session fed a WebSocket message a slice at a time."""
 
     def receive_slice(self, piece: str | bytes, *, final: bool) -> None:
-        """Part of one message; ``final`` for its last part (which ends its last line)."""
-        if isinstance(piece, str):
-            self._handle(self.protocol.receive_text(piece, final=final))
-        else:
-            self._handle(self.protocol.receive_data(piece, final=final))
+        """Part of one message; ``final`` for its last part (which ends its last line).
+        Text goes the byte path UTF-8 encoded (a realtime code point such as U+0091 is then
+        ``C2 91``, which the protocol reads as that realtime byte)."""
+        data = piece.encode("utf-8", "surrogatepass") if isinstance(piece, str) else piece
+        self.receive_data(data, final=final)
 
 
 class HttpTransport:
@@ -109,6 +112,8 @@ class HttpTransport:
             handle_signals=False,
             shutdown_timeout=0.5,
             keepalive_timeout=self.config.request_timeout_s,
+            auto_decompress=False,  # never inflate a body on the loop (uploads refuse encodings)
+            lingering_time=0,  # a refused request's body is never drained: the connection closes
         )
         await self._runner.setup()
         site = web.TCPSite(self._runner, self.config.host, self.config.port)
@@ -149,6 +154,10 @@ class HttpTransport:
             self.hosts,
         )
 
+    def trusted(self, request: web.Request) -> bool:
+        """The client's address is in ``[protocol] trusted_clients``: no token needed."""
+        return trusted_client(request.remote, self.kernel.config.core.protocol.trusted_clients)
+
     def admit(self, request: web.Request, authenticated: bool) -> None:
         """Refuse a WebSocket from a foreign origin (403), or beyond the connection limit for
         those with (``max_connections``) or without the token (503); else take a slot."""
@@ -185,7 +194,7 @@ class HttpTransport:
 
     async def _line_socket(self, request: web.Request) -> web.WebSocketResponse:
         token, expected = presented_token(request), line_token(self.kernel)
-        authenticated = expected is None or tokens_equal(token, expected)
+        authenticated = expected is None or self.trusted(request) or tokens_equal(token, expected)
         self.admit(request, authenticated)
         socket = web.WebSocketResponse(
             heartbeat=HEARTBEAT_S, max_msg_size=self.config.ws_max_message_bytes
@@ -245,16 +254,21 @@ class HttpTransport:
 async def _feed(
     session: LineSocketSession, data: str | bytes, gone: Callable[[], bool]
 ) -> None:
-    """One message, a slice per loop turn, waiting while the session's line queue is full;
-    the rest is dropped once the client is gone."""
-    size = len(data)
-    for start in range(0, max(size, 1), SLICE_CHARS):
+    """One message, a slice per loop turn, waiting while the session's backlog is full (its
+    realtime bytes are acted on as they arrive, whatever lines wait in front of them); the
+    rest is dropped once the client is gone."""
+    size, start = len(data), 0
+    while True:
         if gone():
             return
-        end = start + SLICE_CHARS
+        end = start + min(SLICE_CHARS, session.read_size)
+        await session.pace_input(min(end, size) - start)
         session.receive_slice(data[start:end], final=end >= size)
-        await session.wait_room()
+        await session.wait_input_room()
         await asyncio.sleep(0)  # a large message must not hold the loop: one slice a turn
+        if end >= size:
+            return
+        start = end
 
 
 async def _write_lines(session: Session, socket: web.WebSocketResponse) -> None:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import json
 import zlib
 from collections.abc import Awaitable, Callable
@@ -98,6 +99,54 @@ async def status_flood(served: Served) -> None:
     await asyncio.gather(*(one() for _ in range(15)))
 
 
+async def realtime_flood(served: Served) -> None:
+    """Fifteen clients without the token sending ``!`` and ``0x91`` as fast as they can (a
+    ``?`` took 354-405 ms and motion ticks 284-329 ms; the operator's ``?`` went unanswered)."""
+    async def one() -> None:
+        reader, writer = await asyncio.open_connection("127.0.0.1", served.tcp_port)
+        for _ in range(100):
+            writer.write(b"!\x91" * 2048)
+            await writer.drain()
+            await asyncio.sleep(0.01)
+        writer.close()
+
+    await asyncio.gather(*(one() for _ in range(15)))
+
+
+async def http_on_the_tcp_port(served: Served) -> None:
+    """What a web page's ``fetch()`` sends to the TCP port: a POST with G-code as its body."""
+    body = b"G0 X123 Y77\nM3 S1000\nG1 X140 F3000\n"
+    for _ in range(20):
+        reader, writer = await asyncio.open_connection("127.0.0.1", served.tcp_port)
+        writer.write(b"POST / HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: text/plain\r\n"
+                     b"Content-Length: %d\r\n\r\n%s" % (len(body), body))
+        await asyncio.wait_for(reader.read(), 10)  # the server hangs up
+        writer.close()
+
+
+@functools.cache
+def gzip_body() -> bytes:
+    """~256 KB of gzip that inflates to 256 MiB of newlines."""
+    packer = zlib.compressobj(9, zlib.DEFLATED, 31)
+    mebibyte = b"\n" * (1 << 20)
+    return b"".join(packer.compress(mebibyte) for _ in range(256)) + packer.flush()
+
+
+async def gzip_uploads(served: Served) -> None:
+    """Ten gzip uploads in a row without the token (a 1 MB one was inflated on the loop, then
+    drained after the 401: 0.5-1.1 s of frozen motion each)."""
+    body = gzip_body()
+    for _ in range(10):
+        with contextlib.suppress(ConnectionError):
+            reader, writer = await asyncio.open_connection("127.0.0.1", served.http_port)
+            writer.write(b"POST /upload?name=x.nc HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+                         b"Content-Encoding: gzip\r\nContent-Length: %d\r\n\r\n" % len(body))
+            writer.write(body)
+            await writer.drain()
+            assert (await asyncio.wait_for(reader.read(), 10)).startswith(b"HTTP/1.1 415")
+            writer.close()
+
+
 async def stream_ahead(served: Served) -> None:
     """2 MB of moves without waiting for ``ok`` (``nc < job.nc``), from a logged-in sender,
     then a feed hold and a reset, which must act at once."""
@@ -140,6 +189,9 @@ ATTACKS: dict[str, Attack] = {
     "32 x 2 MiB /api frames": big_api_frames,
     "deeply nested JSON": nested_json,
     "a ? flood from 15 clients": status_flood,
+    "a ! and 0x91 flood from 15 clients": realtime_flood,
+    "HTTP requests on the TCP port": http_on_the_tcp_port,
+    "gzip uploads": gzip_uploads,
     "20,000 $AUTH guesses": auth_guessing,
     "2 MB streamed ahead, then ! and Ctrl-X": stream_ahead,
     "idle sockets": idle_sockets,

@@ -142,6 +142,36 @@ class Pty:
         os.close(self.fd)
 
 
+class Ws:
+    """A /ws client sending bytes as binary messages (the byte path, message ends ending
+    lines), each at most ``MESSAGE_BYTES`` and ending at a line end when it can."""
+
+    MESSAGE_BYTES = 32 << 10
+
+    def __init__(self, http: aiohttp.ClientSession, socket: aiohttp.ClientWebSocketResponse):
+        self.http, self.socket = http, socket
+        self.received = Lines(self._read)
+
+    @classmethod
+    async def open(cls, port: int) -> Ws:
+        http = aiohttp.ClientSession()
+        return cls(http, await http.ws_connect(f"http://127.0.0.1:{port}/ws"))
+
+    async def _read(self) -> bytes:
+        message = await self.socket.receive()
+        return message.data.encode() if message.type is aiohttp.WSMsgType.TEXT else b""
+
+    async def send(self, data: bytes) -> None:
+        while data:
+            cut = data.rfind(b"\n", 0, self.MESSAGE_BYTES) + 1 or self.MESSAGE_BYTES
+            await self.socket.send_bytes(data[:cut])
+            data = data[cut:]
+
+    def close(self) -> None:
+        self.received.stop()
+        asyncio.get_running_loop().create_task(self.http.close())
+
+
 def strict(**sections: Any) -> Any:
     """The strictest config: a token; connections that have not logged in may only watch."""
     protocol = {"token": TOKEN, "unauthenticated": "read-only", **sections.pop("protocol", {})}
@@ -210,6 +240,8 @@ async def test_wrong_tokens_are_slowed_per_address_capped_per_connection_and_sum
 
 # -- 3a. a flood of '?' -----------------------------------------------------------------------
 async def test_a_status_flood_gets_paced_reports_and_other_clients_stay_prompt() -> None:
+    """The flooder may not control: its input is read at its paced rate (what it sends beyond
+    that waits unread in the socket buffers), so it gets few reports; the other stays prompt."""
     async with running(strict(), transports=[TcpTransport]) as app:
         flooder, other = await Tcp.open(tcp_port(app)), await Tcp.open(tcp_port(app))
         flood_s = 1.0
@@ -217,8 +249,7 @@ async def test_a_status_flood_gets_paced_reports_and_other_clients_stay_prompt()
         latencies_s: list[float] = []
         while time.monotonic() - started_s < flood_s:
             for _ in range(8):
-                flooder.writer.write(b"?" * 4096)
-            await flooder.writer.drain()
+                flooder.writer.write(b"?" * 4096)  # no drain: the server reads it slowly
             before = len([line for line in other.received.lines if is_status(line)])
             asked_s = time.monotonic()
             await other.send(b"?")
@@ -228,16 +259,16 @@ async def test_a_status_flood_gets_paced_reports_and_other_clients_stay_prompt()
         elapsed_s = time.monotonic() - started_s
         await asyncio.sleep(0.3)
         reports = [line for line in flooder.received.lines if is_status(line)]
-        rate = app.kernel.config.core.protocol.status_reports_per_s
-        assert len(reports) <= rate * (elapsed_s + 0.3) + 5 + 5, len(reports)  # rate + burst
-        assert reports and is_status(flooder.received.lines[-1])  # the last '?' was answered
+        protocol = app.kernel.config.core.protocol
+        examined_bytes = protocol.read_only_input_bytes_per_s * (elapsed_s + 0.3) + 1024
+        assert 0 < len(reports) <= examined_bytes / 256 + 1, len(reports)  # a report a read
         assert max(latencies_s) < 0.5, max(latencies_s)
         flooder.close()
         other.close()
 
 
 # -- 3b. a sender streaming ahead without character counting ------------------------------------
-@pytest.fixture(params=["tcp", "pty"])
+@pytest.fixture(params=["tcp", "pty", "ws"])
 async def sender(request: pytest.FixtureRequest, tmp_path: Path) -> AsyncIterator[Any]:
     link = tmp_path / "ttyMotiond"
     config = make_config(
@@ -245,13 +276,21 @@ async def sender(request: pytest.FixtureRequest, tmp_path: Path) -> AsyncIterato
                     "max_mm": 100_000}},
         serial={"pty": str(link)})
     async with running(config, clock=RealClock(),
-                       transports=[TcpTransport, SerialTransport]) as app:
-        client = await Tcp.open(tcp_port(app)) if request.param == "tcp" else Pty(link)
+                       transports=[TcpTransport, SerialTransport, HttpTransport]) as app:
+        client: Tcp | Pty | Ws
+        if request.param == "tcp":
+            client = await Tcp.open(tcp_port(app))
+        elif request.param == "ws":
+            client = await Ws.open(http_port(app))
+        else:
+            client = Pty(link)
         yield app, client
         client.close()
 
 
 async def test_hold_and_reset_act_at_once_behind_two_megabytes_streamed_ahead(sender) -> None:
+    """On every transport, /ws included (a hold there used to wait behind the lines queued in
+    front of it: 6.2 s behind 100 lines, never behind 400)."""
     app, client = sender
     held = asyncio.Event()
     app.kernel.events.subscribe(

@@ -2,7 +2,8 @@
 
 Run in its own process (``python -m tests.support.latency_probe HOST PORT``), so the attacks
 and the test harness never share its event loop. It sends ``?`` every ``--period-ms`` and times
-each status report's round trip until its standard input closes, then prints one JSON line,
+each status report's round trip until its standard input closes (it prints ``polling`` after
+its first answer), then prints one JSON line,
 ``{"count": N, "p50_ms": .., "p90_ms": .., "p99_ms": .., "max_ms": .., "missed": M}``
 (percentiles and worst in milliseconds) where ``missed``
 counts requests with no report within a second.
@@ -40,6 +41,8 @@ async def probe(
             round_trips_s.append(float("inf"))
             continue
         round_trips_s.append(time.perf_counter() - sent_s)
+        if len(round_trips_s) == 1:
+            print("polling", flush=True)  # the harness starts the attack now
         await asyncio.sleep(max(0.0, period_s - (time.perf_counter() - sent_s)))
     writer.close()
     return round_trips_s

@@ -98,7 +98,8 @@ async def latency_probe(
     )
     result: dict[str, float] = {}
     try:
-        await asyncio.sleep(0.3)  # connected and polling before the attack starts
+        assert process.stdout is not None  # polling before the attack starts (however slow
+        await asyncio.wait_for(process.stdout.readline(), 30)  # a loaded machine starts it)
         yield result
     finally:
         assert process.stdin is not None

@@ -278,3 +278,23 @@ def test_check_config_names_the_file_section_and_key(
     errors = capsys.readouterr().err
     assert f"{bad}: [mqtt] url: the scheme must be mqtt:// or mqtts://" in errors
     assert f"{bad}: [mqtt] qos: Input should be less than or equal to 2" in errors
+
+
+async def test_a_retained_command_is_refused_once_and_never_run() -> None:
+    ctx, replies = FakeContext(), []
+    control = Control(ctx, replies.append, allowed=True, max_lines=10,  # type: ignore[arg-type]
+                      max_payload_bytes=1000)
+    task = asyncio.create_task(control.run())
+    ctx.gate.set()
+    stored = b'{"id": "s", "lines": ["G0 X123 Y45"]}'
+    for _ in range(3):  # the broker sends it again after each reconnect
+        control.on_command("gcode", stored, retained=True)
+    control.on_command("realtime", b"reset", retained=True)
+    control.on_command("gcode", b"", retained=True)  # clearing the stored message
+    control.on_command("gcode", b'{"id": "p", "lines": ["G0 X5"]}')
+    await asyncio.sleep(0.01)
+    task.cancel()
+    assert [(r["id"], r["ok"]) for r in replies] == [("s", False), (None, False), ("p", True)]
+    assert replies[0]["error"]["reason"] == "retained"
+    assert "retain flag" in replies[0]["error"]["message"]
+    assert ctx.calls == ["G0 X5"]

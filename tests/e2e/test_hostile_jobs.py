@@ -1,0 +1,141 @@
+"""Jobs never take the machine from someone else, and never hold a whole file in memory.
+
+A 60 MB job (3.3 M short lines) moves within a second of ``job.start``, the server's memory
+grows by far less than the file (a 200 MB file used to take 2.98 GB while its estimate ran for
+minutes before the first line), and ``job.abort`` ends the estimate too.
+
+A job starts only when the machine is idle and nobody else is using it: ``job.start`` on the
+JSON API, ``play`` on TCP and on /ws (and MQTT's ``cmd/job``, which calls the same
+:meth:`Jobs.play`) all answer 45 while a sender's stream runs, and the sender's lines all run.
+Real sockets and real WebSocket clients (aiohttp's) against a server in this process.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import aiohttp
+
+from server.api.server import http_with_api
+from server.runtime.clock import RealClock
+from server.runtime.events import MachineState
+from server.transports.tcp import TcpTransport
+from tests.conftest import make_config
+from tests.e2e.test_hostile_lines import Tcp, http_port, tcp_port
+from tests.e2e.test_mqtt import mpos, tcp_report
+from tests.support.helpers import running
+from tests.support.processes import motiond
+
+JOB = "G90\nG0 X0 Y0\nG0 X5\n"
+
+
+async def rpc(socket: aiohttp.ClientWebSocketResponse, method: str, **params: Any) -> Any:
+    """One JSON-RPC request on /api; its response (notifications skipped)."""
+    await socket.send_str(json.dumps({"jsonrpc": "2.0", "id": 1, "method": method,
+                                      "params": params}))
+    async with asyncio.timeout(10):
+        while True:
+            message = json.loads((await socket.receive()).data)
+            if message.get("id") == 1:
+                return message
+
+
+async def ws_reply(socket: aiohttp.ClientWebSocketResponse, line: str) -> str:
+    """The reply to one /ws line (pushed lines skipped)."""
+    await socket.send_str(line)
+    async with asyncio.timeout(10):
+        while True:
+            text = str((await socket.receive()).data).strip()
+            if text == "ok" or text.startswith("error:"):
+                return text
+
+
+async def test_no_path_starts_a_job_while_a_sender_streams_and_its_lines_all_run() -> None:
+    config = make_config(axes={"x": {"steps_per_mm": 80, "max_rate_mm_s": 500,
+                                     "accel_mm_s2": 3000, "max_mm": 1000}})
+    async with running(config, clock=RealClock(),
+                       transports=[TcpTransport, http_with_api]) as app:
+        (Path(config.core.jobs.data_dir) / "cut.nc").write_text(JOB)
+        sender, other = await Tcp.open(tcp_port(app)), await Tcp.open(tcp_port(app))
+        moves = 20
+        await sender.send(b"G91\n" + b"G1 X1 F600\n" * moves)  # 2 s of motion
+        await sender.received.until(lambda got: got.count("ok") >= 3)
+        assert app.kernel.state is MachineState.RUN
+        async with aiohttp.ClientSession() as http:
+            base = f"http://127.0.0.1:{http_port(app)}"
+            api = await http.ws_connect(f"{base}/api")
+            line_socket = await http.ws_connect(f"{base}/ws")
+            refused_api = await rpc(api, "job.start", name="cut.nc")
+            refused_ws = await ws_reply(line_socket, "play cut.nc")
+            await other.send(b"play cut.nc\n")
+            await other.received.until(lambda got: any(x.startswith("error:") for x in got))
+            assert app.kernel.jobs.progress() is None, "no job started"
+            await sender.received.until(lambda got: got.count("ok") == moves + 1, 10)
+            async with asyncio.timeout(10):
+                await app.kernel.machine.wait_idle()
+            started = await rpc(api, "job.start", name="cut.nc")  # idle now: it may start
+            await api.close()
+            await line_socket.close()
+        sender.close()
+        other.close()
+    assert refused_api["error"]["code"] == 45, refused_api
+    assert refused_ws == "error:45"
+    assert other.received.replies() == ["error:45"]
+    assert sender.received.replies() == ["ok"] * (moves + 1), "the stream was never cut"
+    assert started["result"]["state"] == "running", started
+
+
+def rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    raise AssertionError("no VmRSS")
+
+
+def cpu_s(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def write_big_job(path: Path, size_mb: int) -> None:
+    block = b"G1 X1 F6000\nG1 X0\n" * 50_000  # short lines: the most lines per megabyte
+    with path.open("wb") as handle:
+        for _ in range(size_mb * (1 << 20) // len(block) + 1):
+            handle.write(block)
+
+
+async def test_a_60_mb_job_moves_within_a_second_in_bounded_memory_and_abort_ends_its_estimate(
+    tmp_path: Path,
+) -> None:
+    async with motiond(tmp_path) as served:
+        pid = served.process.pid
+        write_big_job(served.data_dir / "big.nc", 60)
+        await asyncio.sleep(0.5)
+        rss_before_mb = rss_mb(pid)
+        async with aiohttp.ClientSession() as http:
+            api = await http.ws_connect(f"http://{served.http}/api")
+            started_s = time.monotonic()
+            started = await rpc(api, "job.start", name="big.nc")
+            while mpos(await tcp_report(served.tcp_port))[0] == 0.0:
+                assert time.monotonic() - started_s < 5, "no motion"
+            first_move_s = time.monotonic() - started_s
+            peak_mb = rss_before_mb
+            for _ in range(15):  # 3 s of the job
+                peak_mb = max(peak_mb, rss_mb(pid))
+                await asyncio.sleep(0.2)
+            aborted = await rpc(api, "job.abort")
+            await asyncio.sleep(0.5)
+            cpu_before_s, window_start_s = cpu_s(pid), time.monotonic()
+            await asyncio.sleep(2.0)
+            cpu_share = (cpu_s(pid) - cpu_before_s) / (time.monotonic() - window_start_s)
+            await api.close()
+    assert started["result"]["state"] == "running", started
+    assert first_move_s < 1.0, first_move_s
+    assert peak_mb - rss_before_mb < 60, (rss_before_mb, peak_mb)  # the file was 60 MB
+    assert aborted["result"]["state"] == "aborted", aborted
+    assert cpu_share < 0.5, f"the estimate went on after the abort: {cpu_share:.0%} of a CPU"
