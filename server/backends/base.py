@@ -7,7 +7,7 @@ call; times are seconds on the kernel's clock; outputs are duty cycles in [0, 1]
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -80,6 +80,16 @@ class Backend(Protocol):
         """Emergency stop: drop every queued step and turn every output off at once."""
         ...
 
+    async def recover(self) -> None:
+        """``$X`` / M999 after an alarm: make the hardware usable again (a Klipper MCU that
+        shut down is restarted and configured); CommandError while it cannot be."""
+        ...
+
+    def watch_position(self, relocate: Callable[[Sequence[float]], None]) -> None:
+        """The machine's hook for hardware that stopped elsewhere than planned (a Klipper
+        MCU's emergency stop mid-move): ``relocate`` is called with where the tool is (mm)."""
+        ...
+
     async def run(self) -> None:
         """Serve the hardware until cancelled (owned by the machine; may return at once)."""
         ...
@@ -99,6 +109,12 @@ class NoHardware:
         pass
 
     def halt(self) -> None:
+        pass
+
+    async def recover(self) -> None:
+        pass
+
+    def watch_position(self, relocate: Callable[[Sequence[float]], None]) -> None:
         pass
 
     def motors(self, enabled: bool, time_s: float) -> None:

@@ -17,12 +17,12 @@ from __future__ import annotations
 import asyncio
 import copy
 import logging
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
 from server.config import Config
-from server.errors import Alarm
+from server.errors import Alarm, BackendFault
 from server.gcode.codes import CodeTable
 from server.gcode.interpreter import Interpreter
 from server.motion.moves import Action, ActionName, SyncKind, ToolMode
@@ -70,6 +70,7 @@ class Machine(GcodeFeed, RealtimeCommands):
         status.stop_motion, status.before_unlock = self._halt_motion, self.leave_check_mode
         self.core = core
         self.backend = build_backend(core)
+        self.backend.watch_position(self.relocate)
         self.codes = CodeTable()
         self.spin_up_delay_s = 0.0
         self.sync_handlers: dict[SyncKind, SyncHandler] = {}
@@ -217,12 +218,31 @@ class Machine(GcodeFeed, RealtimeCommands):
             self.backend.close()
 
     def _backend_fault(self, exc: Exception) -> None:
-        """A tick raised: stop everything and alarm once (later failures are only logged)."""
+        """A tick raised: stop everything and alarm once (later failures are only logged).
+        An expected hardware fault (:class:`BackendFault`) is one line with its reason; one
+        while the machine is in ALARM already is told, the alarm in force stays."""
         if self.status.alarm_code == Alarm.BACKEND_FAILED:
             log.debug("backend still failing: %r", exc)
             return
-        log.error("backend failed: %r", exc, exc_info=exc)
-        self.status.alarm(Alarm.BACKEND_FAILED, f"backend failed: {exc!r}")
+        if not isinstance(exc, BackendFault):
+            log.error("backend failed: %r", exc, exc_info=exc)
+            self.status.alarm(Alarm.BACKEND_FAILED, f"backend failed: {exc!r}")
+        elif self.status.state is MachineState.ALARM:
+            self.status.push(f"[MSG:{exc}]")
+        else:
+            self.status.alarm(Alarm.BACKEND_FAILED, f"backend failed: {exc}")
+
+    async def unlock(self) -> None:
+        """``$X`` / M999: the hardware is made usable again first (CommandError if it
+        cannot be: the alarm stays), then the alarm is cleared."""
+        if self.status.state is MachineState.ALARM:
+            await self.backend.recover()
+        self.status.clear_alarm()
+
+    def relocate(self, position_mm: Sequence[float]) -> None:
+        """The hardware stopped at ``position_mm`` (not where motion was planned to be):
+        that is the machine position now."""
+        self.set_machine_position(tuple(position_mm))
 
     def _after_tick(self) -> None:
         if not self.room.is_set() and not self.planner.is_full():
