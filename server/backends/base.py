@@ -80,6 +80,12 @@ class Backend(Protocol):
         """Emergency stop: drop every queued step and turn every output off at once."""
         ...
 
+    def done_at_s(self) -> float:
+        """When (on the kernel's clock) the hardware will have carried out all the motion it
+        was given: later than the step generator's end where it runs behind (a Klipper MCU
+        runs a lead time later); 0.0 when nothing is pending."""
+        ...
+
     async def recover(self) -> None:
         """``$X`` / M999 after an alarm: make the hardware usable again (a Klipper MCU that
         shut down is restarted and configured); CommandError while it cannot be."""
@@ -110,6 +116,9 @@ class NoHardware:
 
     def halt(self) -> None:
         pass
+
+    def done_at_s(self) -> float:
+        return 0.0
 
     async def recover(self) -> None:
         pass

@@ -92,6 +92,7 @@ class Machine(GcodeFeed, RealtimeCommands):
         self.epoch = 0  # incremented by every halt/reset; lines waiting across one are dropped
         self.tool = ToolState()
         self._cancelling_jog = False
+        self._idle_timer: asyncio.TimerHandle | None = None
         self._check_saved: Interpreter | None = None
         self._defaults = core.model_copy(deep=True)
         self.feed_override = 100
@@ -154,9 +155,23 @@ class Machine(GcodeFeed, RealtimeCommands):
         self.events.emit(Event.MOTORS_ENABLE if enabled else Event.MOTORS_DISABLE)
 
     def on_idle(self) -> None:
+        """Motion has ended in the step generator: the machine is idle once the hardware has
+        carried it out too (a Klipper MCU's last step comes a lead time later)."""
+        if self._idle_timer is not None:
+            self._idle_timer.cancel()
+            self._idle_timer = None
+        wait_s = self.backend.done_at_s() - self.clock.now_s()
+        if wait_s > 0.0:
+            self._idle_timer = asyncio.get_running_loop().call_later(wait_s, self._idle_later)
+            return
         self.idle_event.set()
         if self.status.state in (MachineState.RUN, MachineState.JOG):
             self.status.set_state(MachineState.IDLE)
+
+    def _idle_later(self) -> None:
+        self._idle_timer = None
+        if self.stepgen.idle:  # no new motion meanwhile (it ends with an on_idle of its own)
+            self.on_idle()
 
     def on_hold_stopped(self) -> None:
         if self._cancelling_jog:

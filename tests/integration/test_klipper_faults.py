@@ -147,7 +147,9 @@ async def test_a_shutdown_a_busy_host_reads_late_keeps_its_reason(mcu: VirtualMc
         assert "the MCU shut down: Rescheduled timer in the past" in app.kernel.alarm_message
 
 
-async def test_the_emergency_stop_goes_out_at_once_before_every_message_not_yet_sent(mcu: VirtualMcu) -> None:
+async def test_the_emergency_stop_goes_out_at_once_before_every_message_not_yet_sent(
+    mcu: VirtualMcu
+) -> None:
     async with klipper_machine(mcu) as app:
         backend = app.kernel.machine.backend
         assert isinstance(backend, KlipperBackend) and backend.mcu is not None

@@ -38,7 +38,14 @@ import numpy as np
 from server.backends.base import Piece
 from server.backends.klipper.codec import ProtocolError
 from server.backends.klipper.dictionary import Dictionary
-from server.backends.klipper.mcu import Command, KlipperFault, Mcu, McuShutdown, NeedsRestart
+from server.backends.klipper.mcu import (
+    CONNECT_TIMEOUT_S,
+    Command,
+    KlipperFault,
+    Mcu,
+    McuShutdown,
+    NeedsRestart,
+)
 from server.backends.klipper.movequeue import MoveQueue
 from server.backends.klipper.pins import Axis, Output, config_commands
 from server.backends.klipper.stepcompress import run_clocks
@@ -53,7 +60,9 @@ HOLD_BACK_S = 0.05
 """The longest a run that may still grow waits before it is sent anyway."""
 MAX_SLEW = 200e-6
 RESTART_WAIT_S = 0.3  # a restarted board boots before it is asked who it is
-RECOVER_TIMEOUT_S = 8.0  # $X waits this long for a restarted board to be configured
+RESTART_PATIENCE_S = 6.0  # a restarted board's first answer (a bootloader, a slow boot)
+RECOVER_TIMEOUT_S = 15.0  # $X waits this long for a restarted board to be configured
+DONE_MARGIN_S = 0.005
 STOP_FLUSH_S = 0.1  # a fault's emergency stop gets this long to leave before the link closes
 
 
@@ -81,6 +90,7 @@ class KlipperBackend:
         self.fault: str | None = None
         self._fault_to_raise: str | None = None
         self._pieces: deque[Piece] = deque()
+        self._motion_end_s = 0.0  # where the trajectory given ends (kernel clock)
         self._head: Piece | None = None  # the piece steps are being generated from
         self._sample_s: float | None = None
         self._next_flush_s = 0.0
@@ -129,6 +139,10 @@ class KlipperBackend:
     def trajectory(self, piece: Piece) -> None:
         if piece.duration_s > 0.0 and not self.ready:
             raise KlipperFault(self.fault or f"the MCU on {self.cfg.serial} is not ready")
+        if piece.duration_s > 0.0:
+            self._motion_end_s = piece.start_s + piece.duration_s
+        else:
+            self._motion_end_s = min(self._motion_end_s, piece.start_s)
         pieces = self._pieces
         while pieces and pieces[-1].start_s >= piece.start_s:
             pieces.pop()
@@ -269,7 +283,8 @@ class KlipperBackend:
             self.mcu = mcu
             delay = self.retry_s
             try:
-                await mcu.connect(self._config_commands, self.identity)
+                await mcu.connect(self._config_commands, self.identity,
+                                  RESTART_PATIENCE_S if restarted else CONNECT_TIMEOUT_S)
                 self.identity = mcu.identity
                 self.ready, self.fault, self.shut_down, restarted = True, None, False, False
                 self._configured.set()
@@ -506,7 +521,15 @@ class KlipperBackend:
         return (self._queue.busy(self._now_clock())
                 or any(out.value > 0.0 for out in self.outputs.values()))
 
+    def done_at_s(self) -> float:
+        """The last step executes a lead time after the trajectory ends (+ the clock fit's
+        possible lag behind the MCU's own clock)."""
+        if not self.ready or not self._motion_end_s:
+            return 0.0
+        return self._motion_end_s + self.lead_s + DONE_MARGIN_S
+
     def _drop_motion(self) -> None:
+        self._motion_end_s = 0.0
         self._pieces.clear()
         self._queue.waiting.clear()
         for axis in self.axes:

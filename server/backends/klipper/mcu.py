@@ -40,6 +40,9 @@ IDENTIFY_CHUNK = 40
 SYNC_BURST = 8
 MAX_DICTIONARY_BYTES = 256 * 1024  # compressed, as served (stock builds: 3-20 kB)
 MAX_INFLATED_BYTES = 4 * 1024 * 1024
+CLOCK_SETTLE_S = 5.0
+RATE_PROBE_S = 0.15
+RATE_TOLERANCE = 0.05  # a round trip's jitter over RATE_PROBE_S stays well inside this
 RESET_SETTLE_S = 0.015  # klippy's pause after ``reset`` before it lets the port go
 
 
@@ -119,15 +122,17 @@ class Mcu:
 
     # -- connecting ---------------------------------------------------------------------------
     async def connect(self, configure: Callable[[Dictionary], list[Command]],
-                      expected: dict[str, str] | None = None) -> None:
+                      expected: dict[str, str] | None = None,
+                      patience_s: float = CONNECT_TIMEOUT_S) -> None:
         """Open, identify, sync the clock and configure; KlipperFault/ProtocolError if not.
-        ``expected``: the identity of the board served before (a different one is refused)."""
+        ``expected``: the identity of the board served before (a different one is refused);
+        ``patience_s``: how long the first answer may take (longer after a restart)."""
         self._fault = asyncio.get_running_loop().create_future()
         try:
             self.link.open()
         except OSError as exc:
             raise KlipperFault(f"cannot open {self.path}: {exc.strerror}") from exc
-        blob = await self._identify()
+        blob = await self._identify(patience_s)
         self.dictionary = await asyncio.to_thread(inflate, blob)
         self.identity = identity(self.dictionary, blob)
         if expected and expected != self.identity:
@@ -151,13 +156,14 @@ class Mcu:
         except TimeoutError as exc:
             raise KlipperFault(f"the MCU on {self.path} does not answer {name}") from exc
 
-    async def _identify(self) -> bytes:
+    async def _identify(self, patience_s: float) -> bytes:
         blob = bytearray()
         while True:
             offset = len(blob)
             reply = await self._ask("identify", "identify_response",
                                     lambda p, o=offset: p["offset"] == o,  # type: ignore[misc]
-                                    max(self.timeout_s, CONNECT_TIMEOUT_S),
+                                    max(self.timeout_s, patience_s if not blob else
+                                        CONNECT_TIMEOUT_S),
                                     offset=offset, count=IDENTIFY_CHUNK)
             if not reply["data"]:
                 return bytes(blob)
@@ -167,6 +173,7 @@ class Mcu:
                                     " bytes")
 
     async def _start_clock(self, freq_hz: float) -> None:
+        await self._steady_clock(freq_hz)
         sent = time.monotonic()
         uptime = await self._ask("get_uptime", "uptime")
         self.clock = ClockSync(freq_hz)
@@ -174,6 +181,22 @@ class Mcu:
         self.clock.reset(0.5 * (sent + uptime["#received_s"]), clock64)
         for _ in range(SYNC_BURST):
             await self.sample_clock()
+
+    async def _steady_clock(self, freq_hz: float) -> None:
+        """Wait (at most ``CLOCK_SETTLE_S``) until the MCU's clock runs at its CLOCK_FREQ
+        (within ``RATE_TOLERANCE``) over ``RATE_PROBE_S``: a board just restarted may not
+        yet (a simulated one catching up after its reboot); a fit made then would be wrong."""
+        deadline = time.monotonic() + CLOCK_SETTLE_S
+        while True:
+            first = await self._ask("get_clock", "clock")
+            await asyncio.sleep(RATE_PROBE_S)
+            second = await self._ask("get_clock", "clock")
+            ticks = (second["clock"] - first["clock"]) & 0xFFFFFFFF
+            rate = ticks / (second["#received_s"] - first["#received_s"]) / freq_hz
+            if abs(rate - 1.0) <= RATE_TOLERANCE:
+                return
+            if time.monotonic() > deadline:
+                raise KlipperFault(f"the MCU's clock runs at {rate:.1%} of its CLOCK_FREQ")
 
     async def sample_clock(self) -> None:
         assert self.clock is not None
