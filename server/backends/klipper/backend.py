@@ -60,8 +60,8 @@ HOLD_BACK_S = 0.05
 """The longest a run that may still grow waits before it is sent anyway."""
 MAX_SLEW = 200e-6
 RESTART_WAIT_S = 0.3  # a restarted board boots before it is asked who it is
-RESTART_PATIENCE_S = 6.0  # a restarted board's first answer (a bootloader, a slow boot)
-RECOVER_TIMEOUT_S = 15.0  # $X waits this long for a restarted board to be configured
+RESTART_PATIENCE_S = 10.0  # a restarted board's first answer (a bootloader, a slow boot)
+RECOVER_TIMEOUT_S = 20.0  # $X waits this long for a restarted board to be configured
 DONE_MARGIN_S = 0.005
 STOP_FLUSH_S = 0.1  # a fault's emergency stop gets this long to leave before the link closes
 
