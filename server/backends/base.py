@@ -86,6 +86,11 @@ class Backend(Protocol):
         runs a lead time later); 0.0 when nothing is pending."""
         ...
 
+    def position_at_mm(self, time_s: float) -> Sequence[float] | None:
+        """Where the tool is at ``time_s`` (now) when the hardware runs behind the step
+        generator (a Klipper MCU: a lead time); None where it does not."""
+        ...
+
     async def recover(self) -> None:
         """``$X`` / M999 after an alarm: make the hardware usable again (a Klipper MCU that
         shut down is restarted and configured); CommandError while it cannot be."""
@@ -119,6 +124,9 @@ class NoHardware:
 
     def done_at_s(self) -> float:
         return 0.0
+
+    def position_at_mm(self, time_s: float) -> Sequence[float] | None:
+        return None
 
     async def recover(self) -> None:
         pass

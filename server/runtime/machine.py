@@ -254,6 +254,12 @@ class Machine(GcodeFeed, RealtimeCommands):
             await self.backend.recover()
         self.status.clear_alarm()
 
+    def position_now_mm(self) -> tuple[float, ...]:
+        """Where the tool is now: what the hardware has carried out where it runs behind the
+        step generator (a Klipper MCU), else the step generator's position."""
+        executed = self.backend.position_at_mm(self.clock.now_s())
+        return self.stepgen.state.position_mm if executed is None else tuple(executed)
+
     def relocate(self, position_mm: Sequence[float]) -> None:
         """The hardware stopped at ``position_mm`` (not where motion was planned to be):
         that is the machine position now."""

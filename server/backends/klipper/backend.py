@@ -27,11 +27,13 @@ machine turns into an alarm; the backend then reconnects every ``retry_s``.
 from __future__ import annotations
 
 import asyncio
+import bisect
 import contextlib
 import logging
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
+from typing import cast
 
 import numpy as np
 
@@ -91,6 +93,10 @@ class KlipperBackend:
         self._fault_to_raise: str | None = None
         self._pieces: deque[Piece] = deque()
         self._motion_end_s = 0.0  # where the trajectory given ends (kernel clock)
+        # (time, planned position) of the recent samples: the MCU is where the plan was a
+        # lead time ago
+        self._history: deque[tuple[float, tuple[float, ...]]] = deque(
+            maxlen=int(self.lead_s * core.stepgen.tick_hz * 2) + 16)
         self._head: Piece | None = None  # the piece steps are being generated from
         self._sample_s: float | None = None
         self._next_flush_s = 0.0
@@ -163,6 +169,9 @@ class KlipperBackend:
         self._sample_s = time_s
         if not self.ready:
             return
+        history, here = self._history, tuple(cast("Sequence[float]", position_mm))
+        if not history or history[-1][1] != here:
+            history.append((time_s, here))
         if time_s >= self._next_flush_s or self._map[2] == 0.0:
             self._update_map(time_s + self.lead_s)
         self._generate(time_s)
@@ -521,6 +530,16 @@ class KlipperBackend:
         return (self._queue.busy(self._now_clock())
                 or any(out.value > 0.0 for out in self.outputs.values()))
 
+    def position_at_mm(self, time_s: float) -> tuple[float, ...] | None:
+        """The planned position a lead time before ``time_s``: what the MCU has executed
+        (the step schedule runs ``lead_s`` behind the step generator)."""
+        history = self._history
+        if not self.ready or not history:
+            return None
+        at_s = time_s - self.lead_s
+        index = bisect.bisect_right(history, at_s, key=lambda entry: entry[0])
+        return history[max(0, index - 1)][1]
+
     def done_at_s(self) -> float:
         """The last step executes a lead time after the trajectory ends (+ the clock fit's
         possible lag behind the MCU's own clock)."""
@@ -530,6 +549,7 @@ class KlipperBackend:
 
     def _drop_motion(self) -> None:
         self._motion_end_s = 0.0
+        self._history.clear()
         self._pieces.clear()
         self._queue.waiting.clear()
         for axis in self.axes:
