@@ -133,3 +133,51 @@ async def test_a_killed_motiond_leaves_the_laser_on_no_longer_than_its_watchdog_
             assert "MPos:5.000," in report
             assert x_steps(board.gpio(), start) == (400, 400)
             await client.close()
+
+
+def axis_steps(gpio: GpioLog, step: str, direction: str, inverted: bool) -> tuple[int, int]:
+    rises = [c for c, v in gpio.edges.get(step, []) if v == 1]
+    net = sum(1 if gpio.level_at(direction, c) != inverted else -1 for c in rises)
+    return len(rises), net
+
+
+async def test_a_job_s_pins_make_exactly_the_commanded_steps_and_idle_follows_the_last_edge(
+    tmp_path: Path
+) -> None:
+    async with klipper_rig(tmp_path) as board, motiond(tmp_path, rig_toml(board.path)) as served:
+        await wait_configured(board)
+        client = await CharCountingClient.connect("127.0.0.1", served.tcp_port)
+        lines = ["G21 G90", "G1 X20 Y10 F6000", "G1 X5 Y25", "G1 X12.5 Y3 F3000"]
+        assert (await client.stream(lines)).replies == ["ok"] * 4
+        reports: list[tuple[int, str]] = []
+        while not reports or not reports[-1][1].startswith("<Idle"):
+            report = await status(client)
+            reports.append((time.monotonic_ns(), report))
+            await asyncio.sleep(0.01)
+        idle_ns, idle_report = reports[-1]
+        assert any(r.startswith("<Run") for _, r in reports)
+        assert "MPos:12.500,3.000|" in idle_report
+        await asyncio.sleep(0.3)  # the log is written every 10 ms of simulated time
+        gpio = board.gpio()
+        assert axis_steps(gpio, "A0", "A1", inverted=True) == (1600 + 1200 + 600, 1000)
+        assert axis_steps(gpio, "A3", "A4", inverted=False) == (800 + 1200 + 1760, 240)
+        last_edge = max(c for pin in ("A0", "A3") for c, v in gpio.edges[pin] if v == 1)
+        assert gpio.host_ns(last_edge) <= idle_ns, "Idle only after the last step edge"
+        await client.close()
+
+
+async def test_a_board_that_dies_mid_job_is_an_alarm_in_one_log_line(tmp_path: Path) -> None:
+    async with klipper_rig(tmp_path) as board, motiond(tmp_path, rig_toml(board.path)) as served:
+        await wait_configured(board)
+        client = await CharCountingClient.connect("127.0.0.1", served.tcp_port)
+        await client.stream(["G21 G90", "M3 S800", "G1 X100 F3000"])
+        await asyncio.sleep(0.5)
+        board.process.kill()
+        await board.process.wait()
+        deadline = time.monotonic() + 2.0
+        while not (report := await status(client)).startswith("<Alarm"):
+            assert time.monotonic() < deadline, report
+            await asyncio.sleep(0.02)
+        await client.close()
+    log = (tmp_path / "machine.log").read_text()
+    assert "ALARM:42" in log and "Traceback" not in log, log
