@@ -270,8 +270,13 @@ class KlipperBackend:
             out.value = 0.0
         if busy and self.mcu is not None and self.ready:
             log.warning("emergency stop sent to the MCU")
-            self.ready = False  # nothing more goes out: the board is stopping
+            self._mark_shut_down()  # nothing more goes out: the board is stopping
             self.mcu.emergency_stop()
+
+    def _mark_shut_down(self) -> None:
+        """The board is (about to be) shut down: nothing is sent until recover() restarts it."""
+        self.ready, self.shut_down = False, True
+        self._configured.clear()
 
     def close(self) -> None:
         if self.mcu is not None:
@@ -296,6 +301,7 @@ class KlipperBackend:
                                   RESTART_PATIENCE_S if restarted else CONNECT_TIMEOUT_S)
                 self.identity = mcu.identity
                 self.ready, self.fault, self.shut_down, restarted = True, None, False, False
+                self._recover.clear()  # a $X that came while it was away is answered now
                 self._configured.set()
                 log.info("MCU on %s ready (%s, %s)", self.cfg.serial,
                          mcu.dictionary.constants.get("MCU"), mcu.dictionary.version)
@@ -312,8 +318,9 @@ class KlipperBackend:
                 await self._after_shutdown(mcu, exc)
                 restarted, delay = True, RESTART_WAIT_S
             except (KlipperFault, ProtocolError, ConnectionError) as exc:
+                if self.ready or self.shut_down:  # ours: outputs off first, if it still hears
+                    mcu.emergency_stop()
                 self.ready = False
-                mcu.emergency_stop()  # while the board can still hear: outputs off first
                 self._on_fault(str(exc))
                 await self._drain(mcu, STOP_FLUSH_S)
             except asyncio.CancelledError:
@@ -327,9 +334,9 @@ class KlipperBackend:
     async def _after_shutdown(self, mcu: Mcu, shutdown: McuShutdown) -> None:
         """The board shut down (our emergency stop or its own fault): read where it stopped,
         make that the machine position, alarm, and wait for :meth:`recover` to restart it."""
-        self.ready, self.shut_down = False, True
-        self._recover.clear()
-        self._configured.clear()
+        self._mark_shut_down()
+        cause = "emergency stop" if shutdown.requested else str(shutdown)
+        self.fault = f"klipper MCU on {self.cfg.serial}: {cause}"  # what a new move is told
         self._drop_motion()
         for out in self.outputs.values():
             out.value = 0.0
@@ -344,7 +351,6 @@ class KlipperBackend:
                 f"{axis.name.upper()}{mm:.3f}" for axis, mm in zip(self.axes, stopped,
                                                                     strict=True))
             self.relocate(stopped)
-        cause = "emergency stop" if shutdown.requested else str(shutdown)
         self._on_fault(f"{cause}; {where} (position may be lost: re-home); $X or M999 "
                        "restarts the MCU")
         await self._recover.wait()
