@@ -103,3 +103,22 @@ async def test_a_missing_device_is_an_alarm_in_one_log_line_without_a_traceback(
         assert "cannot open /dev/motiond-no-such-mcu: No such file" in app.kernel.alarm_message
     faults = [r for r in caplog.records if "no-such-mcu" in r.getMessage()]
     assert faults and not any(r.exc_info for r in faults)
+
+
+async def test_a_board_found_shut_down_is_restarted_then_configured(mcu: VirtualMcu) -> None:
+    with mcu.lock:
+        mcu.shutdown("Rescheduled timer in the past")  # before motiond ever spoke to it
+    async with klipper_machine(mcu) as app:
+        assert mcu.resets == 1 and mcu.configured and mcu.shutdown_reason is None
+        backend = app.kernel.machine.backend
+        assert isinstance(backend, KlipperBackend) and backend.fault is None
+
+
+async def test_a_board_still_configured_by_an_earlier_motiond_is_restarted_not_reused(
+    mcu: VirtualMcu
+) -> None:
+    async with klipper_machine(mcu):
+        pass
+    assert mcu.configured and mcu.resets == 0
+    async with klipper_machine(mcu):  # its outputs could be on from before: start it over
+        assert mcu.resets == 1 and mcu.configured
