@@ -86,6 +86,10 @@ class KlipperOutput(Strict):
                             description="the MCU pin (default: NAME itself); ! inverts")
     pwm: bool = Field(True, description="hardware PWM (config_pwm_out); false: on/off")
     cycle_time_s: float = Field(0.0001, gt=0, le=1, description="PWM period (1/frequency)")
+    max_duration_s: float = Field(
+        1.0, ge=0.1, le=5.0,
+        description="the firmware's watchdog: an output left on this long without a refresh "
+        "from motiond (motiond died, hung or lost the link) is switched off by the board")
 
 
 class BackendConfig(Strict):
@@ -133,6 +137,10 @@ class BackendConfig(Strict):
         25e-6, ge=1e-6, le=1e-3, description="klipper: how early a step may be (compression)")
     response_timeout_s: float = Field(
         0.5, ge=0.05, le=10, description="klipper: an MCU silent this long is an alarm")
+    restart_method: Literal["command", "arduino"] = Field(
+        "command", description="klipper: how a shut-down MCU is restarted ($X, M999, or one "
+        "found shut down): command sends the firmware's reset (USB and UART boards); arduino "
+        "toggles DTR (a board whose firmware lacks reset falls back to it)")
     axes: dict[str, KlipperAxisPins] = Field(default_factory=dict)
     outputs: dict[str, KlipperOutput] = Field(default_factory=dict)
 

@@ -156,3 +156,8 @@ class SoftLimitError(CommandError):
     def __init__(self, message: str) -> None:
         super().__init__(Error.SOFT_LIMIT, message)
 
+
+
+class BackendFault(MotiondError):
+    """The hardware below the backend failed in a way it can (a board shut down, a device
+    gone): an alarm with its reason in one log line, not a bug's traceback."""

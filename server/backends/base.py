@@ -7,7 +7,7 @@ call; times are seconds on the kernel's clock; outputs are duty cycles in [0, 1]
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -80,6 +80,27 @@ class Backend(Protocol):
         """Emergency stop: drop every queued step and turn every output off at once."""
         ...
 
+    def done_at_s(self) -> float:
+        """When (on the kernel's clock) the hardware will have carried out all the motion it
+        was given: later than the step generator's end where it runs behind (a Klipper MCU
+        runs a lead time later); 0.0 when nothing is pending."""
+        ...
+
+    def position_at_mm(self, time_s: float) -> Sequence[float] | None:
+        """Where the tool is at ``time_s`` (now) when the hardware runs behind the step
+        generator (a Klipper MCU: a lead time); None where it does not."""
+        ...
+
+    async def recover(self) -> None:
+        """``$X`` / M999 after an alarm: make the hardware usable again (a Klipper MCU that
+        shut down is restarted and configured); CommandError while it cannot be."""
+        ...
+
+    def watch_position(self, relocate: Callable[[Sequence[float]], None]) -> None:
+        """The machine's hook for hardware that stopped elsewhere than planned (a Klipper
+        MCU's emergency stop mid-move): ``relocate`` is called with where the tool is (mm)."""
+        ...
+
     async def run(self) -> None:
         """Serve the hardware until cancelled (owned by the machine; may return at once)."""
         ...
@@ -99,6 +120,18 @@ class NoHardware:
         pass
 
     def halt(self) -> None:
+        pass
+
+    def done_at_s(self) -> float:
+        return 0.0
+
+    def position_at_mm(self, time_s: float) -> Sequence[float] | None:
+        return None
+
+    async def recover(self) -> None:
+        pass
+
+    def watch_position(self, relocate: Callable[[Sequence[float]], None]) -> None:
         pass
 
     def motors(self, enabled: bool, time_s: float) -> None:

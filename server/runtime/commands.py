@@ -115,8 +115,8 @@ class CoreCommands:
         self.machine.enter_check_mode()
         return ["[MSG:Enabled]"]
 
-    def unlock(self, command: Command) -> None:
-        self.kernel.clear_alarm()
+    async def unlock(self, command: Command) -> None:
+        await self.machine.unlock()
 
     def restore(self, command: Command) -> None:
         target = command.args.strip()

@@ -17,12 +17,12 @@ from __future__ import annotations
 import asyncio
 import copy
 import logging
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
 from server.config import Config
-from server.errors import Alarm
+from server.errors import Alarm, BackendFault
 from server.gcode.codes import CodeTable
 from server.gcode.interpreter import Interpreter
 from server.motion.moves import Action, ActionName, SyncKind, ToolMode
@@ -70,6 +70,7 @@ class Machine(GcodeFeed, RealtimeCommands):
         status.stop_motion, status.before_unlock = self._halt_motion, self.leave_check_mode
         self.core = core
         self.backend = build_backend(core)
+        self.backend.watch_position(self.relocate)
         self.codes = CodeTable()
         self.spin_up_delay_s = 0.0
         self.sync_handlers: dict[SyncKind, SyncHandler] = {}
@@ -91,6 +92,7 @@ class Machine(GcodeFeed, RealtimeCommands):
         self.epoch = 0  # incremented by every halt/reset; lines waiting across one are dropped
         self.tool = ToolState()
         self._cancelling_jog = False
+        self._idle_timer: asyncio.TimerHandle | None = None
         self._check_saved: Interpreter | None = None
         self._defaults = core.model_copy(deep=True)
         self.feed_override = 100
@@ -159,9 +161,23 @@ class Machine(GcodeFeed, RealtimeCommands):
         self.events.emit(Event.MOTORS_ENABLE if enabled else Event.MOTORS_DISABLE)
 
     def on_idle(self) -> None:
+        """Motion has ended in the step generator: the machine is idle once the hardware has
+        carried it out too (a Klipper MCU's last step comes a lead time later)."""
+        if self._idle_timer is not None:
+            self._idle_timer.cancel()
+            self._idle_timer = None
+        wait_s = self.backend.done_at_s() - self.clock.now_s()
+        if wait_s > 0.0:
+            self._idle_timer = asyncio.get_running_loop().call_later(wait_s, self._idle_later)
+            return
         self.idle_event.set()
         if self.status.state in (MachineState.RUN, MachineState.JOG):
             self.status.set_state(MachineState.IDLE)
+
+    def _idle_later(self) -> None:
+        self._idle_timer = None
+        if self.stepgen.idle:  # no new motion meanwhile (it ends with an on_idle of its own)
+            self.on_idle()
 
     def on_hold_stopped(self) -> None:
         if self._cancelling_jog:
@@ -223,12 +239,37 @@ class Machine(GcodeFeed, RealtimeCommands):
             self.backend.close()
 
     def _backend_fault(self, exc: Exception) -> None:
-        """A tick raised: stop everything and alarm once (later failures are only logged)."""
+        """A tick raised: stop everything and alarm once (later failures are only logged).
+        An expected hardware fault (:class:`BackendFault`) is one line with its reason; one
+        while the machine is in ALARM already is told, the alarm in force stays."""
         if self.status.alarm_code == Alarm.BACKEND_FAILED:
             log.debug("backend still failing: %r", exc)
             return
-        log.error("backend failed: %r", exc, exc_info=exc)
-        self.status.alarm(Alarm.BACKEND_FAILED, f"backend failed: {exc!r}")
+        if not isinstance(exc, BackendFault):
+            log.error("backend failed: %r", exc, exc_info=exc)
+            self.status.alarm(Alarm.BACKEND_FAILED, f"backend failed: {exc!r}")
+        elif self.status.state is MachineState.ALARM:
+            self.status.push(f"[MSG:{exc}]")
+        else:
+            self.status.alarm(Alarm.BACKEND_FAILED, f"backend failed: {exc}")
+
+    async def unlock(self) -> None:
+        """``$X`` / M999: the hardware is made usable again first (CommandError if it
+        cannot be: the alarm stays), then the alarm is cleared."""
+        if self.status.state is MachineState.ALARM:
+            await self.backend.recover()
+        self.status.clear_alarm()
+
+    def position_now_mm(self) -> tuple[float, ...]:
+        """Where the tool is now: what the hardware has carried out where it runs behind the
+        step generator (a Klipper MCU), else the step generator's position."""
+        executed = self.backend.position_at_mm(self.clock.now_s())
+        return self.stepgen.state.position_mm if executed is None else tuple(executed)
+
+    def relocate(self, position_mm: Sequence[float]) -> None:
+        """The hardware stopped at ``position_mm`` (not where motion was planned to be):
+        that is the machine position now."""
+        self.set_machine_position(tuple(position_mm))
 
     def _after_tick(self) -> None:
         if not self.room.is_set() and not self.planner.is_full():

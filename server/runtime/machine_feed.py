@@ -46,6 +46,7 @@ class GcodeFeed:
 
     if TYPE_CHECKING:
         def emergency_stop(self) -> None: ...  # the machine's realtime commands
+        async def unlock(self) -> None: ...  # the machine's
 
     # -- the G-code handler -----------------------------------------------------------------
     async def handle_gcode(self, command: Command) -> list[str]:
@@ -141,7 +142,7 @@ class GcodeFeed:
             self.emergency_stop()
             return []
         if kind is SyncKind.CLEAR_HALT:
-            self.status.clear_alarm()
+            await self.unlock()
             return []
         if kind is SyncKind.MESSAGE:
             return list(request.params["lines"])

@@ -46,7 +46,7 @@ def snapshot(kernel: Kernel, rx_free_bytes: int) -> StatusSnapshot:
     pins = "".join(module.report_pins() for module in kernel.modules.values())
     return StatusSnapshot(
         state=state_text(kernel),
-        machine_mm=motion.position_mm,
+        machine_mm=machine.position_now_mm(),
         wco_mm=machine.interpreter.wco(),
         feed_mm_s=motion.speed_mm_s,
         spindle_s=_spindle_s(motion.s_value if motion.moving else tool.s, tool.mode, motion),
@@ -70,7 +70,7 @@ def build_status(kernel: Kernel) -> dict[str, Any]:
     machine = kernel.machine
     motion = machine.stepgen.state
     interpreter = machine.interpreter
-    mpos = motion.position_mm
+    mpos = machine.position_now_mm()
     alarm = None
     if kernel.state is MachineState.ALARM:
         alarm = {

@@ -147,7 +147,9 @@ async def test_a_shutdown_a_busy_host_reads_late_keeps_its_reason(mcu: VirtualMc
         assert "the MCU shut down: Rescheduled timer in the past" in app.kernel.alarm_message
 
 
-async def test_the_emergency_stop_goes_before_every_message_not_yet_sent(mcu: VirtualMcu) -> None:
+async def test_the_emergency_stop_goes_out_at_once_before_every_message_not_yet_sent(
+    mcu: VirtualMcu
+) -> None:
     async with klipper_machine(mcu) as app:
         backend = app.kernel.machine.backend
         assert isinstance(backend, KlipperBackend) and backend.mcu is not None
@@ -159,7 +161,10 @@ async def test_the_emergency_stop_goes_before_every_message_not_yet_sent(mcu: Vi
             link.send(dictionary.encode("get_clock"))
         await asyncio.sleep(0.05)
         assert link.queued_bytes > 0
+        inflight = len(link.window.inflight)
         backend.halt()
         waiting = [dictionary.decode(message)[0][0] for message in link._queue]
-        assert waiting[0] == "emergency_stop"
         assert "queue_step" not in waiting and "get_clock" not in waiting  # plain sends dropped
+        # written at once in a block of its own, though the window was full
+        assert len(link.window.inflight) == inflight + 1
+        assert dictionary.decode(link.window.inflight[-1].payload) == [("emergency_stop", {})]

@@ -19,18 +19,20 @@ PINS = {"x": {"step_pin": "PB13", "dir_pin": "!PB12", "enable_pin": "!PB14"},
         "z": {"step_pin": "PB0", "dir_pin": "PC5", "enable_pin": "!PB1"}}
 
 
-def klipper_config(path: str, lead_time_s: float = 0.2, **extra: Any) -> Any:
+def klipper_config(path: str, lead_time_s: float = 0.2, max_duration_s: float = 1.0,
+                   **extra: Any) -> Any:
     backend = {"kind": "klipper", "serial": path, "lead_time_s": lead_time_s, "axes": PINS,
-               "outputs": {"PA8": {"pwm": True, "cycle_time_s": 0.0002}}}
+               "outputs": {"PA8": {"pwm": True, "cycle_time_s": 0.0002,
+                                   "max_duration_s": max_duration_s}}}
     return make_config(backend=backend, **extra)
 
 
 @contextlib.asynccontextmanager
-async def klipper_machine(mcu: VirtualMcu, lead_time_s: float = 0.2,
+async def klipper_machine(mcu: VirtualMcu, lead_time_s: float = 0.2, max_duration_s: float = 1.0,
                           **extra: Any) -> AsyncIterator[App]:
     """An in-process server on the real clock whose backend is a KlipperBackend on ``mcu``,
     recording its exact step times; yields once the MCU is configured."""
-    config = klipper_config(mcu.path, lead_time_s, **extra)
+    config = klipper_config(mcu.path, lead_time_s, max_duration_s, **extra)
     async with running(config, clock=RealClock()) as app:
         machine = app.kernel.machine
         backend = machine.backend

@@ -7,7 +7,12 @@ config with a CRC, and a shared move queue. It executes ``queue_step`` as Klippe
 src/stepper.c does (step ``k`` at ``last + (k+1)·interval + add·k(k+1)/2``, direction from
 ``set_next_step_dir``) and records every step with its MCU clock, every PWM update, and how
 full the move queue got and how early each move arrived. Every byte from the host is decoded
-with Klipper's own host-side parser (``klippy.msgproto``), the reference decoder.
+with Klipper's own host-side parser (``msgproto.py`` at the stock firmware's commit, from the
+klipper-avr rig), the reference decoder. It offers only the commands the stock firmware has
+(:mod:`tests.support.klipper_dictionary`); like the firmware, a shut-down MCU answers
+``is_shutdown`` to everything but the few commands allowed then, ``clear_shutdown`` resumes it
+with its configuration (steps and outputs dropped), ``reset`` restarts it, and an output with a
+``max_duration`` left on longer than that without a new event shuts it down.
 
 A microcontroller runs on its own core whatever the host does; this one is a thread of the
 test process, so while it runs it asks for the CPU first: real-time priority for its thread
@@ -15,7 +20,8 @@ test process, so while it runs it asks for the CPU first: real-time priority for
 read the host's messages late and shut down ("Stepper too far in past") where no MCU would.
 
 Faults for tests: :meth:`mute` (stops answering), :meth:`restart` (clock, sequence and config
-start over), ``drop_blocks``/``corrupt_blocks`` (the next N host blocks are lost or damaged).
+start over), ``drop_blocks``/``corrupt_blocks`` (the next N host blocks are lost or damaged),
+:meth:`shutdown` (a firmware fault).
 """
 
 from __future__ import annotations
@@ -32,9 +38,13 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from klippy import msgproto  # type: ignore[import-untyped]
 
 from tests.support.klipper_dictionary import compressed, dictionary_data
+from tests.support.rigs import msgproto as reference_msgproto
+
+msgproto = reference_msgproto()
+IN_SHUTDOWN = ("identify", "get_uptime", "get_clock", "get_config", "emergency_stop",
+               "clear_shutdown", "reset")  # the stock commands with HF_IN_SHUTDOWN
 
 
 @dataclass
@@ -61,6 +71,7 @@ class OutputPin:
     kind: str  # "pwm" or "digital"
     default: int
     events: list[tuple[int, int]] = field(default_factory=list)  # (clock, value)
+    max_duration: int = 0  # ticks an output may stay off its default without a new event
 
 
 class VirtualMcu:
@@ -85,6 +96,7 @@ class VirtualMcu:
         self.holding_config = threading.Event()  # ...and this says one is waiting
         self.drop_blocks = 0
         self.corrupt_blocks = 0
+        self.resets = 0  # ``reset`` commands obeyed
         self.naks_sent = 0
         self.blocks_received = 0
         self.commands: list[tuple[int, str, dict[str, Any]]] = []  # (clock, name, params)
@@ -122,7 +134,7 @@ class VirtualMcu:
             self._power_on()
 
     def _archive(self) -> None:
-        """Objects go (config_reset, restart); what they did stays in the records."""
+        """Objects go (a restart); what they did stays in the records."""
         for oid, stepper in self.steppers.items():
             self.old_runs.setdefault(oid, []).extend(stepper.runs)
         self.old_outputs.extend(self.outputs.values())
@@ -171,6 +183,8 @@ class VirtualMcu:
         while not self._stop.is_set():
             ready, _, _ = select.select([self.master], [], [], 0.02)
             if not ready:
+                with self.lock:
+                    self._check_watchdogs()
                 continue
             try:
                 data = os.read(self.master, 4096)
@@ -179,6 +193,7 @@ class VirtualMcu:
             with self.lock:
                 if not self.muted:
                     self._receive(data)
+                self._check_watchdogs()
 
     def _receive(self, data: bytes) -> None:
         self._buffer += data
@@ -240,9 +255,7 @@ class VirtualMcu:
         handler = getattr(self, f"_cmd_{name}", None)
         if handler is None:
             raise AssertionError(f"virtual MCU: unexpected command {name}")
-        always = ("identify", "get_uptime", "get_clock", "get_config", "emergency_stop",
-                  "config_reset", "clear_shutdown")
-        if self.shutdown_reason is not None and name not in always:
+        if self.shutdown_reason is not None and name not in IN_SHUTDOWN:
             self.respond("is_shutdown static_string_id=%hu", self.shutdown_reason)
             return
         try:
@@ -301,29 +314,49 @@ class VirtualMcu:
     def _cmd_config_digital_out(self, now: int, oid: int, pin: str, value: int,
                                 default_value: int, max_duration: int) -> None:
         assert not self.configured and oid < self.oid_count
-        self.outputs[oid] = OutputPin(pin, "digital", default_value, [(now, value)])
+        self.outputs[oid] = OutputPin(pin, "digital", default_value, [(now, value)],
+                                      max_duration)
 
     def _cmd_config_pwm_out(self, now: int, oid: int, pin: str, cycle_ticks: int, value: int,
                             default_value: int, max_duration: int) -> None:
         assert not self.configured and oid < self.oid_count and cycle_ticks > 0
-        self.outputs[oid] = OutputPin(pin, "pwm", default_value, [(now, value)])
+        self.outputs[oid] = OutputPin(pin, "pwm", default_value, [(now, value)], max_duration)
 
     def _cmd_finalize_config(self, now: int, crc: int) -> None:
         self.configured, self.crc = True, crc
-
-    def _cmd_config_reset(self, now: int) -> None:
-        if self.shutdown_reason is None:
-            self.shutdown("config_reset only available when shutdown")
-            return
-        self.configured, self.crc, self.oid_count = False, 0, 0
-        self._archive()
-        self.shutdown_reason = None
 
     def _cmd_emergency_stop(self, now: int) -> None:
         self.shutdown("Command request", now)
 
     def _cmd_clear_shutdown(self, now: int) -> None:
+        if self.shutdown_reason is None:
+            self.shutdown("Shutdown cleared when not shutdown", now)
+            return
         self.shutdown_reason = None
+        for stepper in self.steppers.values():
+            stepper.last_clock = 0
+
+    def _cmd_reset(self, now: int) -> None:
+        """The firmware's watchdog reboot: a fresh MCU that says ``starting``."""
+        self.resets += 1
+        self._cancel_future(now)
+        self._power_on()
+        self.respond("starting")
+
+    def _check_watchdogs(self) -> None:
+        """An output left off its default past its ``max_duration`` (no new event queued):
+        the firmware shuts down (src/gpiocmds.c, "Missed scheduling of next ... event")."""
+        if self.shutdown_reason is not None or not self.configured:
+            return
+        now = self.clock()
+        for out in self.outputs.values():
+            if not out.max_duration or not out.events:
+                continue
+            clock, value = out.events[-1]
+            if value != out.default and now > clock + out.max_duration:
+                kind = "hard pwm" if out.kind == "pwm" else "digital out"
+                self.shutdown(f"Missed scheduling of next {kind} event", now)
+                return
 
     def _use_queue(self, now: int, free_at: int) -> None:
         self._queue_free_at = [c for c in self._queue_free_at if c > now] + [free_at]
@@ -360,8 +393,9 @@ class VirtualMcu:
         return now + (delta - (1 << 32) if delta & 0x80000000 else delta)
 
     def _cmd_stepper_get_position(self, now: int, oid: int) -> None:
-        clocks, dirs = self.step_clocks(oid) if self.steppers[oid].runs else ([], [])
-        pos = int(np.sum(np.asarray(dirs)[np.asarray(clocks) <= now])) if len(clocks) else 0
+        """Steps made since this stepper was configured, +1 for each with dir 1."""
+        pos = sum(int(np.sum(r.clocks <= now)) * (1 if r.direction else -1)
+                  for r in self.steppers[oid].runs)
         self.respond("stepper_position oid=%c pos=%i", oid, pos)
 
     def _queue_output(self, now: int, oid: int, clock32: int, value: int) -> None:

@@ -50,3 +50,11 @@ def test_joining_an_mcu_that_served_a_host_before_adopts_its_count() -> None:
     again = window.on_block(1, True, 0.001)  # a nak that happens to look like an ack of 0
     assert len(again) == 1 and again[0][1] == 0x10 | 1 and again[0][2:-3] == first[2:-3]
     assert window.on_block(2, False, 0.002) == [] and not window.inflight
+
+
+def test_a_flood_of_empty_blocks_before_the_first_ack_draws_one_resend_per_round_trip() -> None:
+    window = SendWindow()
+    sent(window, 1)
+    resent = [window.on_block(5, True, 0.0001 * i) for i in range(100)]  # 10 ms of naks
+    assert sum(1 for blocks in resent if blocks) == 1
+    assert window.on_block(5, True, 0.2)  # a round trip later: once more

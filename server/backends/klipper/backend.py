@@ -12,30 +12,48 @@ MCU's move queue (``move_count`` from its config) has room (:mod:`.movequeue`).
 
 Outputs named in ``[backend.outputs]`` become ``queue_pwm_out``/``queue_digital_out`` at the
 MCU time of the last sample (the instant whose speed the laser's power was computed from) plus
-the lead, so power changes land on the steps they belong to. Halt (alarm, M112, Ctrl-X) sends
-``emergency_stop`` at once when the MCU has anything queued or an output on, then re-configures.
-A fault (:class:`~.mcu.KlipperFault`) is raised once from the next :meth:`sample`, which the
+the lead, so power changes land on the steps they belong to. An output that is on is sent again
+every half ``max_duration_s``: the firmware's watchdog turns it off when motiond stops doing so.
+
+Stopping: halt (alarm, M112, Ctrl-X) sends ``emergency_stop`` at once when the MCU has anything
+queued or an output on, and so does every fault while the board can still hear. A shut-down
+board stays so (the machine in ALARM, every move refused) until :meth:`recover` (``$X``, M999):
+where each stepper stopped is read from the firmware first and becomes the machine position
+(``relocate``), then the board is restarted (``restart_method``) and configured afresh. A
+fault (:class:`~.mcu.KlipperFault`) is raised once from the next :meth:`sample`, which the
 machine turns into an alarm; the backend then reconnects every ``retry_s``.
 """
 
 from __future__ import annotations
 
 import asyncio
+import bisect
+import contextlib
 import logging
 import time
 from collections import deque
+from collections.abc import Callable, Sequence
+from typing import cast
 
 import numpy as np
 
 from server.backends.base import Piece
 from server.backends.klipper.codec import ProtocolError
 from server.backends.klipper.dictionary import Dictionary
-from server.backends.klipper.mcu import Command, KlipperFault, Mcu
+from server.backends.klipper.mcu import (
+    CONNECT_TIMEOUT_S,
+    Command,
+    KlipperFault,
+    Mcu,
+    McuShutdown,
+    NeedsRestart,
+)
 from server.backends.klipper.movequeue import MoveQueue
 from server.backends.klipper.pins import Axis, Output, config_commands
 from server.backends.klipper.stepcompress import run_clocks
 from server.backends.klipper.steptimes import FloatArray, crossing_times, step_target
 from server.config import CoreConfig
+from server.errors import CommandError, Error
 
 log = logging.getLogger("motiond.klipper")
 SLEW_S = 2.0
@@ -43,6 +61,11 @@ EXIT_GRACE_S = 0.3
 HOLD_BACK_S = 0.05
 """The longest a run that may still grow waits before it is sent anyway."""
 MAX_SLEW = 200e-6
+RESTART_WAIT_S = 0.3  # a restarted board boots before it is asked who it is
+RESTART_PATIENCE_S = 10.0  # a restarted board's first answer (a bootloader, a slow boot)
+RECOVER_TIMEOUT_S = 20.0  # $X waits this long for a restarted board to be configured
+DONE_MARGIN_S = 0.005
+STOP_FLUSH_S = 0.1  # a fault's emergency stop gets this long to leave before the link closes
 
 
 class KlipperBackend:
@@ -69,11 +92,41 @@ class KlipperBackend:
         self.fault: str | None = None
         self._fault_to_raise: str | None = None
         self._pieces: deque[Piece] = deque()
+        self._motion_end_s = 0.0  # where the trajectory given ends (kernel clock)
+        # (time, planned position) of the recent samples: the MCU is where the plan was a
+        # lead time ago
+        self._history: deque[tuple[float, tuple[float, ...]]] = deque(
+            maxlen=int(self.lead_s * core.stepgen.tick_hz * 2) + 16)
         self._head: Piece | None = None  # the piece steps are being generated from
         self._sample_s: float | None = None
         self._next_flush_s = 0.0
         self._queue = MoveQueue()
         self._map: tuple[float, float, float] = (0.0, 0.0, 0.0)  # host s, MCU clock, ticks/s
+        self.identity: dict[str, str] = {}  # the board first served: another is refused
+        self.shut_down = False  # the board is shut down until recover() restarts it
+        self._recover = asyncio.Event()  # recover() asks the waiting run() to restart
+        self._configured = asyncio.Event()  # ...which sets this once the board is ready
+        self._config_base = [0] * len(self.axes)  # axis positions when the MCU was configured
+        self.relocate: Callable[[Sequence[float]], None] = lambda _: None
+
+    def watch_position(self, relocate: Callable[[Sequence[float]], None]) -> None:
+        """The machine's hook: called with where the tool really stopped (mm) after a stop."""
+        self.relocate = relocate
+
+    async def recover(self) -> None:
+        """``$X``/M999: a shut-down board is restarted and configured afresh (waited for);
+        CommandError while the board is not there or does not come back."""
+        if self.ready and not self.shut_down:
+            return
+        if not self.shut_down:
+            raise CommandError(Error.LOCKED_OUT, self.fault or
+                               f"the MCU on {self.cfg.serial} is not connected yet")
+        self._recover.set()
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(self._configured.wait(), RECOVER_TIMEOUT_S)
+        if not self.ready:
+            raise CommandError(Error.LOCKED_OUT, "the MCU did not come back after its restart"
+                               + (f": {self.fault}" if self.fault else ""))
 
     # -- the Backend seam ---------------------------------------------------------------------
     @property
@@ -91,7 +144,11 @@ class KlipperBackend:
 
     def trajectory(self, piece: Piece) -> None:
         if piece.duration_s > 0.0 and not self.ready:
-            raise KlipperFault(self.fault or f"the MCU on {self.cfg.serial} is not connected yet")
+            raise KlipperFault(self.fault or f"the MCU on {self.cfg.serial} is not ready")
+        if piece.duration_s > 0.0:
+            self._motion_end_s = piece.start_s + piece.duration_s
+        else:
+            self._motion_end_s = min(self._motion_end_s, piece.start_s)
         pieces = self._pieces
         while pieces and pieces[-1].start_s >= piece.start_s:
             pieces.pop()
@@ -112,9 +169,13 @@ class KlipperBackend:
         self._sample_s = time_s
         if not self.ready:
             return
+        history, here = self._history, tuple(cast("Sequence[float]", position_mm))
+        if not history or history[-1][1] != here:
+            history.append((time_s, here))
         if time_s >= self._next_flush_s or self._map[2] == 0.0:
             self._update_map(time_s + self.lead_s)
         self._generate(time_s)
+        self._refresh_outputs(time_s)
         if time_s >= self._next_flush_s or not self._pieces:
             self._next_flush_s = time_s + self.flush_s
             self._flush(time_s)
@@ -128,10 +189,23 @@ class KlipperBackend:
         if value == out.value:
             return
         when_s = self._sample_s if self._sample_s is not None else time_s
+        self._queue_output(out, value, when_s)
+        self._pump()
+
+    def _refresh_outputs(self, time_s: float) -> None:
+        """An output that is on is queued again (same value) every half ``max_duration``:
+        the firmware turns it off by itself when these stop (motiond died or hung)."""
+        for out in self.outputs.values():
+            if out.value > 0.0 and out.max_ticks and (
+                    self._scheduled_clock(time_s) - out.last_clock >= out.max_ticks // 2):
+                self._queue_output(out, out.value, time_s)
+
+    def _queue_output(self, out: Output, value: float, when_s: float) -> None:
+        assert self.mcu is not None
         clock = max(self._scheduled_clock(when_s), out.last_clock + 1)
         out.last_clock, out.value = clock, value
         if self.pwm_log is not None:
-            self.pwm_log.append((when_s, name, value, clock))
+            self.pwm_log.append((when_s, out.name, value, clock))
         d = self.mcu.dictionary
         if out.config.pwm:
             top = d.constant_int("PWM_MAX", 255)
@@ -141,7 +215,6 @@ class KlipperBackend:
             self._queue.add(message, clock, clock)
         else:
             self._digital_out(out.oid, value > 0.5, out.invert, clock)
-        self._pump()
 
     def motors(self, enabled: bool, time_s: float) -> None:
         """M17 / M18, M84, ``$SLP``: the enable pins switch when motion reaches ``time_s``
@@ -197,7 +270,13 @@ class KlipperBackend:
             out.value = 0.0
         if busy and self.mcu is not None and self.ready:
             log.warning("emergency stop sent to the MCU")
+            self._mark_shut_down()  # nothing more goes out: the board is stopping
             self.mcu.emergency_stop()
+
+    def _mark_shut_down(self) -> None:
+        """The board is (about to be) shut down: nothing is sent until recover() restarts it."""
+        self.ready, self.shut_down = False, True
+        self._configured.clear()
 
     def close(self) -> None:
         if self.mcu is not None:
@@ -209,26 +288,83 @@ class KlipperBackend:
 
     # -- the owned task -----------------------------------------------------------------------
     async def run(self) -> None:
-        """Connect, configure and watch the MCU; on a fault report it and reconnect."""
+        """Connect, configure and watch the MCU; on a fault stop the board, report it and
+        reconnect; a shut-down board waits for :meth:`recover`, then is restarted."""
+        restarted = False
         while True:
             mcu = Mcu(str(self.cfg.serial), self.cfg.baud, self.cfg.response_timeout_s)
             mcu.on_configured = self._on_configured
             self.mcu = mcu
+            delay = self.retry_s
             try:
-                await mcu.connect(self._config_commands)
-                self.ready, self.fault = True, None
+                await mcu.connect(self._config_commands, self.identity,
+                                  RESTART_PATIENCE_S if restarted else CONNECT_TIMEOUT_S)
+                self.identity = mcu.identity
+                self.ready, self.fault, self.shut_down, restarted = True, None, False, False
+                self._recover.clear()  # a $X that came while it was away is answered now
+                self._configured.set()
                 log.info("MCU on %s ready (%s, %s)", self.cfg.serial,
                          mcu.dictionary.constants.get("MCU"), mcu.dictionary.version)
                 await mcu.watch()
+            except NeedsRestart as exc:
+                self.ready = False
+                if restarted:
+                    self._on_fault(f"{exc}, even after a restart")
+                else:
+                    log.warning("MCU on %s: %s: restarting it", self.cfg.serial, exc)
+                    await mcu.restart(self.cfg.restart_method)
+                    restarted, delay = True, RESTART_WAIT_S
+            except McuShutdown as exc:
+                await self._after_shutdown(mcu, exc)
+                restarted, delay = True, RESTART_WAIT_S
             except (KlipperFault, ProtocolError, ConnectionError) as exc:
+                if self.ready or self.shut_down:  # ours: outputs off first, if it still hears
+                    mcu.emergency_stop()
+                self.ready = False
                 self._on_fault(str(exc))
+                await self._drain(mcu, STOP_FLUSH_S)
             except asyncio.CancelledError:
                 await self._stop_before_exit(mcu)
                 raise
             finally:
                 self.ready = False
                 mcu.close()
-            await asyncio.sleep(self.retry_s)
+            await asyncio.sleep(delay)
+
+    async def _after_shutdown(self, mcu: Mcu, shutdown: McuShutdown) -> None:
+        """The board shut down (our emergency stop or its own fault): read where it stopped,
+        make that the machine position, alarm, and wait for :meth:`recover` to restart it."""
+        self._mark_shut_down()
+        cause = "emergency stop" if shutdown.requested else str(shutdown)
+        self.fault = f"klipper MCU on {self.cfg.serial}: {cause}"  # what a new move is told
+        self._drop_motion()
+        for out in self.outputs.values():
+            out.value = 0.0
+        positions = await mcu.stopped_positions([axis.oid for axis in self.axes])
+        if positions is None:
+            where = "where it stopped is unknown"
+        else:
+            for axis, base, steps in zip(self.axes, self._config_base, positions, strict=True):
+                axis.position = base + (-steps if axis.invert_dir else steps)
+            stopped = [axis.position / axis.steps_per_mm for axis in self.axes]
+            where = "stopped at " + " ".join(
+                f"{axis.name.upper()}{mm:.3f}" for axis, mm in zip(self.axes, stopped,
+                                                                    strict=True))
+            self.relocate(stopped)
+        self._on_fault(f"{cause}; {where} (position may be lost: re-home); $X or M999 "
+                       "restarts the MCU")
+        await self._recover.wait()
+        self._recover.clear()
+        await mcu.restart(self.cfg.restart_method)
+
+    async def _drain(self, mcu: Mcu, limit_s: float) -> bool:
+        """Wait (at most ``limit_s``) until what was queued for the MCU has left."""
+        deadline = time.monotonic() + limit_s
+        while (mcu.link.queued_bytes or mcu.link.window.inflight) and not mcu.link.closed:
+            if time.monotonic() > deadline:
+                return False
+            await asyncio.sleep(0.01)
+        return True
 
     async def _stop_before_exit(self, mcu: Mcu) -> None:
         """Shutting down with steps queued or a tool on: the emergency stop gets out first
@@ -236,12 +372,8 @@ class KlipperBackend:
         if not (self.ready and self._busy()):
             return
         mcu.emergency_stop()
-        deadline = time.monotonic() + EXIT_GRACE_S
-        while (mcu.link.queued_bytes or mcu.link.window.inflight) and not mcu.link.closed:
-            if time.monotonic() > deadline:
-                log.error("the MCU did not acknowledge the emergency stop before exit")
-                return
-            await asyncio.sleep(0.01)
+        if not await self._drain(mcu, EXIT_GRACE_S):
+            log.error("the MCU did not acknowledge the emergency stop before exit")
 
     def _on_fault(self, reason: str) -> None:
         message = f"klipper MCU on {self.cfg.serial}: {reason}"
@@ -257,6 +389,7 @@ class KlipperBackend:
         self.motors_on, self._enable_clock = True, 0  # the configuration turns them on
         for axis in self.axes:
             axis.needs_reset, axis.sent_dir = True, 0
+        self._config_base = [axis.position for axis in self.axes]
         for out in self.outputs.values():
             out.last_clock, out.value = 0, 0.0
         self._queue.in_use.clear()
@@ -403,7 +536,26 @@ class KlipperBackend:
         return (self._queue.busy(self._now_clock())
                 or any(out.value > 0.0 for out in self.outputs.values()))
 
+    def position_at_mm(self, time_s: float) -> tuple[float, ...] | None:
+        """The planned position a lead time before ``time_s``: what the MCU has executed
+        (the step schedule runs ``lead_s`` behind the step generator)."""
+        history = self._history
+        if not self.ready or not history:
+            return None
+        at_s = time_s - self.lead_s
+        index = bisect.bisect_right(history, at_s, key=lambda entry: entry[0])
+        return history[max(0, index - 1)][1]
+
+    def done_at_s(self) -> float:
+        """The last step executes a lead time after the trajectory ends (+ the clock fit's
+        possible lag behind the MCU's own clock)."""
+        if not self.ready or not self._motion_end_s:
+            return 0.0
+        return self._motion_end_s + self.lead_s + DONE_MARGIN_S
+
     def _drop_motion(self) -> None:
+        self._motion_end_s = 0.0
+        self._history.clear()
         self._pieces.clear()
         self._queue.waiting.clear()
         for axis in self.axes:

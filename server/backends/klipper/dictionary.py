@@ -26,8 +26,9 @@ from server.backends.klipper.codec import (
 class Dictionary:
     """Encodes and decodes messages with the formats of one MCU build."""
 
-    def __init__(self, data: Mapping[str, Any]) -> None:
+    def __init__(self, data: Mapping[str, Any], *, lenient: bool = False) -> None:
         self.data = data
+        self.lenient = lenient  # unknown messages end a payload instead of failing it
         self.version = str(data.get("version", ""))
         self.constants: dict[str, Any] = dict(data.get("config", {}))
         self.enumerations = expand_enumerations(data.get("enumerations", {}))
@@ -41,8 +42,10 @@ class Dictionary:
 
     @classmethod
     def bootstrap(cls) -> Dictionary:
-        """The two messages every MCU knows before its dictionary is read."""
-        return cls({"commands": {IDENTIFY: 1}, "responses": {IDENTIFY_RESPONSE: 0}})
+        """The two messages every MCU knows before its dictionary is read (anything else it
+        says before then, such as the ``starting`` of a board that just booted, is skipped)."""
+        return cls({"commands": {IDENTIFY: 1}, "responses": {IDENTIFY_RESPONSE: 0}},
+                   lenient=True)
 
     @classmethod
     def from_compressed(cls, blob: bytes) -> Dictionary:
@@ -100,6 +103,8 @@ class Dictionary:
             msgid, pos = decode_vlq(payload, pos)
             fmt = self.by_id.get(msgid)
             if fmt is None:
+                if self.lenient:
+                    break
                 raise ProtocolError(f"unknown message id {msgid}")
             params, pos = self._decode_params(fmt, payload, pos)
             messages.append((fmt.name, params))

@@ -5,8 +5,10 @@ the :class:`~.window.SendWindow` has room; incoming blocks acknowledge them and 
 responses, which are decoded with the current :class:`~.dictionary.Dictionary` and handed to
 ``on_message`` with their arrival time (``time.monotonic``, the clock the event loop and the
 kernel use). :meth:`Link.request` sends one command and waits for a matching response.
-A closed device, an unreadable block stream or a restarted MCU (a sequence number never sent)
-is reported once to ``on_error``; the link is then dead and must be replaced.
+A closed device is reported once to ``on_error`` and the link closed; an unreadable block
+stream or a restarted MCU (a sequence number never sent) is reported once and nothing more is
+read, but an emergency stop can still be written before :meth:`Link.close`. Either way the
+link is dead and must be replaced.
 """
 
 from __future__ import annotations
@@ -62,6 +64,7 @@ class Link:
         self._fd: int | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self.closed = False
+        self.failed = False  # a broken stream from the MCU: nothing more is read
 
     def open(self) -> None:
         self._loop = asyncio.get_running_loop()
@@ -81,15 +84,19 @@ class Link:
             self._pump()
 
     def send_first(self, message: bytes) -> list[bytes]:
-        """Send ``message`` before everything not yet sent, which is dropped and returned, but
-        for requests (an emergency stop must not wait behind the steps it cancels)."""
-        kept = [(m, k) for m, k in zip(self._queue, self._keep, strict=True) if k]
+        """Send ``message`` now, before everything not yet sent, which is dropped and returned
+        but for requests (an emergency stop must not wait behind the steps it cancels, nor for
+        room in the window: it goes out in a block of its own at once)."""
+        kept = [m for m, k in zip(self._queue, self._keep, strict=True) if k]
         dropped = [m for m, k in zip(self._queue, self._keep, strict=True) if not k]
         self._queue.clear()
         self._keep.clear()
-        self.send(message)
-        for queued, _ in kept:
+        if self.closed:
+            return dropped
+        self._write(self.window.make_block(message, time.monotonic()))
+        for queued in kept:
             self.send(queued, keep=True)
+        self._arm_timer()
         return dropped
 
     async def request(self, message: bytes, response: str, timeout_s: float,
@@ -180,7 +187,7 @@ class Link:
                 if block.payload:
                     self._deliver(self.dictionary.decode(block.payload), now_s)
         except (SequenceError, ProtocolError) as exc:
-            self._fail(str(exc))
+            self._broken(str(exc))
             return
         self._pump()
 
@@ -194,6 +201,16 @@ class Link:
                     self._waiters.remove(waiter)
                     break
             self._on_message(name, params, now_s)
+
+    def _broken(self, reason: str) -> None:
+        """The MCU's answers cannot be trusted any more: stop reading them and report once;
+        writing still works until :meth:`close` (the emergency stop goes out first)."""
+        if self.closed or self.failed:
+            return
+        self.failed = True
+        assert self._loop is not None and self._fd is not None
+        self._loop.remove_reader(self._fd)
+        self._on_error(reason)
 
     def _fail(self, reason: str) -> None:
         if not self.closed:

@@ -1,45 +1,104 @@
-"""One Klipper MCU session over a :class:`~.link.Link`: identify, clock sync, config, watch.
+"""One Klipper MCU session over a :class:`~.link.Link`: identify, clock sync, config, watch,
+stop and restart, with only the commands stock firmware has.
 
-:meth:`Mcu.connect` reads the data dictionary in chunks (``identify``), starts the clock map
-(``get_uptime`` then a burst of ``get_clock``), and configures the MCU: ``allocate_oids``, the
-config commands, ``finalize_config`` with a CRC32 of their text. An MCU that is already
-configured is reused only when its CRC is ours; one configured differently is refused (it would
-be driven with a stale config); one shut down (after a fault) is reset with ``config_reset``
-and configured afresh. :meth:`Mcu.watch` then samples the clock every
-``poll_s`` and checks ``get_config``: an MCU silent for ``timeout_s``, restarted (unconfigured,
-a clock jump or a sequence number never sent) or shut down raises :class:`KlipperFault` naming
-the reason. An emergency stop the host asked for is followed by ``config_reset`` and the same
-configuration at once, so the machine can move again right away.
+:meth:`Mcu.connect` reads the data dictionary in chunks (``identify``; bounded, inflated off
+the event loop), checks the board is the one served before (name, clock, dictionary), starts
+the clock map (``get_uptime`` then a burst of ``get_clock``) and configures a fresh MCU:
+``allocate_oids``, the config commands, ``finalize_config`` with a CRC32 of their text. A board
+configured by someone else is refused (:class:`KlipperFault`); one still configured by us
+(outputs may be on from before) or shut down raises :class:`NeedsRestart`: it is restarted
+(:meth:`Mcu.restart`, as Klipper's host does for its ``restart_method``) and connected afresh.
+:meth:`Mcu.watch` samples the clock every ``poll_s`` and checks ``get_config``; silence for
+``timeout_s``, a restart, a foreign configuration or a link fault raise :class:`KlipperFault`,
+a shutdown (ours from :meth:`emergency_stop`, or the firmware's own) :class:`McuShutdown`.
+After a shutdown :meth:`stopped_positions` reads where each stepper stopped (``clear_shutdown``
+then ``stepper_get_position``) and shuts the board down again until it is restarted.
 """
 
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import time
 import zlib
 from collections.abc import Callable
 from typing import Any
 
+import serial
+
 from server.backends.klipper.clocksync import ClockSync
 from server.backends.klipper.codec import Params, ProtocolError
 from server.backends.klipper.dictionary import Dictionary
 from server.backends.klipper.link import Link
+from server.errors import BackendFault
 
 log = logging.getLogger("motiond.klipper")
 Command = tuple[str, dict[str, Any]]
 CONNECT_TIMEOUT_S = 2.0  # patience for the first answers: a host busy starting up, a slow USB
 IDENTIFY_CHUNK = 40
 SYNC_BURST = 8
+MAX_DICTIONARY_BYTES = 256 * 1024  # compressed, as served (stock builds: 3-20 kB)
+MAX_INFLATED_BYTES = 4 * 1024 * 1024
+CLOCK_SETTLE_S = 5.0
+RATE_PROBE_S = 0.15
+RATE_TOLERANCE = 0.05  # a round trip's jitter over RATE_PROBE_S stays well inside this
+RESET_SETTLE_S = 0.015  # klippy's pause after ``reset`` before it lets the port go
 
 
-class KlipperFault(Exception):
+class KlipperFault(BackendFault):
     """The MCU cannot be driven (gone, restarted, shut down, misconfigured)."""
+
+
+class NeedsRestart(KlipperFault):
+    """The board must be restarted before it is configured (shut down, or configured by us
+    before: its outputs may still be on)."""
+
+
+class McuShutdown(KlipperFault):
+    """The firmware shut down: every output at its default, every queue dropped."""
+
+    def __init__(self, reason: str, clock: int | None, requested: bool) -> None:
+        super().__init__(reason)
+        self.clock, self.requested = clock, requested
 
 
 def command_text(command: Command) -> str:
     name, params = command
     return " ".join([name, *(f"{k}={v}" for k, v in params.items())])
+
+
+def inflate(blob: bytes) -> Dictionary:
+    """The dictionary from its zlib text, at most ``MAX_INFLATED_BYTES`` (a bomb is refused)."""
+    inflater = zlib.decompressobj()
+    try:
+        text = inflater.decompress(blob, MAX_INFLATED_BYTES)
+        if inflater.unconsumed_tail:
+            raise ProtocolError(f"data dictionary inflates beyond {MAX_INFLATED_BYTES} bytes")
+        return Dictionary(json.loads(text))
+    except (zlib.error, ValueError) as exc:
+        raise ProtocolError(f"unreadable data dictionary: {exc}") from exc
+
+
+def identity(d: Dictionary, blob: bytes) -> dict[str, str]:
+    """What makes a board the same board: its MCU, clock and firmware dictionary."""
+    return {"MCU": str(d.constants.get("MCU", "?")),
+            "CLOCK_FREQ": str(d.constants.get("CLOCK_FREQ", "?")),
+            "dictionary": f"{d.version} crc {zlib.crc32(blob):#010x}"}
+
+
+def arduino_reset(path: str) -> None:
+    """Klipper's ``arduino`` restart: DTR toggled (blocking, ~0.3 s: run it off the loop)."""
+    port = serial.Serial(path, 2400, timeout=0)
+    try:
+        port.read(1)
+        time.sleep(0.1)
+        port.dtr = True
+        time.sleep(0.1)
+        port.dtr = False
+        time.sleep(0.1)
+    finally:
+        port.close()
 
 
 class Mcu:
@@ -50,26 +109,37 @@ class Mcu:
         self.timeout_s, self.poll_s = timeout_s, poll_s
         self.link = Link(path, baud, self._on_message, self._on_link_error)
         self.dictionary = self.link.dictionary
+        self.identity: dict[str, str] = {}
         self.clock: ClockSync | None = None
         self.move_count = 0
         self.crc = 0
         self.stopping = False  # an emergency stop we sent: its shutdown is expected
-        self._stops = 0  # emergency stops sent: a reply to a query asked before one is stale
-        self.shutdown_reason: str | None = None
-        self._fault: asyncio.Future[str] | None = None
+        self.shutdown: McuShutdown | None = None
+        self._fault: asyncio.Future[KlipperFault] | None = None
         self._last_heard_s = time.monotonic()
         self._commands: list[Command] = []
         self.on_configured: Callable[[], None] = lambda: None
 
     # -- connecting ---------------------------------------------------------------------------
-    async def connect(self, configure: Callable[[Dictionary], list[Command]]) -> None:
-        """Open, identify, sync the clock and configure; KlipperFault/ProtocolError if not."""
+    async def connect(self, configure: Callable[[Dictionary], list[Command]],
+                      expected: dict[str, str] | None = None,
+                      patience_s: float = CONNECT_TIMEOUT_S) -> None:
+        """Open, identify, sync the clock and configure; KlipperFault/ProtocolError if not.
+        ``expected``: the identity of the board served before (a different one is refused);
+        ``patience_s``: how long the first answer may take (longer after a restart)."""
         self._fault = asyncio.get_running_loop().create_future()
         try:
             self.link.open()
         except OSError as exc:
             raise KlipperFault(f"cannot open {self.path}: {exc.strerror}") from exc
-        self.dictionary = Dictionary.from_compressed(await self._identify())
+        blob = await self._identify(patience_s)
+        self.dictionary = await asyncio.to_thread(inflate, blob)
+        self.identity = identity(self.dictionary, blob)
+        if expected and expected != self.identity:
+            diff = ", ".join(f"{k} {expected[k]} -> {v}" for k, v in self.identity.items()
+                             if expected.get(k) != v)
+            raise KlipperFault(f"a different MCU answers on {self.path} ({diff}): not "
+                               "adopted; restart motiond to drive it")
         self.link.dictionary = self.dictionary
         freq = self.dictionary.constant_int("CLOCK_FREQ")
         self.link.window.window_bytes = self.dictionary.constant_int("RECEIVE_WINDOW", 192)
@@ -86,19 +156,24 @@ class Mcu:
         except TimeoutError as exc:
             raise KlipperFault(f"the MCU on {self.path} does not answer {name}") from exc
 
-    async def _identify(self) -> bytes:
+    async def _identify(self, patience_s: float) -> bytes:
         blob = bytearray()
         while True:
             offset = len(blob)
             reply = await self._ask("identify", "identify_response",
                                     lambda p, o=offset: p["offset"] == o,  # type: ignore[misc]
-                                    max(self.timeout_s, CONNECT_TIMEOUT_S),
+                                    max(self.timeout_s, patience_s if not blob else
+                                        CONNECT_TIMEOUT_S),
                                     offset=offset, count=IDENTIFY_CHUNK)
             if not reply["data"]:
                 return bytes(blob)
             blob += reply["data"]
+            if len(blob) > MAX_DICTIONARY_BYTES:
+                raise ProtocolError(f"the MCU's data dictionary exceeds {MAX_DICTIONARY_BYTES}"
+                                    " bytes")
 
     async def _start_clock(self, freq_hz: float) -> None:
+        await self._steady_clock(freq_hz)
         sent = time.monotonic()
         uptime = await self._ask("get_uptime", "uptime")
         self.clock = ClockSync(freq_hz)
@@ -106,6 +181,22 @@ class Mcu:
         self.clock.reset(0.5 * (sent + uptime["#received_s"]), clock64)
         for _ in range(SYNC_BURST):
             await self.sample_clock()
+
+    async def _steady_clock(self, freq_hz: float) -> None:
+        """Wait (at most ``CLOCK_SETTLE_S``) until the MCU's clock runs at its CLOCK_FREQ
+        (within ``RATE_TOLERANCE``) over ``RATE_PROBE_S``: a board just restarted may not
+        yet (a simulated one catching up after its reboot); a fit made then would be wrong."""
+        deadline = time.monotonic() + CLOCK_SETTLE_S
+        while True:
+            first = await self._ask("get_clock", "clock")
+            await asyncio.sleep(RATE_PROBE_S)
+            second = await self._ask("get_clock", "clock")
+            ticks = (second["clock"] - first["clock"]) & 0xFFFFFFFF
+            rate = ticks / (second["#received_s"] - first["#received_s"]) / freq_hz
+            if abs(rate - 1.0) <= RATE_TOLERANCE:
+                return
+            if time.monotonic() > deadline:
+                raise KlipperFault(f"the MCU's clock runs at {rate:.1%} of its CLOCK_FREQ")
 
     async def sample_clock(self) -> None:
         assert self.clock is not None
@@ -122,15 +213,14 @@ class Mcu:
             raise KlipperFault(
                 f"the MCU is configured differently (crc {config['crc']:#x}, ours "
                 f"{self.crc:#x}): restart it (power cycle or reset) before connecting")
-        if config["is_shutdown"]:  # ours, or unconfigured: start it over (the alarm stays)
-            log.warning("the MCU on %s is shut down: resetting its configuration", self.path)
-            self.link.send(self.dictionary.encode("config_reset"))
-            config["is_config"] = 0
-        if not config["is_config"]:
-            self._send_config()
-            config = await self._ask("get_config", "config")
-            if not config["is_config"] or config["crc"] != self.crc:
-                raise KlipperFault("the MCU refused the configuration")
+        if config["is_shutdown"]:
+            raise NeedsRestart("the MCU is shut down")
+        if config["is_config"]:
+            raise NeedsRestart("the MCU is still configured from before (outputs may be on)")
+        self._send_config()
+        config = await self._ask("get_config", "config")
+        if not config["is_config"] or config["crc"] != self.crc:
+            raise KlipperFault("the MCU refused the configuration")
         self.move_count = int(config["move_count"])
         self.on_configured()
 
@@ -148,56 +238,96 @@ class Mcu:
 
     # -- running ------------------------------------------------------------------------------
     async def watch(self) -> None:
-        """Poll clock and config until a fault; raises KlipperFault with the reason."""
+        """Poll clock and config until a fault; raises KlipperFault (McuShutdown)."""
         assert self._fault is not None
         while True:
             done, _ = await asyncio.wait([self._fault], timeout=self.poll_s)
             if done:
-                raise KlipperFault(self._fault.result())
+                raise self._fault.result()
             if time.monotonic() - self._last_heard_s > self.timeout_s:
                 raise KlipperFault(f"the MCU stopped answering for {self.timeout_s:g} s")
             try:
                 await self._poll()
             except KlipperFault:
                 if self._fault.done():  # the first word, with its reason, wins
-                    raise KlipperFault(self._fault.result()) from None
+                    raise self._fault.result() from None
                 raise
 
     async def _poll(self) -> None:
-        stops = self._stops
-        poll = asyncio.gather(self.sample_clock(), self._ask("get_config", "config"))
-        _, config = await poll
-        if self._stops != stops:  # asked before the latest emergency stop: says nothing of it
-            return
-        if self.stopping:
-            self.stopping = not (config["is_config"] and not config["is_shutdown"])
-            return
+        _, config = await asyncio.gather(self.sample_clock(), self._ask("get_config", "config"))
         if config["is_shutdown"]:
-            raise KlipperFault(f"the MCU shut down: {self.shutdown_reason or 'reason unknown'}")
+            raise self.shutdown or McuShutdown("the MCU shut down: reason unknown", None,
+                                               self.stopping)
         if not config["is_config"]:
             raise KlipperFault("the MCU restarted (it lost its configuration)")
         if config["crc"] != self.crc:
             raise KlipperFault("the MCU was configured by someone else")
 
     def emergency_stop(self) -> None:
-        """``emergency_stop`` now (every queued step and output dropped, outputs to their
-        defaults), then ``config_reset`` and the same configuration, sent in order at once."""
+        """``emergency_stop`` before everything not yet sent: the firmware drops every queued
+        step and output and sets the outputs to their defaults; it stays shut down."""
+        if self.link.closed or not self.dictionary.has("emergency_stop"):
+            return
         self.stopping = True
-        self._stops += 1
         self.link.send_first(self.dictionary.encode("emergency_stop"))
-        self.link.send(self.dictionary.encode("config_reset"))
-        self._send_config()
-        self.on_configured()
+
+    async def stopped_positions(self, oids: list[int]) -> list[int] | None:
+        """Where each stepper stopped (steps since configuration), read from the firmware
+        after a shutdown: ``clear_shutdown`` (its queues are empty, outputs at defaults),
+        ``stepper_get_position`` each, then ``emergency_stop`` again until the restart.
+        None if the board cannot say."""
+        try:
+            for _ in range(3):
+                self.link.send(self.dictionary.encode("clear_shutdown"))
+                config = await self._ask("get_config", "config")
+                if not config["is_shutdown"]:
+                    break
+                await asyncio.sleep(0.02)  # still running its shutdown handlers
+            else:
+                return None
+            positions = []
+            for oid in oids:
+                reply = await self._ask("stepper_get_position", "stepper_position",
+                                        lambda p, o=oid: p["oid"] == o,  # type: ignore[misc]
+                                        oid=oid)
+                positions.append(int(reply["pos"]))
+            return positions
+        except (KlipperFault, ProtocolError, ConnectionError) as exc:
+            log.warning("the MCU on %s cannot say where it stopped: %s", self.path, exc)
+            return None
+        finally:
+            self.emergency_stop()
+
+    async def restart(self, method: str) -> None:
+        """Restart the firmware as Klipper's host does (``restart_method``): ``command``
+        sends ``reset``, ``arduino`` toggles DTR; the link is closed either way."""
+        if method == "command" and not self.link.closed and self.dictionary.has("reset"):
+            log.warning("restarting the MCU on %s (reset command)", self.path)
+            self.link.send_first(self.dictionary.encode("reset"))  # written at once
+            await asyncio.sleep(RESET_SETTLE_S)
+            self.link.close()
+            return
+        self.link.close()
+        if method == "arduino" or not self.dictionary.has("reset"):
+            log.warning("restarting the MCU on %s (DTR toggle)", self.path)
+            try:
+                await asyncio.to_thread(arduino_reset, self.path)
+            except (OSError, serial.SerialException, ValueError) as exc:
+                log.warning("cannot toggle DTR on %s: %s", self.path, exc)
 
     def _on_message(self, name: str, params: Params, now_s: float) -> None:
         self._last_heard_s = now_s
         if name in ("shutdown", "is_shutdown"):
-            reason = params.get("static_string_id", "?")
-            self.shutdown_reason = str(reason)
+            reason = str(params.get("static_string_id", "?"))
             if self._clock_jumped(params.get("clock"), now_s):
-                self._report("the MCU restarted (its clock started over)")
-            elif not self.stopping:
-                self._report(f"the MCU shut down: {reason}")
+                self._report(KlipperFault("the MCU restarted (its clock started over)"))
+                return
+            if self.shutdown is None:
+                clock = params.get("clock")
+                self.shutdown = McuShutdown(f"the MCU shut down: {reason}",
+                                            None if clock is None else int(clock),
+                                            self.stopping)
+            self._report(self.shutdown)
 
     def _clock_jumped(self, clock32: int | None, now_s: float) -> bool:
         """Whether a clock the MCU reported cannot be its running clock: earlier than one it
@@ -210,14 +340,15 @@ class Mcu:
         return clock < self.clock.last_clock or ahead > 0.05 * self.clock.freq_hz
 
     def _on_link_error(self, reason: str) -> None:
-        self._report(reason)
+        self._report(KlipperFault(reason))
 
-    def _report(self, reason: str) -> None:
+    def _report(self, fault: KlipperFault) -> None:
         if self._fault is not None and not self._fault.done():
-            self._fault.set_result(reason)
+            self._fault.set_result(fault)
 
     def close(self) -> None:
         self.link.close()
 
 
-__all__ = ["KlipperFault", "Mcu", "ProtocolError", "command_text"]
+__all__ = ["KlipperFault", "Mcu", "McuShutdown", "NeedsRestart", "ProtocolError",
+           "command_text"]

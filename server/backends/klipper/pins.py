@@ -54,12 +54,15 @@ class Output:
     invert: bool = False
     last_clock: int = 0
     value: float = 0.0  # the last value sent (0 after a configuration or a stop)
+    max_ticks: int = 0  # the firmware's max_duration: on longer than this without a refresh
+    # (a new event), the board shuts down and the output goes off
 
 
 def config_commands(cfg: BackendConfig, axes: list[Axis], outputs: dict[str, Output],
                     d: Dictionary) -> list[Command]:
     """The MCU's configuration: a ``config_stepper`` (and enable pin) per axis, a
-    ``config_pwm_out`` or ``config_digital_out`` per output; assigns the oids."""
+    ``config_pwm_out`` or ``config_digital_out`` per output with the firmware's watchdog
+    (``max_duration``: off when motiond stops refreshing it); assigns the oids."""
     freq = d.constant_int("CLOCK_FREQ")
     commands: list[Command] = []
     oid = 0
@@ -84,15 +87,16 @@ def config_commands(cfg: BackendConfig, axes: list[Axis], outputs: dict[str, Out
         pin_text = check_pin(d, f"outputs.{name}", out.config.pin or name)
         pin, out.invert = split_pin(pin_text)
         out.oid, oid = oid, oid + 1
+        out.max_ticks = int(out.config.max_duration_s * freq)
         if out.config.pwm:
             off = d.constant_int("PWM_MAX", 255) if out.invert else 0
             commands.append(("config_pwm_out", {
                 "oid": out.oid, "pin": pin, "cycle_ticks": int(out.config.cycle_time_s * freq),
-                "value": off, "default_value": off, "max_duration": 0}))
+                "value": off, "default_value": off, "max_duration": out.max_ticks}))
         else:
             commands.append(("config_digital_out", {
                 "oid": out.oid, "pin": pin, "value": int(out.invert),
-                "default_value": int(out.invert), "max_duration": 0}))
+                "default_value": int(out.invert), "max_duration": out.max_ticks}))
     return commands
 
 def check_pin(d: Dictionary, section: str, text: str) -> str:

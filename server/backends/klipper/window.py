@@ -10,7 +10,8 @@ reset by a fresh round-trip measurement); naks are ignored for two round trips a
 (the duplicates a resend causes draw naks of their own). A sequence number that cannot be an
 answer to what was sent means the MCU restarted (:class:`SequenceError`), except before the
 first acknowledgement: an MCU that served a host before keeps its count, and the host adopts it
-(as Klipper's host does).
+(as Klipper's host does), at most once per retransmission timeout (a board that floods empty
+blocks draws no flood of resends).
 """
 
 from __future__ import annotations
@@ -78,6 +79,9 @@ class SendWindow:
         rseq = self.acked + ahead
         if not self.synced:
             if empty or rseq > self.next_seq:  # a nak: an MCU that ran before; adopt its count
+                if now_s < self._ignore_naks_until_s:  # once a round trip, not per block
+                    return []
+                self._ignore_naks_until_s = now_s + self.rto_s
                 return self._adopt(rseq, now_s)
             self.synced = rseq > self.acked
         if rseq > self.next_seq:
