@@ -75,15 +75,19 @@ class KlippyApi(Module):
         rates = [axis.max_rate_mm_s for name, axis in core.axes.items() if name.upper() in "XY"]
         self.jog_feed_mm_min = 60.0 * min(rates or [10.0])
         self.extra = printer.Extra()
+        self.times = printer.JobTimes()
         self.machine = printer.Machine((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0.0, 0.0,
                                        Path(), frozenset())
         self.connections: set[_Connection] = set()
         ctx.subscribe(Event.PUSH, lambda message: self.output(response_text(str(message))))
         ctx.subscribe(Event.JOB, self._on_job)
+        for event in (Event.STATE, Event.HALT, Event.CLEAR_HALT):
+            ctx.subscribe(event, lambda *_: self._push_all())
 
     # -- Hub --------------------------------------------------------------------------------
     def objects(self) -> dict[str, Any]:
         self.extra.host = _host_stats()
+        self.extra.durations_s = self.times.durations(self.ctx.clock.now_s())
         return printer.build_objects(self.ctx.status(), self.machine, self.extra)
 
     def info(self) -> dict[str, Any]:
@@ -145,12 +149,17 @@ class KlippyApi(Module):
         period_s = 1.0 / self.config.status_hz
         while True:
             await asyncio.sleep(period_s)
-            sessions = [c.session for c in self.connections
-                        if c.session is not None and c.session.subscription]
-            if sessions:
-                now = self.objects()
-                for session in sessions:
-                    session.push_status(now)
+            self._push_all()
+
+    def _push_all(self) -> None:
+        """Push what changed to every subscriber (on a tick, and at once when the machine's
+        or the job's state changes: a pause and resume between two ticks is two changes)."""
+        sessions = [c.session for c in self.connections
+                    if c.session is not None and c.session.subscription]
+        if sessions:
+            now = self.objects()
+            for session in sessions:
+                session.push_status(now)
 
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         connection = _Connection(writer)
@@ -174,12 +183,16 @@ class KlippyApi(Module):
             writer.close()
 
     def _on_job(self, progress: Any) -> None:
-        if progress is None or progress.state != "running":
-            return
-        try:
-            self.extra.file_size_bytes = (self.machine.jobs_dir / progress.name).stat().st_size
-        except OSError:
-            self.extra.file_size_bytes = 0
+        if progress is not None:
+            self.times.update(progress.name, progress.started_s, progress.state,
+                              self.ctx.clock.now_s())
+        if progress is not None and progress.state == "running":
+            try:
+                self.extra.file_size_bytes = (self.machine.jobs_dir / progress.name).stat(
+                ).st_size
+            except OSError:
+                self.extra.file_size_bytes = 0
+        self._push_all()
 
 
 async def _drain(connection: _Connection) -> None:

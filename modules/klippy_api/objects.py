@@ -39,12 +39,46 @@ class Machine:
 
 
 @dataclass(slots=True)
+class JobTimes:
+    """Klipper's job durations on the kernel clock (s): ``total`` since the start, ``print``
+    without the pauses; fed with every job state change (:meth:`update`)."""
+
+    key: tuple[str, float] | None = None
+    started_s: float = 0.0
+    paused_s: float = 0.0
+    pause_began_s: float | None = None
+    ended_s: float | None = None
+
+    def update(self, name: str, started_s: float, state: str, now_s: float) -> None:
+        if self.key != (name, started_s):
+            self.key, self.started_s, self.paused_s = (name, started_s), started_s, 0.0
+            self.pause_began_s = self.ended_s = None
+        if self.pause_began_s is not None and state != "paused":
+            self.paused_s += now_s - self.pause_began_s
+            self.pause_began_s = None
+        if state == "paused" and self.pause_began_s is None:
+            self.pause_began_s = now_s
+        if state not in ("running", "paused") and self.ended_s is None:
+            self.ended_s = now_s
+
+    def durations(self, now_s: float) -> tuple[float, float]:
+        """(total, printing) seconds, now."""
+        end_s = now_s if self.ended_s is None else self.ended_s
+        paused_s = self.paused_s + (0.0 if self.pause_began_s is None
+                                    else end_s - self.pause_began_s)
+        total_s = max(0.0, end_s - self.started_s)
+        return round(total_s, 3), round(max(0.0, total_s - paused_s), 3)
+
+
+@dataclass(slots=True)
 class Extra:
-    """State the status snapshot does not hold: M117's message, the job's file, the host."""
+    """State the status snapshot does not hold: M117's message, the job's file and times,
+    the host."""
 
     message: str | None = None
     file_size_bytes: int = 0
     host: dict[str, float] = field(default_factory=dict)  # sysload, cputime, memavail
+    durations_s: tuple[float, float] = (0.0, 0.0)  # the job's (total, printing)
 
 
 def build_objects(status: dict[str, Any], machine: Machine, extra: Extra) -> dict[str, Any]:
@@ -57,7 +91,7 @@ def build_objects(status: dict[str, Any], machine: Machine, extra: Extra) -> dic
         "toolhead": toolhead(status, machine),
         "gcode_move": gcode_move(status),
         "motion_report": motion_report(status),
-        "print_stats": print_stats(job),
+        "print_stats": print_stats(job, extra.durations_s),
         "virtual_sdcard": virtual_sdcard(job, machine, extra),
         "pause_resume": {"is_paused": job is not None and job.get("state") == "paused"},
         "display_status": {"progress": _progress(job), "message": extra.message},
@@ -149,15 +183,16 @@ def motion_report(status: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-def print_stats(job: dict[str, Any] | None) -> dict[str, Any]:
+def print_stats(job: dict[str, Any] | None,
+                durations_s: tuple[float, float] = (0.0, 0.0)) -> dict[str, Any]:
     if job is None:
         return {"filename": "", "total_duration": 0.0, "print_duration": 0.0,
                 "filament_used": 0.0, "state": "standby", "message": "",
                 "info": {"total_layer": None, "current_layer": None}}
     return {
         "filename": job["name"],
-        "total_duration": job.get("elapsed_s") or 0.0,
-        "print_duration": job.get("elapsed_s") or 0.0,
+        "total_duration": durations_s[0],
+        "print_duration": durations_s[1],
         "filament_used": 0.0,
         "state": PRINT_STATES.get(job["state"], "standby"),
         "message": job.get("error") or "",

@@ -24,7 +24,8 @@ from tests.support.processes import Served, motiond
 AXES = "".join(
     f"[axes.{axis}]\nsteps_per_mm = 80\nmax_rate_mm_s = 200\naccel_mm_s2 = 2000\n"
     f"min_mm = 0\nmax_mm = 300\n" for axis in "xy"
-) + "[axes.z]\nsteps_per_mm = 400\nmax_rate_mm_s = 10\naccel_mm_s2 = 200\nmin_mm = -50\nmax_mm = 0\n"
+) + ("[axes.z]\nsteps_per_mm = 400\nmax_rate_mm_s = 10\naccel_mm_s2 = 200\n"
+     "min_mm = -50\nmax_mm = 0\n")
 EXTRA = """
 [endstops]
 axes.x = { direction = "min", seek_mm_s = 200, feed_mm_s = 20, pull_off_mm = 1, switch_at_mm = -1 }
@@ -37,9 +38,11 @@ socket = "{socket}"
 @contextlib.asynccontextmanager
 async def stack(tmp_path: Path) -> AsyncIterator[tuple[Served, Moonraker, Path]]:
     socket = tmp_path / "klippy_uds"
-    async with motiond(tmp_path, EXTRA.replace("{socket}", str(socket)), axes_toml=AXES) as served:
-        async with moonraker(tmp_path, socket, served.data_dir) as server:
-            yield served, server, socket
+    async with contextlib.AsyncExitStack() as stack:
+        served = await stack.enter_async_context(
+            motiond(tmp_path, EXTRA.replace("{socket}", str(socket)), axes_toml=AXES))
+        server = await stack.enter_async_context(moonraker(tmp_path, socket, served.data_dir))
+        yield served, server, socket
 
 
 async def test_moonraker_sees_motiond_ready_and_its_position(tmp_path: Path) -> None:
@@ -95,29 +98,61 @@ async def test_store_through_moonraker_then_print_pause_resume_and_cancel(tmp_pa
         async with server.session.post(server.url + "/server/files/upload", data=form) as reply:
             assert reply.status == 201, await reply.text()
         assert (served.data_dir / "square.gcode").read_text() == job
-        await server.post("/printer/print/start", {"filename": "square.gcode"})
-        await server.wait_for(lambda s: s["print_stats"]["state"] == "printing",
-                              print_stats=None)
-        status = await server.wait_for(lambda s: s["virtual_sdcard"]["progress"] > 0,
-                                       virtual_sdcard=None)
-        assert status["virtual_sdcard"]["file_size"] == len(job)
-        await server.post("/printer/print/pause")
-        await server.wait_for(lambda s: s["print_stats"]["state"] == "paused"
-                              and s["pause_resume"]["is_paused"], print_stats=None,
-                              pause_resume=None)
-        report = await tcp_report(served.tcp_port)
-        assert report.startswith("<Hold")
-        await server.post("/printer/print/resume")
-        await server.wait_for(lambda s: s["print_stats"]["state"] == "printing", print_stats=None)
-        await server.post("/printer/print/cancel")
-        await server.wait_for(lambda s: s["print_stats"]["state"] == "cancelled",
-                              print_stats=None)
-        await server.post("/printer/print/start", {"filename": "square.gcode"})
-        status = await server.wait_for(lambda s: s["print_stats"]["state"] == "complete",
-                                       timeout_s=60, print_stats=None, virtual_sdcard=None)
-        assert status["virtual_sdcard"]["progress"] == 1.0
+        async with server.session.ws_connect(server.url + "/websocket") as front_end:
+            await front_end.send_json({"jsonrpc": "2.0", "id": 1,
+                                       "method": "printer.objects.subscribe",
+                                       "params": {"objects": {"print_stats": ["state"]}}})
+            states = asyncio.create_task(_print_states(front_end))
+            await server.post("/printer/print/start", {"filename": "square.gcode"})
+            status = await server.wait_for(lambda s: s["virtual_sdcard"]["progress"] > 0,
+                                           virtual_sdcard=None, print_stats=None)
+            assert status["print_stats"]["state"] == "printing"
+            assert status["virtual_sdcard"]["file_size"] == len(job)
+            await server.post("/printer/print/pause")
+            await server.wait_for(lambda s: s["print_stats"]["state"] == "paused"
+                                  and s["pause_resume"]["is_paused"], print_stats=None,
+                                  pause_resume=None)
+            assert (await tcp_report(served.tcp_port)).startswith("<Hold")
+            await server.post("/printer/print/resume")
+            await server.wait_for(lambda s: s["print_stats"]["state"] == "printing",
+                                  print_stats=None)
+            await server.post("/printer/print/cancel")
+            await server.wait_for(lambda s: s["print_stats"]["state"] == "cancelled",
+                                  print_stats=None)
+            await _history_shows(server, ["cancelled"])
+            await server.post("/printer/print/start", {"filename": "square.gcode"})
+            status = await server.wait_for(lambda s: s["print_stats"]["state"] == "complete",
+                                           timeout_s=60, print_stats=None, virtual_sdcard=None)
+            assert status["virtual_sdcard"]["progress"] == 1.0
+            await asyncio.sleep(0.6)  # the last push
+            states.cancel()
+            pushed = await states
+        assert pushed == ["printing", "paused", "printing", "cancelled", "printing", "complete"]
+        await _history_shows(server, ["completed", "cancelled"])
+
+
+async def _history_shows(server: Moonraker, statuses: list[str]) -> None:
+    """Moonraker's job history lists ``statuses``, newest first (it follows print_stats)."""
+    for _ in range(100):
         history = await server.get("/server/history/list")
-        assert [j["status"] for j in history["jobs"]][:2] == ["completed", "cancelled"]
+        if [job["status"] for job in history["jobs"]] == statuses:
+            return
+        await asyncio.sleep(0.1)
+    raise AssertionError(f"history {history['jobs']}")
+
+
+
+async def _print_states(front_end: aiohttp.ClientWebSocketResponse) -> list[str]:
+    """The ``print_stats.state`` values a front-end is pushed, in order, until cancelled."""
+    states: list[str] = []
+    with contextlib.suppress(asyncio.CancelledError):
+        async for message in front_end:
+            data = message.json()
+            if data.get("method") == "notify_status_update":
+                state = data["params"][0].get("print_stats", {}).get("state")
+                if state is not None:
+                    states.append(state)
+    return states
 
 
 async def test_emergency_stop_shuts_down_and_firmware_restart_recovers(tmp_path: Path) -> None:

@@ -165,3 +165,15 @@ def test_diff_keeps_only_changed_fields() -> None:
     after = {"toolhead": {"position": [1, 0, 0, 0], "homed_axes": "xyz"}, "webhooks": {"a": 1}}
     assert objects.diff(before, after) == {"toolhead": {"position": [1, 0, 0, 0]}}
     assert objects.diff(after, after) == {}
+
+
+def test_job_times_leave_pauses_out_of_the_print_duration() -> None:
+    times = objects.JobTimes()
+    times.update("a.nc", 10.0, "running", 10.0)
+    times.update("a.nc", 10.0, "paused", 12.0)
+    assert times.durations(15.0) == (5.0, 2.0)
+    times.update("a.nc", 10.0, "running", 16.0)
+    times.update("a.nc", 10.0, "done", 20.0)
+    assert times.durations(99.0) == (10.0, 6.0)
+    times.update("b.nc", 50.0, "running", 50.0)
+    assert times.durations(51.0) == (1.0, 1.0)
