@@ -121,6 +121,9 @@ def configfile(machine: Machine) -> dict[str, Any]:
         "pause_resume": {"recover_velocity": 50.0},
         "display_status": {},
     }
+    for name in ("pause", "resume", "cancel_print"):  # built in: what the front-ends check
+        settings[f"gcode_macro {name}"] = {"description": f"motiond: {name.upper()} is built in",
+                                           "gcode": ""}
     for index, axis in enumerate("xyz"):
         settings[f"stepper_{axis}"] = {"position_min": machine.axis_min_mm[index],
                                        "position_max": machine.axis_max_mm[index]}

@@ -203,7 +203,10 @@ class Session:
 
 def response_text(message: str) -> str:
     """A motiond reply line as Klipper's console shows it: ``[MSG:x]`` is ``// x``; alarms
-    and errors are ``!! ...``."""
+    and errors are ``!! ...``; M114's ``C: X:..`` loses the ``C:`` (Klipper's M114 starts at
+    ``X:``, and the front-ends hide ``C:`` lines as temperature reports)."""
+    if message.startswith("C: X:"):
+        return message[3:]
     if message.startswith("[MSG:") and message.endswith("]"):
         return f"// {message[5:-1]}"
     if message.startswith(("ALARM:", "error:")):

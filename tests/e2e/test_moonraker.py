@@ -194,4 +194,4 @@ async def test_console_output_reaches_moonraker_gcode_store(tmp_path: Path) -> N
         store = await server.get("/server/gcode_store", count="50")
         responses = [item["message"] for item in store["gcode_store"]
                      if item["type"] == "response"]
-        assert any("X:0.0000 Y:0.0000" in message for message in responses), responses
+        assert any(message.startswith("X:0.0000 Y:0.0000") for message in responses), responses

@@ -11,6 +11,7 @@ import pytest
 
 from modules.klippy_api import objects, wire
 from modules.klippy_api.gcode import Control, FeedOverride, Line, Message, StartJob, translate
+from modules.klippy_api.session import response_text
 from server.errors import CommandError
 
 JOG_FEED = 30000.0
@@ -177,3 +178,10 @@ def test_job_times_leave_pauses_out_of_the_print_duration() -> None:
     assert times.durations(99.0) == (10.0, 6.0)
     times.update("b.nc", 50.0, "running", 50.0)
     assert times.durations(51.0) == (1.0, 1.0)
+
+
+def test_replies_read_as_klipper_console_lines() -> None:
+    assert response_text("[MSG:Caution: Unlocked]") == "// Caution: Unlocked"
+    assert response_text("ALARM:2") == "!! ALARM:2"
+    assert response_text("C: X:1.0000 Y:2.0000 Z:0.0000") == "X:1.0000 Y:2.0000 Z:0.0000"
+    assert response_text("ok-ish text") == "ok-ish text"
