@@ -97,7 +97,7 @@ class KlippyApi(Module):
             "hostname": socket.gethostname(), "software_version": f"motiond {__version__}",
             "cpu_info": platform.processor() or platform.machine(), "app": "Klipper",
             "klipper_path": str(Path(__file__).resolve().parents[2]),
-            "python_path": sys.executable, "log_file": "", "config_file": "",
+            "python_path": sys.executable,
             "process_id": os.getpid(), "user_id": os.getuid(), "group_id": os.getgid(),
         }
 
