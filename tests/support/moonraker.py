@@ -1,8 +1,8 @@
 """The real Moonraker (PyPI ``moonraker`` 0.11.0) in front of a motiond's ``[klippy_api]``.
 
 Moonraker pins its own dependencies, so it lives in a virtual environment of its own under the
-repository's ignored ``build/`` folder (``.ci/run`` builds it at install time; the fixture
-builds it when absent; ``MOTIOND_MOONRAKER_VENV`` points elsewhere). Each test runs it with a
+repository's ignored ``build/`` folder (:mod:`tests.support.moonraker_venv`: ``.ci/run``
+builds it at install time, the fixture when absent). Each test runs it with a
 data folder in ``tmp_path``, ``HOME`` there too, its announcements off, no update manager and
 no system service provider: nothing leaves this machine.
 """
@@ -13,8 +13,6 @@ import asyncio
 import contextlib
 import json
 import os
-import subprocess
-import sys
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,22 +20,8 @@ from typing import Any
 
 import aiohttp
 
-from tests.support.processes import REPO, free_port
-
-VERSION = "0.11.0"
-VENV = Path(os.environ.get("MOTIOND_MOONRAKER_VENV", REPO / "build" / "moonraker-venv"))
-
-
-def ensure_moonraker() -> Path:
-    """The ``moonraker`` program, installed in its own environment the first time."""
-    program = VENV / "bin" / "moonraker"
-    marker = VENV / f".moonraker-{VERSION}"
-    if not marker.exists():
-        subprocess.run([sys.executable, "-m", "venv", str(VENV)], check=True)
-        subprocess.run([str(VENV / "bin" / "pip"), "install", "-q", f"moonraker=={VERSION}"],
-                       check=True)
-        marker.touch()
-    return program
+from tests.support.moonraker_venv import ensure_moonraker
+from tests.support.processes import free_port
 
 
 def moonraker_conf(port: int, socket: Path) -> str:
