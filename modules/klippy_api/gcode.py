@@ -12,6 +12,9 @@ as every other source. What is translated:
 - ``_CLIENT_LINEAR_MOVE X=.. Y=.. Z=.. F=.. [ABSOLUTE=1]`` and the front-ends' jog sequence
   (``[SAVE_GCODE_STATE] G91 G1 X10 F6000 [RESTORE_GCODE_STATE|G90]``): one ``$J=`` jog, which
   a hold or jog cancel stops and which leaves the modal state alone;
+- ``SET_GCODE_OFFSET [X|Y|Z=mm] [X|Y|Z_ADJUST=mm] [MOVE=1]``: the offset Klipper calls
+  ``homing_origin`` (motiond's work offset) set or adjusted with ``G92`` once the machine is
+  idle; with ``MOVE=1`` the head moves by the change first (a jog);
 - ``M117 text`` sets ``display_status.message``; ``HELP`` lists the commands;
   ``RESTART``/``FIRMWARE_RESTART``: ``$X`` (unlock), then the API connections close so the
   front-end starts afresh, as after Klipper's restart; ``M112``: emergency stop.
@@ -39,6 +42,7 @@ HELP: dict[str, str] = {
     "SET_VELOCITY_FACTOR": "Feed override: SET_VELOCITY_FACTOR FACTOR=<0.1..2>",
     JOG_MACRO: "Jog: _CLIENT_LINEAR_MOVE X=<mm> Y=<mm> Z=<mm> F=<mm/min> [ABSOLUTE=1]",
     "M117": "Show a message on the display: M117 <text>",
+    "SET_GCODE_OFFSET": "Work offset: SET_GCODE_OFFSET Z=<mm>|Z_ADJUST=<mm> [MOVE=1]",
     "M112": "Emergency stop",
     "RESTART": "Unlock after an alarm ($X) and reconnect",
     "FIRMWARE_RESTART": "Unlock after an alarm ($X) and reconnect",
@@ -79,7 +83,18 @@ class Message:
     text: str | None
 
 
-Step = Line | StartJob | Control | FeedOverride | Message
+@dataclass(frozen=True, slots=True)
+class GcodeOffset:
+    """Klipper's ``SET_GCODE_OFFSET``: the new offset (mm) of the named axes, absolute or
+    adjusted; ``move``: the head moves by the change so the work position stays."""
+
+    absolute: dict[str, float]
+    adjust: dict[str, float]
+    move: bool
+    speed_mm_s: float | None
+
+
+Step = Line | StartJob | Control | FeedOverride | Message | GcodeOffset
 
 
 def translate(script: str, jog_feed_mm_min: float) -> list[Step]:
@@ -113,6 +128,8 @@ def _line(text: str, jog_feed_mm_min: float) -> list[Step]:
         return [FeedOverride(round(100 * _number(name, _params(name, rest), "FACTOR")))]
     if name == JOG_MACRO:
         return [Line(_client_move(_params(name, rest), jog_feed_mm_min))]
+    if name == "SET_GCODE_OFFSET":
+        return [_gcode_offset(_params(name, rest))]
     if name in ("SAVE_GCODE_STATE", "RESTORE_GCODE_STATE"):
         raise CommandError(Error.UNSUPPORTED, f"{name}: only the front-ends' jog sequence "
                                               "(G91, one G0/G1, G90) is supported")
@@ -160,6 +177,22 @@ def _client_move(params: dict[str, str], jog_feed_mm_min: float) -> str:
     feed = _number(JOG_MACRO, params, "F") if "F" in params else jog_feed_mm_min
     mode = "G90" if params.get("ABSOLUTE", "0") not in ("0", "") else "G91"
     return _jog(mode, axes, feed)
+
+
+def _gcode_offset(params: dict[str, str]) -> GcodeOffset:
+    name = "SET_GCODE_OFFSET"
+    axes = {"X", "Y", "Z"}
+    known = axes | {f"{axis}_ADJUST" for axis in axes} | {"MOVE", "MOVE_SPEED"}
+    if set(params) - known:
+        raise CommandError(Error.UNSUPPORTED,
+                           f"{name}: no {', '.join(sorted(set(params) - known))} here")
+    absolute = {axis: _number(name, params, axis) for axis in sorted(axes & set(params))}
+    adjust = {axis: _number(name, params, f"{axis}_ADJUST") for axis in sorted(axes)
+              if f"{axis}_ADJUST" in params}
+    speed = _number(name, params, "MOVE_SPEED") if "MOVE_SPEED" in params else None
+    if speed is not None and speed <= 0:
+        raise CommandError(Error.UNSUPPORTED, f"{name}: MOVE_SPEED must be positive")
+    return GcodeOffset(absolute, adjust, params.get("MOVE", "0") not in ("0", ""), speed)
 
 
 def _jog(mode: str, axes: dict[str, float], feed_mm_min: float) -> str:

@@ -19,7 +19,15 @@ from collections.abc import Callable
 from typing import Any, Protocol
 
 from modules.klippy_api import gcode, objects, wire
-from modules.klippy_api.gcode import Control, FeedOverride, Line, Message, StartJob, Step
+from modules.klippy_api.gcode import (
+    Control,
+    FeedOverride,
+    GcodeOffset,
+    Line,
+    Message,
+    StartJob,
+    Step,
+)
 from server.errors import CommandError, Error
 from server.runtime.control import halts_at_once
 from server.runtime.module import ModuleContext
@@ -164,6 +172,8 @@ class Session:
             ctx.control.set_feed_override(step.percent)
         elif isinstance(step, Message):
             self.hub.set_message(step.text)
+        elif isinstance(step, GcodeOffset):
+            await self._gcode_offset(step)
         elif step.action == "help":
             self.hub.output("\n".join(["// Available commands:",
                                        *(f"// {k}: {v}" for k, v in gcode.HELP.items())]))
@@ -172,6 +182,34 @@ class Session:
             self.hub.restart()
         else:
             self._control(step.action)
+
+    async def _gcode_offset(self, step: GcodeOffset) -> None:
+        """Once the queued moves ran: optionally jog by the change, then ``G92`` so that the
+        work offset (``homing_origin``) is the one asked for."""
+        ctx = self.hub.ctx
+        await ctx.moves.wait_idle()
+        status = ctx.status()
+        wpos, wco = status["wpos"], status["wco"]
+        names = ctx.core.axis_names
+        deltas: dict[str, float] = {}
+        for axis in sorted(set(step.absolute) | set(step.adjust)):
+            if axis not in names:
+                raise CommandError(Error.UNSUPPORTED, f"SET_GCODE_OFFSET: no axis {axis}")
+            index = names.index(axis)
+            target = step.absolute.get(axis, wco[index]) + step.adjust.get(axis, 0.0)
+            deltas[axis] = target - wco[index]
+        if not deltas:
+            return
+        scale = 25.4 if status.get("modal", {}).get("units") == "in" else 1.0
+        if step.move:
+            speed_mm_min = 60.0 * (step.speed_mm_s or self.hub.jog_feed_mm_min / 60.0)
+            words = " ".join(f"{axis}{delta:.4f}" for axis, delta in deltas.items())
+            await ctx.run_gcode(f"$J=G21 G91 {words} F{speed_mm_min:.0f}")
+            await ctx.moves.wait_idle()
+            stay = {axis: wpos[names.index(axis)] for axis in deltas}
+        else:
+            stay = {axis: wpos[names.index(axis)] - delta for axis, delta in deltas.items()}
+        await ctx.run_gcode("G92 " + " ".join(f"{a}{v / scale:.4f}" for a, v in stay.items()))
 
     def _control(self, action: str) -> None:
         controls = self.hub.ctx.control

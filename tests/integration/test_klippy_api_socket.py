@@ -138,3 +138,22 @@ async def test_subscription_pushes_only_what_changed(tmp_path: Path) -> None:
         assert all(set(push["params"]["status"]) == {"toolhead"} for push in pushes)
         assert pushes[-1]["params"]["status"]["toolhead"]["position"] == [5.0, 0.0, 0.0, 0.0]
         assert len({json.dumps(push["params"]["status"]) for push in pushes}) == len(pushes)
+
+
+async def test_set_gcode_offset_shifts_the_work_offset_and_move_keeps_the_work_position(
+        tmp_path: Path) -> None:
+    async with served(tmp_path) as (app, socket), client(socket) as api:
+        await api.call("gcode/script", script="G1 X5 Y5 F3000")
+        answer = await api.call("gcode/script", script="SET_GCODE_OFFSET X_ADJUST=2")
+        assert answer["result"] == {}
+        status = (await api.call("objects/query", objects={"gcode_move": None}))["result"]
+        moved = status["status"]["gcode_move"]
+        assert moved["homing_origin"][0] == 2.0 and moved["position"][0] == 5.0
+        assert moved["gcode_position"][0] == 3.0
+        await api.call("gcode/script", script="SET_GCODE_OFFSET X=1 MOVE=1")
+        await asyncio.sleep(0.5)
+        status = (await api.call("objects/query", objects={"gcode_move": None}))["result"]
+        moved = status["status"]["gcode_move"]
+        assert moved["homing_origin"][0] == 1.0
+        assert moved["position"][0] == 4.0 and moved["gcode_position"][0] == 3.0
+        assert app.kernel.machine.stepgen.state.position_mm[0] == 4.0

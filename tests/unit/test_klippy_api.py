@@ -10,7 +10,15 @@ from typing import Any
 import pytest
 
 from modules.klippy_api import objects, wire
-from modules.klippy_api.gcode import Control, FeedOverride, Line, Message, StartJob, translate
+from modules.klippy_api.gcode import (
+    Control,
+    FeedOverride,
+    GcodeOffset,
+    Line,
+    Message,
+    StartJob,
+    translate,
+)
 from modules.klippy_api.session import response_text
 from server.errors import CommandError
 
@@ -185,3 +193,12 @@ def test_replies_read_as_klipper_console_lines() -> None:
     assert response_text("ALARM:2") == "!! ALARM:2"
     assert response_text("C: X:1.0000 Y:2.0000 Z:0.0000") == "X:1.0000 Y:2.0000 Z:0.0000"
     assert response_text("ok-ish text") == "ok-ish text"
+
+
+def test_set_gcode_offset_parses_absolute_adjust_and_move() -> None:
+    assert translate("SET_GCODE_OFFSET Z_ADJUST=0.05 MOVE=1", JOG_FEED) == [
+        GcodeOffset({}, {"Z": 0.05}, True, None)]
+    assert translate("SET_GCODE_OFFSET X=1 Y=-2", JOG_FEED) == [
+        GcodeOffset({"X": 1.0, "Y": -2.0}, {}, False, None)]
+    with pytest.raises(CommandError):
+        translate("SET_GCODE_OFFSET E=1", JOG_FEED)
