@@ -45,12 +45,13 @@ async def stack(tmp_path: Path) -> AsyncIterator[tuple[Served, Moonraker, Path]]
         yield served, server, socket
 
 
-async def test_moonraker_sees_motiond_ready_and_its_scripts_home_jog_and_move(
+async def test_moonraker_sees_motiond_ready_scripts_home_jog_move_and_emergency_stop(
         tmp_path: Path) -> None:
     async with stack(tmp_path) as (served, server, socket):
         await _ready_with_position(served, server, socket)
         await _console_output_reaches_the_gcode_store(server)
         await _home_jog_and_move(served, server)
+        await _emergency_stop_then_firmware_restart(served, server)
 
 
 async def _ready_with_position(served: Served, server: Moonraker, socket: Path) -> None:
@@ -94,6 +95,9 @@ async def _home_jog_and_move(served: Served, server: Moonraker) -> None:
     with pytest.raises(MoonrakerError) as refused:
         await server.gcode("G1 X500")  # beyond the travel
     assert "error:" in str(refused.value.body)
+    hooks = (await server.query(webhooks=None))["webhooks"]  # ALARM:2, and no shutdown
+    assert hooks["state"] == "ready" and "ALARM:2" in hooks["state_message"]
+    await server.gcode("$X")
 
 
 async def test_store_through_moonraker_then_print_pause_resume_and_cancel(tmp_path: Path) -> None:
@@ -167,34 +171,32 @@ async def _print_states(front_end: aiohttp.ClientWebSocketResponse) -> list[str]
     return states
 
 
-async def test_emergency_stop_shuts_down_and_firmware_restart_recovers(tmp_path: Path) -> None:
-    async with stack(tmp_path) as (served, server, _):
-        await server.gcode("G28")
-        moving = asyncio.create_task(server.gcode("G1 X250 Y250 F600"))
-        await server.wait_for(lambda s: s["motion_report"]["live_velocity"] > 0,
-                              motion_report=None)
-        await server.post("/printer/emergency_stop")
-        status = await server.wait_for(lambda s: s["webhooks"]["state"] == "shutdown",
-                                       timeout_s=5, webhooks=None)
-        assert "ALARM:40" in status["webhooks"]["state_message"]
-        with contextlib.suppress(MoonrakerError):
-            await moving
-        stopped_at = mpos(await tcp_report(served.tcp_port))
-        await asyncio.sleep(0.3)
-        assert mpos(await tcp_report(served.tcp_port)) == stopped_at
-        assert stopped_at[0] < 250
-        with pytest.raises(MoonrakerError):
-            await server.gcode("G1 X10")  # locked out
-        await server.post("/printer/firmware_restart")
-        for _ in range(200):
-            with contextlib.suppress(MoonrakerError, AssertionError):
-                info = await server.get("/server/info")
-                if info["klippy_state"] == "ready":
-                    break
-            await asyncio.sleep(0.1)
-        await server.gcode("G1 X10 F6000")
-        await server.wait_for(lambda s: s["toolhead"]["position"][0] == 10.0,
-                              toolhead=["position"])
+async def _emergency_stop_then_firmware_restart(served: Served, server: Moonraker) -> None:
+    moving = asyncio.create_task(server.gcode("G1 X250 Y250 F600"))
+    await server.wait_for(lambda s: s["motion_report"]["live_velocity"] > 0,
+                          motion_report=None)
+    await server.post("/printer/emergency_stop")
+    status = await server.wait_for(lambda s: s["webhooks"]["state"] == "shutdown",
+                                   timeout_s=5, webhooks=None)
+    assert "ALARM:40" in status["webhooks"]["state_message"]
+    with contextlib.suppress(MoonrakerError):
+        await moving
+    stopped_at = mpos(await tcp_report(served.tcp_port))
+    await asyncio.sleep(0.3)
+    assert mpos(await tcp_report(served.tcp_port)) == stopped_at
+    assert stopped_at[0] < 250
+    with pytest.raises(MoonrakerError):
+        await server.gcode("G1 X10")  # locked out
+    await server.post("/printer/firmware_restart")
+    for _ in range(200):
+        with contextlib.suppress(MoonrakerError, AssertionError):
+            info = await server.get("/server/info")
+            if info["klippy_state"] == "ready":
+                break
+        await asyncio.sleep(0.1)
+    await server.gcode("G1 X10 F6000")
+    await server.wait_for(lambda s: s["toolhead"]["position"][0] == 10.0,
+                          toolhead=["position"])
 
 
 async def _console_output_reaches_the_gcode_store(server: Moonraker) -> None:
