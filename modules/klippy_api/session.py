@@ -187,6 +187,9 @@ class Session:
         """Once the queued moves ran: optionally jog by the change, then ``G92`` so that the
         work offset (``homing_origin``) is the one asked for."""
         ctx = self.hub.ctx
+        job = ctx.status().get("job") or {}
+        if job.get("state") in ("running", "paused"):  # never applied late, when it ends
+            raise CommandError(Error.BUSY, "SET_GCODE_OFFSET: a job is running")
         await ctx.moves.wait_idle()
         status = ctx.status()
         wpos, wco = status["wpos"], status["wco"]
