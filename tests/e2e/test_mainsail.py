@@ -122,6 +122,20 @@ async def test_mainsail_shows_and_drives_motiond(tmp_path: Path) -> None:
         await shot(page, "complete")
         await expect(page.get_by_text(re.compile(r"^\s*Complete\s*$")).first).to_be_visible()
 
+        await console.fill("G1 X250 Y250 F600")
+        await console.press("Enter")
+        await server.wait_for(lambda s: s["motion_report"]["live_velocity"] > 0,
+                              motion_report=["live_velocity"])
+        await page.get_by_role("button", name=re.compile("emergency stop", re.I)).first.click()
+        status = await server.wait_for(lambda s: s["webhooks"]["state"] == "shutdown",
+                                       timeout_s=5, webhooks=None)
+        assert "ALARM:40" in status["webhooks"]["state_message"]
+        stopped_at = mpos(await tcp_report(served.tcp_port))
+        assert stopped_at[0] < 250
+        await page.wait_for_timeout(1500)
+        await shot(page, "emergency-stop")
+        assert mpos(await tcp_report(served.tcp_port)) == stopped_at
+
 
 _PERCENT = re.compile(r"^\s*[1-9]\d?% Printing\s*$")
 
