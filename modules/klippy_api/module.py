@@ -207,8 +207,9 @@ async def _drain(connection: _Connection) -> None:
 
 
 def _listening_socket(path: Path) -> socket.socket:
-    """A Unix socket at ``path``, owner-only from the moment it exists; a stale socket file
-    is replaced, anything else at ``path`` (or a live server) refused."""
+    """A Unix socket at ``path`` (its folder made if missing), owner-only from the moment it
+    exists; a stale socket file is replaced, anything else at ``path`` (or a live server)
+    refused."""
     with contextlib.suppress(FileNotFoundError):
         if not stat.S_ISSOCK(path.lstat().st_mode):
             raise RuntimeError(f"{path} exists and is not a socket")
@@ -217,6 +218,7 @@ def _listening_socket(path: Path) -> socket.socket:
             if probe.connect_ex(str(path)) == 0:
                 raise RuntimeError(f"{path}: another server is listening there")
         path.unlink()
+    path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)  # printer_data/comms
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     os.fchmod(sock.fileno(), 0o600)  # Linux: the socket file takes this mode when bound
     sock.bind(str(path))

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import socket as sockets
 import stat
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -49,7 +50,7 @@ class Client:
 
 @asynccontextmanager
 async def served(tmp_path: Path) -> AsyncIterator[tuple[App, Path]]:
-    socket = tmp_path / "klippy.sock"
+    socket = tmp_path / "comms" / "klippy.sock"  # the folder is made
     config = make_config(klippy_api={"socket": str(socket)})
     async with running(config, RealClock()) as app:
         for _ in range(100):
@@ -69,14 +70,19 @@ async def client(socket: Path) -> AsyncIterator[Client]:
 
 
 async def test_socket_is_owner_only_and_a_stale_one_is_replaced(tmp_path: Path) -> None:
-    (tmp_path / "klippy.sock").write_bytes(b"")  # not a socket: refused, the machine alarms
+    (tmp_path / "comms").mkdir()
+    (tmp_path / "comms" / "klippy.sock").write_bytes(b"")  # not a socket: the machine alarms
     async with served(tmp_path) as (app, _):
         await asyncio.sleep(0.1)
         assert app.kernel.state is MachineState.ALARM
         assert "not a socket" in app.kernel.alarm_message
-    (tmp_path / "klippy.sock").unlink()
-    async with served(tmp_path) as (app, socket):
+    (tmp_path / "comms" / "klippy.sock").unlink()
+    with sockets.socket(sockets.AF_UNIX) as stale:  # left by a crash: nobody listens
+        stale.bind(str(tmp_path / "comms" / "klippy.sock"))
+    async with served(tmp_path) as (app, socket), client(socket) as api:
         assert stat.S_IMODE(socket.stat().st_mode) == 0o600
+        assert (await api.call("info"))["result"]["state"] == "ready"
+        assert app.kernel.state is MachineState.IDLE
     assert not socket.exists()  # removed at shutdown
 
 
