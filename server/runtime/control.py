@@ -66,6 +66,15 @@ class MachineControl:
     def jog_cancel(self) -> None:
         self.machine.cancel_jog()
 
+    def cancel_job(self) -> None:
+        """Abort the running or paused job, as Smoothie's ``abort`` (nothing without one)."""
+        if self.jobs.active:
+            self.jobs.abort()
+
+    def set_feed_override(self, percent: int) -> None:
+        """The feed override, in percent (clamped to Grbl's 10-200), as 0x90-0x94 set it."""
+        self.machine.set_overrides(feed=percent)
+
     def emergency_stop(self) -> None:
         """M112: ALARM:40, motion stopped and tools off until ``$X`` or M999."""
         self.machine.emergency_stop()

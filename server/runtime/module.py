@@ -134,6 +134,14 @@ class MachineControls(Protocol):
         """M112 on arrival: ALARM:40, motion stopped and tools off until ``$X`` or M999."""
         ...
 
+    def cancel_job(self) -> None:
+        """Abort the running or paused job (Smoothie's ``abort``); nothing without one."""
+        ...
+
+    def set_feed_override(self, percent: int) -> None:
+        """The feed override in percent, clamped to 10-200 (what 0x90-0x94 change)."""
+        ...
+
 
 class ModuleContext(Protocol):
     """What a module may use of the core (DESIGN.md rule 2): narrow ports, not the machine."""

@@ -1,0 +1,229 @@
+"""Klipper's G-code as the front-ends send it, translated to motiond's (pure).
+
+:func:`translate` turns one ``gcode/script`` (lines joined by newlines) into :data:`Step`
+objects that :mod:`modules.klippy_api.session` carries out in order: motiond G-code lines run
+through the ordered path of every sender; job and realtime steps act through the same controls
+as every other source. What is translated:
+
+- ``SDCARD_PRINT_FILE FILENAME=...``: play that stored job; ``PAUSE``, ``RESUME``,
+  ``CANCEL_PRINT``: hold (a job pauses), resume, abort;
+- ``G28 [X Y Z]``: home (``G28.2``); Klipper's G28 homes, Grbl's goes to a stored point;
+- ``M220 S<percent>``, ``SET_VELOCITY_FACTOR FACTOR=<f>``: the feed override;
+- ``_CLIENT_LINEAR_MOVE X=.. Y=.. Z=.. F=.. [ABSOLUTE=1]`` and the front-ends' jog sequence
+  (``[SAVE_GCODE_STATE] G91 G1 X10 F6000 [RESTORE_GCODE_STATE|G90]``): one ``$J=`` jog, which
+  a hold or jog cancel stops and which leaves the modal state alone;
+- ``SET_GCODE_OFFSET [X|Y|Z=mm] [X|Y|Z_ADJUST=mm] [MOVE=1]``: the offset Klipper calls
+  ``homing_origin`` (motiond's work offset) set or adjusted with ``G92`` once the machine is
+  idle; with ``MOVE=1`` the head moves by the change first (a jog);
+- ``M117 text`` sets ``display_status.message``; ``HELP`` lists the commands;
+  ``RESTART``/``FIRMWARE_RESTART``: ``$X`` (unlock), then the API connections close so the
+  front-end starts afresh, as after Klipper's restart; ``M112``: emergency stop.
+
+Everything else (``M84``, ``G0``, ``$$``...) is motiond's own G-code, unchanged.
+"""
+
+from __future__ import annotations
+
+import re
+import shlex
+from dataclasses import dataclass
+
+from server.errors import CommandError, Error
+
+JOG_MACRO = "_CLIENT_LINEAR_MOVE"
+HELP: dict[str, str] = {
+    "SDCARD_PRINT_FILE": "Play a stored job: SDCARD_PRINT_FILE FILENAME=<name>",
+    "PAUSE": "Pause the job (feed hold)",
+    "RESUME": "Resume the paused job",
+    "CANCEL_PRINT": "Abort the job",
+    "G28": "Home all axes, or those named (G28 X Y)",
+    "M84": "Motors off",
+    "M220": "Feed override in percent: M220 S<10..200>",
+    "SET_VELOCITY_FACTOR": "Feed override: SET_VELOCITY_FACTOR FACTOR=<0.1..2>",
+    JOG_MACRO: "Jog: _CLIENT_LINEAR_MOVE X=<mm> Y=<mm> Z=<mm> F=<mm/min> [ABSOLUTE=1]",
+    "M117": "Show a message on the display: M117 <text>",
+    "SET_GCODE_OFFSET": "Work offset: SET_GCODE_OFFSET Z=<mm>|Z_ADJUST=<mm> [MOVE=1]",
+    "M112": "Emergency stop",
+    "RESTART": "Unlock after an alarm ($X) and reconnect",
+    "FIRMWARE_RESTART": "Unlock after an alarm ($X) and reconnect",
+    "HELP": "List the commands",
+    "M114": "Report the position",
+    "G0": "Rapid move", "G1": "Linear move", "G2": "Arc (clockwise)",
+    "G3": "Arc (counter-clockwise)", "G4": "Dwell", "G90": "Absolute positioning",
+    "G91": "Relative positioning", "G92": "Set the position", "M3": "Laser/spindle on",
+    "M4": "Laser on, power follows speed", "M5": "Laser/spindle off",
+}
+_WORD = re.compile(r"([A-Z])\s*([-+]?(?:\d+\.?\d*|\.\d+))")
+_NAME = re.compile(r"([A-Za-z_][A-Za-z0-9_]*)(?:\s+(.*))?$", re.S)
+_MOVE = re.compile(r"G0*[01]$")
+
+
+@dataclass(frozen=True, slots=True)
+class Line:
+    text: str  # motiond G-code, run as every sender's line
+
+
+@dataclass(frozen=True, slots=True)
+class StartJob:
+    name: str
+
+
+@dataclass(frozen=True, slots=True)
+class Control:
+    action: str  # pause, resume, cancel, estop, restart, help
+
+
+@dataclass(frozen=True, slots=True)
+class FeedOverride:
+    percent: int
+
+
+@dataclass(frozen=True, slots=True)
+class Message:
+    text: str | None
+
+
+@dataclass(frozen=True, slots=True)
+class GcodeOffset:
+    """Klipper's ``SET_GCODE_OFFSET``: the new offset (mm) of the named axes, absolute or
+    adjusted; ``move``: the head moves by the change so the work position stays."""
+
+    absolute: dict[str, float]
+    adjust: dict[str, float]
+    move: bool
+    speed_mm_s: float | None
+
+
+Step = Line | StartJob | Control | FeedOverride | Message | GcodeOffset
+
+
+def translate(script: str, jog_feed_mm_min: float) -> list[Step]:
+    """One script's steps; raises :class:`CommandError` for a malformed Klipper command (and
+    then nothing of the script runs)."""
+    lines = [line.strip() for line in script.splitlines() if line.strip()]
+    jog = _jog_sequence(lines, jog_feed_mm_min)
+    if jog is not None:
+        return jog
+    return [step for line in lines for step in _line(line, jog_feed_mm_min)]
+
+
+def _line(text: str, jog_feed_mm_min: float) -> list[Step]:
+    match = _NAME.match(text)
+    if match is None:
+        return [Line(text)]
+    name, rest = match.group(1).upper(), match.group(2) or ""
+    if name in ("PAUSE", "RESUME", "HELP"):
+        return [Control(name.lower())]
+    if name == "CANCEL_PRINT":
+        return [Control("cancel")]
+    if name in ("RESTART", "FIRMWARE_RESTART"):
+        return [Control("restart")]
+    if name == "M112":
+        return [Control("estop")]
+    if name == "M117":
+        return [Message(rest.strip() or None)]
+    if name == "SDCARD_PRINT_FILE":
+        return [StartJob(_params(name, rest).get("FILENAME", "").lstrip("/"))]
+    if name == "SET_VELOCITY_FACTOR":
+        return [FeedOverride(round(100 * _number(name, _params(name, rest), "FACTOR")))]
+    if name == JOG_MACRO:
+        return [Line(_client_move(_params(name, rest), jog_feed_mm_min))]
+    if name == "SET_GCODE_OFFSET":
+        return [_gcode_offset(_params(name, rest))]
+    if name in ("SAVE_GCODE_STATE", "RESTORE_GCODE_STATE"):
+        raise CommandError(Error.UNSUPPORTED, f"{name}: only the front-ends' jog sequence "
+                                              "(G91, one G0/G1, G90) is supported")
+    words = dict(_WORD.findall(text.upper()))
+    if name == "M220":
+        return [FeedOverride(round(float(words.get("S", "100"))))]
+    if name == "G28":
+        axes = [axis for axis in "XYZ" if axis in text.upper()[3:]]
+        return [Line("G28.2" + "".join(f" {axis}0" for axis in axes))]
+    return [Line(text)]
+
+
+def _params(name: str, rest: str) -> dict[str, str]:
+    """Klipper's ``KEY=VALUE`` parameters (values may be quoted)."""
+    try:
+        tokens = shlex.split(rest)
+    except ValueError as exc:
+        raise CommandError(Error.UNSUPPORTED, f"{name}: {exc}") from exc
+    params: dict[str, str] = {}
+    for token in tokens:
+        key, sep, value = token.partition("=")
+        if not sep:
+            raise CommandError(Error.UNSUPPORTED, f"{name}: malformed parameter {token!r}")
+        params[key.upper()] = value
+    return params
+
+
+def _number(name: str, params: dict[str, str], key: str) -> float:
+    try:
+        value = float(params[key])
+    except (KeyError, ValueError) as exc:
+        raise CommandError(Error.UNSUPPORTED, f"{name}: {key}=<number> required") from exc
+    if value != value or value in (float("inf"), float("-inf")):
+        raise CommandError(Error.UNSUPPORTED, f"{name}: {key} must be finite")
+    return value
+
+
+def _client_move(params: dict[str, str], jog_feed_mm_min: float) -> str:
+    unknown = set(params) - {"X", "Y", "Z", "F", "ABSOLUTE"}
+    if unknown:
+        raise CommandError(Error.UNSUPPORTED, f"{JOG_MACRO}: no axis {', '.join(sorted(unknown))}")
+    axes = {axis: _number(JOG_MACRO, params, axis) for axis in "XYZ" if axis in params}
+    if not axes:
+        raise CommandError(Error.UNSUPPORTED, f"{JOG_MACRO}: no axis to move")
+    feed = _number(JOG_MACRO, params, "F") if "F" in params else jog_feed_mm_min
+    mode = "G90" if params.get("ABSOLUTE", "0") not in ("0", "") else "G91"
+    return _jog(mode, axes, feed)
+
+
+def _gcode_offset(params: dict[str, str]) -> GcodeOffset:
+    name = "SET_GCODE_OFFSET"
+    axes = {"X", "Y", "Z"}
+    known = axes | {f"{axis}_ADJUST" for axis in axes} | {"MOVE", "MOVE_SPEED"}
+    if set(params) - known:
+        raise CommandError(Error.UNSUPPORTED,
+                           f"{name}: no {', '.join(sorted(set(params) - known))} here")
+    absolute = {axis: _number(name, params, axis) for axis in sorted(axes & set(params))}
+    adjust = {axis: _number(name, params, f"{axis}_ADJUST") for axis in sorted(axes)
+              if f"{axis}_ADJUST" in params}
+    speed = _number(name, params, "MOVE_SPEED") if "MOVE_SPEED" in params else None
+    if speed is not None and speed <= 0:
+        raise CommandError(Error.UNSUPPORTED, f"{name}: MOVE_SPEED must be positive")
+    return GcodeOffset(absolute, adjust, params.get("MOVE", "0") not in ("0", ""), speed)
+
+
+def _jog(mode: str, axes: dict[str, float], feed_mm_min: float) -> str:
+    words = " ".join(f"{axis}{value:g}" for axis, value in axes.items())
+    return f"$J=G21 {mode} {words} F{feed_mm_min:g}"
+
+
+def _jog_sequence(lines: list[str], jog_feed_mm_min: float) -> list[Step] | None:
+    """The front-ends' jog: ``[SAVE_GCODE_STATE ..] G90|G91 G0|G1 <axes> [F] [RESTORE_GCODE_
+    STATE ..|G90]`` as one jog (and the trailing G90, when sent without SAVE/RESTORE)."""
+    upper = [line.upper() for line in lines]
+    saved = bool(upper) and upper[0].startswith("SAVE_GCODE_STATE")
+    if saved:
+        if len(upper) < 2 or not upper[-1].startswith("RESTORE_GCODE_STATE"):
+            return None
+        upper = upper[1:-1]
+    after: list[Step] = []
+    if not saved and len(upper) == 3 and upper[2] == "G90":
+        upper, after = upper[:2], [Line("G90")]
+    if len(upper) != 2 or upper[0] not in ("G90", "G91"):
+        return None
+    command, _, rest = upper[1].partition(" ")
+    if not _MOVE.match(command):
+        return None
+    words = _WORD.findall(rest)
+    if not words or len(words) != len(rest.split()) or any(
+            letter not in "XYZF" for letter, _ in words):
+        return None
+    axes = {letter: float(value) for letter, value in words if letter != "F"}
+    feeds = [float(value) for letter, value in words if letter == "F"]
+    if not axes:
+        return None
+    feed = feeds[0] if feeds else jog_feed_mm_min
+    return [Line(_jog(upper[0], axes, feed)), *after]
