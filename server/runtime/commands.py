@@ -15,6 +15,7 @@ from server.errors import CommandError, Error
 from server.gcode.codes import CodeCall
 from server.gcode.parser import parse_line
 from server.motion.moves import Output, Sync, SyncKind
+from server.protocol.lines import OK_PREFIX
 from server.protocol.reports import format_build_info, format_help, format_settings
 from server.runtime.dispatcher import Command, Dispatcher, Handler
 from server.runtime.events import MachineState
@@ -23,6 +24,18 @@ if TYPE_CHECKING:
     from server.runtime.kernel import Kernel
 
 BANNER_VERSION = "1.1h"
+# M115's capability report: what RepRap hosts may rely on. EMERGENCY_PARSER: M112 and M410 act
+# the moment they arrive (OctoPrint then sends them ahead of its queue). A held ok is preceded by
+# ``echo:busy: processing`` every 2 s, but the interval is fixed (no M113), so BUSY_PROTOCOL is
+# not claimed: OctoPrint keeps its ordinary timeout, which every busy line restarts.
+CAPABILITIES: dict[str, bool] = {
+    "EMERGENCY_PARSER": True,
+    "BUSY_PROTOCOL": False,
+    "AUTOREPORT_TEMP": False,
+    "AUTOREPORT_POS": False,
+    "SDCARD": False,
+    "EXTENDED_M20": False,
+}
 
 
 class CoreCommands:
@@ -57,6 +70,8 @@ class CoreCommands:
         for name, handler in locked_ok.items():
             dispatcher.register(name, handler, when_locked=True)
         dispatcher.register("$J=", self.jog)
+        dispatcher.register("M117", self.display, when_locked=True)
+        dispatcher.register("M118", self.echo, when_locked=True)
         codes = self.machine.codes
         codes.register("core", 105, self.temperature, query=True)
         codes.register("core", 115, self.firmware_info, query=True)
@@ -157,13 +172,34 @@ class CoreCommands:
         ]
 
     def temperature(self, call: CodeCall) -> list[Output]:
-        """M105 (RepRap hosts poll it): no heaters here."""
-        return [Sync(SyncKind.MESSAGE, {"lines": ["T:0.0 /0.0 B:0.0 /0.0"]})]
+        """M105 (RepRap hosts poll it): no heaters here. Marlin's one line, ``ok T:..``
+        (a RepRap host's ok line carries it; a Grbl sender gets it as a line before ``ok``)."""
+        return [Sync(SyncKind.MESSAGE, {"lines": [OK_PREFIX + "T:0.0 /0.0 B:0.0 /0.0"]})]
 
     def firmware_info(self, call: CodeCall) -> list[Output]:
-        """M115."""
+        """M115: the firmware line and Marlin's capability report (``Cap:NAME:0|1``)."""
         text = (
             f"FIRMWARE_NAME:motiond {__version__} (Grbl {BANNER_VERSION} compatible) "
             "PROTOCOL_VERSION:1.0 MACHINE_TYPE:laser/cnc EXTRUDER_COUNT:0"
         )
-        return [Sync(SyncKind.MESSAGE, {"lines": [text]})]
+        caps = [f"Cap:{name}:{int(value)}" for name, value in CAPABILITIES.items()]
+        return [Sync(SyncKind.MESSAGE, {"lines": [text, *caps]})]
+
+    def display(self, command: Command) -> None:
+        """M117 <text>: the display message; every connection gets it as ``[MSG:<text>]``."""
+        text = _message_text(command.args)
+        if text:
+            self.kernel.push(f"[MSG:{text}]")
+
+    def echo(self, command: Command) -> list[str]:
+        """M118 [E1] [A1] <text>: the text back to the sender, as ``echo:<text>`` (Marlin's E1
+        form: a bare text could read as a reply)."""
+        words = command.args.split(maxsplit=1)
+        if words and words[0].upper() in ("E1", "A1", "E0", "A0", "PN0", "PN1"):
+            words = words[1:]
+        return [f"echo:{_message_text(words[0] if words else '')}"]
+
+
+def _message_text(text: str) -> str:
+    """One line of display text, safe inside ``[MSG:...]``."""
+    return " ".join(text.replace("]", ")").split())[:100]

@@ -18,11 +18,18 @@ if TYPE_CHECKING:
     from server.runtime.machine import Machine
 
 _M112 = re.compile(r"^\s*(?:N\d+\s*)?M\s*0*112(?:\D|$)", re.I)
+_M410 = re.compile(r"^\s*(?:N\d+\s*)?M\s*0*410(?:[^\d.]|$)", re.I)
 
 
 def halts_at_once(text: str) -> bool:
     """Whether a line is an M112 that acts the moment it arrives, ahead of queued lines."""
     return _M112.match(text) is not None
+
+
+def quickstops_at_once(text: str) -> bool:
+    """Whether a line is an M410 quickstop, acted on the moment it arrives (as Marlin's
+    emergency parser does): the motion queued ahead of it is dropped."""
+    return _M410.match(text) is not None
 
 
 class MachineControl:
@@ -65,6 +72,13 @@ class MachineControl:
 
     def jog_cancel(self) -> None:
         self.machine.cancel_jog()
+
+    def quickstop(self) -> None:
+        """M410: stop at once, flush the queue, tools off, no alarm; a running job ends."""
+        if self.jobs.active:
+            self.jobs.abort()
+        else:
+            self.machine.quickstop()
 
     def emergency_stop(self) -> None:
         """M112: ALARM:40, motion stopped and tools off until ``$X`` or M999."""

@@ -4,7 +4,9 @@
 it) that admits what the client sends. It:
 
 * acts on realtime bytes at once (status, hold, resume, reset, overrides, jog cancel), even
-  while lines wait for planner room, and on ``M112`` the moment its line arrives;
+  while lines wait for planner room, and on ``M112`` the moment its line arrives; an ``M410``
+  quickstop too (Marlin's emergency parser): motion stops, and the lines this connection queued
+  ahead of it are answered as flushed (``error:45``, one reply each) instead of running;
 * queues complete lines, at most :data:`INBOUND_LINES` of them, for the session's executor;
 * keeps taking bytes while its line queue is full: they wait in a
   :class:`~server.runtime.backlog.Backlog` (``[protocol] backlog_bytes``) whose realtime bytes
@@ -21,6 +23,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+from server.errors import CommandError, Error
 from server.protocol.events import (
     Event,
     LineReceived,
@@ -28,7 +31,7 @@ from server.protocol.events import (
     Realtime,
     RealtimeReceived,
 )
-from server.runtime.control import halts_at_once
+from server.runtime.control import halts_at_once, quickstops_at_once
 
 if TYPE_CHECKING:
     import asyncio
@@ -119,6 +122,8 @@ class LineAdmission:
                 continue
             if not replayed and self._is_emergency_stop(event):
                 self.kernel.control.emergency_stop()
+            if not replayed and self._is_quickstop(event):
+                self._quickstop()
             self._lines.append((self._epoch, event))
             self._queued_bytes += line_size(event)
             if len(self._lines) >= INBOUND_LINES:
@@ -139,6 +144,19 @@ class LineAdmission:
         if not isinstance(event, LineReceived) or not self.can_control:
             return False
         return halts_at_once(event.text)
+
+    def _is_quickstop(self, event: Event) -> bool:
+        return (isinstance(event, LineReceived) and self.can_control
+                and quickstops_at_once(event.text))
+
+    def _quickstop(self) -> None:
+        """M410 arrived: stop now; the lines queued ahead of it are answered, never run."""
+        flushed = LineRejected(CommandError(Error.BUSY, "flushed by an M410 quickstop; not run"))
+        for index, (epoch, line) in enumerate(self._lines):
+            if isinstance(line, LineReceived):
+                self._lines[index] = (epoch, flushed)
+                self._queued_bytes -= line_size(line) - line_size(flushed)
+        self.kernel.control.quickstop()
 
     def _refill(self) -> None:
         """Feed held-back bytes to the protocol until the line queue is full again."""
