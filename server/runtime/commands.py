@@ -25,12 +25,11 @@ if TYPE_CHECKING:
 
 BANNER_VERSION = "1.1h"
 # M115's capability report: what RepRap hosts may rely on. EMERGENCY_PARSER: M112 and M410 act
-# the moment they arrive (OctoPrint then sends them ahead of its queue). A held ok is preceded by
-# ``echo:busy: processing`` every 2 s, but the interval is fixed (no M113), so BUSY_PROTOCOL is
-# not claimed: OctoPrint keeps its ordinary timeout, which every busy line restarts.
+# the moment they arrive (OctoPrint then sends them ahead of its queue). BUSY_PROTOCOL: a held
+# ok is preceded by ``echo:busy: processing`` every 2 s, or as often as M113 S<seconds> says.
 CAPABILITIES: dict[str, bool] = {
     "EMERGENCY_PARSER": True,
-    "BUSY_PROTOCOL": False,
+    "BUSY_PROTOCOL": True,
     "AUTOREPORT_TEMP": False,
     "AUTOREPORT_POS": False,
     "SDCARD": False,
@@ -70,6 +69,7 @@ class CoreCommands:
         for name, handler in locked_ok.items():
             dispatcher.register(name, handler, when_locked=True)
         dispatcher.register("$J=", self.jog)
+        dispatcher.register("M113", self.keepalive, when_locked=True)
         dispatcher.register("M117", self.display, when_locked=True)
         dispatcher.register("M118", self.echo, when_locked=True)
         codes = self.machine.codes
@@ -190,6 +190,24 @@ class CoreCommands:
         text = _message_text(command.args)
         if text:
             self.kernel.push(f"[MSG:{text}]")
+
+    def keepalive(self, command: Command) -> list[str]:
+        """M113 [S<seconds>]: how often this connection hears ``echo:busy: processing`` while
+        an ok is held (Marlin's host keep-alive: 0 off, at most 60 s); bare M113 reports it."""
+        words = command.args.split()
+        current = getattr(command.source, "busy_interval_s", None)
+        if not words:
+            return [f"echo:M113 S{current:g}" if current is not None else "echo:M113 off"]
+        value = words[0][1:] if words[0][:1] in ("S", "s") and len(words) == 1 else ""
+        try:
+            seconds = float(value)
+        except ValueError:
+            raise CommandError(Error.BAD_NUMBER_FORMAT, "M113 takes S<seconds>") from None
+        if not 0.0 <= seconds <= 60.0:
+            raise CommandError(Error.BAD_NUMBER_FORMAT, "M113 S: 0 to 60 seconds")
+        if current is not None:
+            command.source.busy_interval_s = seconds  # type: ignore[attr-defined]
+        return []
 
     def echo(self, command: Command) -> list[str]:
         """M118 [E1] [A1] <text>: the text back to the sender, as ``echo:<text>`` (Marlin's E1

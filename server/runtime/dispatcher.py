@@ -7,8 +7,8 @@ line waiting for planner room holds back the lines behind it (that is the back-p
 Lines are routed by their form:
   * ``$...`` to the ``$`` command handlers (``$H``, ``$J``, ``$$``, ``$=`` for ``$100=80``);
   * a leading word of two or more letters (``version``, ``fire 50``) to named commands;
-  * ``M117``/``M118`` (RepRap display and echo) to their handlers, the rest of the line text
-    (``M117 Done!`` is no G-code: the parser would read ``D``, ``o``, ``n``...);
+  * ``M113``, ``M117``, ``M118`` (RepRap keep-alive, display and echo) to their handlers, the
+    rest of the line text (``M117 Done!`` is no G-code: the parser would read ``D``, ``o``...);
   * everything else is G-code, interpreted once, whole, by the G-code handler (the machine's
     interpreter, where modules register the M-codes they own: see :mod:`server.gcode.codes`).
 
@@ -52,15 +52,16 @@ _GM_NAME = re.compile(r"[GMgm]\d")
 _DOLLAR = re.compile(r"\$([$#]|[A-Za-z]*)\s*(.*)$", re.S)
 _SETTING = re.compile(r"\$(\d+)\s*=\s*(.*)$")
 _STARTUP = re.compile(r"\$[Nn](\d)\s*=(.*)$", re.S)
-_TEXT_CODE = re.compile(r"[Mm]0*(117|118)(?![\d.])\s?(.*)$", re.S)
-TEXT_CODES = frozenset({"M117", "M118"})  # M-codes whose rest of line is text, not words
+_TEXT_CODE = re.compile(r"[Mm]0*(113|117|118)(?![\d.])\s?(.*)$", re.S)
+TEXT_CODES = frozenset({"M113", "M117", "M118"})  # M-codes whose rest of line is text, not words
 
 
 class Source(Protocol):
     """Whoever sent a line: a connection or a job player.
 
     A source may also say ``soft_limit_alarms = False`` (a RepRap host's session): its line
-    with a target outside the travel is refused without Grbl's ALARM:2.
+    with a target outside the travel is refused without Grbl's ALARM:2; and it may have a
+    ``busy_interval_s`` (a session), which M113 sets.
     """
 
     name: str

@@ -18,8 +18,9 @@ wrong tokens answered ever later per client address, the connection closed after
 a TCP slot reserved for logged-in connections) must log in with its first line.
 
 A RepRap host (the REPRAP dialect) is kept informed while a line's ``ok`` is held (``M400``
-waiting for motion, a full planner): ``echo:busy: processing`` every :data:`BUSY_INTERVAL_S`,
-as Marlin's host keep-alive, so OctoPrint does not declare a communication timeout. Its lines
+waiting for motion, a full planner): ``echo:busy: processing`` every :data:`BUSY_INTERVAL_S`
+(``M113 S<seconds>`` changes it for the connection, 0 stops it), as Marlin's host keep-alive,
+so OctoPrint does not declare a communication timeout. Its lines
 never raise the soft-limit alarm: a target outside the travel is refused for that line only.
 
 A client that stops reading overflows its outbox and is disconnected, never slowing motion or
@@ -123,6 +124,7 @@ class Session(LineAdmission, SessionOutput):
         self._replies: deque[tuple[int, asyncio.Future[bytes]]] = deque()  # behind a deferred
         self._replies_room = asyncio.Event()
         self._busy_timer: asyncio.TimerHandle | None = None
+        self.busy_interval_s = BUSY_INTERVAL_S
         self._closing = False
         self._closed = False
 
@@ -240,9 +242,10 @@ class Session(LineAdmission, SessionOutput):
 
     def _arm_busy(self) -> None:
         """RepRap hosts: ``echo:busy: processing`` every 2 s while this line's ok is held."""
-        if self.protocol.dialect is Dialect.REPRAP and not self._closing:
+        interval_s = self.busy_interval_s
+        if self.protocol.dialect is Dialect.REPRAP and not self._closing and interval_s > 0:
             loop = asyncio.get_running_loop()
-            self._busy_timer = loop.call_later(BUSY_INTERVAL_S, self._busy)
+            self._busy_timer = loop.call_later(interval_s, self._busy)
 
     def _busy(self) -> None:
         if not self._closing:

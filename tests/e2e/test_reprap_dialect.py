@@ -194,3 +194,18 @@ async def test_the_pty_is_shared_with_its_group_as_a_serial_port(
         await asyncio.wait_for(task, 5)
     assert stat.S_IMODE(info.st_mode) == mode and info.st_gid == grp.getgrnam(group).gr_gid
     assert answer[-1] == "ok T:0.0 /0.0 B:0.0 /0.0"
+
+
+async def test_m113_sets_the_connections_busy_interval_and_zero_stops_it() -> None:
+    async with serving() as (app, host):
+        assert await host.framed("M113 S0") == ["ok"]
+        assert await host.framed("M113") == ["echo:M113 S0", "ok"]
+        assert await host.framed("G1 X40 F1000") == ["ok"]  # 2.4 s
+        quiet = await host.framed("M400", timeout_s=10)
+        assert await host.framed("M113 S1") == ["ok"]
+        assert await host.framed("G1 X0") == ["ok"]
+        busy = await host.framed("M400", timeout_s=10)
+        refused = await host.framed("M113 S90")
+    assert quiet == ["ok"]
+    assert busy[:-1] == ["echo:busy: processing"] * len(busy[:-1]) and len(busy) >= 3, busy
+    assert refused[0].startswith("echo:") and "(code 2)" in refused[0]
