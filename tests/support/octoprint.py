@@ -96,25 +96,37 @@ class OctoPrint:
             (folder / name).write_text(text)
 
     def start(self, timeout_s: float = 120.0) -> None:
-        """Start the server and wait until its API answers (it takes 10-30 s here)."""
+        """Start the server and wait until its API answers (it takes 10-30 s here); a port
+        taken by another program meanwhile (OctoPrint exits) is replaced once."""
+        executable = ensure_venv()
+        for _attempt in range(2):
+            if self._launch(executable, timeout_s):
+                return
+            self.port = free_port()
+            self.url = f"http://127.0.0.1:{self.port}"
+        raise AssertionError(f"OctoPrint did not start: {self.log()[-2000:]}")
+
+    def _launch(self, executable: Path, timeout_s: float) -> bool:
+        """Run the server; True once its API answers, False if it exited."""
         self._process = subprocess.Popen(
-            [str(ensure_venv()), "serve", "--iknowwhatimdoing", "--basedir", str(self.basedir),
+            [str(executable), "serve", "--iknowwhatimdoing", "--basedir", str(self.basedir),
              "--host", "127.0.0.1", "--port", str(self.port)],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
             env={**os.environ, "HOME": str(self.basedir)})
         deadline = time.monotonic() + timeout_s
         request = urllib.request.Request(self.url + "/api/version",
                                          headers={"X-Api-Key": self.api_key})
-        while True:
+        while self._process.poll() is None:
             try:
                 with urllib.request.urlopen(request, timeout=5) as reply:
                     if reply.status == 200:
-                        return
+                        return True
             except (OSError, http.client.HTTPException):
-                pass  # not listening yet (or, briefly, another program on the port)
-            if self._process.poll() is not None or time.monotonic() > deadline:
-                raise AssertionError(f"OctoPrint did not start: {self.log()[-2000:]}")
+                pass  # not listening yet
+            if time.monotonic() > deadline:
+                raise AssertionError(f"OctoPrint did not answer: {self.log()[-2000:]}")
             time.sleep(0.5)
+        return False
 
     def close(self) -> None:
         if self._process is not None and self._process.poll() is None:
