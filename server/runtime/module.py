@@ -115,7 +115,8 @@ class Motion(Protocol):
 
 class MachineControls(Protocol):
     """Realtime control, acted on at once: exactly what ``!``, ``~``, Ctrl-X and an arriving
-    M112 do on any connection (one implementation: ``server.runtime.control.MachineControl``).
+    M112 or M410 do on any connection (one implementation:
+    ``server.runtime.control.MachineControl``).
     """
 
     def hold(self) -> None:
@@ -132,6 +133,10 @@ class MachineControls(Protocol):
 
     def emergency_stop(self) -> None:
         """M112 on arrival: ALARM:40, motion stopped and tools off until ``$X`` or M999."""
+        ...
+
+    def quickstop(self) -> None:
+        """M410 on arrival: motion stopped, queue flushed, tools off; no alarm; a job ends."""
         ...
 
 
