@@ -208,13 +208,13 @@ class PtyPort:
             os.close(self.master)
 
 
-def share_device(device: str, mode: int, group: str | None) -> None:
+def share_device(device: str, mode: int, group: str) -> None:
     """Give the terminal ``device`` its permissions and group (see the module docstring).
 
-    A group that does not exist here, or that this user may not give, is logged and skipped:
-    the terminal then keeps its owner's group."""
+    An empty group leaves it as created; a group that does not exist here, or that this user
+    may not give, is logged and skipped: the terminal then keeps the group it had."""
     os.chmod(device, mode)
-    if group is None:
+    if not group:
         return
     try:
         gid = grp.getgrnam(group).gr_gid

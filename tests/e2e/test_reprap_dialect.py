@@ -48,6 +48,18 @@ class Host(TcpClient):
                 return got
 
 
+def gid_of(group: str) -> int:
+    """The group's id; for "", the group this system gives a new pseudo-terminal."""
+    if group:
+        return grp.getgrnam(group).gr_gid
+    master, slave = os.openpty()
+    try:
+        return os.fstat(slave).st_gid
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
 def frame(number: int, text: str) -> bytes:
     head = f"N{number} {text}"
     return f"{head}*{reduce(xor, head.encode(), 0)}\n".encode()
@@ -174,6 +186,7 @@ async def test_m117_and_m118_take_text() -> None:
 @pytest.mark.parametrize(("sections", "mode", "group"), [
     ({}, 0o660, "dialout"),
     ({"pty_group": "root", "pty_mode": 0o600}, 0o600, "root"),
+    ({"pty_group": ""}, 0o660, ""),  # "": the group a new pseudo-terminal gets
 ])
 async def test_the_pty_is_shared_with_its_group_as_a_serial_port(
     tmp_path: Path, sections: dict[str, object], mode: int, group: str
@@ -192,7 +205,7 @@ async def test_the_pty_is_shared_with_its_group_as_a_serial_port(
     finally:
         app.request_stop()
         await asyncio.wait_for(task, 5)
-    assert stat.S_IMODE(info.st_mode) == mode and info.st_gid == grp.getgrnam(group).gr_gid
+    assert stat.S_IMODE(info.st_mode) == mode and info.st_gid == gid_of(group)
     assert answer[-1] == "ok T:0.0 /0.0 B:0.0 /0.0"
 
 
