@@ -222,6 +222,13 @@ class SerialConfig(Strict):
     device: str | None = None
     baud: int = Field(115200, gt=0)
     pty: str | None = None
+    pty_group: str = Field(
+        "dialout",
+        description="the pseudo-terminal's group, as a serial port's (a host such as OctoPrint "
+        "running as its own user in that group can open it); empty: leave it as created")
+    pty_mode: int = Field(
+        0o660, ge=0, le=0o666,
+        description="the pseudo-terminal's permissions (0o660: owner and group read and write)")
 
 
 class ProtocolConfig(Strict):

@@ -26,7 +26,7 @@ from server.errors import ERROR_MEANINGS, CommandError, Error
 from server.gcode.parser import check_length
 from server.protocol.events import Realtime
 from server.protocol.reports import StatusScheduler
-from server.runtime.control import MachineControl, halts_at_once
+from server.runtime.control import MachineControl, halts_at_once, quickstops_at_once
 from server.runtime.module import ApiMethod
 from server.runtime.status import build_status, snapshot, state_text
 
@@ -272,6 +272,8 @@ async def _one_line(m: Methods, connection: Connection, line: str) -> dict[str, 
         else:
             if halts_at_once(text) and connection.can_control:
                 m.kernel.control.emergency_stop()
+            elif quickstops_at_once(text) and connection.can_control:
+                m.kernel.control.quickstop()
             messages = await m.submit(connection, line)
     except CommandError as exc:
         return _refused(line, exc)

@@ -177,6 +177,10 @@ class LineExecutor(NonModal):
             self.first.append(Sync(SyncKind.CLEAR_HALT))
         elif code == 114:
             self.after.append(Sync(SyncKind.REPORT_POSITION))
+        elif code == 400:
+            self.after.append(Sync(SyncKind.WAIT))
+        elif code == 410:
+            self.first.append(Sync(SyncKind.QUICKSTOP))
 
     def _dwell(self) -> None:
         if self.words.g("non_modal") != 40:

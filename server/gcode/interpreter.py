@@ -22,7 +22,8 @@ few LinuxCNC/Smoothieware additions. Conventions worth knowing:
 * Zero-length moves produce no :class:`Move`. After a probe the position is the probe target
   until the dispatcher calls :meth:`Interpreter.set_position`; G28.2 leaves it unchanged.
 * Beyond Grbl: G59.1-G59.3 (``G10 P7..P9``), G90.1 absolute arc centres, G92.2/G92.3
-  (LinuxCNC), G28.2 homing (Smoothieware), M6, M17/M18/M84, M112, M114, M999. Rotary axes
+  (LinuxCNC), G28.2 homing (Smoothieware), M6, M17/M18/M84, M112, M114, M400 (wait for
+  motion), M410 (quickstop), M999. Rotary axes
   A/B/C are in degrees and are not scaled by G20. ``$#`` lists G54-G59 only (as Grbl), G80 does
   not forbid axis words that a G10/G28/G30/G92 on the same line uses, and soft reset clears
   the G92 and tool length offsets (as Grbl) but keeps the stored coordinate systems.
@@ -40,6 +41,7 @@ from server.gcode.executor import LineExecutor
 from server.gcode.modal import (
     G0,
     G1,
+    M_GROUPS,
     MM_PER_INCH,
     WCS_CODES,
     Geometry,
@@ -49,7 +51,7 @@ from server.gcode.modal import (
     read_words,
 )
 from server.gcode.parser import Line
-from server.motion.moves import Action, ActionName, Move, MoveKind, Output, Position
+from server.motion.moves import Action, ActionName, Move, MoveKind, Output, Position, ToolMode
 
 __all__ = ["Interpreter", "InterpreterSettings"]
 
@@ -69,14 +71,17 @@ MOTION_NAMES = {
 }
 
 
-CORE_QUERIES = frozenset({114})  # M114: reports the position, changes nothing
-UNLOCKING = frozenset({112, 999})  # M112 halts, M999 clears the halt: both run in ALARM
+CORE_QUERIES = frozenset({114, 400})  # M114 reports the position, M400 waits: both change nothing
+UNLOCKING = frozenset({112, 410, 999})  # M112 halts, M410 stops, M999 clears: all run in ALARM
 
 
 class LineKind(enum.Enum):
     """What a line may do, decided from all of its words (not its first one).
 
-    ``QUERY`` lines only report: read-only connections and a locked machine may run them.
+    ``QUERY`` lines only report: read-only connections and a locked machine may run them. A
+    line of M codes nobody knows (``M21``, which RepRap hosts send on connect) is a query too:
+    it is refused as unsupported whatever the state, so a locked machine answers it as an
+    idle one does.
     ``UNLOCK`` lines (M112, M999, G28.2 homing) run while the machine is locked, but only from
     a connection that may control it. Every other line is an ``EFFECT``.
     """
@@ -156,7 +161,10 @@ class Interpreter:
         return LineKind.UNLOCK if homing and axes else LineKind.EFFECT
 
     def _is_query(self, code: float) -> bool:
-        return code == int(code) and (code in CORE_QUERIES or self.codes.is_query(int(code)))
+        if code != int(code):
+            return False
+        known = int(code) in M_GROUPS or self.codes.owns(int(code))
+        return not known or code in CORE_QUERIES or self.codes.is_query(int(code))
 
     def _general_line(self, line: Line) -> list[Output]:
         words = read_words(line.words, self._geo.axis_index, self.codes)
@@ -318,6 +326,13 @@ class Interpreter:
         offsets.tlo_mm = 0.0
         self._offsets = offsets
         self._wco = offsets.wco(0, self._geo.z_axis)
+
+    def tools_off(self) -> None:
+        """Quickstop (M410): spindle or laser off (M5) and coolant off (M9) in the modal state,
+        so the next move does not switch them on again; everything else is kept."""
+        modal = self._modal.copy()
+        modal.tool_mode, modal.mist, modal.flood = ToolMode.OFF, False, False
+        self._modal = modal
 
     # -- reports -----------------------------------------------------------------------------
     def gc_report(self) -> str:

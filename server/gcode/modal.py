@@ -48,7 +48,7 @@ M_GROUPS: dict[int, str] = {
     6: "tool_change",
     **dict.fromkeys((7, 8, 9), "coolant"),
     **dict.fromkeys((17, 18, 84), "motors"),
-    **dict.fromkeys((112, 114, 999), "sync"),
+    **dict.fromkeys((112, 114, 400, 410, 999), "sync"),
 }
 # Commands that use axis words; two on one line are error 24 (G80 uses none).
 AXIS_COMMANDS = frozenset((G0, G1, G2, G3, *PROBES, 100, 280, 282, 300, 920, 431, 490))

@@ -91,6 +91,8 @@ class SyncKind(enum.StrEnum):
     PROBE = "probe"  # G38.x: wait for the probe move, resynchronise, report
     HOME = "home"  # G28.2: run the homing cycle (a module's sync handler)
     MESSAGE = "message"  # report params["lines"] before ok (a module code's answer)
+    WAIT = "wait"  # M400: answer once every queued move has been executed
+    QUICKSTOP = "quickstop"  # M410: stop at once, flush the queue, tools off (no alarm)
 
 
 @dataclass(slots=True)

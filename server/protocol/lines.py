@@ -42,6 +42,7 @@ from server.protocol.reports import GRBL_VERSION, format_reprap_error
 from server.protocol.scanner import ByteScanner
 
 GRBL_BANNER = f"Grbl {GRBL_VERSION} ['$' for help]"
+OK_PREFIX = "ok "  # a reply's last message that starts so is its ok line's suffix
 
 _LINE_BREAK = re.compile("[\n\r\v\f\x1c-\x1e\x85\u2028\u2029]")  # what str.splitlines splits on
 _CONTROL = re.compile(r"[\x00-\x08\x0a-\x1f\x7f-\x9f]")
@@ -86,8 +87,12 @@ class LineProtocol(ByteScanner):
         """Message lines, then ``ok``.
 
         ``ok_suffix`` goes on the ``ok`` line in REPRAP (``ok T:0.0 /0.0``); in GRBL, whose
-        senders expect a bare ``ok``, it becomes one more message line before it.
+        senders expect a bare ``ok``, it becomes one more message line before it. A handler
+        asks for it with a last message ``ok <suffix>`` (M105's ``ok T:..``: Marlin answers
+        on one line, and OctoPrint takes a ``T:`` line without ``ok`` for a heat-up).
         """
+        if messages and messages[-1].startswith(OK_PREFIX) and not ok_suffix:
+            ok_suffix, messages = messages[-1][len(OK_PREFIX) :], messages[:-1]
         lines = [_checked_line(message) for message in messages]
         if ok_suffix and self.dialect is Dialect.GRBL:
             lines.append(_checked_line(ok_suffix))

@@ -41,8 +41,9 @@ REPRAP_RESEND_TEXT: dict[int, str] = {
     Error.CHECKSUM: "checksum mismatch",
     Error.LINE_NUMBER_SEQUENCE: "Line Number is not Last Line Number+1",
 }
-# Errors after which a job cannot go on: OctoPrint stops the job on an ``Error:`` line.
-REPRAP_FATAL_ERRORS = frozenset({Error.LOCKED_OUT, Error.SOFT_LIMIT, Error.AUTH_REQUIRED})
+# Errors after which a job cannot go on: OctoPrint stops the job on an ``Error:`` line. A target
+# outside the travel is not one: Marlin clamps it, and the host's next lines still run.
+REPRAP_FATAL_ERRORS = frozenset({Error.LOCKED_OUT, Error.AUTH_REQUIRED})
 REPRAP_UNKNOWN_COMMAND_ERRORS = frozenset({Error.UNSUPPORTED, Error.UNKNOWN_COMMAND})
 
 
@@ -221,7 +222,7 @@ def format_reprap_error(code: int, message: str, last_line: int) -> list[str]:
     * 41/42: ``Error:checksum mismatch, Last Line: <last_line>`` (or ``Error:Line Number is not
       Last Line Number+1, Last Line: ..``), ``Resend: <last_line + 1>``, ``ok`` -- Marlin's
       exact lines; OctoPrint treats them as recoverable, printrun resends.
-    * 9 (alarm lock), 40 (soft limit), 46 (not allowed): ``Error:<text> (code N)``, ``ok``.
+    * 9 (alarm lock), 46 (not allowed): ``Error:<text> (code N)``, ``ok``.
     * 20, 43 with a message: ``echo:Unknown command: "<message>"``, ``ok``, as Marlin.
     * anything else: ``echo:<text> (code N)``, ``ok``.
     """

@@ -14,6 +14,7 @@ from server.errors import CommandError, Error
 from server.gcode.codes import CodeCall
 from server.gcode.parser import parse_line
 from server.motion.moves import Output, Sync, SyncKind
+from server.protocol.lines import OK_PREFIX
 from server.protocol.reports import format_build_info, format_help, format_settings
 from server.runtime.dispatcher import Command, Dispatcher, Handler
 from server.runtime.events import MachineState
@@ -22,6 +23,17 @@ if TYPE_CHECKING:
     from server.runtime.kernel import Kernel
 
 BANNER_VERSION = "1.1h"
+# M115's capability report: what RepRap hosts may rely on. EMERGENCY_PARSER: M112 and M410 act
+# the moment they arrive (OctoPrint then sends them ahead of its queue). BUSY_PROTOCOL: a held
+# ok is preceded by ``echo:busy: processing`` every 2 s, or as often as M113 S<seconds> says.
+CAPABILITIES: dict[str, bool] = {
+    "EMERGENCY_PARSER": True,
+    "BUSY_PROTOCOL": True,
+    "AUTOREPORT_TEMP": False,
+    "AUTOREPORT_POS": False,
+    "SDCARD": False,
+    "EXTENDED_M20": False,
+}
 
 
 class CoreCommands:
@@ -56,6 +68,9 @@ class CoreCommands:
         for name, handler in locked_ok.items():
             dispatcher.register(name, handler, when_locked=True)
         dispatcher.register("$J=", self.jog)
+        dispatcher.register("M113", self.keepalive, when_locked=True)
+        dispatcher.register("M117", self.display, when_locked=True)
+        dispatcher.register("M118", self.echo, when_locked=True)
         codes = self.machine.codes
         codes.register("core", 105, self.temperature, query=True)
         codes.register("core", 115, self.firmware_info, query=True)
@@ -154,13 +169,52 @@ class CoreCommands:
         ]
 
     def temperature(self, call: CodeCall) -> list[Output]:
-        """M105 (RepRap hosts poll it): no heaters here."""
-        return [Sync(SyncKind.MESSAGE, {"lines": ["T:0.0 /0.0 B:0.0 /0.0"]})]
+        """M105 (RepRap hosts poll it): no heaters here. Marlin's one line, ``ok T:..``
+        (a RepRap host's ok line carries it; a Grbl sender gets it as a line before ``ok``)."""
+        return [Sync(SyncKind.MESSAGE, {"lines": [OK_PREFIX + "T:0.0 /0.0 B:0.0 /0.0"]})]
 
     def firmware_info(self, call: CodeCall) -> list[Output]:
-        """M115."""
+        """M115: the firmware line and Marlin's capability report (``Cap:NAME:0|1``)."""
         text = (
             f"FIRMWARE_NAME:motiond {__version__} (Grbl {BANNER_VERSION} compatible) "
             "PROTOCOL_VERSION:1.0 MACHINE_TYPE:laser/cnc EXTRUDER_COUNT:0"
         )
-        return [Sync(SyncKind.MESSAGE, {"lines": [text]})]
+        caps = [f"Cap:{name}:{int(value)}" for name, value in CAPABILITIES.items()]
+        return [Sync(SyncKind.MESSAGE, {"lines": [text, *caps]})]
+
+    def display(self, command: Command) -> None:
+        """M117 <text>: the display message; every connection gets it as ``[MSG:<text>]``."""
+        text = _message_text(command.args)
+        if text:
+            self.kernel.push(f"[MSG:{text}]")
+
+    def keepalive(self, command: Command) -> list[str]:
+        """M113 [S<seconds>]: how often this connection hears ``echo:busy: processing`` while
+        an ok is held (Marlin's host keep-alive: 0 off, at most 60 s); bare M113 reports it."""
+        words = command.args.split()
+        current = getattr(command.source, "busy_interval_s", None)
+        if not words:
+            return [f"echo:M113 S{current:g}" if current is not None else "echo:M113 off"]
+        value = words[0][1:] if words[0][:1] in ("S", "s") and len(words) == 1 else ""
+        try:
+            seconds = float(value)
+        except ValueError:
+            raise CommandError(Error.BAD_NUMBER_FORMAT, "M113 takes S<seconds>") from None
+        if not 0.0 <= seconds <= 60.0:
+            raise CommandError(Error.BAD_NUMBER_FORMAT, "M113 S: 0 to 60 seconds")
+        if current is not None:
+            command.source.busy_interval_s = seconds  # type: ignore[attr-defined]
+        return []
+
+    def echo(self, command: Command) -> list[str]:
+        """M118 [E1] [A1] <text>: the text back to the sender, as ``echo:<text>`` (Marlin's E1
+        form: a bare text could read as a reply)."""
+        words = command.args.split(maxsplit=1)
+        if words and words[0].upper() in ("E1", "A1", "E0", "A0", "PN0", "PN1"):
+            words = words[1:]
+        return [f"echo:{_message_text(words[0] if words else '')}"]
+
+
+def _message_text(text: str) -> str:
+    """One line of display text, safe inside ``[MSG:...]``."""
+    return " ".join(text.replace("]", ")").split())[:100]

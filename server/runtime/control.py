@@ -18,11 +18,18 @@ if TYPE_CHECKING:
     from server.runtime.machine import Machine
 
 _M112 = re.compile(r"^\s*(?:N\d+\s*)?M\s*0*112(?:\D|$)", re.I)
+_M410 = re.compile(r"^\s*(?:N\d+\s*)?M\s*0*410(?:[^\d.]|$)", re.I)
 
 
 def halts_at_once(text: str) -> bool:
     """Whether a line is an M112 that acts the moment it arrives, ahead of queued lines."""
     return _M112.match(text) is not None
+
+
+def quickstops_at_once(text: str) -> bool:
+    """Whether a line is an M410 quickstop, acted on the moment it arrives (as Marlin's
+    emergency parser does): the motion queued ahead of it is dropped."""
+    return _M410.match(text) is not None
 
 
 class MachineControl:
@@ -74,6 +81,13 @@ class MachineControl:
     def set_feed_override(self, percent: int) -> None:
         """The feed override, in percent (clamped to Grbl's 10-200), as 0x90-0x94 set it."""
         self.machine.set_overrides(feed=percent)
+
+    def quickstop(self) -> None:
+        """M410: stop at once, flush the queue, tools off, no alarm; a running job ends."""
+        if self.jobs.active:
+            self.jobs.abort()
+        else:
+            self.machine.quickstop()
 
     def emergency_stop(self) -> None:
         """M112: ALARM:40, motion stopped and tools off until ``$X`` or M999."""

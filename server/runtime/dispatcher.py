@@ -7,6 +7,8 @@ line waiting for planner room holds back the lines behind it (that is the back-p
 Lines are routed by their form:
   * ``$...`` to the ``$`` command handlers (``$H``, ``$J``, ``$$``, ``$=`` for ``$100=80``);
   * a leading word of two or more letters (``version``, ``fire 50``) to named commands;
+  * ``M113``, ``M117``, ``M118`` (RepRap keep-alive, display and echo) to their handlers, the
+    rest of the line text (``M117 Done!`` is no G-code: the parser would read ``D``, ``o``...);
   * everything else is G-code, interpreted once, whole, by the G-code handler (the machine's
     interpreter, where modules register the M-codes they own: see :mod:`server.gcode.codes`).
 
@@ -51,10 +53,17 @@ _GRBL_DOLLAR_LETTERS = "$#CGHIJNRSX"  # Grbl 1.1's $ commands: $$ $# $C $G $H $I
 _DOLLAR = re.compile(r"\$([$#]|[A-Za-z]*)\s*(.*)$", re.S)
 _SETTING = re.compile(r"\$(\d+)\s*=\s*(.*)$")
 _STARTUP = re.compile(r"\$[Nn](\d)\s*=(.*)$", re.S)
+_TEXT_CODE = re.compile(r"[Mm]0*(113|117|118)(?![\d.])\s?(.*)$", re.S)
+TEXT_CODES = frozenset({"M113", "M117", "M118"})  # M-codes whose rest of line is text, not words
 
 
 class Source(Protocol):
-    """Whoever sent a line: a connection or a job player."""
+    """Whoever sent a line: a connection or a job player.
+
+    A source may also say ``soft_limit_alarms = False`` (a RepRap host's session): its line
+    with a target outside the travel is refused without Grbl's ALARM:2; and it may have a
+    ``busy_interval_s`` (a session), which M113 sets.
+    """
 
     name: str
     can_control: bool
@@ -127,7 +136,7 @@ class Dispatcher:
         that only reports, which read-only sources may run. G and M codes belong to the
         interpreter (modules claim M-codes with :meth:`CodeTable.register`).
         """
-        if _GM_NAME.match(name):
+        if _GM_NAME.match(name) and name.upper() not in TEXT_CODES:
             raise ValueError(f"{name}: G and M codes are registered with the interpreter")
         entry = self._entries[_key(name)]
         entry.handlers.append(handler)
@@ -191,6 +200,10 @@ class Dispatcher:
         if named and _key(named.group(1)) in self._entries:
             name = _key(named.group(1))
             return await self._run(name, Command(name, text, named.group(2) or "", source))
+        text_code = _TEXT_CODE.match(stripped)
+        if text_code and f"M{text_code.group(1)}" in self._entries:
+            name = f"M{text_code.group(1)}"
+            return await self._run(name, Command(name, text, text_code.group(2), source))
         return await self._gcode_line(text, source, defer)
 
     async def _gcode_line(self, text: str, source: Source, defer: Deferred | None) -> list[str]:

@@ -53,7 +53,8 @@ from server.runtime.state import MachineStatus
 log = logging.getLogger("motiond.grbl")
 CAUTION_UNLOCKED = "[MSG:Caution: Unlocked]"
 LOCAL_SYNCS = frozenset({SyncKind.HALT, SyncKind.CLEAR_HALT, SyncKind.MESSAGE,
-                         SyncKind.REPORT_POSITION})  # M112, M999, messages, M114: motiond's own
+                         SyncKind.REPORT_POSITION, SyncKind.WAIT, SyncKind.QUICKSTOP})
+# M112, M999, messages, M114, M400, M410: motiond's own
 _STATES = {"Idle": MachineState.IDLE, "Run": MachineState.RUN, "Hold": MachineState.HOLD,
            "Jog": MachineState.JOG, "Home": MachineState.HOME, "Door": MachineState.DOOR,
            "Sleep": MachineState.SLEEP, "Check": MachineState.CHECK}

@@ -218,10 +218,7 @@ class Jobs:
         progress = self._progress
         if progress is not None and progress.state in ("running", "paused"):
             progress.state = "aborted"
-        self.kernel.machine.stop_now()
-        self.kernel.events.emit(Event.HALT, "job aborted")
-        if self.kernel.state in (MachineState.RUN, MachineState.HOLD):
-            self.kernel.set_state(MachineState.IDLE)
+        self.kernel.machine.quickstop("job aborted")
         if self._task is not None:
             self._task.cancel()
         self._announce()

@@ -3,8 +3,9 @@
 :class:`GcodeFeed` is the part of :class:`~server.runtime.machine.Machine` (a base class of it)
 that takes a line in: it runs the interpreter, feeds moves and ordered actions to the planner
 (waiting while it is full: that wait is the flow control that delays a sender's ``ok``) and
-carries out the interpreter's sync requests (M112, M999, messages, probing, ``M114``, and what
-modules registered). Its state is the machine's, created by ``Machine.__init__``.
+carries out the interpreter's sync requests (M112, M999, messages, probing, ``M114``, ``M400``
+waiting for motion to end, ``M410`` quickstop, and what modules registered). Its state is the
+machine's, created by ``Machine.__init__``.
 """
 
 from __future__ import annotations
@@ -47,6 +48,7 @@ class GcodeFeed:
     if TYPE_CHECKING:
         def emergency_stop(self) -> None: ...  # the machine's realtime commands
         async def unlock(self) -> None: ...  # the machine's
+        def quickstop(self, reason: str = ...) -> None: ...
 
     # -- the G-code handler -----------------------------------------------------------------
     async def handle_gcode(self, command: Command) -> list[str]:
@@ -55,12 +57,14 @@ class GcodeFeed:
         return await self._feed(outputs)
 
     def interpret(self, command: Command) -> list[Output]:
-        """The line's outputs from the interpreter; a target outside the travel alarms."""
+        """The line's outputs from the interpreter; a target outside the travel alarms,
+        unless the line's source says otherwise (``soft_limit_alarms``: a RepRap host)."""
         assert command.line is not None
         try:
             return self.interpreter.execute(command.line)
         except SoftLimitError as exc:
-            self.status.alarm(Alarm.SOFT_LIMIT, f"soft limit: {exc.message}")
+            if getattr(command.source, "soft_limit_alarms", True):
+                self.status.alarm(Alarm.SOFT_LIMIT, f"soft limit: {exc.message}")
             raise
 
     async def _feed(self, outputs: list[Output]) -> list[str]:
@@ -146,6 +150,9 @@ class GcodeFeed:
             return []
         if kind is SyncKind.MESSAGE:
             return list(request.params["lines"])
+        if kind is SyncKind.QUICKSTOP:
+            self.quickstop()
+            return []
         handler = self.sync_handlers.get(kind)
         if handler is not None:
             return await handler(request.params)
@@ -154,6 +161,8 @@ class GcodeFeed:
                 Error.SETTING_DISABLED, "homing is not configured: add an [endstops] section"
             )
         await self.wait_idle()
+        if kind is SyncKind.WAIT:
+            return []
         if kind is SyncKind.REPORT_POSITION:
             return [self.position_report()]
         return self._finish_probe(request)
@@ -171,10 +180,13 @@ class GcodeFeed:
         return [report]
 
     def position_report(self) -> str:
-        """Smoothie's M114 answer: work position, then machine position."""
+        """Smoothie's M114 answer: work position, then machine position. The work position
+        has Marlin's ``E:`` (no extruder: 0) after Z, where RepRap hosts (OctoPrint's pause
+        position) look for ``X: Y: Z: E:``."""
         machine = self.stepgen.state.position_mm
         work = self.interpreter.work_position(machine)
         names = self.core.axis_names
-        wpos = " ".join(f"{n}:{v:.4f}" for n, v in zip(names, work, strict=True))
+        words = [f"{n}:{v:.4f}" for n, v in zip(names, work, strict=True)]
+        words.insert(names.index("Z") + 1 if "Z" in names else len(words), "E:0.0000")
         mpos = " ".join(f"{n}:{v:.4f}" for n, v in zip(names, machine, strict=True))
-        return f"C: {wpos} MPos: {mpos}"
+        return f"C: {' '.join(words)} MPos: {mpos}"

@@ -2,8 +2,9 @@
 
 :class:`RealtimeCommands` is the part of :class:`~server.runtime.machine.Machine` (a base class
 of it) that acts without waiting for the line queue: feed hold and cycle start, jog cancel,
-soft reset and M112, the coolant and spindle-stop toggles, the feed/rapid/spindle overrides, and
-the halts that resynchronise the pipeline to where the steps are. Every entry point reaches it
+soft reset, M112 and the M410 quickstop, the coolant and spindle-stop toggles, the
+feed/rapid/spindle overrides, and the halts that resynchronise the pipeline to where the steps
+are. Every entry point reaches it
 through :class:`~server.runtime.control.MachineControl`. Its state is the machine's, created by
 ``Machine.__init__``.
 """
@@ -84,6 +85,18 @@ class RealtimeCommands:
         """M112: halt at once, before the lines queued ahead of it run."""
         if self.status.state is not MachineState.ALARM:
             self.status.alarm(Alarm.HALT, "emergency stop (M112): $X or M999 to unlock")
+
+    def quickstop(self, reason: str = "quickstop (M410)") -> None:
+        """M410 and a job's abort: stop at once, flush the queue, tools off; no alarm.
+
+        The position stays where the steps are; the modal spindle/laser and coolant are off,
+        so the next move does not switch them on again."""
+        self.stop_now()
+        self.interpreter.tools_off()
+        self.tool.mode, self.tool.flood, self.tool.mist = ToolMode.OFF, False, False
+        self.events.emit(Event.HALT, reason)
+        if self.status.state in (MachineState.RUN, MachineState.HOLD, MachineState.JOG):
+            self.status.set_state(MachineState.IDLE)
 
     def feed_hold(self) -> None:
         if self.status.state is MachineState.HOME:  # as in Grbl: homing ignores feed hold

@@ -115,7 +115,8 @@ class Motion(Protocol):
 
 class MachineControls(Protocol):
     """Realtime control, acted on at once: exactly what ``!``, ``~``, Ctrl-X and an arriving
-    M112 do on any connection (one implementation: ``server.runtime.control.MachineControl``).
+    M112 or M410 do on any connection (one implementation:
+    ``server.runtime.control.MachineControl``).
     """
 
     def hold(self) -> None:
@@ -140,6 +141,10 @@ class MachineControls(Protocol):
 
     def set_feed_override(self, percent: int) -> None:
         """The feed override in percent, clamped to 10-200 (what 0x90-0x94 change)."""
+        ...
+
+    def quickstop(self) -> None:
+        """M410 on arrival: motion stopped, queue flushed, tools off; no alarm; a job ends."""
         ...
 
 

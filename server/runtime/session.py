@@ -19,6 +19,12 @@ closed after ``auth_failures_per_connection``). An observer never logs in. A ses
 probation (it got a TCP slot reserved for logged-in connections) must log in with its first
 line.
 
+A RepRap host (the REPRAP dialect) is kept informed while a line's ``ok`` is held (``M400``
+waiting for motion, a full planner): ``echo:busy: processing`` every :data:`BUSY_INTERVAL_S`
+(``M113 S<seconds>`` changes it for the connection, 0 stops it), as Marlin's host keep-alive,
+so OctoPrint does not declare a communication timeout. Its lines
+never raise the soft-limit alarm: a target outside the travel is refused for that line only.
+
 A client that stops reading overflows its outbox and is disconnected, never slowing motion or
 other clients. :meth:`Session.end` says why in a ``[MSG:]`` line, then the transport hangs up
 once that is sent.
@@ -37,7 +43,7 @@ from typing import TYPE_CHECKING
 
 from server.config import trusted_client
 from server.errors import Alarm, CommandError, Error
-from server.protocol.events import LineReceived, LineRejected
+from server.protocol.events import Dialect, LineReceived, LineRejected
 from server.protocol.http_sniff import HttpSniffer
 from server.protocol.lines import LineProtocol
 from server.protocol.reports import StatusScheduler
@@ -61,6 +67,8 @@ log = logging.getLogger("motiond.session")
 _AUTH = re.compile(r"^\s*\$AUTH=(.*)$", re.I)
 PROBATION_REFUSED = "this slot is reserved for logged-in connections: send $AUTH=<token> first"
 YIELD_AFTER_S = 0.0003  # the executor gives other tasks a turn at least this often
+BUSY_INTERVAL_S = 2.0  # Marlin's DEFAULT_KEEPALIVE_INTERVAL
+BUSY = "echo:busy: processing"
 __all__ = ["TOTAL_BURST_BYTES", "Session", "input_budget", "line_token", "login_guard",
            "token_matches"]
 
@@ -128,6 +136,8 @@ class Session(LineAdmission, SessionOutput):
         self._task: asyncio.Task[None] | None = None
         self._replies: deque[tuple[int, asyncio.Future[bytes]]] = deque()  # behind a deferred
         self._replies_room = asyncio.Event()
+        self._busy_timer: asyncio.TimerHandle | None = None
+        self.busy_interval_s = BUSY_INTERVAL_S
         self._closing = False
         self._closed = False
 
@@ -179,6 +189,12 @@ class Session(LineAdmission, SessionOutput):
     def closed(self) -> bool:
         return self.outbox.closed
 
+    @property
+    def soft_limit_alarms(self) -> bool:
+        """Whether this connection's out-of-travel line alarms the machine: Grbl's ALARM:2 in
+        the GRBL dialect; a RepRap host's line is refused alone (Marlin has no such alarm)."""
+        return self.protocol.dialect is Dialect.GRBL
+
     # -- logging in -------------------------------------------------------------------------
     async def _login(self, given: str) -> bytes:
         """``$AUTH=token``: this connection may control the machine from now on."""
@@ -216,7 +232,11 @@ class Session(LineAdmission, SessionOutput):
             epoch, event = self._lines.popleft()
             if self._backlog and len(self._lines) < INBOUND_LINES // 2:
                 self._refill()
-            reply = await self._execute(event, epoch)
+            self._arm_busy()
+            try:
+                reply = await self._execute(event, epoch)
+            finally:
+                self._disarm_busy()
             if epoch == self._epoch:
                 self._queued_bytes = max(0, self._queued_bytes - line_size(event))
                 self._answer(reply, epoch)
@@ -229,6 +249,23 @@ class Session(LineAdmission, SessionOutput):
             if loop.time() - turn_s > YIELD_AFTER_S:  # lines that never wait must not hog
                 await asyncio.sleep(0)
                 turn_s = loop.time()
+
+    def _arm_busy(self) -> None:
+        """RepRap hosts: ``echo:busy: processing`` every 2 s while this line's ok is held."""
+        interval_s = self.busy_interval_s
+        if self.protocol.dialect is Dialect.REPRAP and not self._closing and interval_s > 0:
+            loop = asyncio.get_running_loop()
+            self._busy_timer = loop.call_later(interval_s, self._busy)
+
+    def _busy(self) -> None:
+        if not self._closing:
+            self.outbox.put(self.protocol.push(BUSY))
+            self._arm_busy()
+
+    def _disarm_busy(self) -> None:
+        if self._busy_timer is not None:
+            self._busy_timer.cancel()
+            self._busy_timer = None
 
     async def _execute(
         self, event: LineReceived | LineRejected, epoch: int

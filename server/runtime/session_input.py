@@ -7,7 +7,9 @@ it) that admits what the client sends. It:
   before any of its bytes is acted on: a web page cannot drive the machine through the port;
 * paces what a connection that may not control sends (:meth:`LineAdmission.pace_input`);
 * acts on realtime bytes at once (status, hold, resume, reset, overrides, jog cancel), even
-  while lines wait for planner room, and on ``M112`` the moment its line arrives;
+  while lines wait for planner room, and on ``M112`` the moment its line arrives; an ``M410``
+  quickstop too (Marlin's emergency parser): motion stops, and the lines this connection queued
+  ahead of it are answered as flushed (``error:45``, one reply each) instead of running;
 * queues complete lines, at most :data:`INBOUND_LINES` of them, for the session's executor;
 * keeps taking bytes while its line queue is full: they wait in a
   :class:`~server.runtime.backlog.Backlog` (``[protocol] backlog_bytes``) whose realtime bytes
@@ -27,6 +29,7 @@ import logging
 import time
 from typing import TYPE_CHECKING
 
+from server.errors import CommandError, Error
 from server.protocol.events import (
     Event,
     LineReceived,
@@ -35,7 +38,7 @@ from server.protocol.events import (
     RealtimeReceived,
 )
 from server.protocol.http_sniff import HttpSniffer
-from server.runtime.control import halts_at_once
+from server.runtime.control import halts_at_once, quickstops_at_once
 from server.runtime.ratelimit import TokenBucket
 
 if TYPE_CHECKING:
@@ -154,6 +157,8 @@ class LineAdmission:
                 reported = self._on_realtime(event.command, reported)
             elif self._is_emergency_stop(event):
                 self.kernel.control.emergency_stop()
+            elif self._is_quickstop(event):
+                self._quickstop()
         if self._backlog.full:
             self._input_room.clear()
 
@@ -168,6 +173,8 @@ class LineAdmission:
                 continue
             if not replayed and self._is_emergency_stop(event):
                 self.kernel.control.emergency_stop()
+            if not replayed and self._is_quickstop(event):
+                self._quickstop()
             self._lines.append((self._epoch, event))
             self._queued_bytes += line_size(event)
         self._lines_ready.set()
@@ -186,6 +193,19 @@ class LineAdmission:
         if not isinstance(event, LineReceived) or not self.can_control:
             return False
         return halts_at_once(event.text)
+
+    def _is_quickstop(self, event: Event) -> bool:
+        return (isinstance(event, LineReceived) and self.can_control
+                and quickstops_at_once(event.text))
+
+    def _quickstop(self) -> None:
+        """M410 arrived: stop now; the lines queued ahead of it are answered, never run."""
+        flushed = LineRejected(CommandError(Error.BUSY, "flushed by an M410 quickstop; not run"))
+        for index, (epoch, line) in enumerate(self._lines):
+            if isinstance(line, LineReceived):
+                self._lines[index] = (epoch, flushed)
+                self._queued_bytes -= line_size(line) - line_size(flushed)
+        self.kernel.control.quickstop()
 
     def _refill(self) -> None:
         """Feed held-back bytes to the protocol until the line queue is full again."""

@@ -6,6 +6,11 @@ has the terminal open, the master side reads EIO; the transport then polls until
 it, greets it with the banner, serves it, and goes back to waiting when it closes — so the same
 PATH can be opened again and again.
 
+The terminal device gets ``[serial] pty_mode`` (0o660) and ``pty_group`` (``dialout``, as a
+USB serial port), so a host running as another user in that group can open it. Linux follows a
+symbolic link in a sticky world-writable folder (``/tmp``) only for the link's owner
+(``fs.protected_symlinks``): for such a host, put the link elsewhere (``/run/motiond/tty``).
+
 motiond only ever replaces its own link: if PATH exists and is anything but a symbolic link to
 a pseudo-terminal device (``/dev/pts/N``) owned by this user — a stale link from an earlier
 run — it refuses to start rather than delete someone's file. It removes the link on close only
@@ -20,6 +25,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import errno
+import grp
 import logging
 import os
 import re
@@ -104,6 +110,8 @@ class PtyPort:
         tty.setraw(slave)
         self.device = os.ttyname(slave)
         os.close(slave)
+        config = kernel.config.core.serial
+        share_device(self.device, config.pty_mode, config.pty_group)
         os.set_blocking(self.master, False)
         try:
             self.link.symlink_to(self.device)
@@ -198,6 +206,25 @@ class PtyPort:
                 self.link.unlink()
         with contextlib.suppress(OSError):
             os.close(self.master)
+
+
+def share_device(device: str, mode: int, group: str) -> None:
+    """Give the terminal ``device`` its permissions and group (see the module docstring).
+
+    An empty group leaves it as created; a group that does not exist here, or that this user
+    may not give, is logged and skipped: the terminal then keeps the group it had."""
+    os.chmod(device, mode)
+    if not group:
+        return
+    try:
+        gid = grp.getgrnam(group).gr_gid
+    except KeyError:
+        log.warning("[serial] pty_group: no group %r here; %s keeps its group", group, device)
+        return
+    try:
+        os.chown(device, -1, gid)
+    except PermissionError:
+        log.warning("[serial] pty_group: may not give %s to group %r", device, group)
 
 
 def stale_pty_link(link: Path) -> bool:

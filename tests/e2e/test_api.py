@@ -134,6 +134,23 @@ async def test_hold_stops_the_move_and_resume_finishes_it(tmp_path: Path) -> Non
     assert done["status"]["alarm"] is None
 
 
+async def test_m410_from_another_client_stops_the_move_on_arrival_without_an_alarm(
+    tmp_path: Path,
+) -> None:
+    async with serving(api_config(tmp_path), RealClock()) as (app, address), \
+            client(address) as rpc, client(address) as other:
+        await rpc.call("machine.subscribe", topics=["status"])
+        await rpc.call("gcode.send", lines="G1 X60 F600")
+        await rpc.wait_for("notify_status_update", moving)
+        stopped = await other.call("gcode.send", lines="M410")
+        status = await rpc.call("machine.status")
+        await asyncio.sleep(0.3)
+        still = await rpc.call("machine.status")
+    assert stopped["results"][0]["reply"] == "ok", "not refused as another's motion (45)"
+    assert status["state"] == "Idle" and status["alarm"] is None
+    assert 0.0 < still["mpos"][0] < 60.0 and still["mpos"] == status["mpos"]
+
+
 async def test_reset_while_moving_alarms_with_its_meaning_until_unlocked(tmp_path: Path) -> None:
     async with serving(api_config(tmp_path), RealClock()) as (app, address), client(address) as rpc:
         await rpc.call("machine.subscribe", topics=["status", "console"])

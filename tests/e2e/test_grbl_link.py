@@ -330,7 +330,7 @@ async def test_a_probe_waits_for_the_board_and_goes_on_from_where_it_stopped(
         finally:
             await client.close()
         end_z = round(touched_z + 1, 3)
-        assert position == f"C: X:0.0000 Y:0.0000 Z:{end_z:.4f} MPos: X:0.0000 Y:0.0000 " \
+        assert position == f"C: X:0.0000 Y:0.0000 Z:{end_z:.4f} E:0.0000 MPos: X:0.0000 Y:0.0000 " \
             f"Z:{end_z:.4f}"
         await controller_settles_at(served, (0.0, 0.0, end_z))
         assert app.kernel.machine.interpreter.position == pytest.approx((0.0, 0.0, end_z))

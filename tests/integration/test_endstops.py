@@ -53,7 +53,7 @@ async def test_homing_sets_the_machine_position_with_the_travel_off_the_switches
         assert physical == pytest.approx((-3 + 2, -2 + 2, 3 - 1), abs=2 * STEP_MM)
         assert MachineState.HOME in states and kernel.state is MachineState.IDLE
         assert await submit_all(app, ["M114"]) == [
-            ["C: X:0.0000 Y:0.0000 Z:50.0000 MPos: X:0.0000 Y:0.0000 Z:50.0000"]]
+            ["C: X:0.0000 Y:0.0000 Z:50.0000 E:0.0000 MPos: X:0.0000 Y:0.0000 Z:50.0000"]]
         assert await submit_all(app, ["G0 X10 Y5 Z-10"]) == [[]], "inside the soft limits"
         await kernel.machine.wait_idle()
         assert kernel.state is MachineState.IDLE

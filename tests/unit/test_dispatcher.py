@@ -31,6 +31,17 @@ def test_g_and_m_codes_cannot_be_registered_as_commands(name: str) -> None:
         Dispatcher().register(name, lambda c: None)
 
 
+async def test_m117_and_m118_take_the_rest_of_the_line_as_text() -> None:
+    got: list[str] = []
+    dispatcher = Dispatcher()
+    dispatcher.set_gcode_handler(lambda c: ["gcode"], Interpreter(SMALL).classify)
+    dispatcher.register("M117", lambda c: got.append(c.args) or None)
+    assert await dispatcher.submit("M117 Done! (100%)", SOURCE) == []
+    assert await dispatcher.submit("m0117", SOURCE) == []
+    assert await dispatcher.submit("M1170", SOURCE) == ["gcode"]
+    assert got == ["Done! (100%)", ""]
+
+
 async def test_named_and_dollar_commands_get_their_arguments() -> None:
     got: list[tuple[str, str]] = []
     dispatcher = Dispatcher()

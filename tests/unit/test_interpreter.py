@@ -358,6 +358,24 @@ def test_m114_m112_m999_become_sync_requests() -> None:
     assert run(["M999"])[1] == [Sync("clear_halt")]
 
 
+def test_m400_waits_after_the_lines_moves_and_m410_stops_before_them() -> None:
+    assert run(["G1 X10 F600 M400"])[1][-1] == Sync("wait")
+    assert run(["M410"])[1] == [Sync("quickstop")]
+
+
+@pytest.mark.parametrize(("line", "kind"), [
+    ("M21", "query"), ("M400", "query"), ("M114", "query"),
+    ("M410", "unlock"), ("M112", "unlock"), ("M21 M3 S10", "effect"), ("M3", "effect")])
+def test_unknown_codes_and_waits_are_answered_as_queries(line: str, kind: str) -> None:
+    assert Interpreter(XYZ).classify(parse_line(line)).value == kind
+
+
+def test_tools_off_clears_spindle_and_coolant_but_keeps_the_rest() -> None:
+    interpreter, _ = run(["G91", "M3 S300", "M8"])
+    interpreter.tools_off()
+    assert interpreter.gc_report() == "[GC:G0 G54 G17 G21 G91 G94 M5 M9 T0 F0 S300]"
+
+
 @pytest.mark.parametrize(("code", "towards", "error_on_fail"), [
     ("G38.2", True, True), ("G38.3", True, False), ("G38.4", False, True),
     ("G38.5", False, False)])

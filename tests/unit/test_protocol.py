@@ -434,10 +434,15 @@ def test_ok_suffix_rides_on_the_ok_line_only_in_reprap() -> None:
     assert LineProtocol().reply_ok(ok_suffix="C: X:0.0000") == b"C: X:0.0000\r\nok\r\n"
 
 
-@pytest.mark.parametrize("message", ["two\nlines", "ok", "ok T:0"])
-def test_reply_messages_must_be_single_lines_that_do_not_read_as_ok(message: str) -> None:
+@pytest.mark.parametrize("messages", [["two\nlines"], ["ok"], ["ok T:0", "then more"]])
+def test_reply_messages_must_be_single_lines_that_do_not_read_as_ok(messages: list[str]) -> None:
     with pytest.raises(ValueError):
-        LineProtocol().reply_ok([message])
+        LineProtocol().reply_ok(messages)
+
+
+def test_a_last_message_starting_ok_is_the_ok_lines_suffix_marlins_m105() -> None:
+    assert reprap().reply_ok(["ok T:0.0 /0.0"]) == b"ok T:0.0 /0.0\r\n"
+    assert LineProtocol().reply_ok(["ok T:0.0 /0.0"]) == b"T:0.0 /0.0\r\nok\r\n"
 
 
 @pytest.mark.parametrize(
@@ -450,6 +455,8 @@ def test_reply_messages_must_be_single_lines_that_do_not_read_as_ok(message: str
         (CommandError(Error.INVALID_TARGET, "arc\nend"), b"echo:arc end (code 33)\r\nok\r\n"),
         (CommandError(9), b"Error:G-code locked out during alarm or jog (code 9)\r\nok\r\n"),
         (CommandError(Error.LINE_OVERFLOW, "too long"), b"echo:too long (code 11)\r\nok\r\n"),
+        (CommandError(Error.SOFT_LIMIT, "X500 beyond 400"),
+         b"echo:X500 beyond 400 (code 40)\r\nok\r\n"),  # Marlin clamps: no firmware fault
     ],
 )
 def test_reprap_errors_are_worded_like_marlin(error: CommandError, expected: bytes) -> None:
