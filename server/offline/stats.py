@@ -36,12 +36,16 @@ class JobStats:
     bbox_max_mm: list[float] = field(default_factory=list)
     error: str | None = None
     error_line: int | None = None
+    keep_timeline: bool = field(default=False, repr=False)  # collect every block's duration
+    _durations: list[np.ndarray] = field(default_factory=list, repr=False)
     _points: list[float] = field(default_factory=list, repr=False)  # end points, flat
     _axes: int = field(default=0, repr=False)
 
     def add(self, block: Block) -> None:
         self.duration_s += block.duration_s
         self.blocks += 1
+        if self.keep_timeline:
+            self._durations.append(np.array([block.duration_s]))
         move = block.move
         if move is None:
             return
@@ -59,6 +63,8 @@ class JobStats:
         durations, lengths, cutting = rows[DURATION], rows[LENGTH], rows[KIND] == CUTTING_CODE
         self.duration_s += float(np.add.reduce(durations))
         self.blocks += durations.shape[0]
+        if self.keep_timeline:
+            self._durations.append(np.array(durations, dtype=np.float64))
         self.cut_mm += float(np.add.reduce(lengths[cutting]))
         self.rapid_mm += float(np.add.reduce(lengths[~cutting]))  # action blocks: no length
         self.max_speed_mm_s = max(self.max_speed_mm_s, float(np.maximum.reduce(rows[CRUISE])))
@@ -71,6 +77,13 @@ class JobStats:
         self._points += chain.from_iterable([end for _, end in moving])
         if len(self._points) >= BBOX_BATCH * self._axes:
             self.finish()
+
+    def timeline(self) -> np.ndarray:
+        """With ``keep_timeline``: the planned time (s) at the end of each block, in order
+        (``timeline()[k - 1]`` is the time when ``k`` blocks have run)."""
+        if not self._durations:
+            return np.zeros(0)
+        return np.cumsum(np.concatenate(self._durations))
 
     def _add_point(self, start: tuple[float, ...], end: tuple[float, ...]) -> None:
         points = self._points

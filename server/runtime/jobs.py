@@ -30,10 +30,12 @@ from typing import TYPE_CHECKING, BinaryIO
 
 from server.errors import CommandError, Error
 from server.gcode.parser import check_length
-from server.offline.estimate import estimate, read_file_lines
+from server.motion.moves import Action, ActionName
+from server.offline.estimate import read_file_lines
 from server.offline.stats import format_duration
 from server.runtime.dispatcher import Command
 from server.runtime.events import Event, MachineState
+from server.runtime.job_clock import JobClock, JobPlan, plan_job
 
 if TYPE_CHECKING:
     from server.runtime.kernel import Kernel
@@ -55,7 +57,10 @@ class JobFile:
 
 @dataclass(slots=True)
 class JobProgress:
-    """The current or last job. ``state``: running, paused, done, aborted or failed."""
+    """The current or last job. ``state``: running, paused, done, aborted or failed.
+
+    ``paused_for`` says why a paused job waits (``hold``, ``M0``, ``M1``, ``tool change T2``);
+    ``fit`` is the job's extent under the placement it started from (machine mm, per axis)."""
 
     name: str
     state: str
@@ -67,6 +72,8 @@ class JobProgress:
     error: str | None = None
     estimate_s: float | None = None
     started_s: float = 0.0
+    paused_for: str | None = None
+    fit: dict[str, object] | None = None
 
 
 @dataclass(slots=True)
@@ -85,6 +92,8 @@ class Jobs:
         remove_stale_uploads(self.data_dir)
         self._task: asyncio.Task[None] | None = None
         self._progress: JobProgress | None = None
+        self._clock: JobClock | None = None
+        kernel.events.subscribe(Event.ACTION, self._on_action)
         dispatcher = kernel.dispatcher
         dispatcher.register("ls", self._ls, when_locked=True, query=True)
         dispatcher.register("play", self._play)
@@ -184,8 +193,29 @@ class Jobs:
         progress = self._progress
         return progress is not None and progress.state in ("running", "paused")
 
-    def play(self, name: str) -> None:
-        """Start playing a stored file."""
+    async def start(self, name: str) -> JobProgress:
+        """Check a stored file against the machine as it is now, then play it (``job.start``,
+        ``play``, MQTT ``cmd/job``).
+
+        Raises:
+            CommandError: 40 (the job does not fit the travel from the current work origin:
+                the message names each axis, by how much, and where the origin would have to
+                be), 45 busy, 44 no such file. Nothing moves.
+        """
+        path = self._playable(name)
+        interpreter = self.kernel.machine.new_interpreter(soft_limits=False, live=True)
+        try:
+            plan = await asyncio.to_thread(plan_job, path, self.kernel.config.core, interpreter)
+        except OSError as exc:
+            message = f"cannot read {path.name}: {exc.strerror}"
+            raise CommandError(Error.FILE_ERROR, message) from exc
+        if not plan.fit.fits:
+            raise CommandError(Error.SOFT_LIMIT, f"{path.name}: {plan.fit.describe()}")
+        self.play(name, plan)
+        assert self._progress is not None
+        return self._progress
+
+    def _playable(self, name: str) -> Path:
         if self.running:
             raise CommandError(Error.BUSY, "a job is already running; abort it first")
         if self.kernel.state not in (MachineState.IDLE, MachineState.RUN):
@@ -193,11 +223,23 @@ class Jobs:
         path = self.path(name)
         if not path.is_file():
             raise CommandError(Error.FILE_ERROR, f"no job file {path.name}")
+        return path
+
+    def play(self, name: str, plan: JobPlan | None = None) -> None:
+        """Start playing a stored file; with ``plan`` (from :meth:`start`) when it was made
+        from the machine as it still is, else the job plans (and checks its fit) first."""
+        path = self._playable(name)
+        interpreter = self.kernel.machine.interpreter
+        if plan is not None and plan.placement != (interpreter.position, interpreter.wco()):
+            raise CommandError(Error.BUSY, "the machine moved while the job was being checked")
         self._progress = JobProgress(path.name, "running", started_s=self.kernel.clock.now_s())
+        self._clock = None
+        if plan is not None:
+            self._planned(self._progress, plan)
         source = _JobSource(f"job:{path.name}")
         self.kernel.dispatcher.claim(source)  # other connections may query, hold and stop
         self._task = asyncio.get_running_loop().create_task(
-            self._run(path, self._progress, source), name=f"job:{path.name}"
+            self._run(path, self._progress, source, plan), name=f"job:{path.name}"
         )
         self._announce()
 
@@ -205,7 +247,7 @@ class Jobs:
         """Stop the job and all motion at once; tools off."""
         progress = self._progress
         if progress is not None and progress.state in ("running", "paused"):
-            progress.state = "aborted"
+            progress.state, progress.remaining_s, progress.paused_for = "aborted", None, None
         self.kernel.machine.stop_now()
         self.kernel.events.emit(Event.HALT, "job aborted")
         if self.kernel.state in (MachineState.RUN, MachineState.HOLD):
@@ -217,22 +259,44 @@ class Jobs:
     def suspend(self) -> None:
         if self.running and self._progress is not None:
             self.kernel.machine.feed_hold()
-            self._progress.state = "paused"
-            self._announce()
+            self._pause("hold")
 
     def resume(self) -> None:
+        """Continue a paused job: after a hold, an M0/M1 or a tool change (cycle start)."""
         if self._progress is not None and self._progress.state == "paused":
             self.kernel.machine.cycle_start()
-            self._progress.state = "running"
+            self._progress.state, self._progress.paused_for = "running", None
             self._announce()
+
+    def _pause(self, reason: str) -> None:
+        if self._progress is not None:
+            self._progress.state, self._progress.paused_for = "paused", reason
+            self._announce()
+
+    def _on_action(self, action: Action) -> None:
+        """Motion reached M0/M1 (the machine holds) or M6 (held here): the job waits for
+        ``resume`` (``~``, the UI's Continue), saying why."""
+        if not self.is_playing():
+            return
+        if action.name == ActionName.PAUSE:
+            self._pause("M1" if action.params.get("optional") else "M0")
+        elif action.name == ActionName.TOOL_CHANGE:
+            machine = self.kernel.machine
+            machine.stepgen.hold()
+            self.kernel.set_state(MachineState.HOLD)
+            tool = action.params.get("tool")
+            self.kernel.push(f"[MSG:Tool change: insert T{tool}, then resume (~)]")
+            self._pause(f"tool change T{tool}")
 
     def progress(self) -> JobProgress | None:
         """The current or last job, with times brought up to date."""
         progress = self._progress
         if progress is not None and progress.state in ("running", "paused"):
             progress.elapsed_s = self.kernel.clock.now_s() - progress.started_s
-            if progress.estimate_s is not None:
-                progress.remaining_s = max(0.0, progress.estimate_s - progress.elapsed_s)
+            if self._clock is not None:
+                machine = self.kernel.machine
+                progress.remaining_s = self._clock.remaining_s(
+                    machine.stepgen.state, machine.feed_override)
         return progress
 
     async def close(self) -> None:
@@ -242,16 +306,22 @@ class Jobs:
             with contextlib.suppress(asyncio.CancelledError):
                 await self._task
 
-    async def _run(self, path: Path, progress: JobProgress, source: _JobSource) -> None:
+    async def _run(
+        self, path: Path, progress: JobProgress, source: _JobSource, plan: JobPlan | None
+    ) -> None:
         try:
             core = self.kernel.config.core
+            if plan is None:
+                interpreter = self.kernel.machine.new_interpreter(soft_limits=False, live=True)
+                plan = await asyncio.to_thread(plan_job, path, core.model_copy(deep=True),
+                                               interpreter)
+            self._planned(progress, plan)
+            if not plan.fit.fits:
+                self._fail(progress, plan.fit.describe())  # before any line: nothing moved
+                return
             lines = await asyncio.to_thread(read_file_lines, path, core.protocol.line_limit)
             progress.lines_total = len(lines)
-            interpreter = self.kernel.machine.new_interpreter()
-            stats = await asyncio.to_thread(
-                estimate, lines, core.model_copy(deep=True), None, interpreter
-            )
-            progress.estimate_s = stats.duration_s
+            self._clock = JobClock(plan, self.kernel.machine.stepgen.state)
             await self._stream(lines, progress, source)
         except OSError as exc:
             self._fail(progress, f"cannot read {path.name}: {exc.strerror}")
@@ -293,8 +363,13 @@ class Jobs:
         self.kernel.push(f"[MSG:job {progress.name} done in {format_duration(progress.elapsed_s)}]")
         self._announce()
 
+    def _planned(self, progress: JobProgress, plan: JobPlan) -> None:
+        progress.fit = plan.fit.as_dict(self.kernel.config.core.axis_names)
+        progress.estimate_s = progress.remaining_s = plan.duration_s
+
     def _fail(self, progress: JobProgress, message: str) -> None:
         progress.state, progress.error = "failed", message
+        progress.remaining_s = progress.paused_for = None
         log.warning("job %s stopped at %s", progress.name, message)
         self.kernel.push(f"[MSG:job {progress.name} stopped at {message}]")
         self._announce()
@@ -311,10 +386,10 @@ class Jobs:
             for f in self.files()
         ]
 
-    def _play(self, command: Command) -> list[str]:
+    async def _play(self, command: Command) -> list[str]:
         name = command.args.split()[0] if command.args.split() else ""
-        self.play(name)
-        return [f"[MSG:Playing {self.path(name).name}]"]
+        progress = await self.start(name)
+        return [f"[MSG:Playing {progress.name}]"]
 
     def _status(self, command: Command) -> list[str]:
         progress = self.progress()
