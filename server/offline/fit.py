@@ -66,15 +66,13 @@ class Fit:
 
     def as_dict(self, axis_names: Sequence[str]) -> dict[str, object]:
         """JSON-able: extent per axis, size per axis, and each misfit."""
+        names = axis_names if self.extent_min_mm else ()  # a job without moves: no extent
+        low, high = self.extent_min_mm, self.extent_max_mm
         return {
             "fits": self.fits,
-            "extent_min_mm": dict(zip(axis_names, self.extent_min_mm, strict=True)),
-            "extent_max_mm": dict(zip(axis_names, self.extent_max_mm, strict=True)),
-            "size_mm": {
-                name: high - low
-                for name, low, high in zip(
-                    axis_names, self.extent_min_mm, self.extent_max_mm, strict=True)
-            },
+            "extent_min_mm": dict(zip(names, low, strict=True)),
+            "extent_max_mm": dict(zip(names, high, strict=True)),
+            "size_mm": {n: b - a for n, a, b in zip(names, low, high, strict=True)},
             "misfits": [
                 {"axis": m.axis, "below_mm": m.below_mm, "above_mm": m.above_mm,
                  "origin_low_mm": m.origin_low_mm, "origin_high_mm": m.origin_high_mm}
