@@ -112,3 +112,22 @@ def check_fit(
             round(origin_high, 6) if fits_somewhere else None,
         ))
     return Fit(tuple(extent_min_mm), tuple(extent_max_mm), tuple(misfits))
+
+
+def frame_lines(fit: Fit, feed_mm_min: float, power_s: float) -> list[str]:
+    """The G-code that traces a job's XY bounding rectangle in machine coordinates (G53).
+
+    With ``power_s`` 0 the laser stays off: four jogs (``$J=``, which change no modal state
+    and which a hold cancels); else a rapid to the first corner, ``M3 S<power_s>``, four
+    ``G1`` moves and ``M5`` (a diode laser's visible low-power frame; this leaves G1, F and S
+    modal, as any cut would). Empty for a job without moves."""
+    if not fit.extent_min_mm:
+        return []
+    (x0, y0), (x1, y1) = fit.extent_min_mm[:2], fit.extent_max_mm[:2]
+    corners = [(x0, y0), (x1, y0), (x1, y1), (x0, y1), (x0, y0)]
+    feed = f"F{feed_mm_min:g}"
+    if power_s <= 0:
+        return [f"$J=G53 G21 X{x:.3f} Y{y:.3f} {feed}" for x, y in corners]
+    first, *rest = corners
+    return [f"G53 G0 X{first[0]:.3f} Y{first[1]:.3f}", f"M3 S{power_s:g}",
+            *(f"G53 G1 X{x:.3f} Y{y:.3f} {feed}" for x, y in rest), "M5"]

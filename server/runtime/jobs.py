@@ -203,17 +203,23 @@ class Jobs:
                 be), 45 busy, 44 no such file. Nothing moves.
         """
         path = self._playable(name)
-        interpreter = self.kernel.machine.new_interpreter(soft_limits=False, live=True)
-        try:
-            plan = await asyncio.to_thread(plan_job, path, self.kernel.config.core, interpreter)
-        except OSError as exc:
-            message = f"cannot read {path.name}: {exc.strerror}"
-            raise CommandError(Error.FILE_ERROR, message) from exc
+        plan = await self.plan(name)
         if not plan.fit.fits:
             raise CommandError(Error.SOFT_LIMIT, f"{path.name}: {plan.fit.describe()}")
         self.play(name, plan)
         assert self._progress is not None
         return self._progress
+
+    async def plan(self, name: str) -> JobPlan:
+        """What the stored file ``name`` would do from the machine as it is now: time, extent
+        under the current placement, fit (read in a thread). Raises CommandError 44."""
+        path = self.path(name)
+        interpreter = self.kernel.machine.new_interpreter(soft_limits=False, live=True)
+        try:
+            return await asyncio.to_thread(plan_job, path, self.kernel.config.core, interpreter)
+        except OSError as exc:
+            message = f"cannot read {path.name}: {exc.strerror}"
+            raise CommandError(Error.FILE_ERROR, message) from exc
 
     def _playable(self, name: str) -> Path:
         if self.running:
