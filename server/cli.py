@@ -85,6 +85,8 @@ def build_parser() -> argparse.ArgumentParser:
             sub.add_argument(
                 "-o", "--output", type=Path, required=True, help="output file (.svg or .png)"
             )
+            sub.add_argument("--power", action="store_true",
+                             help="grey by laser power (S) instead of colour by speed")
     _fleet_options(commands)
     return parser
 

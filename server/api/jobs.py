@@ -111,7 +111,7 @@ def _progress(m: Methods) -> dict[str, Any] | None:
 async def job_start(
     m: Methods, connection: Connection, params: NameParams
 ) -> dict[str, Any] | None:
-    await m.kernel.jobs.start(params.name)  # error 40 when it does not fit the travel
+    await m.kernel.jobs.start(params.name)  # error 47 when it does not fit the travel
     return _progress(m)
 
 

@@ -105,7 +105,7 @@ async def job_frame(m: Methods, connection: Connection, params: NameParams) -> d
     _refuse_if_running(m)
     plan = await kernel.jobs.plan(params.name)
     if not plan.fit.fits:
-        raise CommandError(Error.SOFT_LIMIT, f"{params.name}: {plan.fit.describe()}")
+        raise CommandError(Error.JOB_DOES_NOT_FIT, f"{params.name}: {plan.fit.describe()}")
     _refuse_if_running(m)  # the plan took a while: check again
     jobs = kernel.config.core.jobs
     lines = frame_lines(plan.fit, jobs.frame_feed_mm_min, jobs.frame_power_s)

@@ -172,7 +172,7 @@ def render_command(args: Any, config: Config) -> int:
     title = f"{path.name} — {format_duration(stats.duration_s)}, {stats.cut_mm:,.0f} mm cut"
     if stats.error:
         title += f" (stopped at line {stats.error_line})"
-    draw(toolpath, output, title)
+    draw(toolpath, output, title, by_power=args.power)
     print(
         f"wrote {output} ({len(toolpath.feed):,} feed and {len(toolpath.rapid):,} rapid segments)"
     )

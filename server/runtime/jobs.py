@@ -198,14 +198,14 @@ class Jobs:
         ``play``, MQTT ``cmd/job``).
 
         Raises:
-            CommandError: 40 (the job does not fit the travel from the current work origin:
+            CommandError: 47 (the job does not fit the travel from the current work origin:
                 the message names each axis, by how much, and where the origin would have to
                 be), 45 busy, 44 no such file. Nothing moves.
         """
         path = self._playable(name)
         plan = await self.plan(name)
         if not plan.fit.fits:
-            raise CommandError(Error.SOFT_LIMIT, f"{path.name}: {plan.fit.describe()}")
+            raise CommandError(Error.JOB_DOES_NOT_FIT, f"{path.name}: {plan.fit.describe()}")
         self.play(name, plan)
         assert self._progress is not None
         return self._progress

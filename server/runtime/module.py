@@ -190,7 +190,7 @@ class ModuleContext(Protocol):
 
     async def start_job(self, name: str) -> None:
         """Check and play the stored job file ``name``, as the JSON API's ``job.start`` does;
-        raises :class:`~server.errors.CommandError` (40 does not fit the travel from the
+        raises :class:`~server.errors.CommandError` (47 does not fit the travel from the
         current work origin, 45 busy, 44 no such file) and changes nothing."""
         ...
 

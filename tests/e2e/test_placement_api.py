@@ -108,7 +108,7 @@ async def test_a_job_that_does_not_fit_is_refused_and_fits_once_placed(tmp_path:
         assert not place["fits"] and place["size_mm"]["X"] == 50.0
         assert place["travel_mm"]["Y"] == [0.0, 300.0]
         refused = await rpc.error("job.start", name="neg.nc")
-        assert refused["code"] == 40 and "Y: 20.000 mm below" in refused["message"]
+        assert refused["code"] == 47 and "Y: 20.000 mm below" in refused["message"]
         assert "Y work origin between 20.000 and 300.000" in refused["message"]
         assert (await rpc.call("machine.status"))["mpos"] == [0.0, 0.0, 0.0]
         await rpc.call("gcode.send", lines=["G0 X100 Y150"])

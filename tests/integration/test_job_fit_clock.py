@@ -38,7 +38,7 @@ async def test_a_job_that_does_not_fit_is_refused_naming_axis_overshoot_and_orig
         await app.kernel.jobs.save("neg.nc", NEGATIVE_Y)
         with pytest.raises(CommandError) as info:
             await app.kernel.jobs.start("neg.nc")
-        assert info.value.code == 40
+        assert info.value.code == 47
         message = info.value.message
         assert "Y: 20.000 mm below the travel's minimum" in message
         assert "Y work origin between 20.000 and 300.000" in message
@@ -47,7 +47,7 @@ async def test_a_job_that_does_not_fit_is_refused_naming_axis_overshoot_and_orig
         assert app.kernel.machine.stepgen.state.position_mm == (0.0, 0.0, 0.0)
         with pytest.raises(CommandError) as played:
             await submit_all(app, ["play neg.nc"])  # Smoothie's play: the same check
-        assert played.value.code == 40
+        assert played.value.code == 47
 
 
 async def test_a_job_placed_by_its_work_origin_fits_and_runs_there(tmp_path: Path) -> None:
