@@ -394,7 +394,12 @@ class Jobs:
 
     async def _play(self, command: Command) -> list[str]:
         name = command.args.split()[0] if command.args.split() else ""
-        progress = await self.start(name)
+        try:
+            progress = await self.start(name)
+        except CommandError as exc:
+            if exc.code == Error.JOB_DOES_NOT_FIT:  # a Grbl sender sees only error:47
+                self.kernel.push(f"[MSG:{exc.message}]")
+            raise
         return [f"[MSG:Playing {progress.name}]"]
 
     def _status(self, command: Command) -> list[str]:
