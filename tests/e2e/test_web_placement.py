@@ -122,7 +122,7 @@ async def test_override_and_air_buttons_change_the_machine(tmp_path: Path) -> No
         await page.locator("[data-override='rapid:=50']").click()
         await until(lambda: machine.rapid_override, 50)
         await expect(page.locator("[data-override='rapid:=50']")).to_have_attribute(
-            "aria-checked", "true")
+            "aria-pressed", "true")
         await page.locator("[data-override='spindle:-10']").click()
         await until(lambda: machine.spindle_override, 90)
         await page.locator("[data-override='feed:=100']").click()

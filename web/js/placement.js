@@ -95,7 +95,7 @@ export class PlacementView {
     $("#ov-feed").textContent = `${o.feed}%`;
     $("#ov-spindle").textContent = `${o.spindle}%`;
     $$("[data-override^='rapid:']").forEach((button) => {
-      button.setAttribute("aria-checked", String(button.dataset.override === `rapid:=${o.rapid}`));
+      button.setAttribute("aria-pressed", String(button.dataset.override === `rapid:=${o.rapid}`));
     });
     const select = $("#wcs-select");
     if (document.activeElement !== select) select.value = status.modal.wcs;
