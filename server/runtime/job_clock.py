@@ -9,7 +9,8 @@ known whatever its placement; the extent is then checked against the travel
 :class:`JobClock` reads the remaining time from that plan: the planned time of the blocks
 the step generator has not finished yet. Between block ends it advances with the motion time
 the step generator publishes (which stands still in a hold) times the feed override, bounded by
-the current block's planned end; the remaining planned time is then divided by the feed
+the current block's planned end (on a Grbl controller downstream, which reports no block
+count, the motion time alone); the remaining planned time is then divided by the feed
 override, so at 150 % the remaining time drops when the override is raised and then counts
 down in real time. Units: seconds, percent.
 """
@@ -71,8 +72,11 @@ def plan_job(path: Path, core: CoreConfig, interpreter: Interpreter) -> JobPlan:
 class JobClock:
     """The remaining time of a running job, from its plan and the motion state."""
 
-    def __init__(self, plan: JobPlan, motion: MotionState) -> None:
+    def __init__(self, plan: JobPlan, motion: MotionState, *, counts_blocks: bool = True) -> None:
+        """``counts_blocks``: ``motion.blocks_done`` counts executed blocks (not on a Grbl
+        controller downstream, whose reports give only the motion time)."""
         self.plan = plan
+        self._counts_blocks = counts_blocks
         self._blocks_at_start = motion.blocks_done
         self._motion_time_s = motion.motion_time_s
         self._work_s = 0.0  # planned seconds executed so far (motion time x feed override)
@@ -83,6 +87,9 @@ class JobClock:
         self._work_s += (motion.motion_time_s - self._motion_time_s) * factor
         self._motion_time_s = motion.motion_time_s
         timeline, total = self.plan.timeline_s, self.plan.duration_s
+        if not self._counts_blocks:
+            self._work_s = min(self._work_s, total)
+            return max(0.0, total - self._work_s) / factor
         done = min(max(0, motion.blocks_done - self._blocks_at_start), len(timeline))
         low = float(timeline[done - 1]) if done else 0.0
         high = float(timeline[done]) if done < len(timeline) else total

@@ -327,7 +327,8 @@ class Jobs:
                 return
             lines = await asyncio.to_thread(read_file_lines, path, core.protocol.line_limit)
             progress.lines_total = len(lines)
-            self._clock = JobClock(plan, self.kernel.machine.stepgen.state)
+            machine = self.kernel.machine
+            self._clock = JobClock(plan, machine.stepgen.state, counts_blocks=machine.counts_blocks)
             await self._stream(lines, progress, source)
         except OSError as exc:
             self._fail(progress, f"cannot read {path.name}: {exc.strerror}")

@@ -62,6 +62,8 @@ SyncHandler = Callable[[dict[str, Any]], Awaitable[list[str]]]
 class Machine(GcodeFeed, RealtimeCommands):
     """Owns the motion pipeline; see the module docstring."""
 
+    counts_blocks = True  # the step generator's blocks_done counts the blocks executed
+
     def __init__(
         self, config: Config, clock: Clock, events: EventBus, status: MachineStatus
     ) -> None:
