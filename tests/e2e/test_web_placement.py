@@ -90,6 +90,12 @@ async def test_place_check_and_frame_a_job_in_the_ui(tmp_path: Path) -> None:
         await expect(page.locator("#job-fit")).to_have_text("Fits")
         await expect(page.locator("#job-size")).to_contain_text("102.4 × 58.1 mm")
         await shot(page, "placed-job")
+        await page.locator("[data-colour='power']").click()
+        await expect(page.locator(".legend-unit")).to_have_text("% power")
+        await expect(page.locator("#legend-max")).to_have_text("8")  # S80 of 1000
+        await shot(page, "power-view")
+        await page.locator("[data-colour='speed']").click()
+        await expect(page.locator(".legend-unit")).to_have_text("mm/min")
 
         await send(page, "G0 X5 Y5")
         await idle_at(app, 25.0, 205.0)

@@ -92,6 +92,9 @@ def test_render_draws_every_line_and_reports_the_fit(tmp_path: Path, capsys: Any
     printed = capsys.readouterr()
     assert "fits        yes" in printed.out and "stopped" not in printed.err
     assert "(stopped at line" not in out.read_text()
+    grey = tmp_path / "tball-power.svg"
+    assert main(["render", job, "-o", str(grey), "--config", config, "--power"]) == 0
+    assert "laser power (S / highest S)" in grey.read_text()
 
 
 async def test_only_changed_settings_are_saved(tmp_path: Path) -> None:
