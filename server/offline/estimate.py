@@ -165,6 +165,7 @@ def estimate(
     interpreter: Interpreter | None = None,
     *,
     timeline: bool = False,
+    count_start: bool = True,
 ) -> JobStats:
     """Job time and extent without ticking (fast).
 
@@ -173,9 +174,10 @@ def estimate(
     ``interpreter`` may carry a live machine's state (position, offsets, modal state: see
     :meth:`Machine.new_interpreter`); the job is planned from its position. ``timeline``
     keeps every block's duration (:meth:`JobStats.timeline`: what a running job's remaining
-    time is read from).
+    time is read from). ``count_start=False`` leaves where the tool starts out of the extent
+    (the job's own extent, wherever the tool is when it starts).
     """
-    stats = JobStats(keep_timeline=timeline)
+    stats = JobStats(keep_timeline=timeline, count_start=count_start)
     feeder = _Feeder(lines, core, stats, on_line, interpreter)
     planner = feeder.planner
     while True:

@@ -37,6 +37,7 @@ class JobStats:
     error: str | None = None
     error_line: int | None = None
     keep_timeline: bool = field(default=False, repr=False)  # collect every block's duration
+    count_start: bool = field(default=True, repr=False)  # the first move's start is in the bbox
     _durations: list[np.ndarray] = field(default_factory=list, repr=False)
     _points: list[float] = field(default_factory=list, repr=False)  # end points, flat
     _axes: int = field(default=0, repr=False)
@@ -71,9 +72,9 @@ class JobStats:
         moving = [(start, end) for move, _, start, end, _ in settled.geometry if move is not None]
         if not moving:
             return
-        if not self._axes:  # the first move: its start counts too
+        if not self._axes:  # the first move: its start counts too (unless count_start is off)
             self._axes = len(moving[0][0])
-            self._points += moving[0][0]
+            self._points += moving[0][0] if self.count_start else ()
         self._points += chain.from_iterable([end for _, end in moving])
         if len(self._points) >= BBOX_BATCH * self._axes:
             self.finish()
@@ -87,9 +88,9 @@ class JobStats:
 
     def _add_point(self, start: tuple[float, ...], end: tuple[float, ...]) -> None:
         points = self._points
-        if not self._axes:  # the first move: its start counts too
+        if not self._axes:  # the first move: its start counts too (unless count_start is off)
             self._axes = len(start)
-            points += start
+            points += start if self.count_start else ()
         points += end
         if len(points) >= BBOX_BATCH * self._axes:
             self.finish()

@@ -58,9 +58,8 @@ def plan_job(path: Path, core: CoreConfig, interpreter: Interpreter) -> JobPlan:
     placement = (tuple(interpreter.position), tuple(interpreter.wco()))
     axes = list(core.axes.values())
     with path.open(errors="replace") as handle:
-        stats = estimate(
-            file_lines(handle, core.protocol.line_limit), core, None, interpreter, timeline=True
-        )
+        stats = estimate(file_lines(handle, core.protocol.line_limit), core, None, interpreter,
+                         timeline=True, count_start=False)  # the job's extent, not the tool's
     fit = check_fit(
         stats.bbox_min_mm, stats.bbox_max_mm, [a.min_mm for a in axes],
         [a.max_mm for a in axes], core.axis_names, placement[1],

@@ -55,12 +55,17 @@ async def test_a_job_placed_by_its_work_origin_fits_and_runs_there(tmp_path: Pat
         await app.kernel.jobs.save("neg.nc", NEGATIVE_Y)
         await submit_all(app, ["G0 X100 Y150", "G10 L20 P1 X0 Y0"])
         await app.kernel.machine.wait_idle()
+        await submit_all(app, ["G53 G0 X300 Y250"])  # the head away from the job
+        await app.kernel.machine.wait_idle()
+        plan = await app.kernel.jobs.plan("neg.nc")
+        assert (plan.fit.extent_min_mm, plan.fit.extent_max_mm) == (
+            (100.0, 130.0, 0.0), (150.0, 150.0, 0.0)), "the job's extent, not where the head is"
         started = await app.kernel.jobs.start("neg.nc")
         assert started.fit is not None and started.fit["fits"]
         assert started.fit["extent_min_mm"] == {"X": 100.0, "Y": 130.0, "Z": 0.0}
         await app.kernel.jobs._task  # noqa: SLF001 - wait for the player
         assert progress(app).state == "done"
-        assert app.kernel.machine.stepgen.state.position_mm == (100.0, 150.0, 0.0)
+        assert app.kernel.machine.stepgen.state.position_mm == (100.0, 150.0, 0.0)  # G0 X0 Y0
 
 
 async def test_the_estimate_starts_from_the_machine_position_and_offsets(tmp_path: Path) -> None:
