@@ -146,5 +146,6 @@ class Spindle(Module):
     def status(self) -> dict[str, Any]:
         direction = {ToolMode.CW: "cw", ToolMode.CCW: "ccw"}.get(self.mode, "off")
         return {"direction": direction, "rpm": self.rpm, "pwm": self.pwm,
+                "on": direction != "off", "max_rpm": self.config.max_rpm,
                 "override": self.override_percent, "stopped_in_hold": self.stopped_in_hold}
 

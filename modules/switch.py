@@ -137,4 +137,12 @@ class Switch(Module):
             self.value = value
 
     def status(self) -> dict[str, Any]:
-        return {"pin": self.pin, "value": self.value, "on": self.value > 0.0}
+        """State, and the lines that switch it (for the UI's button): its M-codes, M9 for a
+        coolant switch, else M42."""
+        on, off = self.config.on_mcode, self.config.off_mcode
+        if off is None and self.coolant is not None:
+            off = 9
+        m42 = f"M42 P{self.pin} S"
+        return {"pin": self.pin, "value": self.value, "on": self.value > 0.0,
+                "on_gcode": f"M{on}" if on is not None else f"{m42}{self.config.max_s:g}",
+                "off_gcode": f"M{off}" if off is not None else f"{m42}0"}

@@ -27,7 +27,10 @@ examples:
   motiond --config examples/cnc.toml   serve another machine
   motiond --pty /tmp/motiond           also serve a pseudo-terminal for serial-only senders
   motiond check-config my.toml         list every problem in a config file
-  motiond estimate job.nc              job time, distances and bounding box
+  motiond estimate job.nc              job time, distances, size and whether it fits
+  motiond estimate job.nc --origin 200,150 --require-fit
+                                       ... placed with its work origin at X200 Y150 (machine
+                                       mm); exit status 3 when it does not fit the travel
   motiond render job.nc -o job.svg     a picture of the toolpath coloured by speed
   motiond fleet --url mqtt://broker    every machine on an MQTT broker ([mqtt] module)
 """
@@ -50,7 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     commands = parser.add_subparsers(dest="command", metavar="COMMAND")
     serve = commands.add_parser("serve", help="run the server (the default command)")
-    _serve_options(serve)
+    _serve_options(serve, after_command=True)
     _serve_options(parser)
     check = commands.add_parser("check-config", help="validate a config file")
     check.add_argument("file", type=Path)
@@ -60,11 +63,20 @@ def build_parser() -> argparse.ArgumentParser:
     ):
         sub = commands.add_parser(name, help=help_text)
         sub.add_argument("file", type=Path, help="a G-code file")
-        sub.add_argument("--config", type=Path, help="machine config (default: embedded)")
+        sub.add_argument(  # before or after the command (SUPPRESS keeps the one given first)
+            "--config", type=Path, default=argparse.SUPPRESS,
+            help="machine config (default: $MOTIOND_CONFIG, else embedded)")
+        sub.add_argument(
+            "--origin", type=_origin, metavar="X,Y[,Z]",
+            help="the work origin in machine mm, where the tool starts (default: 0,0,0)")
+        sub.add_argument(
+            "--require-fit", action="store_true",
+            help="exit with status 3 when the job does not fit the travel from the origin")
         sub.add_argument(
             "--no-limits",
             action="store_true",
-            help="ignore the machine's travel (preview a job for another machine)",
+            help="never fail for the travel (--require-fit is ignored); the time never "
+            "depends on it",
         )
         if name == "estimate":
             sub.add_argument("--json", action="store_true", help="print JSON")
@@ -73,6 +85,8 @@ def build_parser() -> argparse.ArgumentParser:
             sub.add_argument(
                 "-o", "--output", type=Path, required=True, help="output file (.svg or .png)"
             )
+            sub.add_argument("--power", action="store_true",
+                             help="grey by laser power (S) instead of colour by speed")
     _fleet_options(commands)
     return parser
 
@@ -107,7 +121,20 @@ def _fleet_options(commands: argparse._SubParsersAction[argparse.ArgumentParser]
     fleet.add_argument("--json", action="store_true", help="print JSON, one object per machine")
 
 
-def _serve_options(parser: argparse.ArgumentParser) -> None:
+def _origin(text: str) -> tuple[float, ...]:
+    """``X,Y[,Z]`` in mm."""
+    try:
+        values = tuple(float(part) for part in text.split(","))
+    except ValueError:
+        values = ()
+    if not 2 <= len(values) <= 3 or not all(abs(v) < 1e6 for v in values):
+        raise argparse.ArgumentTypeError(f"{text!r}: give X,Y or X,Y,Z in mm")
+    return values
+
+
+def _serve_options(parser: argparse.ArgumentParser, *, after_command: bool = False) -> None:
+    """The server's options; ``after_command``: for ``serve``'s own parser, whose defaults
+    must not undo an option given before the command (``motiond --config X serve``)."""
     parser.add_argument(
         "--config",
         type=Path,
@@ -132,6 +159,10 @@ def _serve_options(parser: argparse.ArgumentParser) -> None:
         default=_env_path("MOTIOND_DATA_DIR"),
         help="job files directory (default: $MOTIOND_DATA_DIR, else config)",
     )
+    if after_command:
+        for action in parser._actions:  # noqa: SLF001 - argparse has no public way
+            if action.dest != "help":
+                action.default = argparse.SUPPRESS
 
 
 def _env_path(name: str) -> Path | None:
@@ -152,8 +183,6 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             return fleet_command(args)
         config = load_config(args.config)
-        if getattr(args, "no_limits", False):
-            config.core.machine.soft_limits = False
         if args.command == "estimate":
             from server.offline.commands import estimate_command
 

@@ -297,6 +297,8 @@ def trusted_client(address: str | None, entries: list[str]) -> bool:
 class JobsConfig(Strict):
     data_dir: Path = Path("~/.local/share/motiond")
     max_upload_bytes: int = Field(256 << 20, gt=0)
+    frame_feed_mm_min: float = Field(3000.0, gt=0)  # Frame: the speed round the job's extent
+    frame_power_s: float = Field(0.0, ge=0)  # Frame: 0 = laser off (jogs); else M3 at this S
 
 
 class CoreConfig(Strict):

@@ -52,6 +52,7 @@ class Error(enum.IntEnum):
     FILE_ERROR = 44
     BUSY = 45
     AUTH_REQUIRED = 46
+    JOB_DOES_NOT_FIT = 47
 
 
 class Alarm(enum.IntEnum):
@@ -110,6 +111,8 @@ ERROR_MEANINGS: dict[int, str] = {
     Error.FILE_ERROR: "job file missing, unreadable or outside the data directory",
     Error.BUSY: "refused while a job or another connection's motion runs",
     Error.AUTH_REQUIRED: "this connection may not control the machine",
+    Error.JOB_DOES_NOT_FIT: "the job does not fit the travel from the current work origin; "
+    "nothing moved",
 }
 
 ALARM_MEANINGS: dict[int, str] = {

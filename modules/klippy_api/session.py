@@ -167,7 +167,7 @@ class Session:
             for message in await ctx.run_gcode(step.text):
                 self.hub.output(response_text(message))
         elif isinstance(step, StartJob):
-            ctx.start_job(step.name)
+            await ctx.start_job(step.name)
         elif isinstance(step, FeedOverride):
             ctx.control.set_feed_override(step.percent)
         elif isinstance(step, Message):

@@ -13,7 +13,9 @@ and are locked out in ALARM. They run in a task of their own, one message after 
 that a line waiting for planner room never delays a ``hold`` or ``reset``; at most
 ``PENDING_BATCHES`` messages wait (more are refused ``busy``). A reset drops the lines that
 have not started (each answered ``busy``). An M112 line stops the machine as it arrives, ahead
-of the lines waiting, as it does from a sender or the JSON API.
+of the lines waiting, as it does from a sender or the JSON API. A ``cmd/job`` waits its turn
+in the same task: starting a job first checks that it fits the travel from the current work
+origin (``ModuleContext.start_job``), which reads the whole file.
 """
 
 from __future__ import annotations
@@ -49,7 +51,7 @@ Reply = Callable[[dict[str, Any]], None]
 
 @dataclass(frozen=True, slots=True)
 class _Batch:
-    request: Gcode
+    request: Gcode | StartJob
     generation: int
 
 
@@ -91,9 +93,11 @@ class Control:
         elif isinstance(request, Realtime):
             self._realtime(request)
         elif isinstance(request, StartJob):
-            self._start_job(request)
+            self._queue(request)
         else:
-            self._queue_gcode(request)
+            if any(halts_at_once(line) for line in request.lines):
+                self.ctx.control.emergency_stop()  # on arrival, as from every other source
+            self._queue(request)
 
     def _refuse_retained(self, command: str, payload: bytes) -> None:
         if not payload:
@@ -119,21 +123,23 @@ class Control:
         action[request.command]()
         self.reply(ok_reply(request.id, "realtime", action=request.command))
 
-    def _start_job(self, request: StartJob) -> None:
+    async def _start_job(self, request: StartJob) -> None:
         try:
-            self.ctx.start_job(request.name)
+            await self.ctx.start_job(request.name)
         except CommandError as exc:
             self.reply(error_reply(request.id, "job", "refused", _text(exc), int(exc.code)))
             return
         self.reply(ok_reply(request.id, "job", name=request.name))
 
-    def _queue_gcode(self, request: Gcode) -> None:
-        if any(halts_at_once(line) for line in request.lines):
-            self.ctx.control.emergency_stop()  # on arrival, as from every other source
+    def _queue(self, request: Gcode | StartJob) -> None:
         try:
             self._batches.put_nowait(_Batch(request, self._generation))
         except asyncio.QueueFull:
             self.refused += 1
+            if isinstance(request, StartJob):
+                self.reply(error_reply(request.id, "job", "busy", "too many messages waiting",
+                                       Error.BUSY))
+                return
             for index, line in enumerate(request.lines):
                 self.reply(error_reply(request.id, "gcode", "busy",
                                        "too many G-code messages waiting", Error.BUSY,
@@ -145,6 +151,9 @@ class Control:
         while True:
             batch = await self._batches.get()
             request = batch.request
+            if isinstance(request, StartJob):
+                await self._start_job(request)
+                continue
             for index, line in enumerate(request.lines):
                 self.reply(await self._line(batch, line, limit) | {"index": index, "line": line})
 

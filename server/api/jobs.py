@@ -108,8 +108,10 @@ def _progress(m: Methods) -> dict[str, Any] | None:
 
 
 @method("job.start", NameParams, control=True)
-def job_start(m: Methods, connection: Connection, params: NameParams) -> dict[str, Any] | None:
-    m.kernel.jobs.play(params.name)
+async def job_start(
+    m: Methods, connection: Connection, params: NameParams
+) -> dict[str, Any] | None:
+    await m.kernel.jobs.start(params.name)  # error 47 when it does not fit the travel
     return _progress(m)
 
 

@@ -34,6 +34,7 @@ from aiohttp import WSCloseCode, WSMsgType, web
 from server.api.jobs import JOB_METHODS
 from server.api.jsonrpc import INTERNAL, INVALID_REQUEST, BadRequest, decode_request
 from server.api.methods import CORE_METHODS, Methods, RpcError, command_error, compose
+from server.api.placement import PLACEMENT_METHODS
 from server.api.telemetry import Channel, Publisher, encode
 from server.errors import CommandError, Error
 from server.transports.access import tokens_equal
@@ -176,7 +177,8 @@ class JsonApi:
         self.kernel: Kernel = transport.kernel
         self.http = transport.config
         self.publisher = Publisher(self.kernel)
-        table = compose(CORE_METHODS, JOB_METHODS, modules=self.kernel.api_methods.values())
+        table = compose(CORE_METHODS, JOB_METHODS, PLACEMENT_METHODS,
+                        modules=self.kernel.api_methods.values())
         self.methods = Methods(self, table)
         self.connections: set[Connection] = set()
         self._ids = itertools.count(1)

@@ -2,7 +2,11 @@
 the garbage collector paused, and the figures printed as text or JSON.
 
 The work itself is the offline pipeline (:mod:`server.offline.estimate`) and the drawing
-(:mod:`server.offline.render`).
+(:mod:`server.offline.render`). A job's time never depends on where it is placed: it is run
+with soft limits off, and whether it fits the travel from ``--origin`` (the work origin in
+machine mm, where the tool starts; default machine zero) is reported apart
+(:mod:`server.offline.fit`). Exit status: 0, 1 for a line the machine refuses, 3 for a job
+that does not fit with ``--require-fit``.
 """
 
 from __future__ import annotations
@@ -18,7 +22,10 @@ from typing import Any
 
 from server.config import Config
 from server.offline.estimate import estimate, iterate_blocks, machine_interpreter
+from server.offline.fit import Fit, check_fit
 from server.offline.stats import JobStats, format_duration
+
+MISFIT_EXIT = 3
 
 
 @contextlib.contextmanager
@@ -68,14 +75,49 @@ def estimate_command(args: Any, config: Config) -> int:
         return 1
     show = not args.no_progress and not args.json and sys.stderr.isatty() and len(lines) > 5000
     update, bar = _progress(len(lines), path.name, show)
+    origin = tuple(args.origin or ())
+    interpreter = machine_interpreter(config, origin)
     with collection_paused():
-        stats = estimate(lines, config.core, update if show else None, machine_interpreter(config))
+        stats = estimate(lines, config.core, update if show else None, interpreter)
     bar.close()
+    fit = job_fit(stats, config, interpreter.wco())
+    names = config.core.axis_names
     if args.json:
-        print(json.dumps({"file": str(path), **_public(asdict(stats))}, indent=2))
+        fields = _public(asdict(stats))
+        fields.pop("keep_timeline", None)
+        print(json.dumps({"file": str(path), **fields, "fit": fit.as_dict(names)}, indent=2))
     else:
-        print(describe(path, stats, config.core.axis_names))
-    return 1 if stats.error else 0
+        print(describe(path, stats, names))
+        print(describe_fit(fit, names, interpreter.wco()))
+    return exit_status(stats, fit, args)
+
+
+def job_fit(stats: JobStats, config: Config, wco_mm: tuple[float, ...]) -> Fit:
+    """The job's extent (machine mm) against the configured travel."""
+    axes = list(config.core.axes.values())
+    return check_fit(stats.bbox_min_mm, stats.bbox_max_mm, [a.min_mm for a in axes],
+                     [a.max_mm for a in axes], config.core.axis_names, wco_mm)
+
+
+def exit_status(stats: JobStats, fit: Fit, args: Any) -> int:
+    if stats.error:
+        return 1
+    strict = args.require_fit and not args.no_limits
+    return MISFIT_EXIT if strict and not fit.fits else 0
+
+
+def describe_fit(fit: Fit, names: tuple[str, ...], origin_mm: tuple[float, ...]) -> str:
+    """``size``, the origin the fit was checked from, and whether the job fits."""
+    where = " ".join(f"{name}{value:g}" for name, value in zip(names, origin_mm, strict=True))
+    rows = []
+    if fit.extent_min_mm:
+        size = " x ".join(
+            f"{name} {high - low:.3f}" for name, low, high
+            in zip(names, fit.extent_min_mm, fit.extent_max_mm, strict=True))
+        rows.append(f"  size        {size} mm")
+    verdict = "yes" if fit.fits else "NO: " + "; ".join(m.describe() for m in fit.misfits)
+    rows.append(f"  fits        {verdict} (work origin at machine {where})")
+    return "\n".join(rows)
 
 
 def _public(fields: dict[str, Any]) -> dict[str, Any]:
@@ -124,15 +166,18 @@ def render_command(args: Any, config: Config) -> int:
         print(f"motiond: cannot read {path}: {exc.strerror}", file=sys.stderr)
         return 1
     stats = JobStats()
-    blocks = iterate_blocks(lines, config.core, stats, interpreter=machine_interpreter(config))
+    interpreter = machine_interpreter(config, tuple(args.origin or ()))
+    blocks = iterate_blocks(lines, config.core, stats, interpreter=interpreter)
     toolpath = collect(blocks, config.core.machine.laser_mode)
     title = f"{path.name} — {format_duration(stats.duration_s)}, {stats.cut_mm:,.0f} mm cut"
     if stats.error:
         title += f" (stopped at line {stats.error_line})"
-    draw(toolpath, output, title)
+    draw(toolpath, output, title, by_power=args.power)
     print(
         f"wrote {output} ({len(toolpath.feed):,} feed and {len(toolpath.rapid):,} rapid segments)"
     )
+    fit = job_fit(stats, config, interpreter.wco())
+    print(describe_fit(fit, config.core.axis_names, interpreter.wco()))
     if stats.error:
         print(f"  stopped at line {stats.error_line}: {stats.error}", file=sys.stderr)
-    return 1 if stats.error else 0
+    return exit_status(stats, fit, args)

@@ -65,7 +65,7 @@ class _Feeder:
             interpreter.set_position(origin)
         self.interpreter = interpreter
         settings = replace(planner_settings(core), sync_blocks=OFFLINE_SYNC_BLOCKS)
-        self.planner = Planner(settings, origin)
+        self.planner = Planner(settings, interpreter.position)  # the job starts where it is
         self.stats = stats
         self._lines = enumerate(lines, 1)
         self._line_limit = core.protocol.line_limit
@@ -162,13 +162,21 @@ def estimate(
     core: CoreConfig,
     on_line: Callable[[int], None] | None = None,
     interpreter: Interpreter | None = None,
+    *,
+    timeline: bool = False,
+    count_start: bool = True,
 ) -> JobStats:
     """Job time and extent without ticking (fast).
 
     The same blocks as :func:`iterate_blocks`, popped in settled batches
     (:meth:`Planner.pop_settled`) and summed with numpy instead of one :class:`Block` at a time.
+    ``interpreter`` may carry a live machine's state (position, offsets, modal state: see
+    :meth:`Machine.new_interpreter`); the job is planned from its position. ``timeline``
+    keeps every block's duration (:meth:`JobStats.timeline`: what a running job's remaining
+    time is read from). ``count_start=False`` leaves where the tool starts out of the extent
+    (the job's own extent, wherever the tool is when it starts).
     """
-    stats = JobStats()
+    stats = JobStats(keep_timeline=timeline, count_start=count_start)
     feeder = _Feeder(lines, core, stats, on_line, interpreter)
     planner = feeder.planner
     while True:
@@ -215,9 +223,12 @@ def execute(
     return stats
 
 
-def machine_interpreter(config: Config) -> Interpreter:
+def machine_interpreter(config: Config, origin_mm: tuple[float, ...] = ()) -> Interpreter:
     """The interpreter the configured machine would read a job with: its settings and the
-    M-codes its modules claim (the modules are built, never started).
+    M-codes its modules claim (the modules are built, never started), soft limits off (a
+    job's time does not depend on where it is placed: :mod:`server.offline.fit` checks
+    that). ``origin_mm`` (machine mm, missing axes 0) is the G54 work origin, set as
+    ``G10 L2 P1`` would, and where the tool starts.
 
     Raises:
         ConfigError: the config is invalid, or two modules claim one code.
@@ -225,7 +236,14 @@ def machine_interpreter(config: Config) -> Interpreter:
     from server.runtime.clock import VirtualClock
     from server.runtime.kernel import Kernel
 
-    return Kernel(config, VirtualClock()).machine.new_interpreter()
+    interpreter = Kernel(config, VirtualClock()).machine.new_interpreter(soft_limits=False)
+    if any(origin_mm):
+        names = config.core.axis_names
+        origin = tuple(origin_mm[i] if i < len(origin_mm) else 0.0 for i in range(len(names)))
+        words = " ".join(f"{name}{value:.6f}" for name, value in zip(names, origin, strict=True))
+        interpreter.execute(parse_line(f"G10 L2 P1 {words}"))
+        interpreter.set_position(origin)
+    return interpreter
 
 
 def file_lines(handle: TextIO, limit_chars: int) -> Iterator[str]:

@@ -19,6 +19,7 @@ from server.motion.planner import Block, SettledBlocks
 
 CUTTING = (MoveKind.FEED, MoveKind.ARC, MoveKind.PROBE)
 BBOX_BATCH = 4096
+TIMELINE_MARKS = 1 << 16  # a job plan's timeline holds at most this many block end times
 
 
 @dataclass(slots=True)
@@ -36,12 +37,21 @@ class JobStats:
     bbox_max_mm: list[float] = field(default_factory=list)
     error: str | None = None
     error_line: int | None = None
+    keep_timeline: bool = field(default=False, repr=False)  # collect every block's duration
+    count_start: bool = field(default=True, repr=False)  # the first move's start is in the bbox
+    _marks: list[np.ndarray] = field(default_factory=list, repr=False)  # see timeline()
+    _mark_count: int = field(default=0, repr=False)
+    _stride: int = field(default=1, repr=False)
+    _timed_blocks: int = field(default=0, repr=False)
+    _timed_s: float = field(default=0.0, repr=False)
     _points: list[float] = field(default_factory=list, repr=False)  # end points, flat
     _axes: int = field(default=0, repr=False)
 
     def add(self, block: Block) -> None:
         self.duration_s += block.duration_s
         self.blocks += 1
+        if self.keep_timeline:
+            self._record(np.array([block.duration_s]))
         move = block.move
         if move is None:
             return
@@ -59,24 +69,55 @@ class JobStats:
         durations, lengths, cutting = rows[DURATION], rows[LENGTH], rows[KIND] == CUTTING_CODE
         self.duration_s += float(np.add.reduce(durations))
         self.blocks += durations.shape[0]
+        if self.keep_timeline:
+            self._record(np.asarray(durations, dtype=np.float64))
         self.cut_mm += float(np.add.reduce(lengths[cutting]))
         self.rapid_mm += float(np.add.reduce(lengths[~cutting]))  # action blocks: no length
         self.max_speed_mm_s = max(self.max_speed_mm_s, float(np.maximum.reduce(rows[CRUISE])))
         moving = [(start, end) for move, _, start, end, _ in settled.geometry if move is not None]
         if not moving:
             return
-        if not self._axes:  # the first move: its start counts too
+        if not self._axes:  # the first move: its start counts too (unless count_start is off)
             self._axes = len(moving[0][0])
-            self._points += moving[0][0]
+            self._points += moving[0][0] if self.count_start else ()
         self._points += chain.from_iterable([end for _, end in moving])
         if len(self._points) >= BBOX_BATCH * self._axes:
             self.finish()
 
+    def timeline(self) -> np.ndarray:
+        """With ``keep_timeline``: the planned time (s) at the end of every
+        :attr:`timeline_stride`-th block, in order (``timeline()[k - 1]`` is the time when
+        ``k * timeline_stride`` blocks have run). At most :data:`TIMELINE_MARKS` entries: the
+        stride doubles as a job grows, so a plan's memory is bounded whatever the file's size."""
+        if not self._marks:
+            return np.zeros(0)
+        return np.concatenate(self._marks)
+
+    @property
+    def timeline_stride(self) -> int:
+        return self._stride
+
+    def _record(self, durations: np.ndarray) -> None:
+        """Keep the end times of the blocks whose count is a multiple of the stride."""
+        count = durations.shape[0]
+        if not count:
+            return
+        ends = np.cumsum(durations) + self._timed_s
+        counts = np.arange(self._timed_blocks + 1, self._timed_blocks + count + 1)
+        self._timed_blocks += count
+        self._timed_s = float(ends[-1])
+        picked = ends[counts % self._stride == 0]
+        self._marks.append(picked)
+        self._mark_count += picked.shape[0]
+        while self._mark_count > TIMELINE_MARKS:  # keep every other mark: the stride doubles
+            kept = np.concatenate(self._marks)[1::2]
+            self._marks, self._mark_count, self._stride = [kept], kept.shape[0], self._stride * 2
+
     def _add_point(self, start: tuple[float, ...], end: tuple[float, ...]) -> None:
         points = self._points
-        if not self._axes:  # the first move: its start counts too
+        if not self._axes:  # the first move: its start counts too (unless count_start is off)
             self._axes = len(start)
-            points += start
+            points += start if self.count_start else ()
         points += end
         if len(points) >= BBOX_BATCH * self._axes:
             self.finish()

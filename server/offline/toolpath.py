@@ -228,13 +228,14 @@ def plan_toolpath(
     decimator = Decimator(cap=max_segments)
     max_s = 1000.0  # Grbl's $30 (fixed in motiond's settings table)
     end: tuple[float, ...] = ()
+    laser_mode = core.machine.laser_mode
     for block in iterate_blocks(lines, core, stats, interpreter=interpreter):
         move = block.move
         if move is None:
             continue
         end = block.end_mm
-        travel = move.kind in TRAVEL_KINDS
-        on = move.tool_mode is not ToolMode.OFF and not travel
+        on = move.tool_mode is not ToolMode.OFF and move.kind not in TRAVEL_KINDS
+        travel = move.kind in TRAVEL_KINDS or (laser_mode and (not on or move.s_value <= 0))
         power = min(100.0, max(0.0, move.s_value / max_s * 100.0)) if on else 0.0
         decimator.add(
             Segment(

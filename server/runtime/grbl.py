@@ -65,6 +65,8 @@ _STILL = frozenset({"Idle", "Alarm", "Check", "Sleep"})  # nothing will move wit
 class GrblMachine(Machine):
     """The motion pipeline ends at a Grbl controller; see the module docstring."""
 
+    counts_blocks = False  # the board executes the blocks: only its reports are known
+
     def __init__(
         self, config: Config, clock: Clock, events: EventBus, status: MachineStatus
     ) -> None:
@@ -261,7 +263,10 @@ class GrblMachine(Machine):
         motion.s_value = report.spindle_s
         motion.tool_mode = ToolMode.CCW if "C" in report.accessories else (
             ToolMode.CW if "S" in report.accessories else ToolMode.OFF)
-        motion.time_s = self.clock.now_s()
+        now_s = self.clock.now_s()
+        if motion.moving and motion.hold is HoldState.NONE:  # a job's clock runs (job_clock)
+            motion.motion_time_s += now_s - motion.time_s
+        motion.time_s = now_s
 
     def _sync_position(self, report: ControllerStatus) -> None:
         """After a connection or a reset, the interpreter starts from where the machine is."""

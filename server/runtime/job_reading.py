@@ -1,9 +1,9 @@
-"""Reading a job file as it plays: never whole, file I/O in threads, the estimate stoppable.
+"""Reading a job file as it plays: never whole, file I/O in threads, its plan stoppable.
 
 :func:`read_lines` gives the lines to the player :data:`READ_LINES` at a time, read in a thread;
-:func:`estimate_file` runs :func:`~server.offline.estimate.estimate` over the file as it reads
-it (in a thread of its own), and gives up as soon as its ``stop`` event is set (the job ended).
-Memory is bounded by a batch of lines and the planner's window, whatever the file's size.
+:func:`until` lets a plan read through the file (:func:`~server.runtime.job_clock.plan_job`)
+give up as soon as its ``stop`` event is set (the job was aborted). Memory is bounded by a
+batch of lines and the planner's window, whatever the file's size.
 """
 
 from __future__ import annotations
@@ -15,12 +15,10 @@ from collections.abc import AsyncGenerator, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
-from server.offline.estimate import estimate, file_lines
-from server.offline.stats import JobStats
+from server.offline.estimate import file_lines
 
 if TYPE_CHECKING:
-    from server.config import CoreConfig
-    from server.gcode.interpreter import Interpreter
+    pass
 
 READ_LINES = 1000  # a job file is read this many lines at a time (in a thread)
 
@@ -48,21 +46,8 @@ async def read_lines(
         handle.close()
 
 
-def estimate_file(
-    path: Path, core: CoreConfig, interpreter: Interpreter, stop: threading.Event
-) -> JobStats | None:
-    """In a thread: :func:`estimate` over the file's lines as they are read; None when
-    ``stop`` was set first."""
-    with path.open(errors="replace") as handle:
-        try:
-            return estimate(_until(file_lines(handle, core.protocol.line_limit), stop), core,
-                            None, interpreter)
-        except _Stopped:
-            return None
-
-
-class _Stopped(Exception):
-    """The job ended: its estimate is no longer wanted."""
+class Stopped(Exception):
+    """The job ended (or was aborted before it started): its plan is no longer wanted."""
 
 
 def _take(lines: Iterator[str], count: int) -> list[str]:
@@ -70,8 +55,9 @@ def _take(lines: Iterator[str], count: int) -> list[str]:
     return list(itertools.islice(lines, count))
 
 
-def _until(lines: Iterator[str], stop: threading.Event) -> Iterator[str]:
+def until(lines: Iterator[str], stop: threading.Event) -> Iterator[str]:
+    """``lines``, raising :class:`Stopped` soon after ``stop`` is set."""
     for number, line in enumerate(lines):
         if number % READ_LINES == 0 and stop.is_set():
-            raise _Stopped
+            raise Stopped
         yield line

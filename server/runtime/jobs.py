@@ -11,9 +11,8 @@ executed, flow-controlled and error-checked exactly like streamed G-code; the fi
 is refused stops the job with a message naming the line. A line answered downstream (a Grbl
 controller) is deferred by the dispatcher: the job sends on while it is in the controller's
 buffer and stops at the first answer that is an error. File I/O runs in a thread. A job file
-is never held in memory whole: its lines are read as they are sent (the first moves at once,
-whatever the file's size), and its estimate reads it again beside, in a thread that stops
-with the job.
+is never held in memory whole: it is planned (time, extent, fit) by reading it through once in a
+thread before anything moves, then its lines are read again as they are sent.
 """
 
 from __future__ import annotations
@@ -34,10 +33,12 @@ from typing import TYPE_CHECKING, BinaryIO
 
 from server.errors import CommandError, Error
 from server.gcode.parser import check_length
+from server.motion.moves import Action, ActionName
 from server.offline.stats import format_duration
 from server.runtime.dispatcher import Command
 from server.runtime.events import Event, MachineState
-from server.runtime.job_reading import estimate_file, read_lines
+from server.runtime.job_clock import JobClock, JobPlan, plan_job
+from server.runtime.job_reading import read_lines
 
 if TYPE_CHECKING:
     from server.runtime.kernel import Kernel
@@ -59,7 +60,10 @@ class JobFile:
 
 @dataclass(slots=True)
 class JobProgress:
-    """The current or last job. ``state``: running, paused, done, aborted or failed."""
+    """The current or last job. ``state``: running, paused, done, aborted or failed.
+
+    ``paused_for`` says why a paused job waits (``hold``, ``M0``, ``M1``, ``tool change T2``);
+    ``fit`` is the job's extent under the placement it started from (machine mm, per axis)."""
 
     name: str
     state: str
@@ -71,6 +75,15 @@ class JobProgress:
     error: str | None = None
     estimate_s: float | None = None
     started_s: float = 0.0
+    paused_for: str | None = None
+    fit: dict[str, object] | None = None
+
+
+@dataclass(slots=True)
+class _Percent:
+    """Where :func:`read_lines` writes the share of the file read (the job counts lines)."""
+
+    percent: float = 0.0
 
 
 @dataclass(slots=True)
@@ -89,6 +102,9 @@ class Jobs:
         remove_stale_uploads(self.data_dir)
         self._task: asyncio.Task[None] | None = None
         self._progress: JobProgress | None = None
+        self._clock: JobClock | None = None
+        self._planning: set[threading.Event] = set()  # the plans being made for job.start
+        kernel.events.subscribe(Event.ACTION, self._on_action)
         dispatcher = kernel.dispatcher
         dispatcher.register("ls", self._ls, when_locked=True, query=True)
         dispatcher.register("play", self._play)
@@ -188,21 +204,43 @@ class Jobs:
         progress = self._progress
         return progress is not None and progress.state in ("running", "paused")
 
-    def play(self, name: str) -> None:
-        """Start playing a stored file."""
-        self._check_free()
-        path = self.path(name)
-        if not path.is_file():
-            raise CommandError(Error.FILE_ERROR, f"no job file {path.name}")
-        self._progress = JobProgress(path.name, "running", started_s=self.kernel.clock.now_s())
-        source = _JobSource(f"job:{path.name}")
-        self.kernel.dispatcher.claim(source)  # other connections may query, hold and stop
-        self._task = asyncio.get_running_loop().create_task(
-            self._run(path, self._progress, source), name=f"job:{path.name}"
-        )
-        self._announce()
+    async def start(self, name: str) -> JobProgress:
+        """Check a stored file against the machine as it is now, then play it (``job.start``,
+        ``play``, MQTT ``cmd/job``).
 
-    def _check_free(self) -> None:
+        Raises:
+            CommandError: 47 (the job does not fit the travel from the current work origin:
+                the message names each axis, by how much, and where the origin would have to
+                be), 45 busy, 44 no such file. Nothing moves.
+        """
+        path = self._playable(name)
+        plan = await self.plan(name)
+        if not plan.fit.fits:
+            raise CommandError(Error.JOB_DOES_NOT_FIT, f"{path.name}: {plan.fit.describe()}")
+        self.play(name, plan)
+        assert self._progress is not None
+        return self._progress
+
+    async def plan(self, name: str) -> JobPlan:
+        """What the stored file ``name`` would do from the machine as it is now: time, extent
+        under the current placement, fit (read in a thread). Raises CommandError 44."""
+        path = self.path(name)
+        interpreter = self.kernel.machine.new_interpreter(soft_limits=False, live=True)
+        stop = threading.Event()  # job.abort while the plan is made: it is dropped
+        self._planning.add(stop)
+        try:
+            plan = await asyncio.to_thread(
+                plan_job, path, self.kernel.config.core.model_copy(deep=True), interpreter, stop)
+        except OSError as exc:
+            message = f"cannot read {path.name}: {exc.strerror}"
+            raise CommandError(Error.FILE_ERROR, message) from exc
+        finally:
+            self._planning.discard(stop)
+        if plan is None:
+            raise CommandError(Error.BUSY, f"{path.name}: aborted while it was being checked")
+        return plan
+
+    def _playable(self, name: str) -> Path:
         """A job starts only on an idle machine nobody else is using (every path: ``play``,
         the JSON API, MQTT): a sender's stream is never cut by a job (error 45)."""
         if self.running:
@@ -212,12 +250,36 @@ class Jobs:
             raise CommandError(Error.BUSY, f"cannot start a job in state {state.value}")
         if self.kernel.machine.busy:
             raise CommandError(Error.BUSY, "cannot start a job while motion is queued")
+        path = self.path(name)
+        if not path.is_file():
+            raise CommandError(Error.FILE_ERROR, f"no job file {path.name}")
+        return path
+
+    def play(self, name: str, plan: JobPlan | None = None) -> None:
+        """Start playing a stored file; with ``plan`` (from :meth:`start`) when it was made
+        from the machine as it still is, else the job plans (and checks its fit) first."""
+        path = self._playable(name)
+        interpreter = self.kernel.machine.interpreter
+        if plan is not None and plan.placement != (interpreter.position, interpreter.wco()):
+            raise CommandError(Error.BUSY, "the machine moved while the job was being checked")
+        self._progress = JobProgress(path.name, "running", started_s=self.kernel.clock.now_s())
+        self._clock = None
+        if plan is not None:
+            self._planned(self._progress, plan)
+        source = _JobSource(f"job:{path.name}")
+        self.kernel.dispatcher.claim(source)  # other connections may query, hold and stop
+        self._task = asyncio.get_running_loop().create_task(
+            self._run(path, self._progress, source, plan), name=f"job:{path.name}"
+        )
+        self._announce()
 
     def abort(self) -> None:
         """Stop the job and all motion at once; tools off."""
         progress = self._progress
         if progress is not None and progress.state in ("running", "paused"):
-            progress.state = "aborted"
+            progress.state, progress.remaining_s, progress.paused_for = "aborted", None, None
+        for stop in self._planning:
+            stop.set()
         self.kernel.machine.quickstop("job aborted")
         if self._task is not None:
             self._task.cancel()
@@ -226,22 +288,44 @@ class Jobs:
     def suspend(self) -> None:
         if self.running and self._progress is not None:
             self.kernel.machine.feed_hold()
-            self._progress.state = "paused"
-            self._announce()
+            self._pause("hold")
 
     def resume(self) -> None:
+        """Continue a paused job: after a hold, an M0/M1 or a tool change (cycle start)."""
         if self._progress is not None and self._progress.state == "paused":
             self.kernel.machine.cycle_start()
-            self._progress.state = "running"
+            self._progress.state, self._progress.paused_for = "running", None
             self._announce()
+
+    def _pause(self, reason: str) -> None:
+        if self._progress is not None:
+            self._progress.state, self._progress.paused_for = "paused", reason
+            self._announce()
+
+    def _on_action(self, action: Action) -> None:
+        """Motion reached M0/M1 (the machine holds) or M6 (held here): the job waits for
+        ``resume`` (``~``, the UI's Continue), saying why."""
+        if not self.is_playing():
+            return
+        if action.name == ActionName.PAUSE:
+            self._pause("M1" if action.params.get("optional") else "M0")
+        elif action.name == ActionName.TOOL_CHANGE:
+            machine = self.kernel.machine
+            machine.stepgen.hold()
+            self.kernel.set_state(MachineState.HOLD)
+            tool = action.params.get("tool")
+            self.kernel.push(f"[MSG:Tool change: insert T{tool}, then resume (~)]")
+            self._pause(f"tool change T{tool}")
 
     def progress(self) -> JobProgress | None:
         """The current or last job, with times brought up to date."""
         progress = self._progress
         if progress is not None and progress.state in ("running", "paused"):
             progress.elapsed_s = self.kernel.clock.now_s() - progress.started_s
-            if progress.estimate_s is not None:
-                progress.remaining_s = max(0.0, progress.estimate_s - progress.elapsed_s)
+            if self._clock is not None:
+                machine = self.kernel.machine
+                progress.remaining_s = self._clock.remaining_s(
+                    machine.stepgen.state, machine.feed_override)
         return progress
 
     async def close(self) -> None:
@@ -251,35 +335,29 @@ class Jobs:
             with contextlib.suppress(asyncio.CancelledError):
                 await self._task
 
-    async def _run(self, path: Path, progress: JobProgress, source: _JobSource) -> None:
-        """Stream the file's lines as they are read, with the estimate beside (both stop with
-        the job): memory stays bounded whatever the file's size, and motion starts at once."""
-        stop = threading.Event()
-        estimator = asyncio.get_running_loop().create_task(
-            self._estimate(path, progress, stop), name=f"estimate:{path.name}")
+    async def _run(
+        self, path: Path, progress: JobProgress, source: _JobSource, plan: JobPlan | None
+    ) -> None:
         try:
-            limit = self.kernel.config.core.protocol.line_limit
-            async with contextlib.aclosing(read_lines(path, limit, progress)) as lines:
+            core = self.kernel.config.core
+            if plan is None:
+                interpreter = self.kernel.machine.new_interpreter(soft_limits=False, live=True)
+                plan = await asyncio.to_thread(plan_job, path, core.model_copy(deep=True),
+                                               interpreter)
+            assert plan is not None  # no stop event: the plan runs to its end
+            self._planned(progress, plan)
+            if not plan.fit.fits:
+                self._fail(progress, plan.fit.describe())  # before any line: nothing moved
+                return
+            progress.lines_total = plan.lines
+            machine = self.kernel.machine
+            self._clock = JobClock(plan, machine.stepgen.state, counts_blocks=machine.counts_blocks)
+            async with contextlib.aclosing(
+                read_lines(path, core.protocol.line_limit, _Percent())
+            ) as lines:
                 await self._stream(lines, progress, source)
         except OSError as exc:
             self._fail(progress, f"cannot read {path.name}: {exc.strerror}")
-        finally:
-            stop.set()
-            estimator.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await estimator
-
-    async def _estimate(self, path: Path, progress: JobProgress, stop: threading.Event) -> None:
-        """The job's duration (``progress.estimate_s``) and line count, computed in a thread
-        reading the file as it goes (bounded memory); ``stop`` ends it early."""
-        core = self.kernel.config.core.model_copy(deep=True)
-        interpreter = self.kernel.machine.new_interpreter()
-        try:
-            stats = await asyncio.to_thread(estimate_file, path, core, interpreter, stop)
-        except OSError:
-            return  # the stream reports the unreadable file
-        if stats is not None:
-            progress.estimate_s, progress.lines_total = stats.duration_s, stats.lines
 
     async def _stream(
         self, lines: AsyncIterator[str], progress: JobProgress, source: _JobSource
@@ -303,12 +381,10 @@ class Jobs:
                 self._fail(progress, f"line {number}: error:{exc.code} {exc.message}")
                 return
             progress.lines_done = number
-            if progress.lines_total:
-                progress.percent = min(100.0, 100.0 * number / progress.lines_total)
+            progress.percent = min(100.0, 100.0 * number / max(1, progress.lines_total))
             if loop.time() - turn_s > YIELD_AFTER_S:  # lines that never wait must not hog
                 await asyncio.sleep(0)
                 turn_s = loop.time()
-        progress.lines_total = number
         try:
             await _settle(pending, wait=True)
         except _LineFailed as failed:
@@ -324,8 +400,13 @@ class Jobs:
         self.kernel.push(f"[MSG:job {progress.name} done in {format_duration(progress.elapsed_s)}]")
         self._announce()
 
+    def _planned(self, progress: JobProgress, plan: JobPlan) -> None:
+        progress.fit = plan.fit.as_dict(self.kernel.config.core.axis_names)
+        progress.estimate_s = progress.remaining_s = plan.duration_s
+
     def _fail(self, progress: JobProgress, message: str) -> None:
         progress.state, progress.error = "failed", message
+        progress.remaining_s = progress.paused_for = None
         log.warning("job %s stopped at %s", progress.name, message)
         self.kernel.push(f"[MSG:job {progress.name} stopped at {message}]")
         self._announce()
@@ -342,10 +423,15 @@ class Jobs:
             for f in self.files()
         ]
 
-    def _play(self, command: Command) -> list[str]:
+    async def _play(self, command: Command) -> list[str]:
         name = command.args.split()[0] if command.args.split() else ""
-        self.play(name)
-        return [f"[MSG:Playing {self.path(name).name}]"]
+        try:
+            progress = await self.start(name)
+        except CommandError as exc:
+            if exc.code == Error.JOB_DOES_NOT_FIT:  # a Grbl sender sees only error:47
+                self.kernel.push(f"[MSG:{exc.message}]")
+            raise
+        return [f"[MSG:Playing {progress.name}]"]
 
     def _status(self, command: Command) -> list[str]:
         progress = self.progress()

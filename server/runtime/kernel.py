@@ -130,8 +130,8 @@ class _Context:
     async def run_gcode(self, text: str) -> list[str]:
         return await self._kernel.dispatcher.submit(text, self._source)
 
-    def start_job(self, name: str) -> None:
-        self._kernel.jobs.play(name)
+    async def start_job(self, name: str) -> None:
+        await self._kernel.jobs.start(name)
 
     def status(self) -> dict[str, Any]:
         return build_status(self._kernel)

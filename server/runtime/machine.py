@@ -62,6 +62,8 @@ SyncHandler = Callable[[dict[str, Any]], Awaitable[list[str]]]
 class Machine(GcodeFeed, RealtimeCommands):
     """Owns the motion pipeline; see the module docstring."""
 
+    counts_blocks = True  # the step generator's blocks_done counts the blocks executed
+
     def __init__(
         self, config: Config, clock: Clock, events: EventBus, status: MachineStatus
     ) -> None:
@@ -122,13 +124,19 @@ class Machine(GcodeFeed, RealtimeCommands):
         """A status report from elsewhere (a downstream controller), or None: motiond's own."""
         return None
 
-    def new_interpreter(self, *, soft_limits: bool = True) -> Interpreter:
-        """A fresh interpreter at the origin that reads G-code exactly as this machine does
-        (same settings, same module codes): what ``estimate`` and ``render`` run.
-        ``soft_limits=False`` previews a job whatever the travel (the toolpath)."""
+    def new_interpreter(self, *, soft_limits: bool = True, live: bool = False) -> Interpreter:
+        """An interpreter that reads G-code exactly as this machine does (same settings, same
+        module codes): what ``estimate`` and ``render`` run. A fresh one at the origin, or with
+        ``live`` a copy of the machine's own (its position, work offsets and modal state: what
+        a job started now begins from). ``soft_limits=False`` reads a job whatever the travel
+        (the toolpath, the time; fit is checked apart, :mod:`server.offline.fit`)."""
         settings = self.interpreter.settings
         if not soft_limits:
             settings = replace(settings, soft_limits=False)
+        if live:
+            interpreter = copy.deepcopy(self.interpreter)
+            interpreter.settings = settings
+            return interpreter
         interpreter = Interpreter(settings, self.codes)
         interpreter.set_position(tuple(0.0 for _ in self.core.axis_names))
         return interpreter

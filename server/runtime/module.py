@@ -201,9 +201,10 @@ class ModuleContext(Protocol):
         """Run one line in order with every other source, as the module."""
         ...
 
-    def start_job(self, name: str) -> None:
-        """Play the stored job file ``name``, as the JSON API's ``job.start`` does; raises
-        :class:`~server.errors.CommandError` (45 busy, 44 no such file) and changes nothing."""
+    async def start_job(self, name: str) -> None:
+        """Check and play the stored job file ``name``, as the JSON API's ``job.start`` does;
+        raises :class:`~server.errors.CommandError` (47 does not fit the travel from the
+        current work origin, 45 busy, 44 no such file) and changes nothing."""
         ...
 
     def status(self) -> dict[str, Any]:

@@ -184,6 +184,9 @@ class Settings:
         self._is_idle, self._apply = is_idle, apply
         self.table = setting_table(self.core)
         self.path = path
+        self._config_values = {  # what the config says: only changes from it are saved
+            number: setting.read(core) for number, setting in self.table.items()
+        }
         if path is not None and path.exists():
             self._load(path)
 
@@ -271,14 +274,17 @@ class Settings:
                 log.warning("%s: ignored the saved value $%s = %r: %s", path, key, value, exc)
 
     def file_text(self) -> str:
-        """The settings file's contents for the values now in force (taken on the loop)."""
+        """The settings file's contents (taken on the loop): only the values now in force
+        that differ from the config file's, so a default changed in the config still moves
+        the settings nobody set, and a setting set back to the config's value is dropped."""
         lines = [
             "# Written by motiond for $x=value; delete to go back to the config file.",
             "[settings]",
         ]
         for number, setting in sorted(self.table.items()):
-            if setting.write is not None:
-                lines.append(f'"{number}" = {setting.read(self.core)!r}')
+            value = setting.read(self.core)
+            if setting.write is not None and value != self._config_values[number]:
+                lines.append(f'"{number}" = {value!r}')
         return "\n".join(lines) + "\n"
 
     def save(self, text: str) -> None:
@@ -296,7 +302,8 @@ def _read_saved(path: Path) -> dict[str, Any] | None:
     """The ``[settings]`` table of a settings file, or None (with a warning saying why)."""
     fallback = "the config file's values are used instead"
     try:
-        data: dict[str, Any] = tomllib.loads(path.read_text())
+        text = path.read_text()
+        data: dict[str, Any] = tomllib.loads(text)
     except OSError as exc:
         log.warning("%s: cannot read the saved settings (%s): %s", path, exc, fallback)
         return None
@@ -304,6 +311,8 @@ def _read_saved(path: Path) -> dict[str, Any] | None:
         log.warning("%s: the saved settings are not valid TOML (%s): %s", path, exc, fallback)
         return None
     saved = data.get("settings")
+    if saved == {} and "[settings]" in text:  # every setting back at the config's value
+        return None
     if not isinstance(saved, dict) or not saved:
         log.warning(
             "%s: no [settings] values in the saved settings (an empty or truncated file?): %s",

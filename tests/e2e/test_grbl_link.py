@@ -396,3 +396,26 @@ async def test_the_boards_offsets_and_modes_are_adopted_and_settings_written_thr
             assert "$110=42000.000" in await board.command("$$")
         finally:
             await board.close()
+
+
+async def test_a_jobs_remaining_time_follows_the_board_and_stands_still_in_a_hold(
+        tmp_path: Path) -> None:
+    (tmp_path / "link-data").mkdir()
+    (tmp_path / "link-data" / "slow.gcode").write_text("G21 G90\nG1 X80 F600\nG0 X0\n")  # 8 s
+    async with link_after_controller(tmp_path) as (served, app):
+        client = await Listener.connect(tcp_port(app))
+        client.writer.write(b"play slow.gcode\n")
+        await client.state("Run")
+        await asyncio.sleep(2.0)
+        progress = app.kernel.jobs.progress()
+        assert progress is not None and progress.estimate_s is not None
+        assert progress.remaining_s is not None
+        assert 1.0 < progress.estimate_s - progress.remaining_s < 4.0, progress
+        client.writer.write(b"!")
+        await client.state("Hold:0")
+        held = app.kernel.jobs.progress().remaining_s  # type: ignore[union-attr]
+        await asyncio.sleep(1.5)
+        assert app.kernel.jobs.progress().remaining_s == held  # type: ignore[union-attr]
+        client.writer.write(b"~")
+        await client.expect("[MSG:job slow.gcode done", timeout_s=30)
+        await client.close()

@@ -45,6 +45,7 @@ axis = {"steps_per_mm": 80, "max_rate_mm_s": 500, "accel_mm_s2": 3000, "max_mm":
 core = build_config({"axes": {"x": dict(axis), "y": dict(axis)}}).core
 settings = Settings(core, Path(sys.argv[1]), is_idle=lambda: True, apply=lambda: None)
 value = 1
+settings.write("120=2999")  # saved from here on: changed from the config's 3000
 settings.write(f"110={value}")
 settings.save(settings.file_text())  # the file exists from here on
 print("writing", flush=True)
@@ -70,7 +71,7 @@ def test_a_sigkill_during_settings_writes_always_leaves_a_complete_file(tmp_path
             writer.send_signal(signal.SIGKILL)
         assert writer.wait(10) == -signal.SIGKILL
         saved = tomllib.loads(path.read_text())["settings"]
-        assert 1 <= saved["110"] <= 50_000 and saved["120"] == 3000.0
+        assert 1 <= saved["110"] <= 50_000 and saved["120"] == 2999.0
 
 
 def settings_config(tmp_path: Path) -> Path:

@@ -242,3 +242,21 @@ async def fleet(broker: Broker, tmp_path: Path, *options: str) -> str:
     out, _ = await asyncio.wait_for(process.communicate(), 30)
     assert process.returncode == 0
     return out.decode()
+
+
+async def test_cmd_job_refuses_a_job_that_does_not_fit_and_nothing_moves(tmp_path: Path) -> None:
+    async with (
+        mosquitto(tmp_path / "broker") as broker,
+        serve(tmp_path, broker, allow_control=True) as served,
+    ):
+        (served.data_dir / "neg.nc").write_text("G21 G90\nG1 X-12.5 Y40 F3000\nG1 X0 Y0\n")
+        async with watching(broker, f"{PREFIX}/#") as watch:
+            await watch.wait_for(f"{PREFIX}/availability", is_online)
+            await watch.publish(f"{PREFIX}/cmd/job", {"id": "j", "name": "neg.nc"})
+            reply = await watch.wait_json(f"{PREFIX}/reply")
+            await asyncio.sleep(0.3)
+            report = await tcp_report(served.tcp_port)
+    assert reply["ok"] is False and reply["error"]["code"] == 47
+    assert "X: 12.500 mm below the travel's minimum" in reply["error"]["message"]
+    assert "X work origin between 12.500 and 300.000" in reply["error"]["message"]
+    assert report.startswith("<Idle|") and mpos(report) == [0.0, 0.0]

@@ -209,7 +209,7 @@ class FakeContext:
             raise CommandError(Error.UNSUPPORTED, "unsupported")
         return []
 
-    def start_job(self, name: str) -> None:
+    async def start_job(self, name: str) -> None:
         raise CommandError(Error.FILE_ERROR, f"no job file {name}")
 
 

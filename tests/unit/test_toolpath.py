@@ -74,3 +74,23 @@ def test_no_path_shape_outgrows_the_cap(shape: str) -> None:
     kinds = [CUT, GAP] if shape == "gaps" else None
     for cap in (100, 1000):
         assert 0 < len(decimate(points, cap, kinds)) <= cap
+
+
+LASER_OFF_MOVES = ["G21 G90 M4 S500", "G1 X10 F600", "M5", "G1 X20", "M4 S0", "G1 X30",
+                   "M4 S800", "G1 X40"]
+
+
+def test_feed_moves_with_the_laser_off_are_travel_in_the_preview_and_render() -> None:
+    from server.offline.estimate import iterate_blocks
+    from server.offline.render import collect
+    from server.offline.stats import JobStats
+
+    core = make_config(machine={"laser_mode": True}).core
+    path = plan_toolpath(LASER_OFF_MOVES, core, 1000)
+    assert path["kinds"] == [CUT, RAPID, CUT]  # 0-10 cut, 10-30 laser off (M5, then S0)
+    assert path["powers"][0] == 50.0 and path["powers"][2] == 80.0
+    drawn = collect(iterate_blocks(LASER_OFF_MOVES, core, JobStats()), laser_mode=True)
+    assert [segment[1][0] for segment in drawn.feed] == [10.0, 40.0]
+    assert [segment[1][0] for segment in drawn.rapid] == [20.0, 30.0]
+    plotter = make_config(machine={"laser_mode": False}).core  # no laser: a feed is a feed
+    assert set(plan_toolpath(LASER_OFF_MOVES, plotter, 1000)["kinds"]) == {CUT}

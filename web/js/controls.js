@@ -10,6 +10,7 @@ const ENABLED = {
   unlock: (s) => s === "alarm",
   home: (s, info) => ["idle", "alarm"].includes(s) && info?.features?.includes("homing"),
   fire: (s, info) => s === "idle" && info?.features?.includes("laser"),
+  idle: (s) => s === "idle",
   control: () => true,
 };
 

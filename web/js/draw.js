@@ -21,6 +21,12 @@ export const PALETTE = Array.from({ length: BUCKETS }, (_, i) => {
   return a.map((v, j) => Math.round(v + (b[j] - v) * f));
 });
 
+/** BUCKETS greys from no power (dark) to full power (white): the power view of a raster. */
+export const GREYS = Array.from({ length: BUCKETS }, (_, i) => {
+  const v = Math.round(60 + (195 * i) / (BUCKETS - 1));
+  return [v, v, v];
+});
+
 export const sx = (view, x) => x * view.scale + view.tx;
 export const sy = (view, y) => -y * view.scale + view.ty;
 
@@ -30,8 +36,10 @@ export function cuts(path, i) {
 }
 
 /** Group segments by colour and opacity so the whole path is a few dozen strokes. */
-export function bucketize(path) {
-  const { kinds, speeds, powers } = path;
+export function bucketize(path, by = "speed") {
+  const { kinds, powers } = path;
+  const speeds = by === "power" ? powers : path.speeds;
+  path.colourBy = by;
   const maxPower = Math.max(0, ...powers);
   path.usesPower = maxPower > 0;
   let low = Infinity;
@@ -42,6 +50,7 @@ export function bucketize(path) {
     high = Math.max(high, speeds[i]);
   });
   if (!Number.isFinite(low)) { low = 0; high = 0; }
+  if (by === "power") low = 0; // grey by S: black is off, white is the job's highest S
   const span = high - low;
   const groups = new Map();
   const rapids = [];
@@ -73,9 +82,11 @@ export function drawPath(ctx, view, path, buckets) {
   ctx.strokeStyle = "rgba(148, 163, 184, 0.28)";
   strokeSegments(ctx, view, p, buckets.travels);
   ctx.lineWidth = 1.4;
+  const palette = path.colourBy === "power" ? GREYS : PALETTE;
   for (const [key, indices] of buckets.groups) {
-    const [r, g, b] = PALETTE[Math.floor(key / 3)];
-    ctx.strokeStyle = `rgba(${r}, ${g}, ${b}, ${ALPHA[key % 3]})`;
+    const [r, g, b] = palette[Math.floor(key / 3)];
+    const alpha = path.colourBy === "power" ? 1 : ALPHA[key % 3];
+    ctx.strokeStyle = `rgba(${r}, ${g}, ${b}, ${alpha})`;
     strokeSegments(ctx, view, p, indices);
   }
 }
@@ -173,4 +184,28 @@ export function drawTool(ctx, view, x, y, powerPct) {
   ctx.moveTo(px, py - 12); ctx.lineTo(px, py - 3);
   ctx.moveTo(px, py + 3); ctx.lineTo(px, py + 12);
   ctx.stroke();
+}
+
+/** The selected job's extent at the current placement (job.place, machine mm), drawn in work
+ * coordinates: green when it fits the travel, red when it does not, with its size. */
+export function drawPlacement(ctx, view, place, wco) {
+  const low = place.extent_min_mm;
+  const high = place.extent_max_mm;
+  if (low.X === undefined) return;
+  const x0 = low.X - wco[0];
+  const y1 = high.Y - wco[1];
+  const w = (high.X - low.X) * view.scale;
+  const h = (high.Y - low.Y) * view.scale;
+  const colour = place.fits ? "74, 222, 128" : "248, 113, 113";
+  ctx.setLineDash([3, 3]);
+  ctx.lineWidth = 1.5;
+  ctx.strokeStyle = `rgba(${colour}, 0.9)`;
+  ctx.fillStyle = `rgba(${colour}, 0.08)`;
+  ctx.fillRect(sx(view, x0), sy(view, y1), w, h);
+  ctx.strokeRect(sx(view, x0), sy(view, y1), w, h);
+  ctx.setLineDash([]);
+  ctx.fillStyle = `rgba(${colour}, 0.95)`;
+  ctx.font = "11px system-ui, sans-serif";
+  const size = `${(high.X - low.X).toFixed(1)} × ${(high.Y - low.Y).toFixed(1)} mm${place.fits ? "" : " · does not fit"}`;
+  ctx.fillText(size, sx(view, x0), sy(view, y1) - 5);
 }

@@ -3,6 +3,9 @@
 import { pageToken } from "./api.js";
 import { $, ICONS, bytes, confirmAction, duration, el, icon, report, toast, when } from "./util.js";
 
+const PAUSE_TEXT = (reason) => (!reason || reason === "hold" ? "Held: Continue resumes the job."
+  : reason.startsWith("tool change") ? `Tool change: insert ${reason.slice(12)}, then Continue.`
+    : `${reason}: the program paused; Continue resumes it.`);
 const STATE_LABELS = { running: "Running", paused: "Paused", done: "Done", aborted: "Aborted", failed: "Failed" };
 
 export class JobsView {
@@ -165,6 +168,9 @@ export class JobsView {
     $("#job-percent").textContent = `${percent.toFixed(percent < 100 && percent >= 99.5 ? 1 : 0)}%`;
     $("#job-elapsed").textContent = duration(job.elapsed_s);
     $("#job-remaining").textContent = job.state === "done" ? "0:00" : duration(job.remaining_s);
+    const paused = $("#job-paused-for");
+    paused.hidden = job.state !== "paused" || !job.paused_for;
+    paused.textContent = PAUSE_TEXT(job.paused_for);
     const error = $("#job-error");
     error.hidden = !job.error;
     error.textContent = job.error || "";

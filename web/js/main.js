@@ -5,6 +5,7 @@ import { Api, apiUrl } from "./api.js";
 import { ConsoleView } from "./console.js";
 import { Controls } from "./controls.js";
 import { JobsView } from "./jobs.js";
+import { PlacementView } from "./placement.js";
 import { LivePlot } from "./plot.js";
 import { StatusView } from "./status.js";
 import { ToolpathView } from "./toolpath.js";
@@ -16,12 +17,14 @@ const consoleView = new ConsoleView(api);
 const controls = new Controls(api, consoleView);
 const toolpath = new ToolpathView($("#toolpath"));
 const plot = new LivePlot($("#plot"));
+const placement = new PlacementView(api, consoleView, toolpath);
 let info = null;
 let canControl = false;
 let previewName = null;
 
 async function preview(name) {
   previewName = name;
+  placement.select(name);
   $("#view-job").textContent = `Planning ${name}…`;
   try {
     const path = await api.call("job.toolpath", { name });
@@ -40,6 +43,7 @@ function showStatus(status) {
   statusView.update(status);
   controls.update(status, canControl);
   toolpath.update(status);
+  placement.update(status);
   const job = status.job;
   if (job && job.name !== toolpath.path?.name && job.name !== previewName
       && ["running", "paused"].includes(job.state)) {
@@ -81,4 +85,4 @@ controls.update(null, false);
 api.connect();
 
 // For tests and the curious: the live objects.
-window.motiond = { api, toolpath, plot, jobs, controls, console: consoleView };
+window.motiond = { api, toolpath, plot, jobs, controls, placement, console: consoleView };

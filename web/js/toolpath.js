@@ -5,7 +5,8 @@
 // update looks for the tool's position on the segments just ahead of the last match, so the
 // cut part is drawn segment by segment, corners included, however sparse the updates.
 
-import { BUCKETS, PALETTE, bucketize, cuts, drawDone, drawGrid, drawPath, drawTool } from "./draw.js";
+import { BUCKETS, GREYS, PALETTE, bucketize, cuts, drawDone, drawGrid, drawPath, drawPlacement,
+  drawTool } from "./draw.js";
 import { $, duration, grouped } from "./util.js";
 
 const MARGIN = 0.08;
@@ -31,6 +32,8 @@ export class ToolpathView {
     this.userMoved = false;
     this.lastMatchMs = 0;
     this.pointers = new Map();
+    this.place = null; // job.place: the selected job's extent at the current placement
+    this.colourBy = "speed";
     new ResizeObserver(() => this.resize()).observe(canvas.parentElement);
     this.bindInput();
   }
@@ -47,7 +50,7 @@ export class ToolpathView {
     if (path) {
       path.pointArray = Float64Array.from(path.points);
       path.lengths = cumulativeLengths(path.pointArray, path.segments);
-      this.buckets = bucketize(path);
+      this.buckets = bucketize(path, this.colourBy);
     }
     this.path = path;
     this.done = 0;
@@ -59,16 +62,41 @@ export class ToolpathView {
     $("#legend").hidden = !path;
     const summary = path ? `${path.name} · ${grouped(path.segments)} segments · ${duration(path.duration_s)} planned` : "";
     $("#view-job").textContent = summary;
-    if (path) {
-      const { low, high } = this.buckets;
-      $("#legend-min").textContent = grouped(low);
-      $("#legend-max").textContent = high - low >= 1 ? grouped(high) : "";
-      $("#legend").classList.toggle("single", high - low < 1);
-      $(".legend-bar").style.background = high - low < 1 ? `rgb(${PALETTE[BUCKETS >> 1].join(",")})` : "";
-    }
+    this.legend();
     this.userMoved = false;
     this.fit();
     if (this.status) this.update(this.status);
+  }
+
+  legend() {
+    if (!this.path) return;
+    const { low, high } = this.buckets;
+    const power = this.colourBy === "power"; // powers are percent of the maximum S
+    $("#legend-min").textContent = grouped(low);
+    $("#legend-max").textContent = high - low >= 1 ? grouped(high) : "";
+    $(".legend-unit").textContent = power ? "% power" : "mm/min";
+    $("#legend").classList.toggle("single", high - low < 1);
+    const palette = power ? GREYS : PALETTE;
+    const greys = "linear-gradient(90deg, rgb(60, 60, 60), rgb(255, 255, 255))";
+    $(".legend-bar").style.background = high - low < 1 ? `rgb(${palette[BUCKETS >> 1].join(",")})`
+      : power ? greys : "";
+  }
+
+  /** Colour the path by planned speed or by laser power (a raster's greys by S). */
+  setColourBy(by) {
+    this.colourBy = by;
+    if (this.path) this.buckets = bucketize(this.path, by);
+    this.legend();
+    this.baseValid = false;
+    this.request();
+  }
+
+  /** The selected job's extent at the current placement (job.place), drawn over the bed. */
+  setPlacement(place) {
+    this.place = place;
+    this.baseValid = false;
+    if (!this.userMoved) this.fit();
+    this.request();
   }
 
   update(status) {
@@ -141,12 +169,17 @@ export class ToolpathView {
     this.request();
   }
 
+  /** What the view fits: the job and the machine's travel it is placed in. */
   extent() {
+    const travel = this.travel();
     if (this.path) {
       const { min, max } = this.path.bounds;
-      return { x0: min[0], y0: min[1], x1: max[0], y1: max[1] };
+      const job = { x0: min[0], y0: min[1], x1: max[0], y1: max[1] };
+      if (!travel) return job;
+      return { x0: Math.min(job.x0, travel.x0), y0: Math.min(job.y0, travel.y0),
+        x1: Math.max(job.x1, travel.x1), y1: Math.max(job.y1, travel.y1) };
     }
-    return this.travel() || { x0: 0, y0: 0, x1: 100, y1: 100 };
+    return travel || { x0: 0, y0: 0, x1: 100, y1: 100 };
   }
 
   /** The machine's travel in work coordinates (machine limits minus the work offset). */
@@ -213,6 +246,12 @@ export class ToolpathView {
     $("#view-zoom-in").addEventListener("click", () => this.zoomAt(1.4));
     $("#view-zoom-out").addEventListener("click", () => this.zoomAt(1 / 1.4));
     $("#view-fit").addEventListener("click", () => { this.userMoved = false; this.fit(); });
+    document.querySelectorAll("[data-colour]").forEach((button) => {
+      button.addEventListener("click", () => {
+        document.querySelectorAll("[data-colour]").forEach((b) => b.setAttribute("aria-checked", String(b === button)));
+        this.setColourBy(button.dataset.colour);
+      });
+    });
   }
 
   /** One finger pans; two fingers pinch-zoom around their midpoint. */
@@ -273,6 +312,7 @@ export class ToolpathView {
     ctx.clearRect(0, 0, this.base.width, this.base.height);
     ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
     drawGrid(ctx, this.view, this.width, this.height, this.travel());
+    if (this.place && this.status) drawPlacement(ctx, this.view, this.place, this.status.wco);
     if (this.path) {
       drawPath(ctx, this.view, this.path, this.buckets);
       if (this.done > 0) drawDone(ctx, this.view, this.path, 0, this.done);
