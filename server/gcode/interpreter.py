@@ -298,6 +298,11 @@ class Interpreter:
         """Work coordinate offset (mm): active WCS + G92 + tool length offset on Z."""
         return self._wco
 
+    def state_key(self) -> str:
+        """A fingerprint of everything a job read from here depends on (position, modal
+        state, offsets): equal keys read the same file the same way."""
+        return repr((self.position, self._modal, self._offsets, self.settings))
+
     def record_probe(self, machine_mm: Position, success: bool) -> None:
         """Remember the last probe result for ``$#`` (``[PRB:...]``)."""
         offsets = self._offsets.copy()

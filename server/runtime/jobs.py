@@ -41,6 +41,7 @@ from server.runtime.job_clock import JobClock, JobPlan, plan_job
 from server.runtime.job_reading import read_lines
 
 if TYPE_CHECKING:
+    from server.gcode.interpreter import Interpreter
     from server.runtime.kernel import Kernel
 
 log = logging.getLogger("motiond.jobs")
@@ -49,6 +50,7 @@ UPLOAD_PREFIX = ".upload-"
 # Control characters (C0, DEL, C1) and every line break str.splitlines knows.
 _BAD_NAME_CHARACTER = re.compile("[\x00-\x1f\x7f-\x9f\u2028\u2029]")
 YIELD_AFTER_S = 0.0003  # the job feeder gives other tasks a turn at least this often
+KEPT_PLANS = 4  # job plans kept for files whose plan may be asked again (bounded memory each)
 
 
 @dataclass(slots=True)
@@ -104,6 +106,7 @@ class Jobs:
         self._progress: JobProgress | None = None
         self._clock: JobClock | None = None
         self._planning: set[threading.Event] = set()  # the plans being made for job.start
+        self._plans: dict[str, tuple[tuple[object, ...], JobPlan]] = {}  # see plan()
         kernel.events.subscribe(Event.ACTION, self._on_action)
         dispatcher = kernel.dispatcher
         dispatcher.register("ls", self._ls, when_locked=True, query=True)
@@ -223,9 +226,28 @@ class Jobs:
 
     async def plan(self, name: str) -> JobPlan:
         """What the stored file ``name`` would do from the machine as it is now: time, extent
-        under the current placement, fit (read in a thread). Raises CommandError 44."""
+        under the current placement, fit (read in a thread). The last :data:`KEPT_PLANS`
+        plans are kept while neither the file nor the machine's state changes, so a job
+        placed (``job.place``, the UI's preview) starts at once. Raises CommandError 44."""
         path = self.path(name)
         interpreter = self.kernel.machine.new_interpreter(soft_limits=False, live=True)
+        try:
+            stat = await asyncio.to_thread(path.stat)
+        except OSError as exc:
+            message = f"cannot read {path.name}: {exc.strerror}"
+            raise CommandError(Error.FILE_ERROR, message) from exc
+        key = (stat.st_size, stat.st_mtime_ns, interpreter.state_key())
+        kept = self._plans.get(path.name)
+        if kept is not None and kept[0] == key:
+            return kept[1]
+        plan = await self._make_plan(path, interpreter)
+        self._plans.pop(path.name, None)
+        self._plans[path.name] = (key, plan)
+        while len(self._plans) > KEPT_PLANS:
+            del self._plans[next(iter(self._plans))]
+        return plan
+
+    async def _make_plan(self, path: Path, interpreter: Interpreter) -> JobPlan:
         stop = threading.Event()  # job.abort while the plan is made: it is dropped
         self._planning.add(stop)
         try:
@@ -349,7 +371,6 @@ class Jobs:
             if not plan.fit.fits:
                 self._fail(progress, plan.fit.describe())  # before any line: nothing moved
                 return
-            progress.lines_total = plan.lines
             machine = self.kernel.machine
             self._clock = JobClock(plan, machine.stepgen.state, counts_blocks=machine.counts_blocks)
             async with contextlib.aclosing(
@@ -403,6 +424,7 @@ class Jobs:
     def _planned(self, progress: JobProgress, plan: JobPlan) -> None:
         progress.fit = plan.fit.as_dict(self.kernel.config.core.axis_names)
         progress.estimate_s = progress.remaining_s = plan.duration_s
+        progress.lines_total = plan.lines
 
     def _fail(self, progress: JobProgress, message: str) -> None:
         progress.state, progress.error = "failed", message
