@@ -20,7 +20,6 @@ from typing import Any
 
 import aiohttp
 import pytest
-import websockets
 
 from server.api.server import http_with_api
 from server.app import App
@@ -31,6 +30,7 @@ from server.transports.serial import SerialTransport
 from server.transports.tcp import TcpTransport
 from server.transports.websocket import HttpTransport
 from tests.conftest import make_config
+from tests.support import websocket_client as wsc
 from tests.support.helpers import running
 
 TOKEN = "s3cret-token"
@@ -167,7 +167,7 @@ async def test_auth_on_an_observer_socket_never_grants_control(token: str | None
     async with running(config, transports=[http_with_api]) as app:
         query = f"mode=observe&token={token}" if token else "mode=observe"
         url = f"ws://127.0.0.1:{http_port(app)}/ws?{query}"
-        async with websockets.connect(url) as socket:
+        async with wsc.connect(url) as socket:
             await socket.send(f"$AUTH={token or 'anything'}\nG0 X5\n!")
             frames: list[str] = []
             while sum(f.startswith(("ok", "error")) for f in frames) < 2:
@@ -381,7 +381,7 @@ async def test_job_names_with_line_breaks_are_refused_and_never_listed() -> None
                                      data=b"G0 X1\n") as response:
                     body = await response.json()
                 assert response.status == 400 and "line breaks" in body["error"]["message"]
-        async with websockets.connect(f"ws://127.0.0.1:{http_port(app)}/api?token={TOKEN}") as api:
+        async with wsc.connect(f"ws://127.0.0.1:{http_port(app)}/api?token={TOKEN}") as api:
             await api.send(json.dumps({"jsonrpc": "2.0", "id": 1, "method": "job.upload",
                                        "params": {"name": "x\u2028ok", "text": "G0 X1\n"}}))
             assert "line breaks" in json.loads(await asyncio.wait_for(api.recv(), 5))[
@@ -390,7 +390,7 @@ async def test_job_names_with_line_breaks_are_refused_and_never_listed() -> None
             listed = json.loads(await asyncio.wait_for(api.recv(), 5))["result"]
             assert [job["name"] for job in listed] == ["a.nc"]
         assert sorted(p.name for p in data_dir.iterdir() if p.name.startswith("up")) == []
-        async with websockets.connect(f"ws://127.0.0.1:{http_port(app)}/ws?token={TOKEN}") as ws:
+        async with wsc.connect(f"ws://127.0.0.1:{http_port(app)}/ws?token={TOKEN}") as ws:
             await ws.send("ls\n")
             frames = [(await asyncio.wait_for(ws.recv(), 5)).strip() for _ in range(3)]
         assert frames[1:] == ["a.nc", "ok"]
