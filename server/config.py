@@ -236,7 +236,9 @@ class ProtocolConfig(Strict):
 
 
 class JobsConfig(Strict):
-    data_dir: Path = Path("~/.local/share/motiond")
+    data_dir: Path | None = Field(
+        None, description="motiond's data folder (job files in jobs/, the default machine's "
+        "settings.toml); default: the user's data folder, see server/paths.py")
     max_upload_bytes: int = Field(256 << 20, gt=0)
 
 

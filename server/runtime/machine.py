@@ -28,18 +28,14 @@ from server.gcode.interpreter import Interpreter
 from server.motion.moves import Action, ActionName, SyncKind, ToolMode
 from server.motion.planner import Planner
 from server.motion.stepgen import HoldState, StepGenerator
+from server.paths import settings_path
 from server.protocol.reports import StatusSnapshot
 from server.runtime.clock import Clock
 from server.runtime.dispatcher import Dispatcher
 from server.runtime.events import Event, EventBus, MachineState
 from server.runtime.machine_feed import GcodeFeed
 from server.runtime.machine_realtime import RealtimeCommands
-from server.runtime.parts import (
-    build_backend,
-    interpreter_settings,
-    planner_settings,
-    settings_path,
-)
+from server.runtime.parts import build_backend, interpreter_settings, planner_settings
 from server.runtime.settings import Settings
 from server.runtime.state import MachineStatus
 

@@ -212,7 +212,8 @@ async def test_an_uploaded_job_runs_to_the_end_with_progress_updates(tmp_path: P
 
 
 async def test_job_controls_pause_resume_and_abort_a_running_job(tmp_path: Path) -> None:
-    (tmp_path / "long.nc").write_text("G1 X100 F3000\nG1 X0\n")
+    (tmp_path / "jobs").mkdir()
+    (tmp_path / "jobs" / "long.nc").write_text("G1 X100 F3000\nG1 X0\n")
     async with serving(api_config(tmp_path), RealClock()) as (app, address), client(address) as rpc:
         await rpc.call("machine.subscribe", topics=["job", "status"])
         await rpc.call("job.start", name="long.nc")

@@ -370,7 +370,7 @@ async def test_reserved_slots_keep_room_for_the_token_holder() -> None:
 async def test_job_names_with_line_breaks_are_refused_and_never_listed() -> None:
     config = strict(http={"token": TOKEN})
     async with running(config, transports=[TcpTransport, http_with_api]) as app:
-        data_dir = app.kernel.jobs.data_dir
+        data_dir = app.kernel.jobs.jobs_dir
         data_dir.mkdir(parents=True, exist_ok=True)
         for name in ("a.nc", "evil\u2028ok\u2028.nc", "evil\rok.nc", "x\x85y.nc"):
             (data_dir / name).write_text("G0 X1\n")
@@ -405,13 +405,13 @@ async def test_job_names_with_line_breaks_are_refused_and_never_listed() -> None
 # -- 6. stale files ------------------------------------------------------------------------------
 async def test_uploads_interrupted_by_a_crash_are_removed_at_start_up(tmp_path: Path) -> None:
     data_dir = tmp_path / "jobs"
-    data_dir.mkdir()
+    data_dir.mkdir()  # the job files of the data folder tmp_path
     (data_dir / ".upload-k2j3h4").write_bytes(b"G0 X1\n" * 1000)
     (data_dir / "kept.nc").write_text("G0 X1\n")
     outside = tmp_path / "not-ours.txt"
     outside.write_text("precious")
     (data_dir / ".upload-link").symlink_to(outside)
-    async with running(make_config(jobs={"data_dir": str(data_dir)}), transports=[]):
+    async with running(make_config(jobs={"data_dir": str(tmp_path)}), transports=[]):
         assert sorted(p.name for p in data_dir.iterdir()) == [".upload-link", "kept.nc"]
     assert outside.read_text() == "precious"
 
