@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import argparse
 import getpass
+import os
+import pwd
 import shlex
 import shutil
 import sys
@@ -78,17 +80,22 @@ def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     sub.add_argument("--config", type=Path, help="machine config (default: the search path's)")
     sub.add_argument("--user", action="store_true",
                      help="a user unit in ~/.config/systemd/user (default: a system unit)")
-    sub.add_argument("--run-as", default=getpass.getuser(),
-                     help="the account a system unit runs as (default: the current one)")
-    sub.add_argument("--data-dir", type=Path, help="data folder (default: the account's)")
+    sub.add_argument("--run-as", default=os.environ.get("SUDO_USER") or getpass.getuser(),
+                     help="the account a system unit runs as (default: the one that ran sudo, "
+                     "else the current one)")
+    sub.add_argument("--data-dir", type=Path,
+                     help="data folder (default: that account's, ~/.local/share/motiond)")
     sub.add_argument("--log-file", type=Path, help="log file (default: the data folder's)")
     sub.add_argument("-o", "--output", type=Path,
                      help="where to write the unit; '-' prints it (default: systemd's folder)")
 
 
 def install_service(args: argparse.Namespace) -> int:
-    data_dir = (args.data_dir or platformdirs.user_data_path(paths.APP)).expanduser().resolve()
-    config = args.config or paths.find_config()
+    user_data, user_config = _folders_of(None if args.user else args.run_as)
+    data_dir = (args.data_dir or user_data).expanduser().resolve()
+    config = args.config or next((path for path in (
+        Path.cwd() / paths.CONFIG_NAME, user_config / paths.CONFIG_NAME,
+        paths.SYSTEM_CONFIG_DIR / paths.CONFIG_NAME) if path.is_file()), None)
     service = Service(
         executable=_executable(),
         config=config.expanduser().resolve() if config else None,
@@ -116,6 +123,18 @@ def install_service(args: argparse.Namespace) -> int:
           f"follow its log: journalctl {'--user ' if args.user else ''}-u motiond -f "
           f"(or {service.log_file})")
     return 0
+
+
+def _folders_of(user: str | None) -> tuple[Path, Path]:
+    """The data and config folders of ``user`` (None or the current user: platformdirs',
+    ``$XDG_*`` respected; another account, as after sudo: the defaults in its home)."""
+    if user is None or user == getpass.getuser():
+        return platformdirs.user_data_path(paths.APP), platformdirs.user_config_path(paths.APP)
+    try:
+        home = Path(pwd.getpwnam(user).pw_dir)
+    except KeyError:
+        raise SystemExit(f"motiond install-service: no such user {user!r}") from None
+    return home / ".local" / "share" / paths.APP, home / ".config" / paths.APP
 
 
 def _executable() -> Path:

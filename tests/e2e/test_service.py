@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import pwd
 import shutil
 import signal
 import socket
@@ -81,3 +82,12 @@ async def test_the_server_tells_systemd_it_is_ready_once_listening_and_logs_to_i
     logged = log_file.read_text()
     assert f"TCP listening on 127.0.0.1:{tcp_port}" in logged
     assert "stopped" in logged
+
+
+def test_a_unit_for_another_account_uses_that_accounts_data_folder(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["install-service", "--run-as", "nobody", "-o", "-"]) == 0
+    text = capsys.readouterr().out
+    home = Path(pwd.getpwnam("nobody").pw_dir).resolve()
+    assert "User=nobody" in text
+    assert f"--data-dir {home / '.local' / 'share' / 'motiond'} " in text
