@@ -17,8 +17,10 @@ RUN pip install --no-cache-dir "./[mqtt,fast]"
 USER 10001
 VOLUME ["/data"]
 # Optional: mount a config and point MOTIOND_CONFIG at it, e.g. -e MOTIOND_CONFIG=/data/motiond.toml
-ENV MOTIOND_DATA_DIR=/data/jobs
+# The data folder: job files in /data/jobs, the default machine's settings in /data/settings.toml
+ENV MOTIOND_DATA_DIR=/data
 EXPOSE 2323 8080
+# GET /health on the HTTP port: "ok" while the server runs (no session, no log line)
 HEALTHCHECK --interval=30s --timeout=3s --retries=3 \
-    CMD ["python", "-c", "import socket; socket.create_connection(('127.0.0.1', 2323), 2).close()"]
+    CMD ["python", "-c", "import urllib.request as r; r.urlopen('http://127.0.0.1:8080/health', timeout=2)"]
 CMD ["motiond", "--host", "0.0.0.0"]

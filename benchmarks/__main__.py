@@ -1,7 +1,7 @@
 """Run motiond's benchmarks by name.
 
     python -m benchmarks NAME [--quick] [--json]     # NAME: parser, planner, offline, streaming,
-                                                     #       grbl, klipper
+                                                     #       grbl, klipper, idle
     python -m benchmarks all [--quick] [--json]
     python -m benchmarks --list
 
@@ -32,6 +32,8 @@ BENCHMARKS: dict[str, tuple[str, str]] = {  # name: (module, one-line descriptio
              "lines/s through motiond to a Grbl controller against streaming to it directly"),
     "klipper": ("benchmarks.bench_klipper",
                 "Klipper backend: host CPU per second of motion at 20,000 segments/s, bytes/s"),
+    "idle": ("benchmarks.bench_idle",
+             "CPU of an idle server: motiond on the sim, the Klipper backend's event loop"),
 }
 
 

@@ -8,12 +8,15 @@ as one JSON document when asked, so runs can be compared across machines.
 from __future__ import annotations
 
 import argparse
+import atexit
 import contextlib
 import json
 import math
 import os
 import platform
+import shutil
 import sys
+import tempfile
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
@@ -23,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 REPO = Path(__file__).resolve().parent.parent
-CORPUS = Path(os.environ.get("MOTIOND_CORPUS", REPO.parent / "shared" / "corpus"))
+CORPUS = REPO / "tests" / "data" / "corpus"  # real G-code files, sources in SOURCES.md
 CPU_MODEL_KEYS = ("model name", "hardware", "cpu model", "processor")  # x86, then ARM / MIPS
 JSON_FORMAT = "motiond-benchmarks/1"
 
@@ -31,6 +34,14 @@ JSON_FORMAT = "motiond-benchmarks/1"
 def corpus_files() -> list[Path]:
     """Every G-code file of the corpus, by name."""
     return sorted(p for p in CORPUS.iterdir() if p.suffix in (".nc", ".gcode"))
+
+
+def scratch_data_dir() -> str:
+    """A data folder of the benchmark's own, removed at exit: a benchmark's server never reads
+    or writes the user's settings and jobs."""
+    path = tempfile.mkdtemp(prefix="motiond-bench-")
+    atexit.register(shutil.rmtree, path, True)
+    return path
 
 
 def cpu_seconds(work: Callable[[], object]) -> float:

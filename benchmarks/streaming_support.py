@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
 
+from benchmarks.common import scratch_data_dir
 from benchmarks.stream_client import HOST
 from server.cli import loop_factory
 from server.config import Config, StepgenConfig
@@ -39,6 +40,7 @@ def bench_config() -> Config:
         "axes": {"x": {"steps_per_mm": 80.0, **axis}, "y": {"steps_per_mm": 80.0, **axis},
                  "z": {"steps_per_mm": 400.0, **axis}},
         "tcp": {"host": HOST, "port": 0},
+        "jobs": {"data_dir": scratch_data_dir()},
     }, "bench_streaming")
 
 

@@ -36,6 +36,7 @@ from pydantic import Field
 from server.errors import Alarm, CommandError, ConfigError, Error
 from server.gcode.codes import CodeCall
 from server.motion.moves import Move, MoveKind, Output, Position, Sync, SyncKind
+from server.runtime.clock import VirtualClock
 from server.runtime.dispatcher import Command
 from server.runtime.events import Event, MachineState
 from server.runtime.module import Module, ModuleConfig, ModuleContext
@@ -43,6 +44,8 @@ from server.runtime.module import Module, ModuleConfig, ModuleContext
 LOCKED = 9
 SEEK_SCALE = 1.5  # Grbl: search up to 1.5 x the travel
 LOCATE_SCALE = 5.0  # Grbl: locate within 5 x the pull-off
+# States in which nothing moves: the switch watcher rests until the state changes.
+RESTING_STATES = frozenset({MachineState.IDLE, MachineState.ALARM, MachineState.SLEEP})
 
 
 class AxisEndstop(ModuleConfig):
@@ -99,6 +102,7 @@ class Endstops(Module):
         self._state = MachineState.IDLE
         self._abort: str | None = None
         self._active: set[str] = set()
+        self._wake = asyncio.Event()  # a state change: the resting watcher resumes
         for name in ("$H", *(f"$H{axis.name}" for axis in self.axes)):
             ctx.register_command(name, self._home_command, when_locked=True)
         ctx.register_sync(SyncKind.HOME, self._home_sync)
@@ -135,11 +139,20 @@ class Endstops(Module):
         return [Sync(SyncKind.MESSAGE, {"lines": [line]})]
 
     async def run(self) -> None:
-        """Watch the switches at ``check_hz``: a switch becoming active while moving is ALARM:1."""
+        """Watch the switches at ``check_hz``: a switch becoming active while moving is ALARM:1.
+        While nothing can move (idle, alarm, sleep) the watcher waits for a state change, then
+        takes the switches as they are (one pressed by hand meanwhile is not a new trigger); on
+        real time only, as the step generator's tick."""
         clock = self.ctx.clock
         period_s = 1.0 / self.config.check_hz
         next_s = clock.now_s()
+        may_rest = not isinstance(clock, VirtualClock)  # as the step generator's tick
         while True:
+            if may_rest and self._resting():
+                self._wake.clear()
+                await self._wake.wait()
+                self._active = {axis.switch for axis in self.triggered()}
+                next_s += (clock.now_s() - next_s) // period_s * period_s  # same phase
             next_s += period_s
             await clock.sleep_until(next_s)
             next_s = max(next_s, clock.now_s() - 0.25)
@@ -152,8 +165,13 @@ class Endstops(Module):
                 self.ctx.alarm(f"hard limit: {', '.join(sorted(new))} triggered",
                                Alarm.HARD_LIMIT)
 
+    def _resting(self) -> bool:
+        return (self._state in RESTING_STATES and not self.homing
+                and not self.ctx.motion().moving)
+
     def _on_state(self, state: MachineState) -> None:
         self._state = state
+        self._wake.set()
         if self.homing and state is not MachineState.HOME and self._abort is None:
             self._abort = f"homing aborted (machine went to {state.value})"
 

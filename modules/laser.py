@@ -33,6 +33,7 @@ is refused with ``error:45`` unless the machine is Idle and still, and ends by i
 
 from __future__ import annotations
 
+import asyncio
 from typing import Any
 
 from pydantic import Field, model_validator
@@ -41,6 +42,7 @@ from server.errors import CommandError, Error
 from server.gcode.codes import CodeCall
 from server.motion.moves import Action, MoveKind, Output, Sync, SyncKind, ToolMode
 from server.motion.stepgen import HoldState, MotionState
+from server.runtime.clock import VirtualClock
 from server.runtime.dispatcher import Command
 from server.runtime.events import Event, MachineState
 from server.runtime.module import ApiCaller, ApiParams, Module, ModuleConfig, ModuleContext
@@ -49,6 +51,8 @@ PIN_PATTERN = r"^[A-Za-z0-9_.\-]+$"
 CUTTING_KINDS = frozenset({MoveKind.FEED, MoveKind.ARC})
 OFF_STATES = frozenset({MachineState.ALARM, MachineState.HOLD, MachineState.SLEEP,
                         MachineState.DOOR})
+# States in which, with nothing moving and no fire, the power stays 0: the sampler rests.
+RESTING_STATES = OFF_STATES | {MachineState.IDLE}
 
 
 class LaserConfig(ModuleConfig):
@@ -115,6 +119,7 @@ class Laser(Module):
         self.override_percent = 100.0
         self._state = MachineState.IDLE
         self._fire_until_s: float | None = None
+        self._wake = asyncio.Event()  # a state change or a fire: the resting sampler resumes
         ctx.register_command("fire", self._fire)
         ctx.register_api_method("laser.fire", self._api_fire, FireParams, control=True)
         ctx.register_api_method("laser.off", self._api_off, control=True)
@@ -139,12 +144,20 @@ class Laser(Module):
         return self._fire_until_s is not None
 
     async def run(self) -> None:
-        """Sample the motion state at a fixed rate until cancelled; the laser ends off."""
+        """Sample the motion state at a fixed rate until cancelled; the laser ends off. While
+        the machine rests (idle, nothing moving, no fire: the power can only be 0) the sampler
+        waits for a state change or a fire instead (on real time: a virtual clock's time runs
+        only as fast as its sleepers)."""
         clock = self.ctx.clock
         period_s = self.config.period_s
         next_s = clock.now_s()
+        may_rest = not isinstance(clock, VirtualClock)  # as the step generator's tick
         try:
             while True:
+                if may_rest and self._resting():
+                    self._wake.clear()
+                    await self._wake.wait()
+                    next_s += (clock.now_s() - next_s) // period_s * period_s  # same phase
                 next_s += period_s
                 await clock.sleep_until(next_s)
                 now_s = clock.now_s()
@@ -153,6 +166,10 @@ class Laser(Module):
                 self._sample(now_s)
         finally:
             self._off_now()
+
+    def _resting(self) -> bool:
+        return (self._state in RESTING_STATES and not self.firing and self.power == 0.0
+                and not self.ctx.motion().moving)
 
     def _sample(self, now_s: float) -> None:
         if self._fire_until_s is not None:
@@ -178,6 +195,7 @@ class Laser(Module):
 
     def _on_state(self, state: MachineState) -> None:
         self._state = state
+        self._wake.set()
         if state in OFF_STATES:
             self._off_now()
         elif state is not MachineState.IDLE and self.firing:
@@ -231,6 +249,7 @@ class Laser(Module):
         now_s = self.ctx.clock.now_s()
         self._fire_until_s = now_s + duration_s
         self._apply(min(1.0, percent / 100.0) * self.config.maximum_power)
+        self._wake.set()
         return [f"[MSG:fire {percent:g}% for at most {duration_s:g}s]"]
 
     async def _api_fire(self, params: FireParams, caller: ApiCaller) -> dict[str, Any]:

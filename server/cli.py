@@ -5,17 +5,24 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
+import logging.handlers
 import os
 import signal
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from server import __version__
 from server.config import Config
 from server.config_loader import load_config
 from server.errors import ConfigError
+from server.paths import find_config
 from server.runtime import realtime
+
+if TYPE_CHECKING:
+    from server.app import App
+    from server.runtime.sdnotify import Notifier
 
 log = logging.getLogger("motiond")
 LOOPS = ("auto", "uvloop", "asyncio")
@@ -51,6 +58,10 @@ def build_parser() -> argparse.ArgumentParser:
         choices=["debug", "info", "warning", "error"],
         help="default: info",
     )
+    parser.add_argument(
+        "--log-file", type=Path, default=_env_path("MOTIOND_LOG_FILE"),
+        help="also log to this file, reopened when logrotate moves it (default: "
+        "$MOTIOND_LOG_FILE, else stderr only)")
     commands = parser.add_subparsers(dest="command", metavar="COMMAND")
     serve = commands.add_parser("serve", help="run the server (the default command)")
     _serve_options(serve, after_command=True)
@@ -88,6 +99,9 @@ def build_parser() -> argparse.ArgumentParser:
             sub.add_argument("--power", action="store_true",
                              help="grey by laser power (S) instead of colour by speed")
     _fleet_options(commands)
+    from server.service import add_parser as add_service_parser
+
+    add_service_parser(commands)
     return parser
 
 
@@ -139,7 +153,8 @@ def _serve_options(parser: argparse.ArgumentParser, *, after_command: bool = Fal
         "--config",
         type=Path,
         default=_env_path("MOTIOND_CONFIG"),
-        help="machine config file (default: $MOTIOND_CONFIG, else embedded)",
+        help="machine config file (default: $MOTIOND_CONFIG, else motiond.toml in ./, "
+        "~/.config/motiond or /etc/motiond, else embedded)",
     )
     parser.add_argument("--host", help="bind address for TCP and HTTP (overrides config)")
     parser.add_argument("--tcp-port", type=int, help="raw TCP port (default 2323)")
@@ -157,7 +172,8 @@ def _serve_options(parser: argparse.ArgumentParser, *, after_command: bool = Fal
         "--data-dir",
         type=Path,
         default=_env_path("MOTIOND_DATA_DIR"),
-        help="job files directory (default: $MOTIOND_DATA_DIR, else config)",
+        help="data folder: job files in jobs/, settings (default: $MOTIOND_DATA_DIR, else "
+        "[jobs] data_dir, else the user's data folder)",
     )
     if after_command:
         for action in parser._actions:  # noqa: SLF001 - argparse has no public way
@@ -172,9 +188,12 @@ def _env_path(name: str) -> Path | None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(
-        level=args.log_level.upper(), format="%(asctime)s %(levelname)-7s %(name)s: %(message)s"
-    )
+    try:
+        setup_logging(args.log_level, args.log_file)
+    except OSError as exc:
+        print(f"motiond: cannot open the log file {args.log_file}: {exc.strerror}",
+              file=sys.stderr)
+        return 2
     try:
         if args.command == "check-config":
             return check_config(args.file)
@@ -182,7 +201,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             from modules.mqtt.fleet import fleet_command
 
             return fleet_command(args)
-        config = load_config(args.config)
+        if args.command == "install-service":
+            from server.service import install_service
+
+            return install_service(args)
+        config = load_config(args.config or find_config())
         if args.command == "estimate":
             from server.offline.commands import estimate_command
 
@@ -199,6 +222,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         return 0
+
+
+def setup_logging(level: str, log_file: Path | None) -> None:
+    """Log to stderr and, with ``--log-file``, to a file as well."""
+    handlers: list[logging.Handler] = [logging.StreamHandler()]
+    if log_file is not None:
+        log_file = log_file.expanduser()
+        log_file.parent.mkdir(parents=True, exist_ok=True)
+        handlers.append(logging.handlers.WatchedFileHandler(log_file))
+    logging.basicConfig(
+        level=level.upper(), format="%(asctime)s %(levelname)-7s %(name)s: %(message)s",
+        handlers=handlers, force=log_file is not None)
 
 
 def check_config(path: Path) -> int:
@@ -289,6 +324,7 @@ def _no_open_door(config: Config) -> None:
 
 async def _serve(config: Config) -> int:
     from server.app import App
+    from server.runtime.sdnotify import Notifier
     from server.transports import default_transports
 
     loop = asyncio.get_running_loop()
@@ -299,9 +335,20 @@ async def _serve(config: Config) -> int:
     log.info("motiond %s: %s (event loop: %s)", __version__, config.core.machine.name,
              type(loop).__module__.split(".")[0])
     log.info("the event loop's thread runs at %s", priority.detail)
-    await app.run()
+    notifier = Notifier.from_environment()
+    ready = asyncio.create_task(_tell_systemd_when_ready(app, notifier), name="sd-notify")
+    try:
+        await app.run()
+    finally:
+        ready.cancel()
+        notifier.notify("STOPPING=1")
     log.info("stopped")
     return 0
+
+
+async def _tell_systemd_when_ready(app: App, notifier: Notifier) -> None:
+    await app.ready.wait()
+    notifier.notify("READY=1", f"STATUS=serving {app.kernel.config.core.machine.name}")
 
 
 if __name__ == "__main__":

@@ -8,13 +8,15 @@ are errors.
 
 from __future__ import annotations
 
+import difflib
 import tomllib
 from collections.abc import Mapping
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from types import UnionType
+from typing import Any, Union, get_args, get_origin
 
-from pydantic import ValidationError
+from pydantic import BaseModel, ValidationError
 
 from server.config import Config, CoreConfig, ModuleSpec
 from server.errors import ConfigError
@@ -58,7 +60,7 @@ def build_config(
     try:
         core = CoreConfig.model_validate(core_data)
     except ValidationError as exc:
-        problems += _describe(label, exc, ())
+        problems += _describe(label, exc, (), CoreConfig)
     specs: list[ModuleSpec] = []
     for section, body in data.items():
         if section in CORE_SECTIONS:
@@ -78,8 +80,9 @@ def _module_specs(
 ) -> list[ModuleSpec]:
     cls = registry.get(section)
     if cls is None:
-        known = ", ".join(sorted([*CORE_SECTIONS, *registry]))
-        problems.append(f"{label}: [{section}]: unknown section (known: {known})")
+        names = sorted([*CORE_SECTIONS, *registry])
+        guess = _did_you_mean(section, names, "[{}]")
+        problems.append(f"{label}: [{section}]: unknown section{guess} (known: {', '.join(names)})")
         return []
     if not isinstance(body, dict):
         problems.append(f"{label}: [{section}]: must be a table")
@@ -108,17 +111,24 @@ def _one_spec(
     try:
         config = cls.Config.model_validate(body)
     except ValidationError as exc:
-        problems += _describe(label, exc, (section,))
+        problems += _describe(label, exc, (section,), cls.Config)
         return []
     return [ModuleSpec(cls, section, instance, config)]
 
 
-def _describe(label: str, exc: ValidationError, prefix: tuple[str, ...]) -> list[str]:
-    """One line per pydantic error: ``FILE: [section] key: message``."""
+def _describe(
+    label: str, exc: ValidationError, prefix: tuple[str, ...], model: type[BaseModel]
+) -> list[str]:
+    """One line per pydantic error: ``FILE: [section] key: message``; an unknown key names the
+    known key it is closest to."""
     lines = []
     for error in exc.errors():
         loc = prefix + tuple(str(part) for part in error["loc"])
         message = _message(error)
+        if error["type"] == "extra_forbidden" and loc:
+            parent = _model_at(model, tuple(str(part) for part in error["loc"][:-1]))
+            if parent is not None:
+                message += _did_you_mean(loc[-1], list(parent.model_fields), "{}")
         if isinstance(error.get("input"), dict) and error["type"] != "missing":
             lines.append(f"{label}: [{'.'.join(loc)}]: {message}" if loc else f"{label}: {message}")
         elif len(loc) == 0:
@@ -128,6 +138,41 @@ def _describe(label: str, exc: ValidationError, prefix: tuple[str, ...]) -> list
         else:
             lines.append(f"{label}: [{'.'.join(loc[:-1])}] {loc[-1]}: {message}")
     return lines
+
+
+def _did_you_mean(name: str, known: list[str], form: str) -> str:
+    """`` (did you mean X?)`` for the closest known name, if one is close."""
+    close = difflib.get_close_matches(name, known, n=1, cutoff=0.6)
+    return f" (did you mean {form.format(close[0])}?)" if close else ""
+
+
+def _model_at(model: type[BaseModel], path: tuple[str, ...]) -> type[BaseModel] | None:
+    """The model that validates the table at ``path`` (through ``dict[str, Model]`` tables
+    such as ``[axes.x]`` and optional tables), or None."""
+    current: Any = model
+    for part in path:
+        if _is_model(current):
+            field = current.model_fields.get(part)
+            if field is None:
+                return None
+            current = _table_type(field.annotation)
+        elif get_origin(current) is dict:
+            current = _table_type(get_args(current)[1])
+        else:
+            return None
+    return current if _is_model(current) else None
+
+
+def _table_type(annotation: Any) -> Any:
+    """A model or ``dict`` from an annotation, looking inside ``X | None``."""
+    if get_origin(annotation) in (Union, UnionType):
+        return next((arg for arg in get_args(annotation)
+                     if _is_model(arg) or get_origin(arg) is dict), None)
+    return annotation
+
+
+def _is_model(value: Any) -> bool:
+    return isinstance(value, type) and issubclass(value, BaseModel)
 
 
 def _message(error: Mapping[str, Any]) -> str:

@@ -1,4 +1,5 @@
-"""Shared fixtures: configs built from dicts, and the corpus folder."""
+"""Shared fixtures: configs built from dicts, the corpus folder, the firmware rigs, and a
+stand-in home folder, so no test reads or writes the user's."""
 
 from __future__ import annotations
 
@@ -15,9 +16,9 @@ from server.config import Config
 from server.config_loader import build_config
 
 REPO = Path(__file__).resolve().parent.parent
-CORPUS = Path(os.environ.get("MOTIOND_CORPUS", REPO.parent / "shared" / "corpus"))
-if not CORPUS.is_dir():  # a checkout with shared/ beside it (CI) or inside the repo's parent
-    CORPUS = REPO / ".." / "shared" / "corpus"
+CORPUS = REPO / "tests" / "data" / "corpus"  # real G-code files, sources in SOURCES.md
+# The firmware rigs (real firmware in simulators) are the one thing outside the repository.
+RIGS = Path(os.environ.get("MOTIOND_RIGS", REPO.parent / "shared" / "rigs"))
 
 BASE: dict[str, Any] = {
     "axes": {
@@ -33,10 +34,42 @@ BASE: dict[str, Any] = {
 
 # Every data directory of a run lives under one folder, removed when the run ends.
 DATA_ROOT = Path(tempfile.mkdtemp(prefix="motiond-tests-"))
+# The user's home and XDG folders point into it for the whole run (server processes inherit
+# them): a server a test started without a data folder of its own would use these, and the run
+# fails at its end (below) instead of reading or changing the user's settings and jobs.
+HOME = DATA_ROOT / "home"
+HOME_VARIABLES = {
+    "HOME": HOME, "XDG_DATA_HOME": HOME / ".local" / "share",
+    "XDG_CONFIG_HOME": HOME / ".config", "XDG_STATE_HOME": HOME / ".local" / "state",
+    "XDG_CACHE_HOME": HOME / ".cache",
+}
+for _name, _folder in HOME_VARIABLES.items():
+    _folder.mkdir(parents=True, exist_ok=True)
+    os.environ[_name] = str(_folder)
+os.environ.pop("MOTIOND_DATA_DIR", None)
+os.environ.pop("MOTIOND_CONFIG", None)
+
+
+def motiond_files_in_home() -> list[Path]:
+    """What some test's server wrote to the stand-in home: motiond's own folders."""
+    return sorted(path for path in HOME.rglob("*") if path.name == "motiond")
 
 
 def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    stray = motiond_files_in_home()
     shutil.rmtree(DATA_ROOT, ignore_errors=True)
+    if stray:
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
+        print(f"\nFAILED: a test's server used the home folder instead of its own: {stray}")
+
+
+def rig(name: str) -> Path:
+    """The folder of a firmware rig (``../shared/rigs/NAME`` or ``$MOTIOND_RIGS/NAME``); the
+    calling test is skipped, naming the rig, only when the folder is absent."""
+    folder = RIGS / name
+    if not folder.is_dir():
+        pytest.skip(f"the {name} rig is not at {folder} (set MOTIOND_RIGS)")
+    return folder
 
 
 def make_config(extra: dict[str, Any] | None = None, **sections: Any) -> Config:

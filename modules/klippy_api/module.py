@@ -36,6 +36,7 @@ from modules.klippy_api import wire
 from modules.klippy_api.gcode import HELP
 from modules.klippy_api.session import Session, response_text
 from server import __version__
+from server.paths import jobs_dir
 from server.runtime.events import Event
 from server.runtime.module import Module, ModuleConfig, ModuleContext
 
@@ -143,7 +144,7 @@ class KlippyApi(Module):
         return printer.Machine(
             (low[0], low[1], low[2]), (high[0], high[1], high[2]),
             max(axis.max_rate_mm_s for axis in planar), max(axis.accel_mm_s2 for axis in planar),
-            core.jobs.data_dir.expanduser().resolve(), homeable, dict(HELP))
+            jobs_dir(core).resolve(), homeable, dict(HELP))
 
     async def _push_status(self) -> None:
         period_s = 1.0 / self.config.status_hz

@@ -30,7 +30,12 @@ class Piece:
 
 
 class Backend(Protocol):
-    """What a hardware or simulated machine must provide."""
+    """What a hardware or simulated machine must provide.
+
+    A backend whose ``sample()`` watches nothing may say ``ticks_when_idle = False`` (as
+    :class:`NoHardware` does): the step generator then sleeps while nothing moves. Without it,
+    it is ticked at ``tick_hz`` always.
+    """
 
     wants_trajectory: bool
     """Whether :meth:`trajectory` is used (the step generator builds no pieces otherwise)."""
@@ -115,6 +120,7 @@ class NoHardware:
     null machines): no trajectory, nothing queued to halt, no drivers, no task to run."""
 
     wants_trajectory = False
+    ticks_when_idle = False  # nothing to watch: the step generator sleeps while idle
 
     def trajectory(self, piece: Piece) -> None:
         pass

@@ -125,6 +125,10 @@ class StepGenerator:
         # backends that time their own steps get the trajectory as pieces
         self._pieces = PieceReporter(backend) if backend.wants_trajectory else None
         self._resume_when_stopped = False
+        # Called when motion may start (input, a start request): :meth:`run` sleeps while idle.
+        self.wake: Callable[[], None] = lambda: None
+        # A backend that watches its hardware from sample() (Klipper) is ticked even when idle.
+        self._ticks_when_idle = bool(getattr(backend, "ticks_when_idle", True))
 
     # -- control (called by the machine) ----------------------------------------------------
     @property
@@ -132,13 +136,21 @@ class StepGenerator:
         """Nothing executing, nothing queued."""
         return self._cursor.block is None and len(self.planner) == 0
 
+    @property
+    def can_sleep(self) -> bool:
+        """Nothing to tick for until :attr:`wake` is called: idle, not held, and a backend
+        that needs no ticks while nothing moves."""
+        return self.idle and self.state.hold is HoldState.NONE and not self._ticks_when_idle
+
     def note_input(self, now_s: float) -> None:
         """A block was appended at ``now_s``: motion starts after a short settling delay."""
         self.last_input_s = now_s
+        self.wake()
 
     def request_start(self) -> None:
         """Start executing queued blocks at the next tick, without waiting for more input."""
         self.flush_requested = True
+        self.wake()
 
     def hold(self) -> None:
         """Feed hold: decelerate to a stop along the path."""
@@ -411,10 +423,14 @@ class StepGenerator:
         after_tick: Callable[[], None] = lambda: None,
         on_fault: Callable[[Exception], None] | None = None,
         give_turn: Callable[[], Awaitable[None]] | None = None,
+        wait_for_work: Callable[[], Awaitable[None]] | None = None,
     ) -> None:
         """Tick at ``tick_hz`` on ``clock`` forever; late ticks catch up on the next call.
         ``give_turn`` lets the loop run other callbacks in the middle of a late tick (the
         runtime passes ``asyncio.sleep(0)``; default: a zero sleep on ``clock``).
+        ``wait_for_work`` returns once :attr:`wake` has been called: while :attr:`can_sleep`,
+        the task waits on it instead of ticking (an idle server costs no CPU), and the timeline
+        resumes at the wake-up (default: tick always).
 
         A tick that raises (a failing backend) is reported to ``on_fault``, which must stop
         motion; the task keeps ticking, so the server stays up and answers.
@@ -422,6 +438,10 @@ class StepGenerator:
         next_s = clock.now_s()
         self._last_tick_s = next_s
         while True:
+            if wait_for_work is not None and self.can_sleep:
+                await wait_for_work()
+                next_s = clock.now_s()
+                self._last_tick_s = next_s  # no catching up on the time slept
             next_s += self.tick_s
             await clock.sleep_until(next_s)
             now_s = clock.now_s()

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import gc
+import importlib.util
 import json
 import sys
 from collections.abc import Callable, Iterator
@@ -159,6 +160,9 @@ def render_command(args: Any, config: Config) -> int:
     output: Path = args.output
     if output.suffix.lower() not in (".svg", ".png"):
         print("motiond: the output must end in .svg or .png", file=sys.stderr)
+        return 2
+    if importlib.util.find_spec("matplotlib") is None:
+        print("motiond render needs matplotlib: pip install 'motiond[render]'", file=sys.stderr)
         return 2
     try:
         lines = _read_lines(path)

@@ -32,7 +32,9 @@ from __future__ import annotations
 
 import asyncio
 import inspect
+import math
 import re
+import time
 from collections import defaultdict
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
@@ -126,6 +128,7 @@ class Dispatcher:
         self._owner: Source | None = None
         self._closed = False
         self._immediate: set[str] = set()
+        self.last_command_s = -math.inf  # time.monotonic() of the latest submit()
 
     def register(
         self, name: str, handler: Handler, *, when_locked: bool = False, query: bool = False
@@ -178,6 +181,7 @@ class Dispatcher:
         """
         if self._closed:
             raise CommandError(Error.BUSY, "shutting down")
+        self.last_command_s = time.monotonic()
         named = _NAMED.match(text.strip())
         if named and _key(named.group(1)) in self._immediate:
             return await self.execute(text, source)

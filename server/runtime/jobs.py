@@ -1,18 +1,19 @@
 """Stored job files: upload, list, play through the dispatcher, progress, abort, suspend.
 
-Files live flat in the data directory (a Docker volume). A name is a plain file name: no
-folders, no ``..``, no leading dot, no control character and nothing ``str.splitlines`` splits
-on (a name is sent inside reply and pushed lines: ``\n``, ``\r``, U+2028... would break them
-into several lines, a bare ``ok`` among them); Smoothie's ``/sd/`` prefix is accepted and
-dropped. A file on disk whose name breaks these rules is never listed. Uploads are written to a
-hidden ``.upload-*`` file and renamed; such files left by a crash are removed at start-up.
-Playing a file streams its lines through the same dispatcher a sender uses, so the job is
-executed, flow-controlled and error-checked exactly like streamed G-code; the first line that
-is refused stops the job with a message naming the line. A line answered downstream (a Grbl
-controller) is deferred by the dispatcher: the job sends on while it is in the controller's
-buffer and stops at the first answer that is an error. File I/O runs in a thread. A job file
-is never held in memory whole: it is planned (time, extent, fit) by reading it through once in a
-thread before anything moves, then its lines are read again as they are sent.
+Files live flat in the data folder's ``jobs/`` (:func:`server.paths.jobs_dir`). A name is a
+plain file name: no folders, no ``..``, no leading dot, no control character and nothing
+``str.splitlines`` splits on (a name is sent inside reply and pushed lines: ``\n``, ``\r``,
+U+2028... would break them into several lines, a bare ``ok`` among them); Smoothie's ``/sd/``
+prefix is accepted and dropped. A file on disk whose name breaks these rules is never listed.
+Uploads are written to a hidden ``.upload-*`` file and renamed; such files left by a crash are
+removed at start-up. Playing a file streams its lines through the same dispatcher a sender
+uses, so the job is executed, flow-controlled and error-checked exactly like streamed G-code;
+the first line that is refused stops the job with a message naming the line. A line answered
+downstream (a Grbl controller) is deferred by the dispatcher: the job sends on while it is in
+the controller's buffer and stops at the first answer that is an error. File I/O runs in a
+thread. A job file is never held in memory whole: it is planned (time, extent, fit) by reading
+it through once in a thread before anything moves, then its lines are read again as they are
+sent.
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from server.errors import CommandError, Error
 from server.gcode.parser import check_length
 from server.motion.moves import Action, ActionName
 from server.offline.stats import format_duration
+from server.paths import jobs_dir
 from server.runtime.dispatcher import Command
 from server.runtime.events import Event, MachineState
 from server.runtime.job_clock import JobClock, JobPlan, plan_job
@@ -99,9 +101,9 @@ class Jobs:
 
     def __init__(self, kernel: Kernel) -> None:
         self.kernel = kernel
-        self.data_dir = kernel.config.core.jobs.data_dir.expanduser()
+        self.jobs_dir = jobs_dir(kernel.config.core)
         self.max_bytes = kernel.config.core.jobs.max_upload_bytes
-        remove_stale_uploads(self.data_dir)
+        remove_stale_uploads(self.jobs_dir)
         self._task: asyncio.Task[None] | None = None
         self._progress: JobProgress | None = None
         self._clock: JobClock | None = None
@@ -137,17 +139,17 @@ class Jobs:
         )
         if bad:
             raise CommandError(Error.FILE_ERROR, f"invalid job file name {name!r}")
-        path = (self.data_dir / name).resolve()
-        if path.parent != self.data_dir.resolve():
+        path = (self.jobs_dir / name).resolve()
+        if path.parent != self.jobs_dir.resolve():
             raise CommandError(Error.FILE_ERROR, f"invalid job file name {name!r}")
         return path
 
     def files(self) -> list[JobFile]:
         """Stored job files, by name."""
-        if not self.data_dir.is_dir():
+        if not self.jobs_dir.is_dir():
             return []
         files = []
-        for entry in os.scandir(self.data_dir):
+        for entry in os.scandir(self.jobs_dir):
             if entry.is_file() and valid_name(entry.name):
                 info = entry.stat()
                 files.append(JobFile(entry.name, info.st_size, info.st_mtime))
@@ -164,8 +166,8 @@ class Jobs:
     ) -> JobFile:
         """Write a file atomically (temp file, then rename); nothing is left behind on error."""
         path = self.path(name)
-        await asyncio.to_thread(self.data_dir.mkdir, parents=True, exist_ok=True)
-        handle, temp = await asyncio.to_thread(_temp_file, self.data_dir)
+        await asyncio.to_thread(self.jobs_dir.mkdir, parents=True, exist_ok=True)
+        handle, temp = await asyncio.to_thread(_temp_file, self.jobs_dir)
         size = 0
         try:
             async for chunk in chunks:

@@ -180,6 +180,7 @@ class _Context:
 
 
 LOCKED_STATES = frozenset({MachineState.ALARM, MachineState.SLEEP})  # $X / Ctrl-X to leave
+QUIET_AFTER_S = 1.0  # no command for this long (and nothing moving): the loop monitor slows
 
 
 class LoopMonitor:
@@ -193,10 +194,17 @@ class LoopMonitor:
     own work (callbacks, garbage collection) delayed the loop, without the time the OS gave the
     CPU to other processes, which is what most stalls are on a loaded machine.
     It also wakes the kernel's :class:`~server.runtime.gcpacer.GcPacer`, if any.
+    While ``is_quiet()`` (nothing moves, no command for a while) it sleeps ``quiet_period_s``
+    instead, so an idle server does not wake a thousand times a second; a stall then still
+    shows as a late wake-up, if a coarser one.
     """
 
-    def __init__(self, period_s: float = 0.001, gc_pacer: GcPacer | None = None) -> None:
+    def __init__(self, period_s: float = 0.001, gc_pacer: GcPacer | None = None,
+                 is_quiet: Callable[[], bool] = lambda: False,
+                 quiet_period_s: float = 0.05) -> None:
         self.period_s = period_s
+        self.quiet_period_s = quiet_period_s
+        self.is_quiet = is_quiet
         self.gc_pacer = gc_pacer  # woken with the monitor: see server.runtime.gcpacer
         self.worst_stall_s = 0.0
         self.worst_cpu_stall_s = 0.0
@@ -208,9 +216,10 @@ class LoopMonitor:
         before_s, cpu_before_s = time.monotonic(), time.thread_time()
         try:
             while True:
-                await asyncio.sleep(self.period_s)
+                period_s = self.quiet_period_s if self.is_quiet() else self.period_s
+                await asyncio.sleep(period_s)
                 woke_s, cpu_s = time.monotonic(), time.thread_time()
-                late_s = woke_s - before_s - self.period_s
+                late_s = woke_s - before_s - period_s
                 if late_s > self.worst_stall_s:
                     self.worst_stall_s = late_s
                 cpu_late_s = min(late_s, cpu_s - cpu_before_s)
@@ -256,7 +265,8 @@ class Kernel:
         self.machine.register_commands(self.dispatcher)
         self._load_modules(config)
         commands.register_fallbacks(self.dispatcher)
-        self.loop_monitor = LoopMonitor(gc_pacer=GcPacer(lambda: not self.machine.stepgen.idle))
+        self.loop_monitor = LoopMonitor(gc_pacer=GcPacer(lambda: not self.machine.stepgen.idle),
+                                        is_quiet=self._quiet)
         self._stop = asyncio.Event()
         self.started = asyncio.Event()
         self.stopped = False
@@ -319,6 +329,11 @@ class Kernel:
             for task in tasks:
                 task.cancel()
         self.stopped = True
+
+    def _quiet(self) -> bool:
+        """Nothing moves and no command came for a second."""
+        return (self.machine.stepgen.can_sleep
+                and time.monotonic() - self.dispatcher.last_command_s > QUIET_AFTER_S)
 
     def stop(self) -> None:
         """Ask :meth:`run` to end: tools off, motion stopped, tasks cancelled. Repeatable."""

@@ -28,18 +28,14 @@ from server.gcode.interpreter import Interpreter
 from server.motion.moves import Action, ActionName, SyncKind, ToolMode
 from server.motion.planner import Planner
 from server.motion.stepgen import HoldState, StepGenerator
+from server.paths import settings_path
 from server.protocol.reports import StatusSnapshot
-from server.runtime.clock import Clock
+from server.runtime.clock import Clock, VirtualClock
 from server.runtime.dispatcher import Command, Dispatcher
 from server.runtime.events import Event, EventBus, MachineState
 from server.runtime.machine_feed import GcodeFeed
 from server.runtime.machine_realtime import RealtimeCommands
-from server.runtime.parts import (
-    build_backend,
-    interpreter_settings,
-    planner_settings,
-    settings_path,
-)
+from server.runtime.parts import build_backend, interpreter_settings, planner_settings
 from server.runtime.settings import Settings
 from server.runtime.state import MachineStatus
 
@@ -88,6 +84,8 @@ class Machine(GcodeFeed, RealtimeCommands):
             tick_hz=core.stepgen.tick_hz,
         )
         self.room = asyncio.Event()
+        self._work = asyncio.Event()  # motion may start: the step generator stops sleeping
+        self.stepgen.wake = self._work.set
         self.idle_event = asyncio.Event()
         self.idle_event.set()
         self.check_mode = False
@@ -235,16 +233,26 @@ class Machine(GcodeFeed, RealtimeCommands):
 
     # -- the task ---------------------------------------------------------------------------
     async def run(self) -> None:
-        """The step generator task; also wakes writers waiting for planner room."""
+        """The step generator task; also wakes writers waiting for planner room. On real time
+        the tick sleeps while nothing moves; on a virtual clock it always ticks, since the
+        clock's time runs only as fast as its sleepers (file reads in threads would otherwise
+        see seconds jump by)."""
         backend_task = asyncio.create_task(self.backend.run(), name="backend")
+        sleeps = not isinstance(self.clock, VirtualClock)
         try:
             await self.stepgen.run(
-                self.clock, self._after_tick, self._backend_fault, give_turn=_give_turn
+                self.clock, self._after_tick, self._backend_fault, give_turn=_give_turn,
+                wait_for_work=self._wait_for_work if sleeps else None,
             )
         finally:
             backend_task.cancel()
             await asyncio.gather(backend_task, return_exceptions=True)
             self.backend.close()
+
+    async def _wait_for_work(self) -> None:
+        """Until the step generator is woken (checked and cleared in one turn: no race)."""
+        self._work.clear()
+        await self._work.wait()
 
     def _backend_fault(self, exc: Exception) -> None:
         """A tick raised: stop everything and alarm once (later failures are only logged).

@@ -1,24 +1,14 @@
 """The machine's parts from its config: the backend, the interpreter's and the planner's
-settings, and where ``$x=value`` settings persist."""
+settings."""
 
 from __future__ import annotations
-
-from pathlib import Path
 
 from server.backends.base import Backend
 from server.backends.null import NullBackend
 from server.backends.sim import SimBackend
-from server.config import Config, CoreConfig
+from server.config import CoreConfig
 from server.gcode.interpreter import InterpreterSettings
 from server.motion.planner import PlannerSettings
-
-
-def settings_path(config: Config) -> Path:
-    """Where ``$x=value`` settings persist: beside the config file, else in the data dir."""
-    path = config.path
-    if path is not None:
-        return path.with_name(path.stem + ".settings.toml")
-    return config.core.jobs.data_dir.expanduser() / ".settings.toml"  # not a job
 
 
 def build_backend(core: CoreConfig) -> Backend:

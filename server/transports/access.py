@@ -22,11 +22,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 from urllib.parse import urlsplit
 
+from server.paths import data_dir
+
 if TYPE_CHECKING:
     from server.config import CoreConfig
 
 log = logging.getLogger("motiond.http")
-TOKEN_FILE = ".token"  # in the data directory (hidden: never listed or served as a job)
+TOKEN_FILE = ".token"  # in the data folder, beside (never in) its jobs/ folder
 IpAddress = ipaddress.IPv4Address | ipaddress.IPv6Address
 LOCAL_NAMES = ("localhost", "127.0.0.1", "::1", "*.localhost")
 NAME_LOOKUP_TIMEOUT_S = 2.0
@@ -198,7 +200,7 @@ def close_open_door(core: CoreConfig) -> Path | None:
     open_http = core.http.enabled and not is_loopback(core.http.host) and http_token is None
     if not (open_tcp or open_http):
         return None
-    path = core.jobs.data_dir.expanduser() / TOKEN_FILE
+    path = data_dir(core) / TOKEN_FILE
     token = _stored_token(path)
     if line_token is None:
         core.protocol.token = token

@@ -80,7 +80,7 @@ class SerialTransport:
             self.pty.close()
 
     async def _serve_device(self, device: str) -> None:
-        import serial_asyncio  # pyserial-asyncio
+        import serial_asyncio_fast as serial_asyncio  # pyserial-asyncio-fast
 
         from server.transports.tcp import serve_stream
 

@@ -5,9 +5,11 @@ also UTF-8 encoded), one text frame per reply or pushed line out. Other routes (
 uploads) are added by :func:`add_routes` hooks.
 
 Every request must name an allowed host (:mod:`server.transports.access`), or gets 403, static
-files included. WebSockets also need an allowed origin and a free slot: those that presented
-the token and those that did not are counted apart, and the latter are closed after
-``[http] idle_timeout_s`` without a message. A message is bounded once decompressed
+files included; ``/health`` (Docker's ``HEALTHCHECK``: ``ok``) answers any host. An unknown path
+gets a plain-text 404, logged (one line per second at most, with the count of the others).
+WebSockets also need an allowed origin and a free slot: those that presented the token and
+those that did not are counted apart, and the latter are closed after ``[http]
+idle_timeout_s`` without a message. A message is bounded once decompressed
 (``ws_max_message_bytes``: close 1009) and fed to the session a slice at a time, so one large
 message never holds the loop. A request's headers must arrive within ``request_timeout_s``.
 Request bodies are never inflated (``Content-Encoding`` is refused where a body is read) and
@@ -20,6 +22,8 @@ import asyncio
 import contextlib
 import itertools
 import logging
+import math
+import time
 from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
 from importlib import resources
 from pathlib import Path
@@ -47,6 +51,24 @@ RouteHook = Callable[["HttpTransport", web.Application], None]
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 HEARTBEAT_S = 20.0
 SLICE_CHARS = 1024  # of one /ws message per loop turn (TCP reads 4096 bytes a turn)
+
+
+class NotFoundLog:
+    """Logs requests for unknown paths: one line per ``interval_s``, counting the rest."""
+
+    def __init__(self, interval_s: float = 1.0) -> None:
+        self.interval_s = interval_s
+        self._logged_s = -math.inf
+        self._unlogged = 0
+
+    def note(self, request: web.Request) -> None:
+        now_s = time.monotonic()
+        if now_s - self._logged_s < self.interval_s:
+            self._unlogged += 1
+            return
+        others = f" (and {self._unlogged} more since)" if self._unlogged else ""
+        log.info("404 %s %r from %s%s", request.method, request.path, request.remote, others)
+        self._logged_s, self._unlogged = now_s, 0
 
 
 def _browsable(host: str) -> str:
@@ -93,6 +115,7 @@ class HttpTransport:
             client_max_size=kernel.config.core.jobs.max_upload_bytes, middlewares=[self._guard]
         )
         self.app.router.add_get("/ws", self._line_socket)
+        self.app.router.add_get("/health", self._health)
         for hook in route_hooks:
             hook(self, self.app)
         self.app.router.add_get("/", self._index)
@@ -101,6 +124,7 @@ class HttpTransport:
         self._sockets: set[web.WebSocketResponse] = set()
         self._ids = itertools.count(1)
         self._login_guard = login_guard(kernel)
+        self._not_found = NotFoundLog()
 
     async def start(self) -> None:
         if self.config.allowed_hosts is None:
@@ -137,10 +161,31 @@ class HttpTransport:
     async def _guard(self, request: web.Request, handler: Handler) -> web.StreamResponse:
         """Every route: a ``Host`` this server does not answer to is a rebinding page: 403."""
         host = request.headers.get("Host")
-        if not self.hosts.allows(host):
+        if not self.hosts.allows(host) and request.path != "/health":
             self.hosts.note_refused(str(host), request.path)
             raise web.HTTPForbidden(text="host not allowed")
-        return await handler(request)
+        try:
+            if not await self._static_file_exists(request):
+                raise web.HTTPNotFound()
+            return await handler(request)
+        except web.HTTPNotFound:
+            self._not_found.note(request)
+            return web.Response(status=404, text="404: not found\n",
+                                headers={"X-Content-Type-Options": "nosniff"})
+
+    async def _static_file_exists(self, request: web.Request) -> bool:
+        """False for a web UI path with no file (aiohttp would answer an empty 404 typed
+        application/octet-stream, which a browser downloads); the static handler still makes
+        every other check (paths that leave the folder are its 404s)."""
+        resource = request.match_info.route.resource
+        if not isinstance(resource, web.StaticResource):
+            return True
+        path = web_root() / request.match_info.get("filename", "")
+        return await asyncio.to_thread(path.is_file)
+
+    async def _health(self, request: web.Request) -> web.StreamResponse:
+        """The server answers: its loop runs (an alarm is the machine's state, not ill health)."""
+        return web.Response(text="ok\n", headers={"Cache-Control": "no-store"})
 
     async def _index(self, request: web.Request) -> web.StreamResponse:
         return web.FileResponse(web_root() / "index.html")

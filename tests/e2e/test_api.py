@@ -1,20 +1,19 @@
-"""The JSON API at /api, over a real WebSocket client (``websockets``) and real TCP ports."""
+"""The JSON API at /api, over a real WebSocket client (aiohttp's) and real TCP ports."""
 
 from __future__ import annotations
 
 import asyncio
 import json
-import socket
 from pathlib import Path
 from typing import Any
 
 import aiohttp
 import pytest
-import websockets
 
 from server.api.server import API_KEY, JsonApi
 from server.runtime.clock import RealClock
 from tests.conftest import CORPUS
+from tests.support import websocket_client as wsc
 from tests.support.api_client import api_config, client, http_of, serving
 
 SQUARE = "G21 G90\nG0 X10 Y10\nG1 X30 F6000\nG1 Y30\nG1 X10\nG1 Y10\nG0 X12 Y14\n"
@@ -230,7 +229,8 @@ async def test_an_uploaded_job_runs_to_the_end_with_progress_updates(tmp_path: P
 
 
 async def test_job_controls_pause_resume_and_abort_a_running_job(tmp_path: Path) -> None:
-    (tmp_path / "long.nc").write_text("G1 X100 F3000\nG1 X0\n")
+    (tmp_path / "jobs").mkdir()
+    (tmp_path / "jobs" / "long.nc").write_text("G1 X100 F3000\nG1 X0\n")
     async with serving(api_config(tmp_path), RealClock()) as (app, address), client(address) as rpc:
         await rpc.call("machine.subscribe", topics=["job", "status"])
         await rpc.call("job.start", name="long.nc")
@@ -302,10 +302,8 @@ async def test_a_subscriber_that_stops_reading_is_dropped_and_the_others_keep_go
 ) -> None:
     async with serving(api_config(tmp_path)) as (app, address):
         api: JsonApi = http_of(app).app[API_KEY]
-        host, port = address.split(":")
-        raw = socket.create_connection((host, int(port)))
-        raw.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
-        async with client(address, sock=raw, max_queue=1) as stalled, client(address) as reader:
+        small = {"receive_buffer_bytes": 4096}
+        async with client(address, **small) as stalled, client(address) as reader:
             await stalled.call("machine.subscribe", topics=["console"])
             await reader.call("machine.subscribe", topics=["console"])
             stalled._reader.cancel()  # noqa: SLF001 - this client stops reading now
@@ -350,8 +348,8 @@ async def test_a_token_makes_connections_read_only_until_they_authenticate(tmp_p
 async def test_a_page_from_another_origin_is_refused(tmp_path: Path) -> None:
     config = api_config(tmp_path, http={"port": 0, "allowed_origins": ["http://ui.example"]})
     async with serving(config) as (app, address):
-        with pytest.raises(websockets.InvalidStatus) as refused:
-            await websockets.connect(f"ws://{address}/api", origin="http://evil.example")
+        with pytest.raises(wsc.InvalidStatus) as refused:
+            await wsc.connect(f"ws://{address}/api", origin="http://evil.example")
         async with (
             client(address, origin="http://ui.example") as listed,
             client(address, origin=f"http://{address}") as same,

@@ -22,9 +22,9 @@ from collections.abc import Awaitable, Callable
 from pathlib import Path
 
 import pytest
-import websockets
 
 from tests.e2e.test_hostile_web import client_frame, ws_handshake
+from tests.support import websocket_client as wsc
 from tests.support.processes import Served, latency_probe, motiond
 
 TOKEN = "attack-test-token"
@@ -45,9 +45,9 @@ Attack = Callable[[Served], Awaitable[None]]
 
 async def big_line_frame(served: Served) -> None:
     """A 4 MiB /ws text frame from a client without the token (froze the loop 7 s)."""
-    async with websockets.connect(f"ws://{served.http}/ws", max_size=None) as socket:
+    async with wsc.connect(f"ws://{served.http}/ws", max_size=None) as socket:
         await socket.send("G1 X1\n" * (4 * MIB // 6))
-        with pytest.raises(websockets.ConnectionClosed):
+        with pytest.raises(wsc.ConnectionClosed):
             await asyncio.wait_for(socket.recv(), 10)
             await asyncio.wait_for(socket.recv(), 10)
 
@@ -68,9 +68,9 @@ async def deflate_bomb(served: Served) -> None:
 async def big_api_frames(served: Served) -> None:
     """32 frames of 2 MiB on /api before authentication (took 2.3 GB and 5 s stalls)."""
     async def one() -> None:
-        async with websockets.connect(f"ws://{served.http}/api", max_size=None) as socket:
+        async with wsc.connect(f"ws://{served.http}/api", max_size=None) as socket:
             await socket.send("[" * 10 + " " * (2 * MIB) + "]" * 10)
-            with pytest.raises(websockets.ConnectionClosed):
+            with pytest.raises(wsc.ConnectionClosed):
                 await asyncio.wait_for(socket.recv(), 10)
 
     await asyncio.gather(*(one() for _ in range(32)), return_exceptions=True)
@@ -78,7 +78,7 @@ async def big_api_frames(served: Served) -> None:
 
 async def nested_json(served: Served) -> None:
     """Deeply nested JSON-RPC requests (raised RecursionError)."""
-    async with websockets.connect(f"ws://{served.http}/api?token={TOKEN}") as socket:
+    async with wsc.connect(f"ws://{served.http}/api?token={TOKEN}") as socket:
         for _ in range(20):
             await socket.send("[" * 200_000 + "]" * 200_000)
             reply = json.loads(await asyncio.wait_for(socket.recv(), 10))
@@ -174,8 +174,8 @@ async def idle_sockets(served: Served) -> None:
     tcp = [await asyncio.open_connection("127.0.0.1", served.tcp_port) for _ in range(16)]
     api = []
     for _ in range(32):
-        with contextlib.suppress(websockets.InvalidStatus):  # refused once the cap is reached
-            api.append(await websockets.connect(f"ws://{served.http}/api"))
+        with contextlib.suppress(wsc.InvalidStatus):  # refused once the cap is reached
+            api.append(await wsc.connect(f"ws://{served.http}/api"))
     await asyncio.sleep(1.0)
     for _, writer in tcp:
         writer.close()

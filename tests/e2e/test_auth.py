@@ -5,13 +5,12 @@ from __future__ import annotations
 import asyncio
 import json
 
-import websockets
-
 from server.api.server import http_with_api
 from server.app import App
 from server.runtime.clock import VirtualClock
 from server.transports.tcp import TcpTransport
 from tests.conftest import make_config
+from tests.support import websocket_client as wsc
 
 TOKEN = "s3cret-token"
 
@@ -66,12 +65,12 @@ async def test_auth_with_the_right_token_unlocks_control_and_a_wrong_one_does_no
 async def test_websocket_lines_take_the_token_from_the_query() -> None:
     app = await serve("none")
     http_port = app.transports[1].port  # type: ignore[attr-defined]
-    async with websockets.connect(f"ws://127.0.0.1:{http_port}/ws?token={TOKEN}") as socket:
+    async with wsc.connect(f"ws://127.0.0.1:{http_port}/ws?token={TOKEN}") as socket:
         await socket.send("G0 X2\n")
         replies = []
         while "ok\r\n" not in replies:
             replies.append(await asyncio.wait_for(socket.recv(), 5))
-    async with websockets.connect(f"ws://127.0.0.1:{http_port}/ws") as socket:
+    async with wsc.connect(f"ws://127.0.0.1:{http_port}/ws") as socket:
         await socket.send("G0 X3\n")
         replies = []
         while not any(r.startswith("error") for r in replies):
@@ -85,12 +84,12 @@ async def test_a_page_on_another_site_cannot_open_the_line_socket() -> None:
     http_port = app.transports[1].port  # type: ignore[attr-defined]
     url = f"ws://127.0.0.1:{http_port}/ws"
     try:
-        await websockets.connect(url, origin="http://evil.example")  # type: ignore[arg-type]
+        await wsc.connect(url, origin="http://evil.example")  # type: ignore[arg-type]
         raise AssertionError("a foreign origin was let in")
-    except websockets.InvalidStatus as exc:
+    except wsc.InvalidStatus as exc:
         assert exc.response.status_code == 403
     same_site = f"http://127.0.0.1:{http_port}"
-    async with websockets.connect(url, origin=same_site) as socket:  # type: ignore[arg-type]
+    async with wsc.connect(url, origin=same_site) as socket:  # type: ignore[arg-type]
         await socket.send("?")
         assert (await asyncio.wait_for(socket.recv(), 5)).strip()
     await stop(app)
@@ -102,12 +101,12 @@ async def test_websocket_connections_beyond_the_limit_and_request_floods_get_cle
     task = asyncio.create_task(app.run())
     await app.ready.wait()
     port = app.transports[0].port  # type: ignore[attr-defined]
-    line_socket = websockets.connect(f"ws://127.0.0.1:{port}/ws")
-    async with line_socket, websockets.connect(f"ws://127.0.0.1:{port}/api") as api:
+    line_socket = wsc.connect(f"ws://127.0.0.1:{port}/ws")
+    async with line_socket, wsc.connect(f"ws://127.0.0.1:{port}/api") as api:
         try:
-            await websockets.connect(f"ws://127.0.0.1:{port}/api")
+            await wsc.connect(f"ws://127.0.0.1:{port}/api")
             raise AssertionError("a third connection was let in")
-        except websockets.InvalidStatus as exc:
+        except wsc.InvalidStatus as exc:
             assert exc.response.status_code == 503
         for request_id in range(60):
             await api.send(json.dumps({"jsonrpc": "2.0", "id": request_id,
@@ -124,11 +123,11 @@ async def test_observer_connections_watch_but_never_control_even_without_a_token
     task = asyncio.create_task(app.run())
     await app.ready.wait()
     port = app.transports[0].port  # type: ignore[attr-defined]
-    async with websockets.connect(f"ws://127.0.0.1:{port}/ws?mode=observe") as socket:
+    async with wsc.connect(f"ws://127.0.0.1:{port}/ws?mode=observe") as socket:
         await socket.send("G0 X5\n?")
         replies = [await asyncio.wait_for(socket.recv(), 5) for _ in range(3)]
         assert "error:46\r\n" in replies and any(r.startswith("<Idle") for r in replies)
-    async with websockets.connect(f"ws://127.0.0.1:{port}/api?mode=observe") as api:
+    async with wsc.connect(f"ws://127.0.0.1:{port}/api?mode=observe") as api:
         await api.send(json.dumps({"jsonrpc": "2.0", "id": 1, "method": "machine.hold"}))
         assert json.loads(await asyncio.wait_for(api.recv(), 5))["error"]["code"] == 46
         await api.send(json.dumps({"jsonrpc": "2.0", "id": 2, "method": "machine.status"}))

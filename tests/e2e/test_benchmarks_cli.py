@@ -13,7 +13,7 @@ import sys
 
 from tests.conftest import REPO
 
-NAMES = ("parser", "planner", "offline", "streaming", "grbl", "klipper")
+NAMES = ("parser", "planner", "offline", "streaming", "grbl", "klipper", "idle")
 
 
 def benchmarks(*args: str) -> subprocess.CompletedProcess[str]:

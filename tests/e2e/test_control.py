@@ -9,13 +9,13 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-import websockets
 
 from server.api.server import http_with_api
 from server.app import App
 from server.runtime.events import MachineState
 from server.transports.tcp import TcpTransport
 from tests.conftest import make_config
+from tests.support import websocket_client as wsc
 from tests.support.helpers import running
 
 JOB = b"G1 X300 F600\nG1 X0\n"
@@ -35,7 +35,7 @@ async def tcp_send(app: App, data: bytes) -> None:
 
 
 async def api_call(app: App, method: str, **params: Any) -> Any:
-    async with websockets.connect(f"ws://127.0.0.1:{port_of(app, 'http')}/api") as socket:
+    async with wsc.connect(f"ws://127.0.0.1:{port_of(app, 'http')}/api") as socket:
         await socket.send(json.dumps({"jsonrpc": "2.0", "id": 1, "method": method,
                                       "params": params}))
         while "id" not in (reply := json.loads(await asyncio.wait_for(socket.recv(), 5))):

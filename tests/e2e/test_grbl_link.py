@@ -287,8 +287,8 @@ async def test_ten_clients_polling_do_not_multiply_the_polls_of_the_board(
 async def test_killing_the_controller_mid_job_alarms_and_a_new_one_is_reconnected(
         tmp_path: Path) -> None:
     lines = job(400)
-    (tmp_path / "link-data").mkdir()
-    (tmp_path / "link-data" / "job.gcode").write_text("\n".join(lines) + "\n")
+    (tmp_path / "link-data" / "jobs").mkdir(parents=True)
+    (tmp_path / "link-data" / "jobs" / "job.gcode").write_text("\n".join(lines) + "\n")
     async with link_after_controller(tmp_path) as (served, app):
         client = await Listener.connect(tcp_port(app))
         client.writer.write(b"play job.gcode\n")

@@ -13,13 +13,13 @@ import socket
 import tracemalloc
 
 import pytest
-import websockets
 
 from server.api.server import http_with_api
 from server.app import App
 from server.runtime.clock import VirtualClock
 from server.transports.tcp import TcpTransport
 from tests.conftest import make_config
+from tests.support import websocket_client as wsc
 
 SOAK_LINES = int(os.environ.get("MOTIOND_SOAK_LINES", "20000"))
 
@@ -110,8 +110,8 @@ async def churn(port: int, http_port: int, rng: random.Random, stop: asyncio.Eve
     while not stop.is_set():
         visits += 1
         if rng.random() < 0.3:
-            with contextlib.suppress(OSError, websockets.WebSocketException, TimeoutError):
-                async with websockets.connect(f"ws://127.0.0.1:{http_port}/api") as api:
+            with contextlib.suppress(OSError, wsc.WebSocketException, TimeoutError):
+                async with wsc.connect(f"ws://127.0.0.1:{http_port}/api") as api:
                     await api.send(json.dumps({"jsonrpc": "2.0", "id": 1,
                                                "method": "machine.subscribe", "params": {}}))
                     await asyncio.wait_for(api.recv(), 5)

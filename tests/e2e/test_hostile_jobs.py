@@ -23,6 +23,7 @@ from typing import Any
 import aiohttp
 
 from server.api.server import http_with_api
+from server.paths import jobs_dir
 from server.runtime.clock import RealClock
 from server.runtime.events import MachineState
 from server.transports.tcp import TcpTransport
@@ -61,7 +62,7 @@ async def test_no_path_starts_a_job_while_a_sender_streams_and_its_lines_all_run
                                      "accel_mm_s2": 3000, "max_mm": 1000}})
     async with running(config, clock=RealClock(),
                        transports=[TcpTransport, http_with_api]) as app:
-        (Path(config.core.jobs.data_dir) / "cut.nc").write_text(JOB)
+        (jobs_dir(config.core) / "cut.nc").write_text(JOB)
         sender, other = await Tcp.open(tcp_port(app)), await Tcp.open(tcp_port(app))
         moves = 20
         await sender.send(b"G91\n" + b"G1 X1 F600\n" * moves)  # 2 s of motion
@@ -140,7 +141,7 @@ async def test_a_50_mb_job_is_placed_in_bounded_memory_without_stalling_then_mov
     first move comes within a second; ``job.abort`` ends the job and its reading."""
     async with motiond(tmp_path) as served:
         pid = served.process.pid
-        write_big_job(served.data_dir / "big.nc", 50)
+        write_big_job(served.jobs_dir / "big.nc", 50)
         await asyncio.sleep(0.5)
         rss_before_mb = rss_mb(pid)
         peak_mb = rss_before_mb

@@ -20,7 +20,6 @@ from typing import Any
 
 import aiohttp
 import pytest
-import websockets
 
 from server.api.server import http_with_api
 from server.app import App
@@ -31,6 +30,7 @@ from server.transports.serial import SerialTransport
 from server.transports.tcp import TcpTransport
 from server.transports.websocket import HttpTransport
 from tests.conftest import make_config
+from tests.support import websocket_client as wsc
 from tests.support.helpers import running
 
 TOKEN = "s3cret-token"
@@ -197,7 +197,7 @@ async def test_auth_on_an_observer_socket_never_grants_control(token: str | None
     async with running(config, transports=[http_with_api]) as app:
         query = f"mode=observe&token={token}" if token else "mode=observe"
         url = f"ws://127.0.0.1:{http_port(app)}/ws?{query}"
-        async with websockets.connect(url) as socket:
+        async with wsc.connect(url) as socket:
             await socket.send(f"$AUTH={token or 'anything'}\nG0 X5\n!")
             frames: list[str] = []
             while sum(f.startswith(("ok", "error")) for f in frames) < 2:
@@ -409,7 +409,7 @@ async def test_reserved_slots_keep_room_for_the_token_holder() -> None:
 async def test_job_names_with_line_breaks_are_refused_and_never_listed() -> None:
     config = strict(http={"token": TOKEN})
     async with running(config, transports=[TcpTransport, http_with_api]) as app:
-        data_dir = app.kernel.jobs.data_dir
+        data_dir = app.kernel.jobs.jobs_dir
         data_dir.mkdir(parents=True, exist_ok=True)
         for name in ("a.nc", "evil\u2028ok\u2028.nc", "evil\rok.nc", "x\x85y.nc"):
             (data_dir / name).write_text("G0 X1\n")
@@ -420,7 +420,7 @@ async def test_job_names_with_line_breaks_are_refused_and_never_listed() -> None
                                      data=b"G0 X1\n") as response:
                     body = await response.json()
                 assert response.status == 400 and "line breaks" in body["error"]["message"]
-        async with websockets.connect(f"ws://127.0.0.1:{http_port(app)}/api?token={TOKEN}") as api:
+        async with wsc.connect(f"ws://127.0.0.1:{http_port(app)}/api?token={TOKEN}") as api:
             await api.send(json.dumps({"jsonrpc": "2.0", "id": 1, "method": "job.upload",
                                        "params": {"name": "x\u2028ok", "text": "G0 X1\n"}}))
             assert "line breaks" in json.loads(await asyncio.wait_for(api.recv(), 5))[
@@ -429,7 +429,7 @@ async def test_job_names_with_line_breaks_are_refused_and_never_listed() -> None
             listed = json.loads(await asyncio.wait_for(api.recv(), 5))["result"]
             assert [job["name"] for job in listed] == ["a.nc"]
         assert sorted(p.name for p in data_dir.iterdir() if p.name.startswith("up")) == []
-        async with websockets.connect(f"ws://127.0.0.1:{http_port(app)}/ws?token={TOKEN}") as ws:
+        async with wsc.connect(f"ws://127.0.0.1:{http_port(app)}/ws?token={TOKEN}") as ws:
             await ws.send("ls\n")
             frames = [(await asyncio.wait_for(ws.recv(), 5)).strip() for _ in range(3)]
         assert frames[1:] == ["a.nc", "ok"]
@@ -444,13 +444,13 @@ async def test_job_names_with_line_breaks_are_refused_and_never_listed() -> None
 # -- 6. stale files ------------------------------------------------------------------------------
 async def test_uploads_interrupted_by_a_crash_are_removed_at_start_up(tmp_path: Path) -> None:
     data_dir = tmp_path / "jobs"
-    data_dir.mkdir()
+    data_dir.mkdir()  # the job files of the data folder tmp_path
     (data_dir / ".upload-k2j3h4").write_bytes(b"G0 X1\n" * 1000)
     (data_dir / "kept.nc").write_text("G0 X1\n")
     outside = tmp_path / "not-ours.txt"
     outside.write_text("precious")
     (data_dir / ".upload-link").symlink_to(outside)
-    async with running(make_config(jobs={"data_dir": str(data_dir)}), transports=[]):
+    async with running(make_config(jobs={"data_dir": str(tmp_path)}), transports=[]):
         assert sorted(p.name for p in data_dir.iterdir()) == [".upload-link", "kept.nc"]
     assert outside.read_text() == "precious"
 

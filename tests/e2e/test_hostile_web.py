@@ -18,12 +18,12 @@ from typing import Any
 
 import aiohttp
 import pytest
-import websockets
 
 from server.api.server import http_with_api
 from server.app import App
 from server.transports.tcp import TcpTransport
 from tests.conftest import REPO, make_config
+from tests.support import websocket_client as wsc
 from tests.support.helpers import running
 
 TOKEN = "s3cret-token"
@@ -56,7 +56,7 @@ async def answer(socket: Any) -> dict[str, Any]:
 
 async def close_code(socket: Any) -> int | None:
     """Wait (bounded) for a websockets connection to end; the code the server closed with."""
-    with contextlib.suppress(websockets.ConnectionClosed):
+    with contextlib.suppress(wsc.ConnectionClosed):
         async with asyncio.timeout(15):
             while True:
                 await socket.recv()
@@ -150,13 +150,13 @@ class StatusPoller:
 # -- 1. an observer stays an observer ---------------------------------------------------------
 async def test_an_observer_api_socket_cannot_take_control_with_the_right_token() -> None:
     async with serve() as (app, _, port):
-        async with websockets.connect(f"ws://127.0.0.1:{port}/api?mode=observe") as observer:
+        async with wsc.connect(f"ws://127.0.0.1:{port}/api?mode=observe") as observer:
             auth = await call(observer, "server.auth", 1, token=TOKEN)
             hold = await call(observer, "machine.hold", 2)
             sent = await call(observer, "gcode.send", 3, lines="G0 X5")
             info = await call(observer, "server.info", 4)
         url = f"ws://127.0.0.1:{port}/api?mode=observe&token={TOKEN}"
-        async with websockets.connect(url) as with_token:
+        async with wsc.connect(url) as with_token:
             jog = await call(with_token, "machine.jog", 1, x=5, feed_mm_min=600)
         assert app.kernel.machine.planner.position_mm == (0.0, 0.0, 0.0)
     assert auth["error"]["code"] == 46 and hold["error"]["code"] == 46
@@ -209,9 +209,9 @@ async def test_a_4_mib_line_socket_frame_is_closed_1009_while_tcp_status_keeps_a
     async with serve() as (_, tcp_port, port):
         poller = StatusPoller(tcp_port)
         await poller.started()
-        async with websockets.connect(f"ws://127.0.0.1:{port}/ws", compression=None,
+        async with wsc.connect(f"ws://127.0.0.1:{port}/ws", compression=None,
                                       max_size=None) as socket:
-            with contextlib.suppress(websockets.ConnectionClosed):
+            with contextlib.suppress(wsc.ConnectionClosed):
                 await socket.send("\n" * (4 * MIB - 1024))
             code = await close_code(socket)
         await asyncio.sleep(0.3)
@@ -244,7 +244,7 @@ async def test_a_large_allowed_line_socket_message_is_fed_a_slice_per_loop_turn(
     async with serve(ws_max_message_bytes=4 * MIB) as (_, tcp_port, port):
         poller = StatusPoller(tcp_port)
         await poller.started()
-        socket = await websockets.connect(f"ws://127.0.0.1:{port}/ws", compression=None,
+        socket = await wsc.connect(f"ws://127.0.0.1:{port}/ws", compression=None,
                                           max_size=None)
         await socket.send("\n" * (4 * MIB - 1024))
         for _ in range(20):  # answers flow while the message is still being read
@@ -260,12 +260,12 @@ async def test_api_messages_are_bounded_and_smaller_before_the_token() -> None:
         return json.dumps({"jsonrpc": "2.0", "id": 1, "method": "server.info", "pad": "x" * size})
 
     async with serve() as (_, _, port):
-        async with websockets.connect(f"ws://127.0.0.1:{port}/api", max_size=None) as anonymous:
+        async with wsc.connect(f"ws://127.0.0.1:{port}/api", max_size=None) as anonymous:
             small = await call(anonymous, "server.info")
             await anonymous.send(padded(100_000))
             anonymous_code = await close_code(anonymous)
         url = f"ws://127.0.0.1:{port}/api?token={TOKEN}"
-        async with websockets.connect(url, max_size=None, compression=None) as operator:
+        async with wsc.connect(url, max_size=None, compression=None) as operator:
             await operator.send(padded(100_000))
             allowed = await answer(operator)
             await operator.send(padded(2 * MIB))
@@ -287,7 +287,7 @@ async def test_deep_nesting_and_non_finite_numbers_get_errors_and_the_connection
     ]
     async with (
         serve() as (_, _, port),
-        websockets.connect(f"ws://127.0.0.1:{port}/api") as socket,
+        wsc.connect(f"ws://127.0.0.1:{port}/api") as socket,
     ):
         errors = []
         for frame in frames:
@@ -304,7 +304,7 @@ async def test_deep_nesting_and_non_finite_numbers_get_errors_and_the_connection
 
 async def test_tokens_that_are_not_ascii_get_clean_refusals() -> None:
     async with serve() as (_, _, port):
-        async with websockets.connect(f"ws://127.0.0.1:{port}/api?token=%C3%A9") as api:
+        async with wsc.connect(f"ws://127.0.0.1:{port}/api?token=%C3%A9") as api:
             info = await call(api, "server.info", 1)
             accented = await call(api, "server.auth", 2, token="é")
             await api.send('{"jsonrpc": "2.0", "id": 3, "method": "server.auth", '
@@ -330,12 +330,12 @@ async def test_sockets_without_the_token_cannot_lock_the_operator_out() -> None:
         refused = 0
         for _ in range(32):  # what used to fill every slot
             try:
-                await stack.enter_async_context(websockets.connect(f"ws://127.0.0.1:{port}/api"))
-            except websockets.InvalidStatus as exc:
+                await stack.enter_async_context(wsc.connect(f"ws://127.0.0.1:{port}/api"))
+            except wsc.InvalidStatus as exc:
                 assert exc.response.status_code == 503
                 refused += 1
         url = f"ws://127.0.0.1:{port}/api?token={TOKEN}"
-        async with websockets.connect(url) as operator:
+        async with wsc.connect(url) as operator:
             info = await call(operator, "server.info")
     assert refused == 32 - 8 and info["result"]["can_control"] is True
 
@@ -343,15 +343,15 @@ async def test_sockets_without_the_token_cannot_lock_the_operator_out() -> None:
 async def test_idle_sockets_without_the_token_are_closed_and_the_operators_stay() -> None:
     async with (
         serve(idle_timeout_s=0.5) as (_, _, port),
-        websockets.connect(f"ws://127.0.0.1:{port}/api") as idle_api,
-        websockets.connect(f"ws://127.0.0.1:{port}/ws") as idle_line,
-        websockets.connect(f"ws://127.0.0.1:{port}/api") as chatty,
-        websockets.connect(f"ws://127.0.0.1:{port}/api?token={TOKEN}") as operator,
-        websockets.connect(f"ws://127.0.0.1:{port}/api") as logged_in,
+        wsc.connect(f"ws://127.0.0.1:{port}/api") as idle_api,
+        wsc.connect(f"ws://127.0.0.1:{port}/ws") as idle_line,
+        wsc.connect(f"ws://127.0.0.1:{port}/api") as chatty,
+        wsc.connect(f"ws://127.0.0.1:{port}/api?token={TOKEN}") as operator,
+        wsc.connect(f"ws://127.0.0.1:{port}/api") as logged_in,
     ):
         assert "result" in await call(logged_in, "server.auth", token=TOKEN)
         for _ in range(15):  # garbage is not a request: it does not keep a socket open
-            with contextlib.suppress(websockets.ConnectionClosed):
+            with contextlib.suppress(wsc.ConnectionClosed):
                 await chatty.send("not json")
             await asyncio.sleep(0.1)
         codes = [await close_code(s) for s in (idle_api, idle_line, chatty)]
@@ -363,7 +363,7 @@ async def test_idle_sockets_without_the_token_are_closed_and_the_operators_stay(
 async def test_a_half_sent_request_is_closed_after_the_request_timeout() -> None:
     async with (
         serve(request_timeout_s=0.5) as (_, _, port),
-        websockets.connect(f"ws://127.0.0.1:{port}/api?token={TOKEN}") as operator,
+        wsc.connect(f"ws://127.0.0.1:{port}/api?token={TOKEN}") as operator,
     ):
         reader, writer = await asyncio.open_connection("127.0.0.1", port)
         writer.write(f"GET /api HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: webs".encode())

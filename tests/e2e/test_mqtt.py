@@ -83,7 +83,7 @@ async def test_status_follows_a_running_job_and_events_mark_its_start_and_end(
         mosquitto(tmp_path / "broker") as broker,
         serve(tmp_path, broker, allow_control=True, status_hz=10) as served,
     ):
-        (served.data_dir / "square.nc").write_text(
+        (served.jobs_dir / "square.nc").write_text(
             "G21 G90\nG1 X20 F1200\nG1 Y20\nG1 X0\nG1 Y0\n")
         async with watching(broker, f"{PREFIX}/#") as watch:
             await watch.wait_for(f"{PREFIX}/availability", is_online)
@@ -182,7 +182,7 @@ async def test_a_broker_restart_mid_job_leaves_motion_alone_and_state_is_republi
         mosquitto(tmp_path / "broker") as broker,
         serve(tmp_path, broker, allow_control=True, status_hz=10) as served,
     ):
-        (served.data_dir / "long.nc").write_text(job)
+        (served.jobs_dir / "long.nc").write_text(job)
         async with watching(broker, f"{PREFIX}/#") as watch:
             await watch.wait_for(f"{PREFIX}/availability", is_online)
             await watch.publish(f"{PREFIX}/cmd/job", {"id": 1, "name": "long.nc"})

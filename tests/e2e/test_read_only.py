@@ -7,13 +7,13 @@ import asyncio
 import json
 
 import pytest
-import websockets
 
 from server.api.server import http_with_api
 from server.app import App
 from server.runtime.clock import VirtualClock
 from server.transports.tcp import TcpTransport
 from tests.conftest import make_config
+from tests.support import websocket_client as wsc
 from tests.support.helpers import running
 
 TOKEN = "s3cret-token"
@@ -68,7 +68,7 @@ async def test_a_read_only_tcp_connection_cannot_smuggle_a_move_behind_a_query()
 async def test_an_observer_websocket_cannot_smuggle_a_move_nor_log_in() -> None:
     async with running(make_config(http={"port": 0}), VirtualClock(), [http_with_api]) as app:
         port = app.transports[0].port  # type: ignore[attr-defined]
-        async with websockets.connect(f"ws://127.0.0.1:{port}/ws?mode=observe") as socket:
+        async with wsc.connect(f"ws://127.0.0.1:{port}/ws?mode=observe") as socket:
             for line in [*SMUGGLED, "$AUTH=anything", "G0 X10"]:
                 await socket.send(line + "\n")
             replies: list[str] = []
@@ -83,7 +83,7 @@ async def test_an_observer_websocket_cannot_smuggle_a_move_nor_log_in() -> None:
 async def test_an_unauthenticated_api_connection_cannot_smuggle_a_move() -> None:
     async with running(config(), VirtualClock(), [http_with_api]) as app:
         port = app.transports[0].port  # type: ignore[attr-defined]
-        async with websockets.connect(f"ws://127.0.0.1:{port}/api") as socket:
+        async with wsc.connect(f"ws://127.0.0.1:{port}/api") as socket:
             await socket.send(json.dumps({"jsonrpc": "2.0", "id": 1, "method": "gcode.send",
                                           "params": {"lines": "\n".join(SMUGGLED)}}))
             while True:

@@ -10,7 +10,6 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 
 import pytest
-import websockets
 
 from server.api.server import http_with_api
 from server.app import App
@@ -18,6 +17,7 @@ from server.runtime.clock import RealClock
 from server.transports.serial import SerialTransport
 from server.transports.tcp import TcpTransport
 from tests.conftest import make_config
+from tests.support import websocket_client as wsc
 
 BANNER = "Grbl 1.1h ['$' for help]"
 
@@ -84,7 +84,7 @@ class TcpClient(Client):
 
 
 class WsClient(Client):
-    def __init__(self, socket: websockets.ClientConnection) -> None:
+    def __init__(self, socket: wsc.ClientConnection) -> None:
         super().__init__()
         self.socket = socket
 
@@ -139,7 +139,7 @@ async def connect(request: pytest.FixtureRequest, tmp_path: Path) -> AsyncIterat
         if kind == "tcp":
             client: Client = TcpClient(*await asyncio.open_connection("127.0.0.1", tcp.port))
         elif kind == "websocket":
-            socket = await websockets.connect(f"ws://127.0.0.1:{http.port}/ws")
+            socket = await wsc.connect(f"ws://127.0.0.1:{http.port}/ws")
             client = WsClient(socket)
         else:
             client = PtyClient(tmp_path / "ttyMotiond")
@@ -149,7 +149,7 @@ async def connect(request: pytest.FixtureRequest, tmp_path: Path) -> AsyncIterat
     open_client.app = app  # type: ignore[attr-defined]
     yield open_client
     for client in clients:
-        with contextlib.suppress(OSError, ConnectionError, websockets.ConnectionClosed):
+        with contextlib.suppress(OSError, ConnectionError, wsc.ConnectionClosed):
             await client.close()
     app.request_stop()
     await asyncio.wait_for(task, 5)

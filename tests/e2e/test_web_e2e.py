@@ -200,7 +200,8 @@ async def test_an_uploaded_corpus_job_runs_to_100_percent_and_ends_where_the_fil
 
 
 async def test_hold_and_resume_from_the_buttons_during_a_job(tmp_path: Path) -> None:
-    (tmp_path / "rose.nc").write_text(rose_job())
+    (tmp_path / "jobs").mkdir()
+    (tmp_path / "jobs" / "rose.nc").write_text(rose_job())
     async with ui(tmp_path, RealClock()) as (app, page):
         state = page.locator("#state")
         await page.locator('#job-files li[data-name="rose.nc"]').click()
@@ -293,7 +294,8 @@ async def test_fire_asks_for_confirmation_and_the_laser_can_be_stopped(tmp_path:
 
 
 async def test_the_page_works_on_a_phone_sized_screen(tmp_path: Path) -> None:
-    shutil.copy(CORPUS / JOB, tmp_path / JOB)
+    (tmp_path / "jobs").mkdir()
+    shutil.copy(CORPUS / JOB, tmp_path / "jobs" / JOB)
     async with ui(tmp_path, RealClock(), PHONE, is_mobile=True, has_touch=True) as (app, page):
         width = await page.evaluate("document.scrollingElement.scrollWidth")
         assert width <= PHONE["width"], "nothing sticks out sideways"

@@ -22,7 +22,7 @@ async def test_names_that_escape_the_data_directory_are_refused(tmp_path: Path, 
         with pytest.raises(CommandError) as info:
             await app.kernel.jobs.save(name, b"G0 X1\n")
         assert info.value.code == 44
-        assert list(tmp_path.iterdir()) == []
+        assert list(tmp_path.rglob("*.nc")) == list(tmp_path.rglob(".upload-*")) == []
 
 
 async def test_upload_list_and_play_a_job_to_its_end(tmp_path: Path) -> None:
@@ -91,4 +91,4 @@ async def test_a_full_disk_leaves_no_partial_file(tmp_path: Path) -> None:
         with pytest.raises(CommandError) as info:
             await app.kernel.jobs.save_stream("big.nc", failing_chunks(), 1 << 20)
         assert info.value.code == 44 and "No space left on device" in info.value.message
-        assert list(tmp_path.iterdir()) == []
+        assert list(tmp_path.rglob("*.nc")) == list(tmp_path.rglob(".upload-*")) == []

@@ -1,5 +1,5 @@
 """The JSON API from a test's side: a served App on a free HTTP port and a JSON-RPC client on a
-real WebSocket connection (the ``websockets`` library)."""
+real WebSocket connection (aiohttp's client, :mod:`tests.support.websocket_client`)."""
 
 from __future__ import annotations
 
@@ -11,21 +11,19 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
-import websockets
-from websockets.asyncio.client import ClientConnection
-
 from server.api.server import http_with_api
 from server.app import App
 from server.config import Config
 from server.transports.websocket import HttpTransport
 from tests.conftest import make_config
+from tests.support import websocket_client as wsc
 from tests.support.helpers import running
 
 
 class RpcClient:
-    """A JSON-RPC client on a websockets connection; notifications are kept in order."""
+    """A JSON-RPC client on a WebSocket connection; notifications are kept in order."""
 
-    def __init__(self, connection: ClientConnection) -> None:
+    def __init__(self, connection: wsc.ClientConnection) -> None:
         self.connection = connection
         self.notifications: list[dict[str, Any]] = []
         self.arrived = asyncio.Event()
@@ -81,7 +79,7 @@ class RpcClient:
     async def close(self) -> None:
         await self.connection.close()
         self._reader.cancel()
-        with contextlib.suppress(asyncio.CancelledError, websockets.ConnectionClosed):
+        with contextlib.suppress(asyncio.CancelledError, wsc.ConnectionClosed):
             await self._reader
 
 
@@ -102,7 +100,7 @@ async def serving(config: Config, clock: Any = None) -> AsyncIterator[tuple[App,
 
 @contextlib.asynccontextmanager
 async def client(address: str, path: str = "/api", **options: Any) -> AsyncIterator[RpcClient]:
-    connection = await websockets.connect(f"ws://{address}{path}", **options)
+    connection = await wsc.connect(f"ws://{address}{path}", **options)
     rpc = RpcClient(connection)
     try:
         yield rpc

@@ -36,6 +36,10 @@ class Served:
     log: list[str] = field(default_factory=list)
 
     @property
+    def jobs_dir(self) -> Path:
+        return self.data_dir / "jobs"
+
+    @property
     def http(self) -> str:
         return f"127.0.0.1:{self.http_port}"
 
@@ -58,7 +62,7 @@ async def motiond(tmp_path: Path, extra_toml: str = "", *, args: Sequence[str] =
     """``motiond --config`` on free ports with ``extra_toml`` appended to a small XY machine
     (``axes_toml``), more command-line ``args`` (``--pty PATH``); ``name`` names its files."""
     data_dir = tmp_path / f"data-{name}" if name != "machine" else tmp_path / "data"
-    data_dir.mkdir(exist_ok=True)
+    (data_dir / "jobs").mkdir(parents=True, exist_ok=True)
     config = tmp_path / f"{name}.toml"
     config.write_text(axes_toml + f"[jobs]\ndata_dir = '{data_dir}'\n" + extra_toml)
     tcp_port, http_port = free_port(), free_port()

@@ -50,7 +50,8 @@ def test_a_klipper_backend_needs_a_serial_path_and_the_pins_of_every_axis() -> N
 
 def test_unknown_key_names_file_section_and_key() -> None:
     data = {**BASE, "planner": {"junction_deviaton_mm": 0.1}}
-    assert problems_of(data) == ["m.toml: [planner] junction_deviaton_mm: unknown key"]
+    assert problems_of(data) == ["m.toml: [planner] junction_deviaton_mm: unknown key "
+                                 "(did you mean junction_deviation_mm?)"]
 
 
 def test_wrong_type_names_the_value() -> None:
@@ -75,7 +76,7 @@ def test_missing_required_value_and_section() -> None:
 
 def test_unknown_section_lists_the_known_ones() -> None:
     (problem,) = problems_of({**BASE, "lazer": {}})
-    assert problem.startswith("m.toml: [lazer]: unknown section (known: ")
+    assert problem.startswith("m.toml: [lazer]: unknown section (did you mean [laser]?) (known: ")
     assert "heartbeat" in problem
 
 

@@ -139,7 +139,7 @@ class Controller:
         if self.config.tcp is not None:
             host, _, port = self.config.tcp.rpartition(":")
             return await asyncio.open_connection(host, int(port))
-        import serial_asyncio  # pyserial-asyncio
+        import serial_asyncio_fast as serial_asyncio  # pyserial-asyncio-fast
 
         assert self.config.serial is not None
         reader, writer = await serial_asyncio.open_serial_connection(

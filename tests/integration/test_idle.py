@@ -1,0 +1,73 @@
+"""An idle server sleeps: no tick, no laser sample, no switch check while nothing moves (on
+real time), and the first line wakes everything exactly as before."""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from server.backends.sim import SimBackend
+from server.config_loader import load_config
+from server.runtime.clock import RealClock
+from tests.support.helpers import running, submit_all
+
+
+def default_machine(tmp_path: Path) -> Any:
+    """The embedded default (laser, endstops, air switch) with its own data folder."""
+    config = load_config()
+    config.core.jobs.data_dir = tmp_path
+    return config
+
+
+def counting(module: Any, method: str) -> list[int]:
+    """Count the calls of ``module.method`` from now on."""
+    calls = [0]
+    original = getattr(module, method)
+
+    def counted(*args: Any) -> Any:
+        calls[0] += 1
+        return original(*args)
+
+    setattr(module, method, counted)
+    return calls
+
+
+async def test_nothing_ticks_while_idle_and_a_move_wakes_the_tick_the_laser_and_the_switches(
+        tmp_path: Path) -> None:
+    async with running(default_machine(tmp_path), RealClock()) as app:
+        kernel = app.kernel
+        backend = kernel.machine.backend
+        assert isinstance(backend, SimBackend)
+        await asyncio.sleep(0.2)  # start-up settles
+        laser = counting(kernel.modules["laser"], "_sample")
+        switches = counting(kernel.modules["endstops"], "triggered")
+        ticks_before = len(backend.history)
+        await asyncio.sleep(0.5)  # 500 ticks, samples and checks each at 1 kHz before
+        assert len(backend.history) - ticks_before <= 2
+        assert laser[0] <= 2 and switches[0] <= 2
+        assert kernel.machine.stepgen.can_sleep
+
+        assert await submit_all(app, ["G1 X20 F6000 M3 S500"]) == [[]]
+        await asyncio.wait_for(kernel.machine.wait_idle(), 10)
+        stepgen = kernel.machine.stepgen
+        assert stepgen.state.position_mm[0] == pytest.approx(20.0)
+        assert backend.steps[0] == 20 * 80  # every step, none lost across the sleep
+        assert len(backend.history) - ticks_before > 10  # ticked while moving (late ticks merge)
+        assert laser[0] > 100 and switches[0] > 100
+        assert backend.output("laser") == 0.0  # laser mode: off once motion ends
+
+
+async def test_a_hold_with_moves_queued_keeps_ticking_and_resumes(tmp_path: Path) -> None:
+    async with running(default_machine(tmp_path), RealClock()) as app:
+        machine = app.kernel.machine
+        await submit_all(app, ["G1 X40 F6000"])
+        await asyncio.sleep(0.1)
+        app.kernel.control.hold()
+        await asyncio.sleep(0.3)
+        assert not machine.stepgen.can_sleep  # held with motion left: not idle
+        app.kernel.control.resume()
+        await asyncio.wait_for(machine.wait_idle(), 10)
+        assert machine.stepgen.state.position_mm[0] == pytest.approx(40.0)
