@@ -44,8 +44,8 @@ class Line:
 
 async def test_play_checks_the_fit_and_progress_keeps_an_honest_clock(tmp_path: Path) -> None:
     async with motiond(tmp_path) as served:
-        (served.data_dir / "neg.nc").write_text("G21 G90\nG1 X10 Y-5 F3000\n")
-        (served.data_dir / "long.nc").write_text(LONG)
+        (served.jobs_dir / "neg.nc").write_text("G21 G90\nG1 X10 Y-5 F3000\n")
+        (served.jobs_dir / "long.nc").write_text(LONG)
         reader, writer = await asyncio.open_connection("127.0.0.1", served.tcp_port)
         try:
             await asyncio.wait_for(reader.readuntil(b"for help]\r\n"), 5)

@@ -41,7 +41,7 @@ async def stack(tmp_path: Path) -> AsyncIterator[tuple[Served, Moonraker, Path]]
     async with contextlib.AsyncExitStack() as stack:
         served = await stack.enter_async_context(
             motiond(tmp_path, EXTRA.replace("{socket}", str(socket)), axes_toml=AXES))
-        server = await stack.enter_async_context(moonraker(tmp_path, socket, served.data_dir))
+        server = await stack.enter_async_context(moonraker(tmp_path, socket, served.jobs_dir))
         yield served, server, socket
 
 
@@ -67,7 +67,7 @@ async def _ready_with_position(served: Served, server: Moonraker, socket: Path) 
     assert status["toolhead"]["position"] == [0.0, 0.0, 0.0, 0.0]
     assert status["toolhead"]["homed_axes"] == "z"  # X and Y have switches, not yet homed
     sdcard = status["configfile"]["settings"]["virtual_sdcard"]["path"]
-    assert Path(sdcard) == served.data_dir.resolve()
+    assert Path(sdcard) == served.jobs_dir.resolve()
     warnings = (await server.get("/server/info"))["warnings"]
     assert not [text for text in warnings if "GCode path" in text], warnings
 
@@ -109,7 +109,7 @@ async def test_store_through_moonraker_then_print_pause_resume_and_cancel(tmp_pa
         form.add_field("file", job.encode(), filename="square.gcode")
         async with server.session.post(server.url + "/server/files/upload", data=form) as reply:
             assert reply.status == 201, await reply.text()
-        assert (served.data_dir / "square.gcode").read_text() == job
+        assert (served.jobs_dir / "square.gcode").read_text() == job
         async with server.session.ws_connect(server.url + "/websocket") as front_end:
             await front_end.send_json({"jsonrpc": "2.0", "id": 1,
                                        "method": "printer.objects.subscribe",

@@ -249,7 +249,7 @@ async def test_cmd_job_refuses_a_job_that_does_not_fit_and_nothing_moves(tmp_pat
         mosquitto(tmp_path / "broker") as broker,
         serve(tmp_path, broker, allow_control=True) as served,
     ):
-        (served.data_dir / "neg.nc").write_text("G21 G90\nG1 X-12.5 Y40 F3000\nG1 X0 Y0\n")
+        (served.jobs_dir / "neg.nc").write_text("G21 G90\nG1 X-12.5 Y40 F3000\nG1 X0 Y0\n")
         async with watching(broker, f"{PREFIX}/#") as watch:
             await watch.wait_for(f"{PREFIX}/availability", is_online)
             await watch.publish(f"{PREFIX}/cmd/job", {"id": "j", "name": "neg.nc"})

@@ -75,7 +75,7 @@ async def test_retained_commands_never_run_at_start_or_after_a_reconnect(
             watching(broker, f"{PREFIX}/#") as watch,
             motiond(tmp_path, toml) as served,
         ):
-            (served.data_dir / "cut.nc").write_text("G0 X100\n")
+            (served.jobs_dir / "cut.nc").write_text("G0 X100\n")
             await watch.wait_for(f"{PREFIX}/availability", is_online, timeout_s=15)
             await asyncio.sleep(2.0)  # what the stored messages did within 3 s, before
             at_start = await tcp_report(served.tcp_port)
