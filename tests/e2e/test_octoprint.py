@@ -38,11 +38,11 @@ def octoprint(tmp_path_factory: pytest.TempPathFactory) -> Iterator[OctoPrint]:
     folder = tmp_path_factory.mktemp("octoprint")
     server = OctoPrint(folder / "basedir", folder / "ttyMotiond", timeouts_s=TIMEOUTS_S,
                        scripts={"afterPrintCancelled": CANCEL_SCRIPT})
-    server.start()
     try:
+        server.start()
         yield server
     finally:
-        server.close()
+        server.close()  # also when it never answered: no OctoPrint outlives the tests
 
 
 class Run:
