@@ -27,7 +27,8 @@ from server.runtime.events import MachineState
 from server.transports.tcp import TcpTransport
 from tests.conftest import make_config
 from tests.e2e.test_hostile_lines import Tcp, http_port, tcp_port
-from tests.e2e.test_mqtt import mpos, tcp_report
+from tests.e2e.test_mqtt import MACHINE, PREFIX, is_online, mpos, tcp_report
+from tests.support.broker import mosquitto, mqtt_toml, watching
 from tests.support.helpers import running
 from tests.support.processes import motiond
 
@@ -139,3 +140,23 @@ async def test_a_60_mb_job_moves_within_a_second_in_bounded_memory_and_abort_end
     assert peak_mb - rss_before_mb < 60, (rss_before_mb, peak_mb)  # the file was 60 MB
     assert aborted["result"]["state"] == "aborted", aborted
     assert cpu_share < 0.5, f"the estimate went on after the abort: {cpu_share:.0%} of a CPU"
+
+
+async def test_an_mqtt_job_command_never_cuts_a_senders_stream(tmp_path: Path) -> None:
+    async with (
+        mosquitto(tmp_path / "broker") as broker,
+        motiond(tmp_path, MACHINE + mqtt_toml(broker, allow_control=True)) as served,
+        watching(broker, f"{PREFIX}/#") as watch,
+    ):
+        (served.data_dir / "cut.nc").write_text(JOB)
+        await watch.wait_for(f"{PREFIX}/availability", is_online, timeout_s=15)
+        sender = await Tcp.open(served.tcp_port)
+        moves = 20
+        await sender.send(b"G91\n" + b"G1 X1 F600\n" * moves)  # 2 s of motion
+        await sender.received.until(lambda got: got.count("ok") >= 3)
+        await watch.publish(f"{PREFIX}/cmd/job", {"id": "j", "name": "cut.nc"})
+        refused = await watch.wait_json(f"{PREFIX}/reply", lambda r: r["id"] == "j")
+        await sender.received.until(lambda got: got.count("ok") == moves + 1, 10)
+        sender.close()
+    assert refused["ok"] is False and refused["error"]["code"] == 45, refused
+    assert sender.received.replies() == ["ok"] * (moves + 1), "the stream was never cut"
