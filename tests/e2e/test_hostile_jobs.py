@@ -29,7 +29,8 @@ from server.runtime.events import MachineState
 from server.transports.tcp import TcpTransport
 from tests.conftest import make_config
 from tests.e2e.test_hostile_lines import Tcp, http_port, tcp_port
-from tests.e2e.test_mqtt import mpos, tcp_report
+from tests.e2e.test_mqtt import MACHINE, PREFIX, is_online, mpos, tcp_report
+from tests.support.broker import mosquitto, mqtt_toml, watching
 from tests.support.helpers import running
 from tests.support.processes import motiond
 
@@ -187,3 +188,23 @@ async def rpc_slow(socket: aiohttp.ClientWebSocketResponse, method: str, **param
             message = json.loads((await socket.receive()).data)
             if message.get("id") == 2:
                 return message
+
+
+async def test_an_mqtt_job_command_never_cuts_a_senders_stream(tmp_path: Path) -> None:
+    async with (
+        mosquitto(tmp_path / "broker") as broker,
+        motiond(tmp_path, MACHINE + mqtt_toml(broker, allow_control=True)) as served,
+        watching(broker, f"{PREFIX}/#") as watch,
+    ):
+        (served.jobs_dir / "cut.nc").write_text(JOB)
+        await watch.wait_for(f"{PREFIX}/availability", is_online, timeout_s=15)
+        sender = await Tcp.open(served.tcp_port)
+        moves = 20
+        await sender.send(b"G91\n" + b"G1 X1 F600\n" * moves)  # 2 s of motion
+        await sender.received.until(lambda got: got.count("ok") >= 3)
+        await watch.publish(f"{PREFIX}/cmd/job", {"id": "j", "name": "cut.nc"})
+        refused = await watch.wait_json(f"{PREFIX}/reply", lambda r: r["id"] == "j")
+        await sender.received.until(lambda got: got.count("ok") == moves + 1, 10)
+        sender.close()
+    assert refused["ok"] is False and refused["error"]["code"] == 45, refused
+    assert sender.received.replies() == ["ok"] * (moves + 1), "the stream was never cut"
