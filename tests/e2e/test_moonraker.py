@@ -149,7 +149,7 @@ async def test_store_through_moonraker_then_print_pause_resume_and_cancel(tmp_pa
 
 async def _history_shows(server: Moonraker, statuses: list[str]) -> None:
     """Moonraker's job history lists ``statuses``, newest first (it follows print_stats)."""
-    for _ in range(100):
+    for _ in range(300):
         history = await server.get("/server/history/list")
         if [job["status"] for job in history["jobs"]] == statuses:
             return
