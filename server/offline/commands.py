@@ -85,7 +85,8 @@ def estimate_command(args: Any, config: Config) -> int:
     names = config.core.axis_names
     if args.json:
         fields = _public(asdict(stats))
-        fields.pop("keep_timeline", None)
+        for option in ("keep_timeline", "count_start"):  # how it was summed, not what
+            fields.pop(option, None)
         print(json.dumps({"file": str(path), **fields, "fit": fit.as_dict(names)}, indent=2))
     else:
         print(describe(path, stats, names))
