@@ -57,7 +57,11 @@ async def test_nothing_ticks_while_idle_and_a_move_wakes_the_tick_the_laser_and_
         assert backend.steps[0] == 20 * 80  # every step, none lost across the sleep
         assert len(backend.history) - ticks_before > 10  # ticked while moving (late ticks merge)
         assert laser[0] > 100 and switches[0] > 100
+        await asyncio.sleep(0.1)  # the laser lags the motion by up to one sample
         assert backend.output("laser") == 0.0  # laser mode: off once motion ends
+        resting_from = laser[0]
+        await asyncio.sleep(0.3)
+        assert laser[0] - resting_from <= 2, "the sampler rests again"
 
 
 async def test_a_hold_with_moves_queued_keeps_ticking_and_resumes(tmp_path: Path) -> None:
