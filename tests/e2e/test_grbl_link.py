@@ -400,8 +400,9 @@ async def test_the_boards_offsets_and_modes_are_adopted_and_settings_written_thr
 
 async def test_a_jobs_remaining_time_follows_the_board_and_stands_still_in_a_hold(
         tmp_path: Path) -> None:
-    (tmp_path / "link-data").mkdir()
-    (tmp_path / "link-data" / "jobs" / "slow.gcode").write_text("G21 G90\nG1 X80 F600\nG0 X0\n")  # 8 s
+    (tmp_path / "link-data" / "jobs").mkdir(parents=True)
+    slow = "G21 G90\nG1 X80 F600\nG0 X0\n"  # 8 s
+    (tmp_path / "link-data" / "jobs" / "slow.gcode").write_text(slow)
     async with link_after_controller(tmp_path) as (served, app):
         client = await Listener.connect(tcp_port(app))
         client.writer.write(b"play slow.gcode\n")
