@@ -280,7 +280,7 @@ def estimated(app: App) -> bool:
 async def test_a_200k_line_raster_toolpath_is_capped_and_no_call_stalls_the_loop(
     tmp_path: Path,
 ) -> None:
-    write_raster(tmp_path / "raster.nc", 200_000)
+    write_raster(jobs_folder(tmp_path) / "raster.nc", 200_000)
     async with serving(api_config(tmp_path)) as (app, address), client(address) as rpc:
         monitor = app.kernel.loop_monitor
         monitor.reset()
@@ -304,7 +304,7 @@ async def test_a_200k_line_raster_toolpath_is_capped_and_no_call_stalls_the_loop
 
 
 async def test_the_toolpath_cache_keeps_only_the_latest_results(tmp_path: Path) -> None:
-    write_raster(tmp_path / "small.nc", 2000)
+    write_raster(jobs_folder(tmp_path) / "small.nc", 2000)
     async with serving(api_config(tmp_path)) as (app, address), client(address) as rpc:
         for cap in (100, 200, 300, 200):
             path = await rpc.call("job.toolpath", name="small.nc", max_segments=cap)
@@ -316,7 +316,8 @@ async def test_the_toolpath_cache_keeps_only_the_latest_results(tmp_path: Path) 
 async def test_a_job_with_a_2_mb_line_stops_there_with_error_11_without_stalling(
     tmp_path: Path,
 ) -> None:
-    (tmp_path / "long.nc").write_text("G21 G90\nG1 X5 F3000\n" + "G1 X1" * 400_000 + "\nG0 X9\n")
+    long_line = "G1 X1" * 400_000
+    (jobs_folder(tmp_path) / "long.nc").write_text(f"G21 G90\nG1 X5 F3000\n{long_line}\nG0 X9\n")
     async with serving(api_config(tmp_path)) as (app, address), client(address) as rpc:
         monitor = app.kernel.loop_monitor
         monitor.reset()
@@ -332,3 +333,10 @@ async def test_a_job_with_a_2_mb_line_stops_there_with_error_11_without_stalling
     assert position[0] == 5.0, "the lines before it ran, none after"
     assert path["error_line"] == 3 and path["error"].startswith("error:11")
     assert stall_s < STALL_BOUND_S
+
+
+def jobs_folder(data_dir: Path) -> Path:
+    """The job files' folder of a server whose data folder is ``data_dir``."""
+    folder = data_dir / "jobs"
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder

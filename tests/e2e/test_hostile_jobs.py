@@ -63,6 +63,7 @@ async def test_no_path_starts_a_job_while_a_sender_streams_and_its_lines_all_run
                                      "accel_mm_s2": 3000, "max_mm": 1000}})
     async with running(config, clock=RealClock(),
                        transports=[TcpTransport, http_with_api]) as app:
+        jobs_dir(config.core).mkdir(parents=True, exist_ok=True)
         (jobs_dir(config.core) / "cut.nc").write_text(JOB)
         sender, other = await Tcp.open(tcp_port(app)), await Tcp.open(tcp_port(app))
         moves = 20

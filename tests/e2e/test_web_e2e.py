@@ -320,4 +320,4 @@ async def test_a_file_dropped_on_the_drop_zone_is_uploaded(tmp_path: Path) -> No
         await page.locator("#dropzone").dispatch_event("drop", {"dataTransfer": data})
         await expect(page.locator('#job-files li[data-name="dropped.nc"]')).to_be_visible()
         await expect(page.locator("#toasts")).to_contain_text("Uploaded dropped.nc")
-    assert (tmp_path / "dropped.nc").read_text() == "G0 X1 Y1\nG1 X5 F600\n"
+    assert (tmp_path / "jobs" / "dropped.nc").read_text() == "G0 X1 Y1\nG1 X5 F600\n"
