@@ -36,7 +36,8 @@ unauthenticated = "read-only"
 token = "{TOKEN}"
 """
 MIB = 1 << 20
-P90_MS = 10.0
+P90_MS = 20.0  # 10 ms held on the machine that measured the figures above; this one runs
+# Python about 3x slower and gave 12-14 ms at p90 for "2 MB streamed ahead", on the old code too
 # one round trip of 97 ms was seen with two CPU hogs beside the suite; the old code: 261 ms to 7 s
 WORST_MS = 150.0
 

@@ -193,7 +193,9 @@ async def _flood_and_stream(payload: bytes) -> tuple[int, float | None]:
         assert slowest_s < 0.5, (
             f"a status report took {slowest_s * 1000:.0f} ms (median "
             f"{statistics.median(poller.latencies_s) * 1000:.1f} ms) during the flood")
-        assert own_stall_s < 0.05, f"the loop's own work held it {own_stall_s * 1000:.0f} ms"
+        # 0.1 s: 56-63 ms seen on a 2-core machine that runs Python about 3x slower than the one
+        # the 50 ms bound was set on; a loop blocked by the flood would hold it for seconds
+        assert own_stall_s < 0.1, f"the loop's own work held it {own_stall_s * 1000:.0f} ms"
         assert stall_s < 1.0, f"the event loop stalled for {stall_s * 1000:.0f} ms"
         # the server still serves new clients
         late = await CharCountingClient.connect(HOST, port)
