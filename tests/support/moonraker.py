@@ -21,7 +21,7 @@ from typing import Any
 import aiohttp
 
 from tests.support.moonraker_venv import ensure_moonraker
-from tests.support.processes import free_port
+from tests.support.processes import free_port, stop_process
 
 
 def moonraker_conf(port: int, socket: Path) -> str:
@@ -120,13 +120,7 @@ async def moonraker(tmp_path: Path, socket: Path, gcodes: Path) -> AsyncIterator
             await _wait_ready(server, process)
             yield server
     finally:
-        if process.returncode is None:
-            process.terminate()
-            try:
-                await asyncio.wait_for(process.wait(), 10)
-            except TimeoutError:
-                process.kill()
-                await process.wait()
+        await stop_process(process)
 
 
 async def _wait_ready(server: Moonraker, process: asyncio.subprocess.Process) -> None:

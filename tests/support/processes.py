@@ -80,13 +80,18 @@ async def motiond(tmp_path: Path, extra_toml: str = "", *, args: Sequence[str] =
         await _wait_listening(http_port, process)
         yield Served(process, tcp_port, http_port, data_dir)
     finally:
-        if process.returncode is None:
-            process.terminate()
-            try:
-                await asyncio.wait_for(process.wait(), 10)
-            except TimeoutError:
-                process.kill()
-                await process.wait()
+        await stop_process(process)
+
+
+async def stop_process(process: asyncio.subprocess.Process) -> None:
+    """SIGTERM, then SIGKILL after 10 s: a child of a test never outlives it."""
+    if process.returncode is None:
+        process.terminate()
+        try:
+            await asyncio.wait_for(process.wait(), 10)
+        except TimeoutError:
+            process.kill()
+            await process.wait()
 
 
 @contextlib.asynccontextmanager
