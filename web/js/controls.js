@@ -1,6 +1,6 @@
 // Machine control: hold/resume/reset/unlock/home, the jog pad and the laser's fire button.
 
-import { $, $$, report, toast } from "./util.js";
+import { $, $$, callApi } from "./util.js";
 import { stateKey } from "./status.js";
 
 // Which states enable which buttons (data-needs in index.html).
@@ -44,13 +44,7 @@ export class Controls {
 
   /** Run an API call; errors become toasts and console lines. */
   async act(label, method, params = {}) {
-    try {
-      return await this.api.call(method, params);
-    } catch (error) {
-      this.log?.error(`${label}: ${error.message}`);
-      report(error);
-      return null;
-    }
+    return callApi(this.api, this.log, label, method, params);
   }
 
   bindButtons() {

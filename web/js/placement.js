@@ -3,7 +3,7 @@
 // Frame, the feed/rapid/power overrides and a button per switch module (air assist) and the
 // spindle. Every action is an API call that runs through the machine's ordered line path.
 
-import { $, $$, el, report, toast } from "./util.js";
+import { $, $$, el, callApi, report, toast } from "./util.js";
 
 const FIT_CHIP = { true: "Fits", false: "Does not fit" };
 
@@ -30,13 +30,7 @@ export class PlacementView {
   }
 
   async act(label, method, params = {}) {
-    try {
-      return await this.api.call(method, params);
-    } catch (error) {
-      this.log?.error(`${label}: ${error.message}`);
-      report(error);
-      return null;
-    }
+    return callApi(this.api, this.log, label, method, params);
   }
 
   // -- the selected job at the current placement ---------------------------------------------

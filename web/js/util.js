@@ -92,3 +92,14 @@ export function confirmAction(title, text, okLabel = "OK") {
     dialog.addEventListener("close", () => resolve(dialog.returnValue === "ok"), { once: true });
   });
 }
+
+/** Run an API call; errors become toasts and console lines (null then). */
+export async function callApi(api, log, label, method, params = {}) {
+  try {
+    return await api.call(method, params);
+  } catch (error) {
+    log?.error(`${label}: ${error.message}`);
+    report(error);
+    return null;
+  }
+}
