@@ -1,6 +1,6 @@
 // Machine control: hold/resume/reset/unlock/home, the jog pad and the laser's fire button.
 
-import { $, $$, callApi } from "./util.js";
+import { $, $$, callApi, toast } from "./util.js";
 import { stateKey } from "./status.js";
 
 // Which states enable which buttons (data-needs in index.html).
