@@ -1,7 +1,8 @@
 """Run motiond's benchmarks by name.
 
     python -m benchmarks NAME [--quick] [--json]     # NAME: parser, planner, offline, streaming,
-                                                     #       grbl, klipper, idle
+                                                     #       grbl, klipper, klipper-host, idle
+    python -m benchmarks klipper [--runs N] [--motiond-tree DIR] [--hosts klippy motiond]
     python -m benchmarks all [--quick] [--json]
     python -m benchmarks --list
 
@@ -18,6 +19,7 @@ import sys
 from collections.abc import Callable, Sequence
 
 from benchmarks.common import BenchResult, add_run_options, execute
+from benchmarks.klipper_options import add_options, options_of
 
 BENCHMARKS: dict[str, tuple[str, str]] = {  # name: (module, one-line description)
     "parser": ("benchmarks.bench_parser",
@@ -31,7 +33,9 @@ BENCHMARKS: dict[str, tuple[str, str]] = {  # name: (module, one-line descriptio
     "grbl": ("benchmarks.bench_grbl_link",
              "lines/s through motiond to a Grbl controller against streaming to it directly"),
     "klipper": ("benchmarks.bench_klipper",
-                "Klipper backend: host CPU per second of motion at 20,000 segments/s, bytes/s"),
+                "Klipper backend against klippy on the stock firmware (rig): CPU, bytes, timing"),
+    "klipper-host": ("benchmarks.bench_klipper_host",
+                     "Klipper backend's host half on a virtual clock: CPU at 20,000 segments/s"),
     "idle": ("benchmarks.bench_idle",
              "CPU of an idle server: motiond on the sim, the Klipper backend's event loop"),
 }
@@ -44,20 +48,22 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                         help="the benchmark to run, or all of them in turn")
     parser.add_argument("--list", action="store_true", help="list the benchmarks and exit")
     add_run_options(parser)
+    add_options(parser)
     options = parser.parse_args(argv)
     if options.name is None and not options.list:
         parser.error("name a benchmark (or all), or --list them")
     return options
 
 
-def runner(name: str, quick: bool, header: bool) -> Callable[[], BenchResult]:
+def runner(name: str, options: argparse.Namespace, header: bool) -> Callable[[], BenchResult]:
     """Import the benchmark's module and run it (with a title line when running several)."""
 
     def run() -> BenchResult:
         module, description = BENCHMARKS[name]
         if header:
             print(f"\n== {name}: {description}\n")
-        result: BenchResult = importlib.import_module(module).run(quick)
+        extra = options_of(options) if name == "klipper" else {}
+        result: BenchResult = importlib.import_module(module).run(options.quick, **extra)
         return result
 
     return run
@@ -67,10 +73,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     options = parse_args(argv)
     if options.list:
         for name, (_, description) in BENCHMARKS.items():
-            print(f"{name:10} {description}")
+            print(f"{name:12} {description}")
         return 0
     names = list(BENCHMARKS) if options.name == "all" else [options.name]
-    runs = [runner(name, options.quick, header=len(names) > 1) for name in names]
+    runs = [runner(name, options, header=len(names) > 1) for name in names]
     return execute(runs, options.json)
 
 

@@ -1,157 +1,257 @@
-"""The Klipper backend's host half: CPU per second of motion, bytes on the wire, step error.
+"""The Klipper backend against Klipper's own host, on the stock firmware (the klipper-avr rig).
 
-A raster of 0.025 mm segments at up to 500 mm/s (20,000 segments/s at full speed, power
-changing every segment, the laser's PWM sampled at 1 kHz) runs through the real planner, step
-generator and :class:`~server.backends.klipper.backend.KlipperBackend` on a virtual clock; the
-MCU side is a sink that frames the messages into blocks as the link does and counts the
-bytes. Reported:
+For each host (klippy at the firmware's commit, built by ``scripts/klippy-host``; motiond's
+Klipper backend) a fresh rig, the host configured alike (:mod:`benchmarks.klipper_rig_hosts`),
+then each job of :mod:`benchmarks.klipper_rig_jobs` ``--runs`` times. From the host's process,
+the rig's serial log and its GPIO log (cycles at 20 MHz: the MCU's own time), per job:
 
-* host CPU seconds per second of motion (< 1 means the host keeps up in real time);
-* bytes per second on the wire against a 250,000-baud link (25,000 bytes/s of 8N1);
-* how early the compressed steps land against their exact times (the bound is 25 µs).
+* host CPU seconds per second of motion (the host's own process; motion from the first step
+  edge to the last; the idle job: per second);
+* bytes, blocks and messages per second to the MCU, retransmitted blocks per second;
+* cruise speed error in ppm (each cruise's steps over the cycles they took, against the
+  commanded 100 mm/s), and step time error against the ideal trapezoid (p99 and max |µs|,
+  one offset fitted per move), on the firmware's clock (lost timer overflows put back);
+* wall time from sending the job to its last step, and whether every step count is exact;
+* LAG records (the simulation fell behind wall-clock time: a loaded machine) in the window.
 
-Run: ``python -m benchmarks klipper [--quick] [--json]``.
+Run: ``python -m benchmarks klipper [--quick] [--json] [--runs N] [--motiond-tree DIR]``
+(``--motiond-tree``: measure motiond from another checkout, e.g. a branch's worktree).
 """
 
 from __future__ import annotations
 
+import argparse
+import asyncio
 import sys
+import tempfile
 import time
-from typing import Any
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import BenchResult, standalone
-from server.backends.klipper.backend import KlipperBackend
-from server.backends.klipper.clocksync import ClockSync
-from server.backends.klipper.codec import PAYLOAD_MAX
-from server.backends.klipper.dictionary import Dictionary
-from server.backends.klipper.stepcompress import StepCompressor
-from server.config_loader import build_config
-from server.motion.moves import Action, Move, MoveKind, ToolMode
-from server.motion.planner import Planner
-from server.motion.stepgen import StepGenerator
-from server.runtime.parts import planner_settings
+from benchmarks import klipper_rig_analysis as analysis
+from benchmarks.common import REPO, BenchResult, add_run_options, execute
+from benchmarks.klipper_options import HOSTS, add_options
+from benchmarks.klipper_rig_hosts import (
+    KLIPPER_AVR,
+    STEPS_PER_MM,
+    Klippy,
+    Motiond,
+    Rig,
+    cpu_ns,
+    klipper_rig,
+)
+from benchmarks.klipper_rig_jobs import SPEED_MM_S, Job, jobs
 
-CLOCK_HZ = 72_000_000
-BAUD_BYTES_S = 250_000 / 10
-SEGMENT_MM, SPEED_MM_S, LINE_MM = 0.025, 500.0, 300.0
-FORMATS = {"commands": {"queue_step oid=%c interval=%u count=%hu add=%hi": 2,
-                        "set_next_step_dir oid=%c dir=%c": 3,
-                        "reset_step_clock oid=%c clock=%u": 4,
-                        "queue_pwm_out oid=%c clock=%u value=%hu": 5},
-           "config": {"CLOCK_FREQ": CLOCK_HZ, "PWM_MAX": 255}}
+PINS = {"x": ("A0", "A1", True), "y": ("A3", "A4", False)}  # step, dir, dir inverted
+SETTLE_S = 0.5
 
 
-class WireCount:
-    """Frames messages into blocks of at most 59 payload bytes, as the link packs them."""
-
-    def __init__(self) -> None:
-        self.bytes, self.block = 0, 0
-
-    def send(self, message: bytes) -> None:
-        if self.block + len(message) > PAYLOAD_MAX:
-            self.bytes += self.block + 5
-            self.block = 0
-        self.block += len(message)
+@dataclass
+class Window:
+    job: Job
+    host: str
+    start_ns: int
+    end_ns: int
+    cpu_s: float
 
 
-class BenchMcu:
-    def __init__(self) -> None:
-        self.dictionary = Dictionary(FORMATS)
-        self.clock = ClockSync(CLOCK_HZ)
-        self.clock.reset(0.0, 0)
-        self.move_count = 1 << 30
-        self.link = WireCount()
+@dataclass
+class Figures:
+    cpu_per_s: float = float("nan")
+    bytes_per_s: float = float("nan")
+    messages_per_s: float = float("nan")
+    blocks_per_s: float = float("nan")
+    retransmits_per_s: float = float("nan")
+    cruise_ppm: list[float] = field(default_factory=list)
+    error_p99_us: float = float("nan")
+    error_max_us: float = float("nan")
+    wall_s: float = float("nan")
+    motion_s: float = float("nan")
+    exact: bool = True
+    lag_records: int = 0
+    lag_max_ms: float = 0.0
+    slips: int = 0
 
 
-class OfflineBackend(KlipperBackend):
-    """The real backend whose MCU clock runs on the virtual time of the benchmark."""
-
-    now_s = 0.0
-
-    def _now_clock(self) -> float:
-        return self._clock_at(self.now_s)
-
-
-class Listener:
-    def on_action(self, action: Action) -> None: ...
-    def on_idle(self) -> None: ...
-    def on_hold_stopped(self) -> None: ...
-
-
-def machine() -> Any:
-    axes = {a: {"steps_per_mm": 80, "max_rate_mm_s": 500, "accel_mm_s2": 10000, "max_mm": 400}
-            for a in "xy"}
-    pins = {"x": {"step_pin": "PB13", "dir_pin": "PB12"}, "y": {"step_pin": "PB10",
-                                                               "dir_pin": "PB2"}}
-    return build_config({"axes": axes, "backend": {
-        "kind": "klipper", "serial": "/dev/null", "axes": pins, "outputs": {"PA8": {}}}}).core
-
-
-def raster(motion_s: float) -> list[Move]:
-    """Zig-zag lines of short segments, S changing every segment."""
-    moves, x, y, direction = [], 0.0, 0.0, 1
-    per_line = int(LINE_MM / SEGMENT_MM)
-    for _ in range(int(motion_s * SPEED_MM_S / LINE_MM) + 1):
-        for k in range(per_line):
-            x += direction * SEGMENT_MM
-            moves.append(Move((x, y), SPEED_MM_S, MoveKind.FEED, ToolMode.CCW, 200 + k % 800))
-        y += 0.1
-        moves.append(Move((x, y), SPEED_MM_S, MoveKind.FEED, ToolMode.CCW, 0.0))
-        direction = -direction
-    return moves
+async def run_host(host: str, job_list: list[Job], runs: int, workdir: Path,
+                   tree: Path) -> tuple[Rig, list[Window]]:
+    windows: list[Window] = []
+    async with klipper_rig(workdir, host) as rig:
+        starter = Klippy.start(rig, workdir) if host == "klippy" else \
+            Motiond.start(rig, workdir, tree)
+        async with starter as driver:
+            for _ in range(runs):
+                for job in job_list:
+                    setup = [f"G1 X{job.start[0]:.3f} Y{job.start[1]:.3f} F6000"]
+                    await driver.run(setup, job.start)
+                    await asyncio.sleep(SETTLE_S)
+                    cpu, started = cpu_ns(driver.pid), time.monotonic_ns()
+                    if job.idle_s:
+                        await asyncio.sleep(job.idle_s)
+                    else:
+                        await driver.run(job.lines(host), job.end)
+                    ended = time.monotonic_ns()
+                    windows.append(Window(job, host, started, ended,
+                                          (cpu_ns(driver.pid) - cpu) / 1e9))
+                    print(f"  {host:8} {job.name:11} {(ended - started) / 1e9:6.2f} s",
+                          file=sys.stderr)
+        return rig, windows
 
 
-def execute(motion_s: float) -> tuple[float, float, OfflineBackend]:
-    """CPU seconds and seconds of motion for a raster of ``motion_s`` seconds."""
-    core = machine()
-    backend = OfflineBackend(core, record=True)
-    backend.mcu, backend.ready = BenchMcu(), True  # type: ignore[assignment]
-    for axis in backend.axes:  # what configuring the MCU sets
-        axis.compressor = StepCompressor(backend.cfg.max_error_s * CLOCK_HZ)
-    planner = Planner(planner_settings(core), (0.0, 0.0))
-    stepgen = StepGenerator(planner, backend, (80.0, 80.0), Listener())
-    all_moves = raster(motion_s)
-    moves = iter(all_moves)
-    pending: Move | None = next(moves)
-    now_s, started = 0.0, time.process_time()
-    stepgen.tick(now_s)
-    while pending is not None or not stepgen.idle:
-        while pending is not None and not planner.is_full():
-            planner.append(pending)
-            pending = next(moves, None)
-        stepgen.request_start()
-        now_s += 0.001
-        backend.now_s = now_s
-        stepgen.tick(now_s)
-        backend.set_output("PA8", round(stepgen.state.s_value) / 1000 * 0.8, now_s)
-    backend.segments = len(all_moves)  # type: ignore[attr-defined]
-    return time.process_time() - started, stepgen.state.motion_time_s, backend
+def cycle_of(sync: np.ndarray, host_ns: int) -> int:
+    """The rig's cycle at a CLOCK_MONOTONIC time (its 10 ms ``T`` records)."""
+    return int(np.interp(host_ns, sync[:, 1], sync[:, 0]))
 
 
-def run(quick: bool) -> BenchResult:
+def analyse(rig: Rig, windows: list[Window]) -> list[Figures]:
+    from tests.support.klipper_rig import GpioLog  # noqa: PLC0415
+    from tests.support.rigs import msgproto  # noqa: PLC0415
+
+    gpio = GpioLog.read(rig.gpio_log)
+    serial = analysis.read_serial_log(rig.serial_log, msgproto(),
+                                      (KLIPPER_AVR / "klipper.dict").read_bytes())
+    slips = analysis.clock_slips(serial.clocks)
+    sync = np.array(gpio.sync, dtype=np.float64)
+    lags = [(int(w[0]), int(w[2])) for w in (line.split() for line in
+                                             rig.gpio_log.read_text().splitlines())
+            if len(w) == 3 and w[1] == "LAG"]
+    out = []
+    for window in windows:
+        start, end = cycle_of(sync, window.start_ns), cycle_of(sync, window.end_ns)
+        fig = Figures()
+        fig.slips = sum(start <= c < end for c, _ in slips)
+        in_lag = [ns for c, ns in lags if start <= c < end]
+        fig.lag_records, fig.lag_max_ms = len(in_lag), max(in_lag, default=0) / 1e6
+        edges: dict[str, np.ndarray] = {}
+        for axis, (step, dir_pin, inverted) in PINS.items():
+            rises = np.array([c for c, v in gpio.edges.get(step, []) if v == 1 and
+                              start <= c < end], dtype=np.float64)
+            net = sum((-1 if inverted else 1) * (1 if gpio.level_at(dir_pin, int(c)) else -1)
+                      for c in rises)
+            gross_want, net_want = window.job.steps(0 if axis == "x" else 1)
+            fig.exact &= (len(rises), net) == (gross_want, net_want)
+            edges[axis] = analysis.on_mcu_clock(rises, slips)
+        all_edges = np.sort(np.concatenate(list(edges.values())))
+        if window.job.idle_s:
+            seconds = window.job.idle_s
+        else:
+            seconds = (all_edges[-1] - all_edges[0]) / analysis.FREQ_HZ if all_edges.size > 1 \
+                else float("nan")
+            fig.motion_s = seconds
+            last_ns = float(np.interp(all_edges[-1], sync[:, 0], sync[:, 1]))
+            fig.wall_s = (last_ns - window.start_ns) / 1e9
+        wire = serial.window(start, end)
+        fig.cpu_per_s = window.cpu_s / seconds
+        fig.bytes_per_s, fig.blocks_per_s = wire.bytes / seconds, wire.blocks / seconds
+        fig.messages_per_s = wire.messages / seconds
+        fig.retransmits_per_s = wire.retransmitted / seconds
+        errors: list[np.ndarray] = []
+        for axis, moves in window.job.moves.items():
+            if not fig.exact:
+                break
+            counts = [round(m.distance_mm * STEPS_PER_MM) for m in moves]
+            for move, move_edges in zip(moves, analysis.split_moves(edges[axis], counts),
+                                        strict=True):
+                errors.append(analysis.step_errors(
+                    move_edges, analysis.rest_to_rest_times(move, STEPS_PER_MM)))
+                ppm = analysis.cruise_ppm(move_edges, move, STEPS_PER_MM)
+                if ppm is not None:
+                    fig.cruise_ppm.append(ppm)
+        if errors:
+            magnitudes = np.abs(np.concatenate(errors))
+            fig.error_p99_us = analysis.percentile(magnitudes, 99)
+            fig.error_max_us = float(magnitudes.max())
+        out.append(fig)
+    return out
+
+
+def finite(values: Sequence[float]) -> list[float]:
+    return [v for v in values if np.isfinite(v)]
+
+
+def span(values: Sequence[float], fmt: str) -> str:
+    finite = [v for v in values if np.isfinite(v)]
+    if not finite:
+        return "-"
+    low, high = min(finite), max(finite)
+    return format(low, fmt) if format(low, fmt) == format(high, fmt) else \
+        f"{format(low, fmt)}..{format(high, fmt)}"
+
+
+def report(result: BenchResult, figures: dict[str, dict[str, list[Figures]]]) -> None:
+    names = list(next(iter(figures.values())))
+    columns = (("cpu_per_s", "CPU s/s", ".4f", "s/s"), ("bytes_per_s", "bytes/s", ",.0f", "B/s"),
+               ("messages_per_s", "msgs/s", ",.0f", "1/s"),
+               ("retransmits_per_s", "retx/s", ".2f", "1/s"),
+               ("error_p99_us", "step p99 µs", ".1f", "µs"),
+               ("error_max_us", "step max µs", ".1f", "µs"), ("wall_s", "wall s", ".2f", "s"))
+    print(f"{'job':11} {'host':8} " + " ".join(f"{c[1]:>16}" for c in columns)
+          + f" {'cruise ppm':>16} exact  lag")
+    for name in names:
+        for host, by_job in figures.items():
+            runs = by_job[name]
+            cells = [span([getattr(f, c[0]) for f in runs], c[2]) for c in columns]
+            ppm = [p for f in runs for p in f.cruise_ppm]
+            lag = sum(f.lag_records for f in runs)
+            print(f"{name:11} {host:8} " + " ".join(f"{c:>16}" for c in cells)
+                  + f" {span(ppm, '+.0f'):>16} {all(f.exact for f in runs)!s:5} {lag:4}")
+            result.add(name, host, note=f"{len(runs)} runs; {lag} LAG records",
+                       **{f"{c[0]}_{k}": (fn(finite([getattr(f, c[0]) for f in runs]),
+                                             default=float("nan")), c[3])
+                          for c in columns for k, fn in (("min", min), ("max", max))},
+                       cruise_ppm_min=(min(ppm, default=float("nan")), "ppm"),
+                       cruise_ppm_max=(max(ppm, default=float("nan")), "ppm"),
+                       exact=(float(all(f.exact for f in runs)), "bool"),
+                       lag_records=(float(lag), "records"),
+                       lag_max=(max(f.lag_max_ms for f in runs), "ms"),
+                       clock_slips=(float(sum(f.slips for f in runs)), "slips"))
+        if len(figures) == 2:
+            ratios = {c[0]: np.nanmedian([getattr(f, c[0]) for f in figures["motiond"][name]])
+                      / np.nanmedian([getattr(f, c[0]) for f in figures["klippy"][name]])
+                      for c in columns[:2] + columns[4:5] + columns[6:]}
+            print(f"{name:11} {'ratio':8} " + "  ".join(f"{k} {v:.2f}x" for k, v in
+                                                        ratios.items()) + " (motiond / klippy)")
+            result.add(name, "motiond / klippy", **{k: (v, "x") for k, v in ratios.items()})
+
+
+async def measure(quick: bool, runs: int, tree: Path, hosts: Sequence[str]
+                  ) -> dict[str, dict[str, list[Figures]]]:
+    job_list = jobs(quick)
+    figures: dict[str, dict[str, list[Figures]]] = {}
+    with tempfile.TemporaryDirectory(prefix="motiond-bench-klipper-") as name:
+        for host in hosts:
+            workdir = Path(name) / host
+            workdir.mkdir()
+            rig, windows = await run_host(host, job_list, runs, workdir, tree)
+            by_job: dict[str, list[Figures]] = {job.name: [] for job in job_list}
+            for window, fig in zip(windows, analyse(rig, windows), strict=True):
+                by_job[window.job.name].append(fig)
+            figures[host] = by_job
+    return figures
+
+
+def run(quick: bool, runs: int | None = None, motiond_tree: Path | None = None,
+        hosts: Sequence[str] = HOSTS) -> BenchResult:
     result = BenchResult("klipper", quick)
-    cpu_s, motion_s, backend = execute(1.0 if quick else 4.0)
-    wire = backend.mcu.link  # type: ignore[union-attr]
-    assert isinstance(wire, WireCount)
-    segments = float(backend.segments)  # type: ignore[attr-defined]
-    errors_us = np.concatenate(backend.errors or [np.zeros(1)]) / CLOCK_HZ * 1e6
-    bytes_s = wire.bytes / motion_s
-    print(f"raster {segments / motion_s:,.0f} segments/s over {motion_s:.2f} s of motion")
-    print(f"host CPU per second of motion   {cpu_s / motion_s:8.3f} s/s")
-    print(f"bytes on the wire               {bytes_s:8,.0f} B/s "
-          f"({bytes_s / BAUD_BYTES_S:.0%} of 250,000 baud)")
-    pcts = np.percentile(errors_us, [50, 90, 99, 100])
-    print("step error (µs early)           p50 {:.1f}  p90 {:.1f}  p99 {:.1f}  max {:.1f}".format(
-        *pcts))
-    result.add("klipper", "raster", segments_per_s=(segments / motion_s, "segments/s"),
-               cpu_per_motion_s=(cpu_s / motion_s, "s/s"), wire_bytes_s=(bytes_s, "B/s"),
-               link_share=(bytes_s / BAUD_BYTES_S, "x"),
-               error_p50=(float(pcts[0]), "µs"), error_p99=(float(pcts[2]), "µs"),
-               error_max=(float(pcts[3]), "µs"))
+    runs = runs or (1 if quick else 3)
+    tree = (motiond_tree or REPO).resolve()
+    print(f"stock Klipper firmware (klipper-avr rig), {runs} run(s) per job and host; "
+          f"motiond from {tree}; commanded {SPEED_MM_S:.0f} mm/s")
+    report(result, asyncio.run(measure(quick, runs, tree, hosts)))
     return result
 
 
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    add_run_options(parser)
+    add_options(parser)
+    options = parser.parse_args(argv)
+    return execute([lambda: run(options.quick, options.runs, options.motiond_tree,
+                                options.hosts)], options.json)
+
+
 if __name__ == "__main__":
-    sys.exit(standalone(run, __doc__ or ""))
+    sys.exit(main())

@@ -13,7 +13,7 @@ import sys
 
 from tests.conftest import REPO
 
-NAMES = ("parser", "planner", "offline", "streaming", "grbl", "klipper", "idle")
+NAMES = ("parser", "planner", "offline", "streaming", "grbl", "klipper", "klipper-host", "idle")
 
 
 def benchmarks(*args: str) -> subprocess.CompletedProcess[str]:

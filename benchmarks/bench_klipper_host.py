@@ -1,0 +1,158 @@
+"""The Klipper backend's host half: CPU per second of motion, bytes on the wire, step error.
+
+A raster of 0.025 mm segments at up to 500 mm/s (20,000 segments/s at full speed, power
+changing every segment, the laser's PWM sampled at 1 kHz) runs through the real planner, step
+generator and :class:`~server.backends.klipper.backend.KlipperBackend` on a virtual clock; the
+MCU side is a sink that frames the messages into blocks as the link does and counts the
+bytes. Reported:
+
+* host CPU seconds per second of motion (< 1 means the host keeps up in real time);
+* bytes per second on the wire against a 250,000-baud link (25,000 bytes/s of 8N1);
+* how early the compressed steps land against their exact times (the bound is 25 µs).
+
+Run: ``python -m benchmarks klipper-host [--quick] [--json]`` (``klipper`` measures the real
+firmware against Klipper's own host: :mod:`benchmarks.bench_klipper`).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from typing import Any
+
+import numpy as np
+
+from benchmarks.common import BenchResult, standalone
+from server.backends.klipper.backend import KlipperBackend
+from server.backends.klipper.clocksync import ClockSync
+from server.backends.klipper.codec import PAYLOAD_MAX
+from server.backends.klipper.dictionary import Dictionary
+from server.backends.klipper.stepcompress import StepCompressor
+from server.config_loader import build_config
+from server.motion.moves import Action, Move, MoveKind, ToolMode
+from server.motion.planner import Planner
+from server.motion.stepgen import StepGenerator
+from server.runtime.parts import planner_settings
+
+CLOCK_HZ = 72_000_000
+BAUD_BYTES_S = 250_000 / 10
+SEGMENT_MM, SPEED_MM_S, LINE_MM = 0.025, 500.0, 300.0
+FORMATS = {"commands": {"queue_step oid=%c interval=%u count=%hu add=%hi": 2,
+                        "set_next_step_dir oid=%c dir=%c": 3,
+                        "reset_step_clock oid=%c clock=%u": 4,
+                        "queue_pwm_out oid=%c clock=%u value=%hu": 5},
+           "config": {"CLOCK_FREQ": CLOCK_HZ, "PWM_MAX": 255}}
+
+
+class WireCount:
+    """Frames messages into blocks of at most 59 payload bytes, as the link packs them."""
+
+    def __init__(self) -> None:
+        self.bytes, self.block = 0, 0
+
+    def send(self, message: bytes) -> None:
+        if self.block + len(message) > PAYLOAD_MAX:
+            self.bytes += self.block + 5
+            self.block = 0
+        self.block += len(message)
+
+
+class BenchMcu:
+    def __init__(self) -> None:
+        self.dictionary = Dictionary(FORMATS)
+        self.clock = ClockSync(CLOCK_HZ)
+        self.clock.reset(0.0, 0)
+        self.move_count = 1 << 30
+        self.link = WireCount()
+
+
+class OfflineBackend(KlipperBackend):
+    """The real backend whose MCU clock runs on the virtual time of the benchmark."""
+
+    now_s = 0.0
+
+    def _now_clock(self) -> float:
+        return self._clock_at(self.now_s)
+
+
+class Listener:
+    def on_action(self, action: Action) -> None: ...
+    def on_idle(self) -> None: ...
+    def on_hold_stopped(self) -> None: ...
+
+
+def machine() -> Any:
+    axes = {a: {"steps_per_mm": 80, "max_rate_mm_s": 500, "accel_mm_s2": 10000, "max_mm": 400}
+            for a in "xy"}
+    pins = {"x": {"step_pin": "PB13", "dir_pin": "PB12"}, "y": {"step_pin": "PB10",
+                                                               "dir_pin": "PB2"}}
+    return build_config({"axes": axes, "backend": {
+        "kind": "klipper", "serial": "/dev/null", "axes": pins, "outputs": {"PA8": {}}}}).core
+
+
+def raster(motion_s: float) -> list[Move]:
+    """Zig-zag lines of short segments, S changing every segment."""
+    moves, x, y, direction = [], 0.0, 0.0, 1
+    per_line = int(LINE_MM / SEGMENT_MM)
+    for _ in range(int(motion_s * SPEED_MM_S / LINE_MM) + 1):
+        for k in range(per_line):
+            x += direction * SEGMENT_MM
+            moves.append(Move((x, y), SPEED_MM_S, MoveKind.FEED, ToolMode.CCW, 200 + k % 800))
+        y += 0.1
+        moves.append(Move((x, y), SPEED_MM_S, MoveKind.FEED, ToolMode.CCW, 0.0))
+        direction = -direction
+    return moves
+
+
+def execute(motion_s: float) -> tuple[float, float, OfflineBackend]:
+    """CPU seconds and seconds of motion for a raster of ``motion_s`` seconds."""
+    core = machine()
+    backend = OfflineBackend(core, record=True)
+    backend.mcu, backend.ready = BenchMcu(), True  # type: ignore[assignment]
+    for axis in backend.axes:  # what configuring the MCU sets
+        axis.compressor = StepCompressor(backend.cfg.max_error_s * CLOCK_HZ)
+    planner = Planner(planner_settings(core), (0.0, 0.0))
+    stepgen = StepGenerator(planner, backend, (80.0, 80.0), Listener())
+    all_moves = raster(motion_s)
+    moves = iter(all_moves)
+    pending: Move | None = next(moves)
+    now_s, started = 0.0, time.process_time()
+    stepgen.tick(now_s)
+    while pending is not None or not stepgen.idle:
+        while pending is not None and not planner.is_full():
+            planner.append(pending)
+            pending = next(moves, None)
+        stepgen.request_start()
+        now_s += 0.001
+        backend.now_s = now_s
+        stepgen.tick(now_s)
+        backend.set_output("PA8", round(stepgen.state.s_value) / 1000 * 0.8, now_s)
+    backend.segments = len(all_moves)  # type: ignore[attr-defined]
+    return time.process_time() - started, stepgen.state.motion_time_s, backend
+
+
+def run(quick: bool) -> BenchResult:
+    result = BenchResult("klipper-host", quick)
+    cpu_s, motion_s, backend = execute(1.0 if quick else 4.0)
+    wire = backend.mcu.link  # type: ignore[union-attr]
+    assert isinstance(wire, WireCount)
+    segments = float(backend.segments)  # type: ignore[attr-defined]
+    errors_us = np.concatenate(backend.errors or [np.zeros(1)]) / CLOCK_HZ * 1e6
+    bytes_s = wire.bytes / motion_s
+    print(f"raster {segments / motion_s:,.0f} segments/s over {motion_s:.2f} s of motion")
+    print(f"host CPU per second of motion   {cpu_s / motion_s:8.3f} s/s")
+    print(f"bytes on the wire               {bytes_s:8,.0f} B/s "
+          f"({bytes_s / BAUD_BYTES_S:.0%} of 250,000 baud)")
+    pcts = np.percentile(errors_us, [50, 90, 99, 100])
+    print("step error (µs early)           p50 {:.1f}  p90 {:.1f}  p99 {:.1f}  max {:.1f}".format(
+        *pcts))
+    result.add("klipper", "raster", segments_per_s=(segments / motion_s, "segments/s"),
+               cpu_per_motion_s=(cpu_s / motion_s, "s/s"), wire_bytes_s=(bytes_s, "B/s"),
+               link_share=(bytes_s / BAUD_BYTES_S, "x"),
+               error_p50=(float(pcts[0]), "µs"), error_p99=(float(pcts[2]), "µs"),
+               error_max=(float(pcts[3]), "µs"))
+    return result
+
+
+if __name__ == "__main__":
+    sys.exit(standalone(run, __doc__ or ""))

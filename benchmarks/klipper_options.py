@@ -1,0 +1,23 @@
+"""The command-line options of ``python -m benchmarks klipper`` (importing nothing heavy, so
+``python -m benchmarks --list`` stays quick)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+HOSTS = ("klippy", "motiond")
+
+
+def add_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--runs", type=int, help="klipper: runs of each job per host "
+                        "(default 3, 1 with --quick)")
+    parser.add_argument("--motiond-tree", type=Path, help="klipper: motiond's source tree "
+                        "to measure (default: this checkout)")
+    parser.add_argument("--hosts", nargs="+", choices=HOSTS, default=list(HOSTS),
+                        help="klipper: which hosts to measure")
+
+
+def options_of(options: Any) -> dict[str, Any]:
+    return {"runs": options.runs, "motiond_tree": options.motiond_tree, "hosts": options.hosts}

@@ -1,0 +1,237 @@
+"""What the klipper-avr rig's logs say a host did (pure: no processes, no I/O but reading logs).
+
+* :func:`read_serial_log`: the blocks the host sent (``MCU_SERIAL_LOG``'s ``R`` bytes), each with
+  its cycle, size, sequence number and decoded messages, retransmissions (a block whose sequence
+  number is not the next one), and the firmware's clock as its responses report it (``W``);
+* :func:`clock_slips`: where simavr lost a timer-1 overflow (Klipper's clock falls 65,536 ticks
+  behind the cycle count; the rig's README), so pin edges can be put back on the firmware's clock;
+* :func:`rest_to_rest_times`: the ideal time of every step of a move from rest to rest along one
+  axis (the trapezoid both hosts plan: accelerate, cruise, decelerate; a step when the position
+  crosses a half step, as both do);
+* :func:`step_errors` and :func:`cruise_ppm`: edges against those ideal times (one offset fitted
+  per move: when a move starts is free, its rate and shape are not) and the cruise speed.
+
+Cycles count at 20 MHz (the firmware's ``CLOCK_FREQ``): the MCU's own time.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import ModuleType
+
+import numpy as np
+import numpy.typing as npt
+
+FREQ_HZ = 20_000_000
+SLIP_TICKS = 65_536
+SYNC = 0x7E
+FloatArray = npt.NDArray[np.float64]
+CLOCK_RESPONSES = ("clock", "uptime", "stats")
+
+
+@dataclass(slots=True)
+class Block:
+    """One block on the wire: the cycle its last byte passed, its bytes, sequence number and
+    the names of its messages (an empty block is an ack or nak)."""
+
+    cycle: int
+    size: int
+    seq: int
+    messages: list[str]
+
+
+@dataclass(slots=True)
+class SerialLog:
+    sent: list[Block] = field(default_factory=list)  # host -> MCU (R)
+    received: list[Block] = field(default_factory=list)  # MCU -> host (W)
+    clocks: list[tuple[int, int]] = field(default_factory=list)  # (cycle, MCU clock) from W
+
+    def window(self, start: int, end: int) -> SerialFigures:
+        blocks = [b for b in self.sent if start <= b.cycle < end]
+        retransmitted, expected = 0, None
+        for block in self.sent:
+            if block.cycle >= end:
+                break
+            if start <= block.cycle and block.messages and expected is not None \
+                    and block.seq != expected:
+                retransmitted += 1
+            if block.messages:
+                expected = (block.seq + 1) & 0x0F
+        return SerialFigures(bytes=sum(b.size for b in blocks), blocks=len(blocks),
+                             messages=sum(len(b.messages) for b in blocks),
+                             retransmitted=retransmitted)
+
+
+@dataclass(frozen=True, slots=True)
+class SerialFigures:
+    bytes: int
+    blocks: int
+    messages: int
+    retransmitted: int
+
+
+def split_blocks(data: bytes) -> list[tuple[int, bytes]]:
+    """(end offset, block) for each well-formed block of a byte stream (resynchronising on the
+    sync byte after a damaged one, as the firmware does)."""
+    out: list[tuple[int, bytes]] = []
+    pos = 0
+    while pos < len(data):
+        size = data[pos]
+        if 5 <= size <= 64 and pos + size <= len(data) and data[pos + size - 1] == SYNC:
+            out.append((pos + size, data[pos:pos + size]))
+            pos += size
+            continue
+        following = data.find(bytes([SYNC]), pos)
+        if following < 0:
+            break
+        pos = following + 1
+    return out
+
+
+def message_names(parser: object, block: bytes) -> list[tuple[str, dict[str, object]]]:
+    """The messages of a block, decoded with Klipper's own ``msgproto`` parser."""
+    out: list[tuple[str, dict[str, object]]] = []
+    pos = 2
+    while pos < len(block) - 3:
+        msgid, _ = parser.msgid_parser.parse(block, pos)  # type: ignore[attr-defined]
+        message = parser.messages_by_id.get(msgid, parser.unknown)  # type: ignore[attr-defined]
+        params, pos = message.parse(block, pos)
+        out.append((message.name, params))
+    return out
+
+
+def read_serial_log(path: Path, msgproto: ModuleType, dictionary: bytes) -> SerialLog:
+    parser = msgproto.MessageParser()
+    parser.process_identify(dictionary, decompress=False)
+    streams: dict[str, tuple[bytearray, list[int]]] = {"R": (bytearray(), []),
+                                                      "W": (bytearray(), [])}
+    for line in path.read_text().splitlines():
+        words = line.split()
+        if len(words) == 3 and words[1] in streams and words[0].isdigit():
+            data, cycles = streams[words[1]]
+            chunk = bytes.fromhex(words[2])
+            data += chunk
+            cycles.extend([int(words[0])] * len(chunk))
+    log = SerialLog()
+    for direction, target in (("R", log.sent), ("W", log.received)):
+        data, cycles = streams[direction]
+        for end, block in split_blocks(bytes(data)):
+            try:
+                decoded = message_names(parser, block) if len(block) > 5 else []
+            except Exception:  # noqa: BLE001 - damaged on the wire: counted, not decoded
+                decoded = [("?", {})]
+            cycle = cycles[end - 1]
+            target.append(Block(cycle, len(block), block[1] & 0x0F, [n for n, _ in decoded]))
+            if direction == "W":
+                log.clocks += [(cycle, int(p["clock"])) for n, p in decoded  # type: ignore
+                               if n in CLOCK_RESPONSES and "clock" in p]
+    return log
+
+
+def clock_slips(clocks: Sequence[tuple[int, int]]) -> list[tuple[int, int]]:
+    """(cycle, ticks behind) from each lost timer-1 overflow on: the MCU's clock as its
+    responses report it, against the cycle count (a response leaves a little after its clock
+    was read, far less than 65,536 ticks)."""
+    out: list[tuple[int, int]] = []
+    base: int | None = None
+    behind = 0
+    for cycle, clock in clocks:
+        lag = (cycle - clock) % (1 << 32)
+        if base is None:
+            base = lag
+        slips = round((lag - base) / SLIP_TICKS)
+        if slips * SLIP_TICKS > behind:
+            behind = slips * SLIP_TICKS
+            out.append((cycle, behind))
+    return out
+
+
+def on_mcu_clock(cycles: FloatArray, slips: Sequence[tuple[int, int]]) -> FloatArray:
+    """Cycles of pin edges on the firmware's clock (less the ticks it had slipped by then)."""
+    shifted = cycles.astype(np.float64).copy()
+    for cycle, behind in slips:  # cumulative: each entry is the total from then on
+        shifted = np.where(cycles >= cycle, cycles.astype(np.float64) - behind, shifted)
+    return shifted
+
+
+# -- the ideal profile -----------------------------------------------------------------------------
+@dataclass(frozen=True, slots=True)
+class Trapezoid:
+    """A move from rest to rest: distance, peak speed, acceleration (mm, mm/s, mm/s²)."""
+
+    distance_mm: float
+    speed_mm_s: float
+    accel_mm_s2: float
+
+    @property
+    def peak_mm_s(self) -> float:
+        return min(self.speed_mm_s, math.sqrt(self.accel_mm_s2 * self.distance_mm))
+
+    @property
+    def ramp_s(self) -> float:
+        return self.peak_mm_s / self.accel_mm_s2
+
+    @property
+    def ramp_mm(self) -> float:
+        return self.peak_mm_s * self.ramp_s / 2
+
+    @property
+    def duration_s(self) -> float:
+        return 2 * self.ramp_s + (self.distance_mm - 2 * self.ramp_mm) / self.peak_mm_s
+
+    def time_at(self, s_mm: FloatArray) -> FloatArray:
+        """When the move has travelled ``s_mm`` (from its start)."""
+        a, v, ramp_mm, ramp_s = self.accel_mm_s2, self.peak_mm_s, self.ramp_mm, self.ramp_s
+        cruise_end_mm = self.distance_mm - ramp_mm
+        accel = np.sqrt(2 * np.maximum(s_mm, 0) / a)
+        cruise = ramp_s + (s_mm - ramp_mm) / v
+        left = np.maximum(self.distance_mm - s_mm, 0)
+        decel = self.duration_s - np.sqrt(2 * left / a)
+        return np.where(s_mm < ramp_mm, accel, np.where(s_mm <= cruise_end_mm, cruise, decel))
+
+
+def rest_to_rest_times(move: Trapezoid, steps_per_mm: float) -> FloatArray:
+    """Ideal seconds from the move's start of each of its steps (step k at k - ½ steps)."""
+    count = round(move.distance_mm * steps_per_mm)
+    return move.time_at((np.arange(1, count + 1) - 0.5) / steps_per_mm)
+
+
+def step_errors(edges_cycles: FloatArray, ideal_s: FloatArray) -> FloatArray:
+    """Each step's edge against its ideal time (µs), one offset (the median) fitted per move."""
+    offsets_us = edges_cycles / FREQ_HZ * 1e6 - ideal_s * 1e6
+    result: FloatArray = offsets_us - np.median(offsets_us)
+    return result
+
+
+def cruise_ppm(edges_cycles: FloatArray, move: Trapezoid, steps_per_mm: float,
+               margin_steps: int = 8) -> float | None:
+    """How fast the cruise ran against the commanded speed, in ppm (None: too short a cruise):
+    the step interval fitted (least squares) to the steps strictly inside the cruise, less a
+    margin, against the commanded one."""
+    if move.peak_mm_s < move.speed_mm_s:
+        return None
+    first = math.ceil(move.ramp_mm * steps_per_mm + 0.5) + margin_steps
+    last = math.floor((move.distance_mm - move.ramp_mm) * steps_per_mm + 0.5) - margin_steps
+    if last - first < 50:
+        return None
+    cruise = edges_cycles[first - 1:last]
+    interval = float(np.polyfit(np.arange(cruise.size, dtype=np.float64), cruise, 1)[0])
+    ideal = FREQ_HZ / (move.speed_mm_s * steps_per_mm)
+    return (ideal / interval - 1) * 1e6
+
+
+def split_moves(edges: FloatArray, counts: Iterable[int]) -> list[FloatArray]:
+    """The edges of each move in turn, given how many steps each makes (an axis' moves)."""
+    out, pos = [], 0
+    for count in counts:
+        out.append(edges[pos:pos + count])
+        pos += count
+    return out
+
+
+def percentile(values: Sequence[float] | FloatArray, q: float) -> float:
+    array = np.asarray(values, dtype=np.float64)
+    return float(np.percentile(array, q)) if array.size else math.nan

@@ -1,0 +1,293 @@
+"""The processes of ``python -m benchmarks klipper``: the klipper-avr rig, and a host driving it.
+
+Both hosts get the same machine: X and Y on the pins of motiond's rig tests (80 steps/mm,
+200 mm/s, 2,000 mm/s², 0-300 mm), a hardware-PWM laser on PB4 with a 1 s firmware watchdog,
+the same cornering (motiond's junction deviation 0.01 mm is Klipper's square corner velocity
+sqrt(0.01 · 2000 / (√2 - 1)) = 6.95 mm/s) and no minimum cruise ratio (motiond has none).
+
+* :class:`Motiond`: ``python -m server.cli`` (it takes SCHED_FIFO itself, as ``serve`` does);
+  G-code streamed by the streaming benchmark's client process, character counting over TCP;
+* :class:`Klippy`: Klipper's own host at the firmware's commit (``scripts/klippy-host`` builds
+  it under build/), under ``chrt -f 10`` when allowed; G-code through its API socket (``-a``),
+  ``gcode/script`` ending in ``M400`` (answered when the moves are done).
+
+The host's CPU is its own process's (every thread's run time from ``/proc``): not the sender's,
+not the simulator's.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+from pathlib import Path
+
+from benchmarks.common import REPO
+from benchmarks.streaming_support import run_client
+
+RIGS = Path(os.environ.get("MOTIOND_RIGS", REPO.parent / "shared" / "rigs"))
+KLIPPER_AVR = RIGS / "klipper-avr"
+STEPS_PER_MM, MAX_RATE_MM_S, ACCEL_MM_S2, TRAVEL_MM = 80.0, 200.0, 2000.0, 300.0
+JUNCTION_DEVIATION_MM = 0.01
+SQUARE_CORNER_MM_S = math.sqrt(JUNCTION_DEVIATION_MM * ACCEL_MM_S2 / (math.sqrt(2) - 1))
+LASER_S_MAX = 1000
+RT_PRIORITY = 10  # motiond's [stepgen] realtime_priority default
+POLL_S = 0.1
+
+
+def cpu_ns(pid: int) -> int:
+    """Run time of every thread of a process so far (ns, the scheduler's own count)."""
+    total = 0
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        with contextlib.suppress(OSError):
+            total += int((task / "schedstat").read_text().split()[0])
+    return total
+
+
+@dataclass
+class Rig:
+    process: asyncio.subprocess.Process
+    path: str
+    gpio_log: Path
+    serial_log: Path
+
+
+@contextlib.asynccontextmanager
+async def klipper_rig(workdir: Path, name: str) -> AsyncIterator[Rig]:
+    """The stock firmware in simavr, logging its pins and its serial bytes."""
+    gpio, serial = workdir / f"{name}-gpio.log", workdir / f"{name}-serial.log"
+    stderr = (workdir / f"{name}-rig.err").open("wb")
+    process = await asyncio.create_subprocess_exec(
+        str(KLIPPER_AVR / "run"), stdout=asyncio.subprocess.PIPE, stderr=stderr,
+        env={**os.environ, "MCU_GPIO_LOG": str(gpio), "MCU_SERIAL_LOG": str(serial)})
+    stderr.close()
+    try:
+        assert process.stdout is not None
+        path = (await asyncio.wait_for(process.stdout.readline(), 10.0)).decode().strip()
+        if not path.startswith("/dev/"):
+            raise RuntimeError(f"the rig printed {path!r}")
+        yield Rig(process, path, gpio, serial)
+    finally:
+        await stop(process)
+
+
+async def stop(process: asyncio.subprocess.Process) -> None:
+    if process.returncode is None:
+        process.terminate()
+        try:
+            await asyncio.wait_for(process.wait(), 10.0)
+        except TimeoutError:
+            process.kill()
+            await process.wait()
+
+
+def pwm_configured(gpio_log: Path) -> bool:
+    """Whether the firmware has set up timer 0's PWM (``config_pwm_out`` on PB4) yet."""
+    with contextlib.suppress(OSError):
+        for line in gpio_log.read_text().splitlines():
+            words = line.split()
+            if len(words) >= 5 and words[1] == "OCR0" and words[4] != "00":
+                return True
+    return False
+
+
+def chrt_prefix() -> list[str]:
+    """``chrt -f 10`` where this process may give real-time priority, else nothing."""
+    allowed = subprocess.run(["chrt", "-f", str(RT_PRIORITY), "true"],
+                             capture_output=True, check=False).returncode == 0
+    return ["chrt", "-f", str(RT_PRIORITY)] if allowed else []
+
+
+# -- motiond -----------------------------------------------------------------------------------
+def motiond_toml(serial: str, data_dir: Path) -> str:
+    axes = "".join(f"[axes.{a}]\nsteps_per_mm = {STEPS_PER_MM}\nmax_rate_mm_s = {MAX_RATE_MM_S}\n"
+                   f"accel_mm_s2 = {ACCEL_MM_S2}\nmax_mm = {TRAVEL_MM}\n" for a in "xy")
+    return f"""[machine]
+laser_mode = true
+{axes}[planner]
+junction_deviation_mm = {JUNCTION_DEVIATION_MM}
+[jobs]
+data_dir = '{data_dir}'
+[http]
+enabled = false
+[backend]
+kind = "klipper"
+serial = "{serial}"
+[backend.axes.x]
+step_pin = "PA0"
+dir_pin = "!PA1"
+enable_pin = "!PA2"
+[backend.axes.y]
+step_pin = "PA3"
+dir_pin = "PA4"
+[backend.outputs.PB4]
+cycle_time_s = 0.0001
+max_duration_s = 1.0
+[laser]
+pin = "PB4"
+maximum_s_value = {LASER_S_MAX}
+"""
+
+
+class Motiond:
+    name = "motiond"
+
+    def __init__(self, process: asyncio.subprocess.Process, port: int, workdir: Path,
+                 source: Path) -> None:
+        self.process, self.port, self.workdir, self.source = process, port, workdir, source
+
+    @classmethod
+    @contextlib.asynccontextmanager
+    async def start(cls, rig: Rig, workdir: Path, source: Path = REPO) -> AsyncIterator[Motiond]:
+        (workdir / "data").mkdir(exist_ok=True)
+        config = workdir / "motiond.toml"
+        config.write_text(motiond_toml(rig.path, workdir / "data"))
+        from benchmarks.bench_grbl_link import free_port  # noqa: PLC0415
+
+        port = free_port()
+        err = (workdir / "motiond.err").open("wb")
+        process = await asyncio.create_subprocess_exec(
+            sys.executable, "-m", "server.cli", "--config", str(config), "--host", "127.0.0.1",
+            "--tcp-port", str(port), "--log-level", "warning", cwd=source,
+            env={**os.environ, "PYTHONPATH": str(source)},
+            stdout=asyncio.subprocess.DEVNULL, stderr=err)
+        err.close()
+        host = cls(process, port, workdir, source)
+        try:
+            await host.wait_ready(rig)
+            yield host
+        finally:
+            await stop(process)
+
+    @property
+    def pid(self) -> int:
+        return self.process.pid
+
+    async def status(self) -> str:
+        reader, writer = await asyncio.open_connection("127.0.0.1", self.port)
+        try:
+            writer.write(b"?")
+            while not (line := await asyncio.wait_for(reader.readline(), 5.0)).startswith(b"<"):
+                pass
+            return line.decode().strip()
+        finally:
+            writer.close()
+
+    async def wait_ready(self, rig: Rig, limit_s: float = 30.0) -> None:
+        """Until the board is configured (its PWM timer set up) and motiond is idle."""
+        deadline = time.monotonic() + limit_s
+        while True:
+            with contextlib.suppress(OSError, TimeoutError):
+                if pwm_configured(rig.gpio_log) and (await self.status()).startswith("<Idle"):
+                    return
+            if time.monotonic() > deadline or self.process.returncode is not None:
+                raise RuntimeError("motiond never became ready on the rig (motiond.err)")
+            await asyncio.sleep(0.2)
+
+    async def run(self, lines: list[str], end_mm: tuple[float, float]) -> None:
+        """Stream the lines; back when motiond is idle at ``end_mm``."""
+        path = self.workdir / "job.nc"
+        path.write_text("\n".join(["G21 G90 G94", *lines]) + "\n")
+        result = await run_client(self.port, path, banner=True)
+        if result["errors"]:
+            raise RuntimeError(f"motiond refused {result['errors']} lines")
+        want = f"MPos:{end_mm[0]:.3f},{end_mm[1]:.3f},"
+        while not ((report := await self.status()).startswith("<Idle") and want in report):
+            if report.startswith("<Alarm"):
+                raise RuntimeError(report)
+            await asyncio.sleep(POLL_S)
+
+
+# -- klippy ------------------------------------------------------------------------------------
+def printer_cfg(serial: str) -> str:
+    def stepper(name: str, step: str, dir_: str, enable: str, endstop: str) -> str:
+        return (f"[stepper_{name}]\nstep_pin: {step}\ndir_pin: {dir_}\n{enable}"
+                f"microsteps: 16\nrotation_distance: {16 * 200 / STEPS_PER_MM}\n"
+                f"endstop_pin: {endstop}\nposition_endstop: 0\nposition_max: {TRAVEL_MM}\n\n")
+
+    return (f"[mcu]\nserial: {serial}\nbaud: 250000\nrestart_method: command\n\n"
+            f"[printer]\nkinematics: cartesian\nmax_velocity: {MAX_RATE_MM_S}\n"
+            f"max_accel: {ACCEL_MM_S2}\nminimum_cruise_ratio: 0\n"
+            f"square_corner_velocity: {SQUARE_CORNER_MM_S:.4f}\n"
+            "max_z_velocity: 10\nmax_z_accel: 100\n\n"
+            + stepper("x", "PA0", "!PA1", "enable_pin: !PA2\n", "PC2")
+            + stepper("y", "PA3", "PA4", "", "PC3")
+            + stepper("z", "PA5", "PA6", "", "PC4")
+            + "[force_move]\nenable_force_move: True\n\n"
+            "[pwm_tool laser]\npin: PB4\nhardware_pwm: True\ncycle_time: 0.0001\n"
+            "maximum_mcu_duration: 1.0\n")
+
+
+def klippy_folder() -> Path:
+    """Klipper's host, built under build/ by ``scripts/klippy-host`` (once)."""
+    out = subprocess.run([str(REPO / "scripts" / "klippy-host")], check=True,
+                         capture_output=True, text=True).stdout
+    return Path(out.strip().splitlines()[-1])
+
+
+class Klippy:
+    name = "klippy"
+
+    def __init__(self, process: asyncio.subprocess.Process, socket_path: Path) -> None:
+        self.process, self.socket_path, self._id = process, socket_path, 0
+
+    @classmethod
+    @contextlib.asynccontextmanager
+    async def start(cls, rig: Rig, workdir: Path) -> AsyncIterator[Klippy]:
+        folder = klippy_folder()
+        python = folder.parent.parent / "klippy-venv" / "bin" / "python"
+        config, sock = workdir / "printer.cfg", workdir / "klippy.sock"
+        config.write_text(printer_cfg(rig.path))
+        process = await asyncio.create_subprocess_exec(
+            *chrt_prefix(), str(python), str(folder / "klippy.py"), str(config),
+            "-a", str(sock), "-l", str(workdir / "klippy.log"),
+            stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.DEVNULL)
+        host = cls(process, sock)
+        try:
+            await host.wait_ready()
+            await host.request("gcode/script", script="SET_KINEMATIC_POSITION X=0 Y=0 Z=0")
+            yield host
+        finally:
+            await stop(process)
+
+    @property
+    def pid(self) -> int:
+        return self.process.pid
+
+    async def request(self, method: str, timeout_s: float = 120.0, **params: object) -> object:
+        reader, writer = await asyncio.open_unix_connection(str(self.socket_path),
+                                                            limit=1 << 24)
+        try:
+            self._id += 1
+            writer.write(json.dumps({"id": self._id, "method": method,
+                                     "params": params}).encode() + b"\x03")
+            reply = json.loads((await asyncio.wait_for(reader.readuntil(b"\x03"),
+                                                       timeout_s))[:-1])
+        finally:
+            writer.close()
+        if "error" in reply:
+            raise RuntimeError(f"klippy: {reply['error']}")
+        return reply.get("result")
+
+    async def wait_ready(self, limit_s: float = 60.0) -> None:
+        deadline = time.monotonic() + limit_s
+        while True:
+            with contextlib.suppress(OSError, RuntimeError, TimeoutError,
+                                     asyncio.IncompleteReadError):
+                info = await self.request("info", timeout_s=5.0)
+                if isinstance(info, dict) and info.get("state") == "ready":
+                    return
+            if time.monotonic() > deadline or self.process.returncode is not None:
+                raise RuntimeError("klippy never became ready on the rig (klippy.log)")
+            await asyncio.sleep(0.2)
+
+    async def run(self, lines: list[str], end_mm: tuple[float, float]) -> None:
+        """One ``gcode/script`` of the lines and ``M400``: answered when the moves are done."""
+        await self.request("gcode/script", script="\n".join(["G21", "G90", *lines, "M400"]))
