@@ -51,15 +51,16 @@ class SerialLog:
 
     def window(self, start: int, end: int) -> SerialFigures:
         blocks = [b for b in self.sent if start <= b.cycle < end]
-        retransmitted, expected = 0, None
+        retransmitted, fresh = 0, None  # fresh: the sequence number of the next new block
         for block in self.sent:
             if block.cycle >= end:
                 break
-            if start <= block.cycle and block.messages and expected is not None \
-                    and block.seq != expected:
-                retransmitted += 1
-            if block.messages:
-                expected = (block.seq + 1) & 0x0F
+            if not block.messages:
+                continue
+            if fresh is None or block.seq == fresh:
+                fresh = (block.seq + 1) & 0x0F
+            elif start <= block.cycle:
+                retransmitted += 1  # an earlier sequence number again: sent anew
         return SerialFigures(bytes=sum(b.size for b in blocks), blocks=len(blocks),
                              messages=sum(len(b.messages) for b in blocks),
                              retransmitted=retransmitted)
@@ -73,21 +74,36 @@ class SerialFigures:
     retransmitted: int
 
 
+def crc16(data: bytes) -> bytes:
+    """The link's CRC (CRC-16-CCITT as Klipper computes it), high byte first."""
+    crc = 0xFFFF
+    for byte in data:
+        byte ^= crc & 0xFF
+        byte ^= (byte << 4) & 0xFF
+        crc = ((byte << 8) | (crc >> 8)) ^ (byte >> 4) ^ (byte << 3)
+        crc &= 0xFFFF
+    return bytes([crc >> 8, crc & 0xFF])
+
+
+def encode_block(seq: int, payload: bytes) -> bytes:
+    head = bytes([len(payload) + 5, 0x10 | (seq & 0x0F)]) + payload
+    return head + crc16(head) + bytes([SYNC])
+
+
 def split_blocks(data: bytes) -> list[tuple[int, bytes]]:
-    """(end offset, block) for each well-formed block of a byte stream (resynchronising on the
-    sync byte after a damaged one, as the firmware does)."""
+    """(end offset, block) for each well-formed block (length, sync byte and CRC) of a byte
+    stream; anything else (a lone sync byte, damage) is skipped a byte at a time."""
     out: list[tuple[int, bytes]] = []
     pos = 0
     while pos < len(data):
         size = data[pos]
-        if 5 <= size <= 64 and pos + size <= len(data) and data[pos + size - 1] == SYNC:
-            out.append((pos + size, data[pos:pos + size]))
+        block = data[pos:pos + size]
+        if 5 <= size <= 64 and len(block) == size and block[-1] == SYNC \
+                and crc16(block[:-3]) == block[-3:-1]:
+            out.append((pos + size, block))
             pos += size
-            continue
-        following = data.find(bytes([SYNC]), pos)
-        if following < 0:
-            break
-        pos = following + 1
+        else:
+            pos += 1
     return out
 
 

@@ -1,0 +1,95 @@
+"""The analysis of ``python -m benchmarks klipper``: pin edges against the ideal trapezoid (step
+error, cruise ppm), the firmware's clock slips, and the blocks on the wire."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from benchmarks import klipper_rig_analysis as analysis
+from benchmarks.klipper_rig_analysis import FREQ_HZ, Block, SerialLog, Trapezoid
+from tests.support.rigs import KLIPPER_AVR, msgproto
+
+MOVE = Trapezoid(distance_mm=20.0, speed_mm_s=100.0, accel_mm_s2=2000.0)
+
+
+def test_the_ideal_trapezoid_accelerates_cruises_and_stops_where_it_should() -> None:
+    times = analysis.rest_to_rest_times(MOVE, 80.0)
+    assert times.size == 1600
+    assert MOVE.ramp_s == pytest.approx(0.05) and MOVE.ramp_mm == pytest.approx(2.5)
+    assert MOVE.duration_s == pytest.approx(0.25)
+    assert times[0] == pytest.approx(np.sqrt(2 * (0.5 / 80) / 2000))  # the first half step
+    assert np.diff(times)[800] == pytest.approx(1 / 8000)  # cruise: 8,000 steps/s
+    assert times[-1] == pytest.approx(0.25 - np.sqrt(2 * (0.5 / 80) / 2000))
+    short = Trapezoid(0.1, 100.0, 2000.0)  # never reaches the speed: a triangle
+    assert short.peak_mm_s == pytest.approx(np.sqrt(200.0))
+    assert analysis.rest_to_rest_times(short, 80.0).size == 8
+
+
+def test_edges_on_the_ideal_profile_have_no_error_whenever_the_move_starts() -> None:
+    ideal = analysis.rest_to_rest_times(MOVE, 80.0)
+    edges = np.round(ideal * FREQ_HZ) + 123_456_789
+    errors = analysis.step_errors(edges, ideal)
+    assert np.abs(errors).max() < 0.05  # µs: the rounding to a cycle
+    assert analysis.cruise_ppm(edges, MOVE, 80.0) == pytest.approx(0.0, abs=1.0)
+
+
+def test_a_late_step_and_a_slow_cruise_are_measured() -> None:
+    ideal = analysis.rest_to_rest_times(MOVE, 80.0)
+    edges = ideal * FREQ_HZ
+    late = edges.copy()
+    late[700] += 30e-6 * FREQ_HZ
+    assert np.abs(analysis.step_errors(late, ideal)).max() == pytest.approx(30.0, abs=0.01)
+    slow = ideal * (1 + 500e-6) * FREQ_HZ  # the MCU's clock 500 ppm fast: the moves 500 ppm slow
+    assert analysis.cruise_ppm(slow, MOVE, 80.0) == pytest.approx(-500.0, abs=1.0)
+    errors = analysis.step_errors(slow, ideal)
+    assert np.percentile(np.abs(errors), 99) > 50  # 500 ppm over 0.25 s: ±62 µs
+    assert analysis.cruise_ppm(slow, Trapezoid(0.1, 100.0, 2000.0), 80.0) is None
+
+
+def test_lost_timer_overflows_are_found_from_the_clock_responses_and_put_back() -> None:
+    clocks = [(c, c - 4_000) for c in range(10_000, 1_000_000, 100_000)]  # in flight 4,000
+    clocks += [(c, c - 4_000 - 65_536 + 500) for c in range(1_100_000, 2_000_000, 100_000)]
+    slips = analysis.clock_slips(clocks)
+    assert slips == [(1_100_000, 65_536)]
+    edges = np.array([500_000.0, 1_200_000.0])
+    assert list(analysis.on_mcu_clock(edges, slips)) == [500_000.0, 1_200_000.0 - 65_536]
+    wrapped = [(c + (1 << 32), (c - 4_000) % (1 << 32)) for c, _ in clocks[:3]]
+    assert analysis.clock_slips(wrapped) == []  # the 32-bit clock wraps, nothing slipped
+
+
+def test_blocks_are_split_on_the_wire_and_a_resent_sequence_is_a_retransmission() -> None:
+    first, second = analysis.encode_block(1, b"\x05"), analysis.encode_block(2, b"")
+    damaged = bytearray(analysis.encode_block(3, b"\x07\x08"))
+    damaged[2] ^= 1
+    data = b"\x7e" + first + b"\x00\x13" + bytes(damaged) + second
+    assert [block for _, block in analysis.split_blocks(data)] == [first, second]
+    assert first == bytes([6, 0x11, 0x05]) + first[3:5] + b"\x7e"
+    log = SerialLog(sent=[Block(100, 20, 1, ["a"]), Block(200, 20, 2, ["b"]),
+                          Block(300, 20, 1, ["a"]), Block(310, 20, 2, ["b"]),
+                          Block(400, 20, 3, ["c", "d"]), Block(500, 5, 3, [])])
+    figures = log.window(150, 450)
+    assert (figures.bytes, figures.blocks, figures.messages) == (80, 4, 5)
+    assert figures.retransmitted == 2
+
+
+@pytest.mark.skipif(not (KLIPPER_AVR / "klipper.dict").is_file(), reason="rig klipper-avr absent")
+def test_the_serial_log_is_decoded_with_klippers_own_parser(tmp_path: Path) -> None:
+    proto = msgproto()
+    parser = proto.MessageParser()
+    dictionary = (KLIPPER_AVR / "klipper.dict").read_bytes()
+    parser.process_identify(dictionary, decompress=False)
+    get_clock = bytes(parser.create_command("get_clock"))
+    sent = analysis.encode_block(1, get_clock + get_clock)
+    reply = analysis.encode_block(2, bytes(parser.create_command("clock clock=123456")))
+    block = parser.encode_msgblock(1, list(get_clock + get_clock))  # Klipper's own framing
+    assert bytes(block[:-2] + block[-2] + block[-1:]) == sent
+    path = tmp_path / "serial.log"
+    path.write_text(f"1000 R {sent[:4].hex()}\n1010 R {sent[4:].hex()}\n"
+                    f"5000 W {reply.hex()}\n")
+    log = analysis.read_serial_log(path, proto, dictionary)
+    assert [(b.cycle, b.seq, b.messages) for b in log.sent] == [
+        (1010, 1, ["get_clock", "get_clock"])]
+    assert log.clocks == [(5000, 123_456)]
