@@ -56,6 +56,7 @@ class Window:
     start_ns: int
     end_ns: int
     cpu_s: float
+    failure: str = ""
 
 
 @dataclass
@@ -74,6 +75,7 @@ class Figures:
     lag_records: int = 0
     lag_max_ms: float = 0.0
     slips: int = 0
+    failure: str = ""
 
 
 async def run_host(host: str, job_list: list[Job], runs: int, workdir: Path,
@@ -86,18 +88,24 @@ async def run_host(host: str, job_list: list[Job], runs: int, workdir: Path,
             for _ in range(runs):
                 for job in job_list:
                     setup = [f"G1 X{job.start[0]:.3f} Y{job.start[1]:.3f} F6000"]
-                    await driver.run(setup, job.start)
-                    await asyncio.sleep(SETTLE_S)
-                    cpu, started = cpu_ns(driver.pid), time.monotonic_ns()
-                    if job.idle_s:
-                        await asyncio.sleep(job.idle_s)
-                    else:
-                        await driver.run(job.lines(host), job.end)
+                    cpu, started, failure = 0, time.monotonic_ns(), ""
+                    try:
+                        await driver.run(setup, job.start)
+                        await asyncio.sleep(SETTLE_S)
+                        cpu, started = cpu_ns(driver.pid), time.monotonic_ns()
+                        if job.idle_s:
+                            await asyncio.sleep(job.idle_s)
+                        else:
+                            await driver.run(job.lines(host), job.end)
+                    except (RuntimeError, TimeoutError) as error:  # a lagging rig: say so
+                        failure = str(error)[:300]
                     ended = time.monotonic_ns()
                     windows.append(Window(job, host, started, ended,
-                                          (cpu_ns(driver.pid) - cpu) / 1e9))
-                    print(f"  {host:8} {job.name:11} {(ended - started) / 1e9:6.2f} s",
-                          file=sys.stderr)
+                                          (cpu_ns(driver.pid) - cpu) / 1e9, failure))
+                    print(f"  {host:8} {job.name:11} {(ended - started) / 1e9:6.2f} s"
+                          + (f" FAILED: {failure}" if failure else ""), file=sys.stderr)
+                    if failure:
+                        await driver.recover(rig)
         return rig, windows
 
 
@@ -120,6 +128,9 @@ def analyse(rig: Rig, windows: list[Window]) -> list[Figures]:
             if len(w) == 3 and w[1] == "LAG"]
     out = []
     for window in windows:
+        if window.failure:
+            out.append(Figures(exact=False, failure=window.failure))
+            continue
         start, end = cycle_of(sync, window.start_ns), cycle_of(sync, window.end_ns)
         fig = Figures()
         fig.slips = sum(start <= c < end for c, _ in slips)
@@ -189,22 +200,25 @@ def report(result: BenchResult, figures: dict[str, dict[str, list[Figures]]]) ->
                ("error_p99_us", "step p99 µs", ".1f", "µs"),
                ("error_max_us", "step max µs", ".1f", "µs"), ("wall_s", "wall s", ".2f", "s"))
     print(f"{'job':11} {'host':8} " + " ".join(f"{c[1]:>16}" for c in columns)
-          + f" {'cruise ppm':>16} exact  lag")
+          + f" {'cruise ppm':>16} exact  lag failed")
     for name in names:
         for host, by_job in figures.items():
             runs = by_job[name]
             cells = [span([getattr(f, c[0]) for f in runs], c[2]) for c in columns]
             ppm = [p for f in runs for p in f.cruise_ppm]
             lag = sum(f.lag_records for f in runs)
+            failed = [f.failure for f in runs if f.failure]
+            exact = all(f.exact for f in runs if not f.failure)
             print(f"{name:11} {host:8} " + " ".join(f"{c:>16}" for c in cells)
-                  + f" {span(ppm, '+.0f'):>16} {all(f.exact for f in runs)!s:5} {lag:4}")
-            result.add(name, host, note=f"{len(runs)} runs; {lag} LAG records",
+                  + f" {span(ppm, '+.0f'):>16} {exact!s:5} {lag:4} {len(failed):6}")
+            result.add(name, host, note=f"{len(runs)} runs, {len(failed)} failed; {lag} LAG "
+                       "records" + "".join(f"; failed: {reason}" for reason in failed),
                        **{f"{c[0]}_{k}": (fn(finite([getattr(f, c[0]) for f in runs]),
                                              default=float("nan")), c[3])
                           for c in columns for k, fn in (("min", min), ("max", max))},
                        cruise_ppm_min=(min(ppm, default=float("nan")), "ppm"),
                        cruise_ppm_max=(max(ppm, default=float("nan")), "ppm"),
-                       exact=(float(all(f.exact for f in runs)), "bool"),
+                       exact=(float(exact), "bool"), failed=(float(len(failed)), "runs"),
                        lag_records=(float(lag), "records"),
                        lag_max=(max(f.lag_max_ms for f in runs), "ms"),
                        clock_slips=(float(sum(f.slips for f in runs)), "slips"))

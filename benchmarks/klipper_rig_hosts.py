@@ -40,6 +40,7 @@ SQUARE_CORNER_MM_S = math.sqrt(JUNCTION_DEVIATION_MM * ACCEL_MM_S2 / (math.sqrt(
 LASER_S_MAX = 1000
 RT_PRIORITY = 10  # motiond's [stepgen] realtime_priority default
 POLL_S = 0.1
+RUN_LIMIT_S = 60.0  # a job (a few seconds of motion) not done in this long has failed
 
 
 def cpu_ns(pid: int) -> int:
@@ -191,6 +192,17 @@ class Motiond:
                 raise RuntimeError("motiond never became ready on the rig (motiond.err)")
             await asyncio.sleep(0.2)
 
+    async def recover(self, rig: Rig) -> None:
+        """After an alarm: ``$X`` (which restarts the board when it was shut down), then idle."""
+        reader, writer = await asyncio.open_connection("127.0.0.1", self.port)
+        writer.write(b"$X\n")
+        with contextlib.suppress(TimeoutError):
+            while not (await asyncio.wait_for(reader.readline(), 10.0)).startswith(
+                    (b"ok", b"error")):
+                pass
+        writer.close()
+        await self.wait_ready(rig)
+
     async def run(self, lines: list[str], end_mm: tuple[float, float]) -> None:
         """Stream the lines; back when motiond is idle at ``end_mm``."""
         path = self.workdir / "job.nc"
@@ -198,10 +210,14 @@ class Motiond:
         result = await run_client(self.port, path, banner=True)
         if result["errors"]:
             raise RuntimeError(f"motiond refused {result['errors']} lines")
-        want = f"MPos:{end_mm[0]:.3f},{end_mm[1]:.3f},"
+        want = f"MPos:{end_mm[0]:.3f},{end_mm[1]:.3f}|"
+        deadline = time.monotonic() + RUN_LIMIT_S
         while not ((report := await self.status()).startswith("<Idle") and want in report):
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"motiond not idle at {want}: {report}")
             if report.startswith("<Alarm"):
-                raise RuntimeError(report)
+                log = (self.workdir / "motiond.err").read_text().strip().splitlines()[-3:]
+                raise RuntimeError(f"{report} {' / '.join(log)}")
             await asyncio.sleep(POLL_S)
 
 
@@ -261,7 +277,8 @@ class Klippy:
     def pid(self) -> int:
         return self.process.pid
 
-    async def request(self, method: str, timeout_s: float = 120.0, **params: object) -> object:
+    async def request(self, method: str, timeout_s: float = RUN_LIMIT_S,
+                      **params: object) -> object:
         reader, writer = await asyncio.open_unix_connection(str(self.socket_path),
                                                             limit=1 << 24)
         try:
@@ -287,6 +304,14 @@ class Klippy:
             if time.monotonic() > deadline or self.process.returncode is not None:
                 raise RuntimeError("klippy never became ready on the rig (klippy.log)")
             await asyncio.sleep(0.2)
+
+    async def recover(self, rig: Rig) -> None:
+        """After an error or a shutdown: ``FIRMWARE_RESTART``, ready, at X0 Y0 again."""
+        with contextlib.suppress(RuntimeError, OSError, asyncio.IncompleteReadError):
+            await self.request("gcode/script", timeout_s=10.0, script="FIRMWARE_RESTART")
+        await asyncio.sleep(1.0)
+        await self.wait_ready()
+        await self.request("gcode/script", script="SET_KINEMATIC_POSITION X=0 Y=0 Z=0")
 
     async def run(self, lines: list[str], end_mm: tuple[float, float]) -> None:
         """One ``gcode/script`` of the lines and ``M400``: answered when the moves are done."""
