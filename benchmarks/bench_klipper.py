@@ -167,7 +167,7 @@ def analyse(rig: Rig, windows: list[Window]) -> list[Figures]:
             for move, move_edges in zip(moves, analysis.split_moves(edges[axis], counts),
                                         strict=True):
                 errors.append(analysis.step_errors(
-                    move_edges, analysis.rest_to_rest_times(move, STEPS_PER_MM)))
+                    move_edges, analysis.ideal_times(move, STEPS_PER_MM)))
                 ppm = analysis.cruise_ppm(move_edges, move, STEPS_PER_MM)
                 if ppm is not None:
                     fig.cruise_ppm.append(ppm)

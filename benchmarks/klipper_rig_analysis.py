@@ -5,9 +5,9 @@
   number is not the next one), and the firmware's clock as its responses report it (``W``);
 * :func:`clock_slips`: where simavr lost a timer-1 overflow (Klipper's clock falls 65,536 ticks
   behind the cycle count; the rig's README), so pin edges can be put back on the firmware's clock;
-* :func:`rest_to_rest_times`: the ideal time of every step of a move from rest to rest along one
-  axis (the trapezoid both hosts plan: accelerate, cruise, decelerate; a step when the position
-  crosses a half step, as both do);
+* :func:`ideal_times`: the ideal time of every step of a straight move along one axis (the
+  trapezoid both hosts plan: accelerate, cruise, decelerate, from and to rest or a corner's
+  junction speed; a step when the position crosses a half step, as both do);
 * :func:`step_errors` and :func:`cruise_ppm`: edges against those ideal times (one offset fitted
   per move: when a move starts is free, its rate and shape are not) and the cruise speed.
 
@@ -176,40 +176,47 @@ def on_mcu_clock(cycles: FloatArray, slips: Sequence[tuple[int, int]]) -> FloatA
 # -- the ideal profile -----------------------------------------------------------------------------
 @dataclass(frozen=True, slots=True)
 class Trapezoid:
-    """A move from rest to rest: distance, peak speed, acceleration (mm, mm/s, mm/s²)."""
+    """A straight move along one axis: distance, commanded speed, acceleration (mm, mm/s,
+    mm/s²) and the speeds it starts and ends at (0: at rest; a corner's junction speed)."""
 
     distance_mm: float
     speed_mm_s: float
     accel_mm_s2: float
+    start_mm_s: float = 0.0
+    end_mm_s: float = 0.0
 
     @property
     def peak_mm_s(self) -> float:
-        return min(self.speed_mm_s, math.sqrt(self.accel_mm_s2 * self.distance_mm))
+        v0, v1, a = self.start_mm_s, self.end_mm_s, self.accel_mm_s2
+        return min(self.speed_mm_s, math.sqrt(a * self.distance_mm + (v0 * v0 + v1 * v1) / 2))
 
     @property
-    def ramp_s(self) -> float:
-        return self.peak_mm_s / self.accel_mm_s2
+    def accel_mm(self) -> float:
+        return (self.peak_mm_s ** 2 - self.start_mm_s ** 2) / (2 * self.accel_mm_s2)
 
     @property
-    def ramp_mm(self) -> float:
-        return self.peak_mm_s * self.ramp_s / 2
+    def decel_mm(self) -> float:
+        return (self.peak_mm_s ** 2 - self.end_mm_s ** 2) / (2 * self.accel_mm_s2)
 
     @property
     def duration_s(self) -> float:
-        return 2 * self.ramp_s + (self.distance_mm - 2 * self.ramp_mm) / self.peak_mm_s
+        a, peak = self.accel_mm_s2, self.peak_mm_s
+        cruise_mm = self.distance_mm - self.accel_mm - self.decel_mm
+        return (peak - self.start_mm_s) / a + cruise_mm / peak + (peak - self.end_mm_s) / a
 
     def time_at(self, s_mm: FloatArray) -> FloatArray:
         """When the move has travelled ``s_mm`` (from its start)."""
-        a, v, ramp_mm, ramp_s = self.accel_mm_s2, self.peak_mm_s, self.ramp_mm, self.ramp_s
-        cruise_end_mm = self.distance_mm - ramp_mm
-        accel = np.sqrt(2 * np.maximum(s_mm, 0) / a)
-        cruise = ramp_s + (s_mm - ramp_mm) / v
+        a, v0, v1, peak = self.accel_mm_s2, self.start_mm_s, self.end_mm_s, self.peak_mm_s
+        cruise_end_mm = self.distance_mm - self.decel_mm
+        accel = (np.sqrt(v0 * v0 + 2 * a * np.maximum(s_mm, 0)) - v0) / a
+        cruise = (peak - v0) / a + (s_mm - self.accel_mm) / peak
         left = np.maximum(self.distance_mm - s_mm, 0)
-        decel = self.duration_s - np.sqrt(2 * left / a)
-        return np.where(s_mm < ramp_mm, accel, np.where(s_mm <= cruise_end_mm, cruise, decel))
+        decel = self.duration_s - (np.sqrt(v1 * v1 + 2 * a * left) - v1) / a
+        return np.where(s_mm < self.accel_mm, accel,
+                        np.where(s_mm <= cruise_end_mm, cruise, decel))
 
 
-def rest_to_rest_times(move: Trapezoid, steps_per_mm: float) -> FloatArray:
+def ideal_times(move: Trapezoid, steps_per_mm: float) -> FloatArray:
     """Ideal seconds from the move's start of each of its steps (step k at k - ½ steps)."""
     count = round(move.distance_mm * steps_per_mm)
     return move.time_at((np.arange(1, count + 1) - 0.5) / steps_per_mm)
@@ -229,8 +236,8 @@ def cruise_ppm(edges_cycles: FloatArray, move: Trapezoid, steps_per_mm: float,
     margin, against the commanded one."""
     if move.peak_mm_s < move.speed_mm_s:
         return None
-    first = math.ceil(move.ramp_mm * steps_per_mm + 0.5) + margin_steps
-    last = math.floor((move.distance_mm - move.ramp_mm) * steps_per_mm + 0.5) - margin_steps
+    first = math.ceil(move.accel_mm * steps_per_mm + 0.5) + margin_steps
+    last = math.floor((move.distance_mm - move.decel_mm) * steps_per_mm + 0.5) - margin_steps
     if last - first < 50:
         return None
     cruise = edges_cycles[first - 1:last]

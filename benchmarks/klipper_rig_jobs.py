@@ -3,11 +3,12 @@
 Every job starts at rest at its ``start`` (reached before the measurement starts), runs at
 F6000 (100 mm/s) and is the same motion for both hosts: motiond's Grbl G-code, and Klipper's
 (``SET_PIN`` for the laser, which klippy times with the moves). Where a job's moves run from
-rest to rest along one axis (``G4 P0`` stops both hosts' planners, a reversal stops them), its
-``moves`` give each axis' trapezoids in order: the ideal profile its steps are held against.
+rest to rest or corner to corner along one axis, its ``moves`` give each axis' trapezoids in
+order: the ideal profile its steps are held against (both hosts limit a corner's speed by the
+same junction deviation formula, and a reversal stops both).
 
 * raster: lines of 0.1 mm segments along X, the laser (PB4) on along each line, off for the
-  0.1 mm step over in Y;
+  0.1 mm step over in Y (square corners at 6.95 mm/s);
 * circles: 0.5 mm chords around a circle of 8 mm radius, the laser on (no ideal profile: the
   hosts' cornering differs in how it rounds each chord's junction, so only counts are held);
 * long moves: 100 mm along X and back at 100 mm/s.
@@ -19,11 +20,18 @@ import math
 from dataclasses import dataclass, field
 
 from benchmarks.klipper_rig_analysis import Trapezoid
-from benchmarks.klipper_rig_hosts import ACCEL_MM_S2, LASER_S_MAX, STEPS_PER_MM
+from benchmarks.klipper_rig_hosts import (
+    ACCEL_MM_S2,
+    JUNCTION_DEVIATION_MM,
+    LASER_S_MAX,
+    STEPS_PER_MM,
+)
 
 FEED_MM_MIN = 6000.0
 SPEED_MM_S = FEED_MM_MIN / 60
 LASER = 0.8  # of full power on the raster's lines
+SIN_HALF = math.sqrt(0.5)  # a square corner: v² = a·δ·sin(θ/2)/(1 - sin(θ/2)), both hosts
+CORNER_MM_S = math.sqrt(ACCEL_MM_S2 * JUNCTION_DEVIATION_MM * SIN_HALF / (1 - SIN_HALF))
 
 
 @dataclass
@@ -72,12 +80,14 @@ def raster(lines: int = 12, length_mm: float = 20.0, segment_mm: float = 0.1) ->
             job.motiond.append(f"G1 X{x:.3f}" + (f" {s_on}" if k == 0 else ""))
             job.klippy.append(f"G1 X{x:.3f}")
             job.path.append((x, y))
-        job.moves["x"].append(Trapezoid(length_mm, SPEED_MM_S, ACCEL_MM_S2))
+        job.moves["x"].append(Trapezoid(length_mm, SPEED_MM_S, ACCEL_MM_S2,
+                                        CORNER_MM_S if line else 0.0, CORNER_MM_S))
         y += 0.1
-        job.motiond += ["G4 P0", f"G1 Y{y:.3f} {s_off}", "G4 P0"]
-        job.klippy += [pin_off, "G4 P0", f"G1 Y{y:.3f}", "G4 P0"]
+        job.motiond.append(f"G1 Y{y:.3f} {s_off}")
+        job.klippy += [pin_off, f"G1 Y{y:.3f}"]
         job.path.append((x, y))
-        job.moves["y"].append(Trapezoid(0.1, SPEED_MM_S, ACCEL_MM_S2))
+        job.moves["y"].append(Trapezoid(0.1, SPEED_MM_S, ACCEL_MM_S2, CORNER_MM_S,
+                                        CORNER_MM_S if line < lines - 1 else 0.0))
     job.motiond.append("M5")
     job.end = (x, y)
     return job

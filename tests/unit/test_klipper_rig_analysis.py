@@ -16,20 +16,26 @@ MOVE = Trapezoid(distance_mm=20.0, speed_mm_s=100.0, accel_mm_s2=2000.0)
 
 
 def test_the_ideal_trapezoid_accelerates_cruises_and_stops_where_it_should() -> None:
-    times = analysis.rest_to_rest_times(MOVE, 80.0)
+    times = analysis.ideal_times(MOVE, 80.0)
     assert times.size == 1600
-    assert MOVE.ramp_s == pytest.approx(0.05) and MOVE.ramp_mm == pytest.approx(2.5)
+    assert MOVE.accel_mm == pytest.approx(2.5) == MOVE.decel_mm
     assert MOVE.duration_s == pytest.approx(0.25)
     assert times[0] == pytest.approx(np.sqrt(2 * (0.5 / 80) / 2000))  # the first half step
     assert np.diff(times)[800] == pytest.approx(1 / 8000)  # cruise: 8,000 steps/s
     assert times[-1] == pytest.approx(0.25 - np.sqrt(2 * (0.5 / 80) / 2000))
     short = Trapezoid(0.1, 100.0, 2000.0)  # never reaches the speed: a triangle
     assert short.peak_mm_s == pytest.approx(np.sqrt(200.0))
-    assert analysis.rest_to_rest_times(short, 80.0).size == 8
+    assert analysis.ideal_times(short, 80.0).size == 8
+    corner = Trapezoid(20.0, 100.0, 2000.0, start_mm_s=10.0, end_mm_s=20.0)  # from a corner
+    times = analysis.ideal_times(corner, 80.0)
+    assert corner.accel_mm == pytest.approx((100**2 - 10**2) / 4000)
+    assert times[0] == pytest.approx((np.sqrt(100 + 4000 * 0.5 / 80) - 10) / 2000)
+    assert corner.duration_s - times[-1] == pytest.approx(
+        (np.sqrt(400 + 4000 * 0.5 / 80) - 20) / 2000)
 
 
 def test_edges_on_the_ideal_profile_have_no_error_whenever_the_move_starts() -> None:
-    ideal = analysis.rest_to_rest_times(MOVE, 80.0)
+    ideal = analysis.ideal_times(MOVE, 80.0)
     edges = np.round(ideal * FREQ_HZ) + 123_456_789
     errors = analysis.step_errors(edges, ideal)
     assert np.abs(errors).max() < 0.05  # µs: the rounding to a cycle
@@ -37,7 +43,7 @@ def test_edges_on_the_ideal_profile_have_no_error_whenever_the_move_starts() -> 
 
 
 def test_a_late_step_and_a_slow_cruise_are_measured() -> None:
-    ideal = analysis.rest_to_rest_times(MOVE, 80.0)
+    ideal = analysis.ideal_times(MOVE, 80.0)
     edges = ideal * FREQ_HZ
     late = edges.copy()
     late[700] += 30e-6 * FREQ_HZ
