@@ -183,6 +183,11 @@ def finite(values: Sequence[float]) -> list[float]:
     return [v for v in values if np.isfinite(v)]
 
 
+def median(runs: list[Figures], name: str) -> float:
+    values = finite([getattr(f, name) for f in runs])
+    return float(np.median(values)) if values else float("nan")
+
+
 def span(values: Sequence[float], fmt: str) -> str:
     finite = [v for v in values if np.isfinite(v)]
     if not finite:
@@ -223,9 +228,10 @@ def report(result: BenchResult, figures: dict[str, dict[str, list[Figures]]]) ->
                        lag_max=(max(f.lag_max_ms for f in runs), "ms"),
                        clock_slips=(float(sum(f.slips for f in runs)), "slips"))
         if len(figures) == 2:
-            ratios = {c[0]: np.nanmedian([getattr(f, c[0]) for f in figures["motiond"][name]])
-                      / np.nanmedian([getattr(f, c[0]) for f in figures["klippy"][name]])
+            ratios = {c[0]: median(figures["motiond"][name], c[0])
+                      / median(figures["klippy"][name], c[0])
                       for c in columns[:2] + columns[4:5] + columns[6:]}
+            ratios = {k: v for k, v in ratios.items() if np.isfinite(v)}
             print(f"{name:11} {'ratio':8} " + "  ".join(f"{k} {v:.2f}x" for k, v in
                                                         ratios.items()) + " (motiond / klippy)")
             result.add(name, "motiond / klippy", **{k: (v, "x") for k, v in ratios.items()})
