@@ -4,7 +4,8 @@
   its cycle, size, sequence number and decoded messages, retransmissions (a block whose sequence
   number is not the next one), and the firmware's clock as its responses report it (``W``);
 * :func:`clock_slips`: where simavr lost a timer-1 overflow (Klipper's clock falls 65,536 ticks
-  behind the cycle count; the rig's README), so pin edges can be put back on the firmware's clock;
+  behind the cycle count; the rig's README), as the firmware's clock responses show (counted),
+  and :func:`unslip`: the same from a move's edges, exactly where it happened (taken out);
 * :func:`ideal_times`: the ideal time of every step of a straight move along one axis (the
   trapezoid both hosts plan: accelerate, cruise, decelerate, from and to rest or a corner's
   junction speed; a step when the position crosses a half step, as both do);
@@ -165,14 +166,6 @@ def clock_slips(clocks: Sequence[tuple[int, int]]) -> list[tuple[int, int]]:
     return out
 
 
-def on_mcu_clock(cycles: FloatArray, slips: Sequence[tuple[int, int]]) -> FloatArray:
-    """Cycles of pin edges on the firmware's clock (less the ticks it had slipped by then)."""
-    shifted = cycles.astype(np.float64).copy()
-    for cycle, behind in slips:  # cumulative: each entry is the total from then on
-        shifted = np.where(cycles >= cycle, cycles.astype(np.float64) - behind, shifted)
-    return shifted
-
-
 # -- the ideal profile -----------------------------------------------------------------------------
 @dataclass(frozen=True, slots=True)
 class Trapezoid:
@@ -220,6 +213,25 @@ def ideal_times(move: Trapezoid, steps_per_mm: float) -> FloatArray:
     """Ideal seconds from the move's start of each of its steps (step k at k - ½ steps)."""
     count = round(move.distance_mm * steps_per_mm)
     return move.time_at((np.arange(1, count + 1) - 0.5) / steps_per_mm)
+
+
+def unslip(edges_cycles: FloatArray, ideal_s: FloatArray, tolerance: int = 400
+           ) -> tuple[FloatArray, int]:
+    """A move's edges with simavr's lost timer overflows taken out: where the edges jump
+    65,536 cycles (± ``tolerance``) against the ideal profile from one step to the next, every
+    later edge is put back by that much (the firmware's clock fell behind, not the schedule).
+    Returns the edges and how many such jumps there were."""
+    residual = edges_cycles - ideal_s * FREQ_HZ
+    jumps = np.diff(residual)
+    slips = np.zeros_like(edges_cycles)
+    found = 0
+    for sign in (1, -1):
+        where = np.flatnonzero(np.abs(jumps - sign * SLIP_TICKS) <= tolerance)
+        found += where.size
+        for index in where:
+            slips[index + 1:] += sign * SLIP_TICKS
+    result: FloatArray = edges_cycles - slips
+    return result, found
 
 
 def step_errors(edges_cycles: FloatArray, ideal_s: FloatArray) -> FloatArray:

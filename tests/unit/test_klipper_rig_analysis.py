@@ -60,8 +60,15 @@ def test_lost_timer_overflows_are_found_from_the_clock_responses_and_put_back() 
     clocks += [(c, c - 4_000 - 65_536 + 500) for c in range(1_100_000, 2_000_000, 100_000)]
     slips = analysis.clock_slips(clocks)
     assert slips == [(1_100_000, 65_536)]
-    edges = np.array([500_000.0, 1_200_000.0])
-    assert list(analysis.on_mcu_clock(edges, slips)) == [500_000.0, 1_200_000.0 - 65_536]
+    ideal = analysis.ideal_times(MOVE, 80.0)
+    edges = ideal * FREQ_HZ + 1_000
+    slipped = edges.copy()
+    slipped[900:] += 65_536  # the firmware's clock fell behind: later steps come later
+    back, found = analysis.unslip(slipped, ideal)
+    assert found == 1 and np.allclose(back, edges)
+    late = edges.copy()
+    late[900:] += 20_000  # a schedule 1 ms late is not a slip: it stays
+    assert analysis.unslip(late, ideal)[1] == 0
     wrapped = [(c + (1 << 32), (c - 4_000) % (1 << 32)) for c, _ in clocks[:3]]
     assert analysis.clock_slips(wrapped) == []  # the 32-bit clock wraps, nothing slipped
 
