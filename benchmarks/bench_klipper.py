@@ -107,7 +107,12 @@ async def run_host(host: str, job_list: list[Job], runs: int, workdir: Path,
                     print(f"  {host:8} {job.name:11} {(ended - started) / 1e9:6.2f} s"
                           + (f" FAILED: {failure}" if failure else ""), file=sys.stderr)
                     if failure:
-                        await driver.recover(rig)
+                        try:
+                            await driver.recover(rig)
+                        except (RuntimeError, TimeoutError, OSError) as error:
+                            print(f"  {host:8} not recovered ({error}): its other runs are "
+                                  "left out", file=sys.stderr)
+                            return rig, windows
         return rig, windows
 
 
@@ -230,7 +235,7 @@ def report(result: BenchResult, figures: dict[str, dict[str, list[Figures]]]) ->
                        cruise_ppm_max=(max(ppm, default=float("nan")), "ppm"),
                        exact=(float(exact), "bool"), failed=(float(len(failed)), "runs"),
                        lag_records=(float(lag), "records"),
-                       lag_max=(max(f.lag_max_ms for f in runs), "ms"),
+                       lag_max=(max((f.lag_max_ms for f in runs), default=0.0), "ms"),
                        clock_slips=(float(sum(f.slips for f in runs)), "slips"),
                        slips_taken_out=(float(sum(f.slips_in_moves for f in runs)), "slips"))
         if len(figures) == 2:
