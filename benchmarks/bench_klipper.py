@@ -10,8 +10,9 @@ the rig's serial log and its GPIO log (cycles at 20 MHz: the MCU's own time), pe
 * bytes, blocks and messages per second to the MCU, retransmitted blocks per second;
 * cruise speed error in ppm (each cruise's steps over the cycles they took, against the
   commanded 100 mm/s), and step time error against the ideal trapezoid (p99 and max |µs|,
-  one offset fitted per move), on the firmware's clock (simavr's lost timer overflows, 65,536
-  cycles each, taken out where a move's edges show one);
+  one offset fitted per move), and p99 on the job's whole timeline (the moves back to back,
+  one offset for the job: a drift from move to move counts), on the firmware's clock
+  (simavr's lost timer overflows, 65,536 cycles each, taken out where the edges show one);
 * wall time from sending the job to its last step, and whether every step count is exact;
 * LAG records (the simulation fell behind wall-clock time: a loaded machine) in the window.
 
@@ -70,6 +71,7 @@ class Figures:
     cruise_ppm: list[float] = field(default_factory=list)
     error_p99_us: float = float("nan")
     error_max_us: float = float("nan")
+    error_job_p99_us: float = float("nan")
     wall_s: float = float("nan")
     motion_s: float = float("nan")
     exact: bool = True
@@ -167,13 +169,16 @@ def analyse(rig: Rig, windows: list[Window]) -> list[Figures]:
         fig.messages_per_s = wire.messages / seconds
         fig.retransmits_per_s = wire.retransmitted / seconds
         errors: list[np.ndarray] = []
+        timeline: list[tuple[np.ndarray, np.ndarray]] = []  # (edges, ideal s) on the job's
+        starts = window.job.move_starts_s()
         for axis, moves in window.job.moves.items():
             if not fig.exact:
                 break
             counts = [round(m.distance_mm * STEPS_PER_MM) for m in moves]
-            for move, move_edges in zip(moves, analysis.split_moves(edges[axis], counts),
-                                        strict=True):
+            for k, (move, move_edges) in enumerate(zip(
+                    moves, analysis.split_moves(edges[axis], counts), strict=True)):
                 ideal = analysis.ideal_times(move, STEPS_PER_MM)
+                timeline.append((move_edges, ideal + starts[axis][k]))
                 move_edges, found = analysis.unslip(move_edges, ideal)
                 fig.slips_in_moves += found
                 errors.append(analysis.step_errors(move_edges, ideal))
@@ -184,6 +189,11 @@ def analyse(rig: Rig, windows: list[Window]) -> list[Figures]:
             magnitudes = np.abs(np.concatenate(errors))
             fig.error_p99_us = analysis.percentile(magnitudes, 99)
             fig.error_max_us = float(magnitudes.max())
+            job_edges, job_ideal = (np.concatenate(part) for part in zip(*timeline, strict=True))
+            order = np.argsort(job_ideal, kind="stable")
+            job_edges, _ = analysis.unslip(job_edges[order], job_ideal[order])
+            fig.error_job_p99_us = analysis.percentile(
+                np.abs(analysis.step_errors(job_edges, job_ideal[order])), 99)
         out.append(fig)
     return out
 
@@ -212,7 +222,8 @@ def report(result: BenchResult, figures: dict[str, dict[str, list[Figures]]]) ->
                ("messages_per_s", "msgs/s", ",.0f", "1/s"),
                ("retransmits_per_s", "retx/s", ".2f", "1/s"),
                ("error_p99_us", "step p99 µs", ".1f", "µs"),
-               ("error_max_us", "step max µs", ".1f", "µs"), ("wall_s", "wall s", ".2f", "s"))
+               ("error_max_us", "step max µs", ".1f", "µs"),
+               ("error_job_p99_us", "job p99 µs", ",.0f", "µs"), ("wall_s", "wall s", ".2f", "s"))
     print(f"{'job':11} {'host':8} " + " ".join(f"{c[1]:>16}" for c in columns)
           + f" {'cruise ppm':>16} exact  lag slips failed")
     for name in names:

@@ -42,7 +42,8 @@ class Job:
     motiond: list[str] = field(default_factory=list)
     klippy: list[str] = field(default_factory=list)
     path: list[tuple[float, float]] = field(default_factory=list)  # every point, in order
-    moves: dict[str, list[Trapezoid]] = field(default_factory=dict)  # axis: rest-to-rest moves
+    moves: dict[str, list[Trapezoid]] = field(default_factory=dict)  # axis: its moves in turn
+    order: list[str] = field(default_factory=list)  # which axis moves, move after move
     idle_s: float = 0.0  # the idle job: this long with nothing to do
 
     def steps(self, axis: int) -> tuple[int, int]:
@@ -51,6 +52,17 @@ class Job:
         positions = [math.floor(p[axis] * STEPS_PER_MM + 0.5) for p in points]
         gross = sum(abs(b - a) for a, b in zip(positions, positions[1:], strict=False))
         return gross, positions[-1] - positions[0]
+
+    def move_starts_s(self) -> dict[str, list[float]]:
+        """When each axis' moves start on the job's ideal timeline (the moves back to back)."""
+        starts: dict[str, list[float]] = {axis: [] for axis in self.moves}
+        taken = dict.fromkeys(self.moves, 0)
+        now_s = 0.0
+        for axis in self.order:
+            starts[axis].append(now_s)
+            now_s += self.moves[axis][taken[axis]].duration_s
+            taken[axis] += 1
+        return starts
 
     def lines(self, host: str) -> list[str]:
         return self.motiond if host == "motiond" else self.klippy
@@ -82,12 +94,14 @@ def raster(lines: int = 12, length_mm: float = 20.0, segment_mm: float = 0.1) ->
             job.path.append((x, y))
         job.moves["x"].append(Trapezoid(length_mm, SPEED_MM_S, ACCEL_MM_S2,
                                         CORNER_MM_S if line else 0.0, CORNER_MM_S))
+        job.order.append("x")
         y += 0.1
         job.motiond.append(f"G1 Y{y:.3f} {s_off}")
         job.klippy += [pin_off, f"G1 Y{y:.3f}"]
         job.path.append((x, y))
         job.moves["y"].append(Trapezoid(0.1, SPEED_MM_S, ACCEL_MM_S2, CORNER_MM_S,
                                         CORNER_MM_S if line < lines - 1 else 0.0))
+        job.order.append("y")
     job.motiond.append("M5")
     job.end = (x, y)
     return job
@@ -126,6 +140,7 @@ def long_moves(count: int = 4, length_mm: float = 100.0) -> Job:
         job.klippy.append(f"G1 X{x:.3f}")
         job.path.append((x, start[1]))
         job.moves["x"].append(Trapezoid(length_mm, SPEED_MM_S, ACCEL_MM_S2))
+        job.order.append("x")
     job.end = (x, start[1])
     return job
 

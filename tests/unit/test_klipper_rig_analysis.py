@@ -106,3 +106,18 @@ def test_the_serial_log_is_decoded_with_klippers_own_parser(tmp_path: Path) -> N
     assert [(b.cycle, b.seq, b.messages) for b in log.sent] == [
         (1010, 1, ["get_clock", "get_clock"])]
     assert log.clocks == [(5000, 123_456)]
+
+
+def test_the_raster_job_is_the_same_motion_for_both_hosts_and_its_moves_run_back_to_back() -> None:
+    from benchmarks.klipper_rig_hosts import SQUARE_CORNER_MM_S  # noqa: PLC0415
+    from benchmarks.klipper_rig_jobs import CORNER_MM_S, raster  # noqa: PLC0415
+
+    job = raster(lines=2)
+    assert job.steps(0) == (3200, 0) and job.steps(1) == (16, 16)
+    assert sum(line.startswith("G1 X") for line in job.motiond) == 400 == sum(
+        line.startswith("G1 X") for line in job.klippy)
+    assert abs(CORNER_MM_S - SQUARE_CORNER_MM_S) < 1e-9  # motiond's 90° junction = klippy's
+    starts = job.move_starts_s()
+    x0, y0, x1 = job.moves["x"][0], job.moves["y"][0], job.moves["x"][1]
+    assert starts["x"] == [0.0, pytest.approx(x0.duration_s + y0.duration_s)]
+    assert starts["y"][1] == pytest.approx(starts["x"][1] + x1.duration_s)
