@@ -157,9 +157,11 @@ def analyse(rig: Rig, windows: list[Window]) -> list[Figures]:
         all_edges = np.sort(np.concatenate(list(edges.values())))
         if window.job.idle_s:
             seconds = window.job.idle_s
+        elif all_edges.size < 2:  # no motion at all: counted as inexact above
+            out.append(fig)
+            continue
         else:
-            seconds = (all_edges[-1] - all_edges[0]) / analysis.FREQ_HZ if all_edges.size > 1 \
-                else float("nan")
+            seconds = (all_edges[-1] - all_edges[0]) / analysis.FREQ_HZ
             fig.motion_s = seconds
             last_ns = float(np.interp(all_edges[-1], sync[:, 0], sync[:, 1]))
             fig.wall_s = (last_ns - window.start_ns) / 1e9
