@@ -239,8 +239,12 @@ def report(result: BenchResult, figures: dict[str, dict[str, list[Figures]]]) ->
             print(f"{name:11} {host:8} " + " ".join(f"{c:>16}" for c in cells)
                   + f" {span(ppm, '+.0f'):>16} {exact!s:5} {lag:4} "
                   f"{sum(f.slips_in_moves for f in runs):5} {len(failed):6}")
+            per_run = "; per run: step p99 µs " + ", ".join(
+                f"{f.error_p99_us:.0f}" for f in runs) + "; cruise ppm " + " | ".join(
+                ", ".join(f"{p:+.0f}" for p in f.cruise_ppm) for f in runs)
             result.add(name, host, note=f"{len(runs)} runs, {len(failed)} failed; {lag} LAG "
-                       "records" + "".join(f"; failed: {reason}" for reason in failed),
+                       "records" + "".join(f"; failed: {reason}" for reason in failed)
+                       + (per_run if any(f.cruise_ppm for f in runs) else ""),
                        **{f"{c[0]}_{k}": (fn(finite([getattr(f, c[0]) for f in runs]),
                                              default=float("nan")), c[3])
                           for c in columns for k, fn in (("min", min), ("max", max))},
