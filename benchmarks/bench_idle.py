@@ -10,7 +10,7 @@
    backend's tick sleeps too while the board has nothing queued, moving or on; what remains is
    the clock synchronisation with the board.
 
-Figures are percent of one core; goal: under 2 % for the simulated machine.
+Figures are percent of one core; goal: under 2 % for both.
 """
 
 from __future__ import annotations
