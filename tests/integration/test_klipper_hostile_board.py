@@ -11,13 +11,17 @@ throughout; memory stays bounded.
 from __future__ import annotations
 
 import asyncio
+import threading
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
 
 from server.backends.klipper.backend import KlipperBackend
+from server.runtime.events import MachineState
 from server.transports.tcp import TcpTransport
+from tests.integration.test_klipper_backend import check_steps, run_job
 from tests.integration.test_klipper_faults import wait_for_alarm
 from tests.support.helpers import submit_all
 from tests.support.hostile_mcu import HostileMcu
@@ -109,3 +113,51 @@ async def test_a_hostile_board_alarms_at_once_naming_what_it_saw_and_the_laser_g
         assert board.resets == 1 and board.configured
         now_on = [e for out in board.outputs.values() if out.pin == "PA8" for e in out.events]
         assert now_on and all(value == 0 for _, value in now_on), "nothing on from before"
+
+
+async def test_host_stalls_and_a_board_that_lags_under_the_lead_time_are_ridden_through_exactly(
+    board: HostileMcu
+) -> None:
+    """#26: restart detection from the firmware's evidence. A host stall (the host's clock and
+    the board's both advance) and a board whose clock stood still for 80 ms (a simulated board
+    starved of CPU: it then runs behind the host's fit, its clock never going back) are no
+    restart: the motion rides through them with every step exact (before, such a clock reading
+    outside its round trip's window was called a restart: "the MCU clock jumped")."""
+    async with klipper_machine(board, lead_time_s=LEAD_S) as app:
+        backend = app.kernel.machine.backend
+        assert isinstance(backend, KlipperBackend)
+        await submit_all(app, ["G1 X60 Y20 F6000", "G1 X0 Y40"])
+        for stall_s in (0.05, 0.08, 0.05):
+            await asyncio.sleep(0.13)
+            time.sleep(stall_s)  # noqa: ASYNC251 - the whole event loop stalls, on purpose
+        lag = threading.Thread(target=board.stall, args=(0.08,))
+        lag.start()
+        await run_job(app, ["G1 X10 Y10", "G1 X50 Y0"])
+        lag.join()
+        await asyncio.sleep(2 * backend.mcu.poll_s if backend.mcu else 0.4)  # polls behind it
+        assert app.kernel.state is not MachineState.ALARM, app.kernel.alarm_message
+        assert check_steps(app, board) > 5000
+
+
+@pytest.mark.parametrize("evidence", ["starting", "unconfigured"])
+async def test_a_restart_is_caught_by_the_firmware_s_own_evidence(
+    board: HostileMcu, evidence: str
+) -> None:
+    """What a restarted board shows, one piece of evidence at a time (its clock going back is
+    the ``clock-back`` case above; a full restart, clock, sequence and configuration at once,
+    is in test_klipper_faults.py): the ``starting`` every boot sends, or ``get_config`` saying
+    it is not configured."""
+    async with klipper_machine(board, laser=LASER) as app:
+        await submit_all(app, ["M3 S800", "G1 X100 F3000"])
+        await asyncio.sleep(0.4)
+        with board.lock:
+            if evidence == "starting":
+                board.respond("starting")
+            else:
+                board.configured = False
+        assert await wait_for_alarm(app) < 0.6
+        assert "the MCU restarted" in app.kernel.alarm_message
+        assert ("'starting'" if evidence == "starting" else "lost its configuration") in (
+            app.kernel.alarm_message)
+        await asyncio.sleep(0.1)
+        assert board.output_events("PA8")[-1][1] == 0, "the emergency stop reached it"

@@ -5,6 +5,7 @@ hostile board (issue #21, point 5), each one a method:
   ``"flood"``: well-formed ``stats`` messages as fast as the host reads them, none of which
   acknowledges a host block. Either way it answers nothing, but still hears and obeys what the
   host sends (so an ``emergency_stop`` reaches it); ``None`` ends the fault.
+- :meth:`stall` (the board stops for a while, its clock with it).
 - :meth:`mute` (silent: hears and says nothing, not even its own shutdown),
   :meth:`jump_clock` (its clock jumps by so many seconds, nothing else changes),
   :meth:`unplug` / :meth:`replug` (the device goes away and comes back at the same path, as a
@@ -23,6 +24,7 @@ import pty
 import subprocess
 import sys
 import termios
+import time
 import tty
 from pathlib import Path
 from typing import Any
@@ -83,6 +85,14 @@ class HostileMcu(VirtualMcu):
         """The board's clock jumps ``seconds`` (forward if positive), nothing else changes."""
         with self.lock:
             self._t0 -= seconds
+
+    def stall(self, seconds: float) -> None:
+        """The board stops for ``seconds`` (call from a thread): it reads nothing and its clock
+        stands still, then runs on that far behind the host's (a simulated board the host
+        starved of CPU does this; its clock never goes back)."""
+        with self.lock:
+            time.sleep(seconds)
+            self._t0 += seconds
 
     def unplug(self) -> None:
         """The device goes away: the host's reads fail; the board runs on, unheard."""
