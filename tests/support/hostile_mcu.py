@@ -36,6 +36,8 @@ from tests.support.virtual_mcu import VirtualMcu, msgproto
 NOISE = """
 import os, sys
 fd, chunk = int(sys.argv[1]), bytes.fromhex(sys.argv[2])
+os.write(fd, chunk or os.urandom(512))
+print("flowing", flush=True)
 while True:
     os.write(fd, chunk or os.urandom(512))
 """
@@ -79,7 +81,9 @@ class HostileMcu(VirtualMcu):
             self.noise_mode = mode
             self._noise = subprocess.Popen(
                 [sys.executable, "-c", NOISE, str(self.master), chunk.hex()],
-                pass_fds=[self.master])
+                pass_fds=[self.master], stdout=subprocess.PIPE)
+            assert self._noise.stdout is not None
+            self._noise.stdout.readline()  # the fault starts when the noise flows
 
     def jump_clock(self, seconds: float) -> None:
         """The board's clock jumps ``seconds`` (forward if positive), nothing else changes."""

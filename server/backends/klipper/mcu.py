@@ -9,8 +9,13 @@ configured by someone else is refused (:class:`KlipperFault`); one still configu
 (outputs may be on from before) or shut down raises :class:`NeedsRestart`: it is restarted
 (:meth:`Mcu.restart`, as Klipper's host does for its ``restart_method``) and connected afresh.
 :meth:`Mcu.watch` samples the clock every ``poll_s`` and checks ``get_config``; silence for
-``timeout_s``, a restart, a foreign configuration or a link fault raise :class:`KlipperFault`,
-a shutdown (ours from :meth:`emergency_stop`, or the firmware's own) :class:`McuShutdown`.
+``timeout_s`` (no block acknowledged), a restart, a clock that jumps ahead, a foreign
+configuration or a link fault raise :class:`KlipperFault`, a shutdown (ours from
+:meth:`emergency_stop`, or the firmware's own) :class:`McuShutdown`. A restart is told from
+the firmware's evidence, never from the host's timing: ``starting`` (sent at every boot),
+``get_config`` unconfigured, a sequence number never sent (:mod:`.window`), or a clock that
+went back, checked against its 64-bit ``get_uptime``; a host stall widens a reading's round
+trip and leaves it inside, and a reading behind the fit is left out of it.
 After a shutdown :meth:`stopped_positions` reads where each stepper stopped (``clear_shutdown``
 then ``stepper_get_position``) and shuts the board down again until it is restarted.
 """
