@@ -35,7 +35,9 @@ from tests.support.virtual_mcu import VirtualMcu, msgproto
 # share the interpreter's lock with the server under test, and hold it when preempted
 NOISE = """
 import os, sys
-fd, chunk = int(sys.argv[1]), bytes.fromhex(sys.argv[2])
+fd = int(sys.argv[1])
+print("ready", flush=True)
+chunk = bytes.fromhex(sys.stdin.readline().strip())
 os.write(fd, chunk or os.urandom(512))
 print("flowing", flush=True)
 while True:
@@ -52,7 +54,7 @@ class HostileMcu(VirtualMcu):
         self._point_link()
         self.path = str(self.link_path)
         self.noise_mode: str | None = None
-        self._noise: subprocess.Popen[bytes] | None = None
+        self._noise: subprocess.Popen[str] | None = None
 
     def _point_link(self) -> None:
         spare = self.link_path.with_suffix(".new")
@@ -77,13 +79,18 @@ class HostileMcu(VirtualMcu):
             self.noise_mode = None
         if mode is not None:
             assert mode in ("garbage", "flood")
-            chunk = self._flood_chunk() if mode == "flood" else b""
-            self.noise_mode = mode
-            self._noise = subprocess.Popen(
-                [sys.executable, "-c", NOISE, str(self.master), chunk.hex()],
-                pass_fds=[self.master], stdout=subprocess.PIPE)
-            assert self._noise.stdout is not None
-            self._noise.stdout.readline()  # the fault starts when the noise flows
+            noise = self._noise = subprocess.Popen(
+                [sys.executable, "-c", NOISE, str(self.master)], pass_fds=[self.master],
+                stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+            assert noise.stdin is not None and noise.stdout is not None
+            noise.stdout.readline()  # started (a while, on a busy machine)
+            with self.lock:  # from now on the board's answers are lost in the noise, and
+                # the flood's sequence number stays at the last one it acknowledged
+                self.noise_mode = mode
+                chunk = self._flood_chunk() if mode == "flood" else b""
+            noise.stdin.write(chunk.hex() + "\n")
+            noise.stdin.flush()
+            noise.stdout.readline()  # flowing
 
     def jump_clock(self, seconds: float) -> None:
         """The board's clock jumps ``seconds`` (forward if positive), nothing else changes."""
