@@ -106,7 +106,7 @@ async def test_a_hostile_board_alarms_at_once_naming_what_it_saw_and_the_laser_g
         assert probe["p90_ms"] <= 10.0 and probe["p99_ms"] <= 30.0, probe
         assert grown_mb < 10.0
 
-        await asyncio.to_thread(end, board)  # the board behaves again: motiond reconnects, restarting it
+        await asyncio.to_thread(end, board)  # it behaves again: motiond reconnects, restarting it
         for _ in range(400):
             if backend.ready:
                 break
