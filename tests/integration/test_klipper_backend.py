@@ -283,11 +283,11 @@ async def test_a_status_reply_from_before_an_emergency_stop_does_not_make_its_sh
         machine = app.kernel.machine
         backend = machine.backend
         assert isinstance(backend, KlipperBackend)
-        await submit_all(app, ["G1 X150 F6000"])
+        await submit_all(app, ["G1 X150 F1500"])  # still moving at the 10th poll (2 s)
         await asyncio.sleep(0.3)
         release = threading.Event()
         mcu.hold_config = release
-        assert await asyncio.to_thread(mcu.holding_config.wait, 2.0)
+        assert await asyncio.to_thread(mcu.holding_config.wait, 6.0)  # one poll in 10 (4 s)
         machine.soft_reset()  # the stop is sent while the stale reply is held
         await asyncio.sleep(0.05)
         release.set()
@@ -296,7 +296,7 @@ async def test_a_status_reply_from_before_an_emergency_stop_does_not_make_its_sh
                 break
             await asyncio.sleep(0.01)
         assert set(mcu.shutdowns) == {"Command request"}
-        await asyncio.sleep(0.3)  # two more polls
+        await asyncio.sleep(0.9)  # two more polls
         assert backend.fault is not None and "emergency stop;" in backend.fault  # ours
         await submit_all(app, ["$X", "G91", "G1 X-5 F3000"])
         await machine.wait_idle()
