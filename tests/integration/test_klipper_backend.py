@@ -101,6 +101,25 @@ async def test_identify_reads_the_dictionary_and_configures_with_a_crc(mcu: Virt
         assert backend.mcu.move_count == mcu.move_count
 
 
+async def test_idle_polling_costs_under_20_bytes_a_second_and_draws_no_resend(
+    mcu: VirtualMcu
+) -> None:
+    """One request at a time (the firmware acks a response's block after it: no nak), a
+    get_clock every 0.4 s and a get_config every 4 s: about 16 bytes/s to the MCU."""
+    async with klipper_machine(mcu) as app:
+        backend = app.kernel.machine.backend
+        assert isinstance(backend, KlipperBackend) and backend.mcu is not None
+        await submit_all(app, ["G1 X20 Y10 F6000"])
+        await app.kernel.machine.wait_idle()
+        await asyncio.sleep(backend.lead_s + 0.2)
+        link = backend.mcu.link
+        sent, started = link.bytes_sent, time.monotonic()
+        await asyncio.sleep(4.5)
+        rate = (link.bytes_sent - sent) / (time.monotonic() - started)
+        assert 5.0 < rate <= 20.0, rate
+        assert link.window.retransmits == 0 and mcu.naks_sent == 0
+
+
 async def test_the_fitted_clock_maps_host_time_to_mcu_ticks(mcu: VirtualMcu) -> None:
     async with klipper_machine(mcu) as app:
         backend = app.kernel.machine.backend

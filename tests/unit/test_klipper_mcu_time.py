@@ -74,8 +74,8 @@ def run(moves: list[Move], fitted_hz: float) -> list[tuple[str, Any]]:
     backend = VirtualTime(core)
     mcu = FittedMcu(fitted_hz)
     backend.mcu, backend.ready = mcu, True  # type: ignore[assignment]
-    for axis in backend.axes:  # what configuring the MCU sets
-        axis.compressor = StepCompressor(backend.cfg.max_error_s * CLOCK_HZ)
+    for oid, axis in enumerate(backend.axes):  # what configuring the MCU sets
+        axis.oid, axis.compressor = oid, StepCompressor(backend.cfg.max_error_s * CLOCK_HZ)
     planner = Planner(planner_settings(core), (0.0, 0.0))
     stepgen = StepGenerator(planner, backend, (80.0, 80.0), Listener())
     for move in moves:
@@ -109,6 +109,13 @@ def test_a_clock_fit_off_by_1000_ppm_changes_no_step_interval() -> None:
     assert len(nominal) > 10
     for ppm in (1000.0, -1000.0):
         assert steps(run(JOB, CLOCK_HZ * (1 + ppm * 1e-6))) == nominal, ppm
+
+
+def test_the_direction_is_sent_only_at_reversals() -> None:
+    """X goes +, -, - and Y +, +, -: each sets its direction twice (its first, one reversal)."""
+    dirs = [(p["oid"], p["dir"]) for name, p in run(JOB, CLOCK_HZ)
+            if name == "set_next_step_dir"]
+    assert dirs == [(0, 1), (1, 1), (0, 0), (1, 0)]
 
 
 def test_cruise_speed_in_mcu_ticks_is_the_commanded_speed() -> None:
