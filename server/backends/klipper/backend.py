@@ -427,7 +427,8 @@ class KlipperBackend:
 
     def _schedule_idle(self) -> bool:
         """Nothing waits to be scheduled or sent, and every step sent is already past."""
-        if self._pieces or self._queue.waiting or any(a.segments for a in self.axes):
+        if self._pieces or self._queue.waiting or any(a.segments or a.pending
+                                                      for a in self.axes):
             return False
         now = self._now_clock()
         return all(a.compressor.last_clock < now for a in self.axes) and all(
@@ -492,6 +493,7 @@ class KlipperBackend:
         idle = not self._pieces
         force_clock = self._motion_clock(now_s + self.lead_s - min(HOLD_BACK_S, 0.5 * self.lead_s))
         for axis in self.axes:
+            axis.collect()
             while axis.segments:
                 direction, points = axis.segments[0]
                 final = idle or len(axis.segments) > 1 or points[0] < force_clock
@@ -579,3 +581,4 @@ class KlipperBackend:
         self._queue.waiting.clear()
         for axis in self.axes:
             axis.segments.clear()
+            axis.pending.clear()
