@@ -112,6 +112,19 @@ class KlipperBackend:
         self._configured = asyncio.Event()  # ...which sets this once the board is ready
         self._config_base = [0] * len(self.axes)  # axis positions when the MCU was configured
         self.relocate: Callable[[Sequence[float]], None] = lambda _: None
+        self._wake: Callable[[], None] = lambda: None
+
+    @property
+    def ticks_when_idle(self) -> bool:
+        """Whether the step generator must keep ticking while nothing moves: while steps or
+        messages are queued, an output is on (it is refreshed from :meth:`sample`) or a fault
+        waits to be raised. Otherwise it sleeps (an idle server costs next to no CPU)."""
+        return (self._fault_to_raise is not None or bool(self._pieces)
+                or bool(self._queue.waiting) or self._busy())
+
+    def wake_with(self, wake: Callable[[], None]) -> None:
+        """The machine's hook: ``wake`` resumes ticks (a fault, an output switched on)."""
+        self._wake = wake
 
     def watch_position(self, relocate: Callable[[Sequence[float]], None]) -> None:
         """The machine's hook: called with where the tool really stopped (mm) after a stop."""
@@ -170,6 +183,8 @@ class KlipperBackend:
         if self._fault_to_raise is not None:
             message, self._fault_to_raise = self._fault_to_raise, None
             raise KlipperFault(message)
+        if self._rested(time_s):
+            self._map = (0.0, 0.0, 0.0)  # anchored afresh at the live fit
         self._sample_s = time_s
         if not self.ready:
             return
@@ -194,9 +209,9 @@ class KlipperBackend:
             return
         if value == out.value:
             return
-        when_s = self._sample_s if self._sample_s is not None else time_s
-        self._queue_output(out, value, when_s)
+        self._queue_output(out, value, self._when_s(time_s))
         self._pump()
+        self._wake()  # refreshed from sample() while on
 
     def _refresh_outputs(self, time_s: float) -> None:
         """An output that is on is queued again (same value) every half ``max_duration``:
@@ -227,12 +242,28 @@ class KlipperBackend:
         (off lets the axes be moved by hand; the next move turns them on again first)."""
         if self.mcu is None or not self.ready or enabled == self.motors_on:
             return
-        when_s = self._sample_s if self._sample_s is not None else time_s
+        when_s = self._when_s(time_s)
         if self._pieces:  # the motion it waited for has steps still to come: after them
             last = self._pieces[-1]
             when_s = max(when_s, last.start_s + last.duration_s)
         self._switch_motors(enabled, self._scheduled_clock(when_s))
         self._pump()
+
+    def _when_s(self, time_s: float) -> float:
+        """When a change asked for at ``time_s`` happens: at the last sample while ticking
+        (the instant the laser's power was computed for), at ``time_s`` after a rest."""
+        if self._rested(time_s):
+            self._map = (0.0, 0.0, 0.0)  # anchored afresh at the live fit
+            return time_s
+        return self._sample_s if self._sample_s is not None else time_s
+
+    def _rested(self, time_s: float) -> bool:
+        """Whether the step generator slept since the last sample with nothing queued, moving
+        or on: the schedule may then start afresh from the live clock fit (a host stall in
+        motion is no rest: its schedule stays continuous)."""
+        sample_s = self._sample_s
+        return (sample_s is None or time_s - sample_s > HOLD_BACK_S) and not (
+            self._pieces or self._queue.waiting or self._busy())
 
     def _scheduled_clock(self, when_s: float) -> int:
         """The MCU clock at which what the machine does at ``when_s`` happens."""
@@ -386,6 +417,7 @@ class KlipperBackend:
         if message != self.fault:
             log.error("%s", message)
             self._fault_to_raise = message
+            self._wake()  # raised from the next sample(), even on a resting machine
         self.fault = message
         self._drop_motion()
         for out in self.outputs.values():
