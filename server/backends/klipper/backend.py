@@ -184,7 +184,7 @@ class KlipperBackend:
             message, self._fault_to_raise = self._fault_to_raise, None
             raise KlipperFault(message)
         if self._rested(time_s):
-            self._map = (0.0, 0.0, 0.0)  # anchored afresh at the live fit
+            self._print.unanchor()  # anchored afresh at the live fit
         self._sample_s = time_s
         if not self.ready:
             return
@@ -253,7 +253,7 @@ class KlipperBackend:
         """When a change asked for at ``time_s`` happens: at the last sample while ticking
         (the instant the laser's power was computed for), at ``time_s`` after a rest."""
         if self._rested(time_s):
-            self._map = (0.0, 0.0, 0.0)  # anchored afresh at the live fit
+            self._print.unanchor()  # anchored afresh at the live fit
             return time_s
         return self._sample_s if self._sample_s is not None else time_s
 
