@@ -124,7 +124,7 @@ async def test_the_fitted_clock_maps_host_time_to_mcu_ticks(mcu: VirtualMcu) -> 
     async with klipper_machine(mcu) as app:
         backend = app.kernel.machine.backend
         assert isinstance(backend, KlipperBackend) and backend.mcu is not None
-        await asyncio.sleep(1.2)  # a few periodic get_clock samples
+        await asyncio.sleep(2.0)  # a few periodic get_clock samples (0.4 s apart when idle)
         sync = backend.mcu.clock
         assert sync is not None
         errors = []
