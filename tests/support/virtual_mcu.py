@@ -181,7 +181,11 @@ class VirtualMcu:
         with contextlib.suppress(OSError):  # not allowed: an ordinary thread, as before
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(5))  # this thread only
         while not self._stop.is_set():
-            ready, _, _ = select.select([self.master], [], [], 0.02)
+            try:  # the pty may be closed and replaced meanwhile (tests.support.hostile_mcu)
+                ready, _, _ = select.select([self.master], [], [], 0.02)
+            except (OSError, ValueError):
+                ready = []
+                time.sleep(0.02)
             if not ready:
                 with self.lock:
                     self._check_watchdogs()

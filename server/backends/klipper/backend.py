@@ -70,6 +70,7 @@ RESTART_PATIENCE_S = 10.0  # a restarted board's first answer (a bootloader, a s
 RECOVER_TIMEOUT_S = 20.0  # $X waits this long for a restarted board to be configured
 DONE_MARGIN_S = 0.005
 STOP_FLUSH_S = 0.1  # a fault's emergency stop gets this long to leave before the link closes
+STOP_READ_S = 0.5  # reading where a shut-down board stopped (a few round trips) takes at most
 
 
 class KlipperBackend:
@@ -377,7 +378,11 @@ class KlipperBackend:
         self._drop_motion()
         for out in self.outputs.values():
             out.value = 0.0
-        positions = await mcu.stopped_positions([axis.oid for axis in self.axes])
+        try:  # a board that stopped answering as it shut down: the alarm does not wait
+            positions = await asyncio.wait_for(
+                mcu.stopped_positions([axis.oid for axis in self.axes]), STOP_READ_S)
+        except TimeoutError:
+            positions = None
         if positions is None:
             where = "where it stopped is unknown"
         else:
