@@ -8,10 +8,12 @@ the clock map (``get_uptime`` then a burst of ``get_clock``) and configures a fr
 configured by someone else is refused (:class:`KlipperFault`); one still configured by us
 (outputs may be on from before) or shut down raises :class:`NeedsRestart`: it is restarted
 (:meth:`Mcu.restart`, as Klipper's host does for its ``restart_method``) and connected afresh.
-:meth:`Mcu.watch` samples the clock every ``poll_s`` and checks ``get_config``; silence for
-``timeout_s`` (no block acknowledged), a restart, a clock that jumps ahead, a foreign
-configuration or a link fault raise :class:`KlipperFault`, a shutdown (ours from
-:meth:`emergency_stop`, or the firmware's own) :class:`McuShutdown`. A restart is told from
+:meth:`Mcu.watch` samples the clock every ``poll_s`` (``BUSY_POLL_S`` while :attr:`Mcu.busy`:
+steps queued or an output on) and, one request at a time (never back to back), checks
+``get_config`` every ``CONFIG_EVERY`` polls: about 16 bytes a second to an idle MCU (klippy
+sends 6); silence for ``timeout_s`` (no block acknowledged), a restart, a clock that jumps
+ahead, a foreign configuration or a link fault raise :class:`KlipperFault`, a shutdown (ours
+from :meth:`emergency_stop`, or the firmware's own) :class:`McuShutdown`. A restart is told from
 the firmware's evidence, never from the host's timing: ``starting`` (sent at every boot),
 ``get_config`` unconfigured, a sequence number never sent (:mod:`.window`), or a clock that
 went back, checked against its 64-bit ``get_uptime``; a host stall widens a reading's round
@@ -49,6 +51,9 @@ CLOCK_SETTLE_S = 5.0
 RATE_PROBE_S = 0.15
 RATE_TOLERANCE = 0.05  # a round trip's jitter over RATE_PROBE_S stays well inside this
 RESET_SETTLE_S = 0.015  # klippy's pause after ``reset`` before it lets the port go
+POLL_S = 0.4  # a 6-byte get_clock block: 15 bytes/s
+BUSY_POLL_S = 0.2  # while steps are queued or an output is on
+CONFIG_EVERY = 10  # get_config once every 10 polls (4 s idle, 2 s busy)
 JUMP_S = 0.05  # a clock reading this far outside its round trip's window is looked into
 BEHIND_LIMIT_S = 1.0  # a clock that stays behind the fit this long: the fit starts over
 
@@ -111,7 +116,7 @@ def arduino_reset(path: str) -> None:
 class Mcu:
     """See the module docstring."""
 
-    def __init__(self, path: str, baud: int, timeout_s: float, poll_s: float = 0.2) -> None:
+    def __init__(self, path: str, baud: int, timeout_s: float, poll_s: float = POLL_S) -> None:
         self.path, self.baud = path, baud
         self.timeout_s, self.poll_s = timeout_s, poll_s
         self.link = Link(path, baud, self._on_message, self._on_link_error)
@@ -124,6 +129,8 @@ class Mcu:
         self.shutdown: McuShutdown | None = None
         self._fault: asyncio.Future[KlipperFault] | None = None
         self._last_heard_s = time.monotonic()
+        self._polls = 0
+        self.busy = False  # set by the backend: steps queued or an output on
         self._behind_since_s: float | None = None  # the MCU's clock behind the fit since
         self.running = False  # configured by us: a "starting" from now on is a restart
         self._commands: list[Command] = []
@@ -284,11 +291,13 @@ class Mcu:
         """Poll clock and config until a fault; raises KlipperFault (McuShutdown)."""
         assert self._fault is not None
         while True:
-            done, _ = await asyncio.wait([self._fault], timeout=self.poll_s)
+            period_s = min(self.poll_s, BUSY_POLL_S) if self.busy else self.poll_s
+            done, _ = await asyncio.wait([self._fault], timeout=period_s)
             if done:
                 raise self._fault.result()
-            if time.monotonic() - self._last_heard_s > self.timeout_s:
-                raise KlipperFault(f"the MCU stopped answering for {self.timeout_s:g} s")
+            if time.monotonic() - self._last_heard_s > self.timeout_s + period_s:
+                raise KlipperFault(
+                    f"the MCU stopped answering for {self.timeout_s + period_s:g} s")
             try:
                 await self._poll()
             except (KlipperFault, ConnectionError):
@@ -297,7 +306,11 @@ class Mcu:
                 raise
 
     async def _poll(self) -> None:
-        _, config = await asyncio.gather(self.sample_clock(), self._ask("get_config", "config"))
+        await self.sample_clock()
+        self._polls += 1
+        if self._polls % CONFIG_EVERY:
+            return
+        config = await self._ask("get_config", "config")
         if config["is_shutdown"]:
             raise self.shutdown or McuShutdown("the MCU shut down: reason unknown", None,
                                                self.stopping)
