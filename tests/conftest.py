@@ -17,8 +17,6 @@ from server.config_loader import build_config
 
 REPO = Path(__file__).resolve().parent.parent
 CORPUS = REPO / "tests" / "data" / "corpus"  # real G-code files, sources in SOURCES.md
-# The firmware rigs (real firmware in simulators) are the one thing outside the repository.
-RIGS = Path(os.environ.get("MOTIOND_RIGS", REPO.parent / "shared" / "rigs"))
 
 BASE: dict[str, Any] = {
     "axes": {
@@ -61,15 +59,6 @@ def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
     if stray:
         session.exitstatus = pytest.ExitCode.TESTS_FAILED
         print(f"\nFAILED: a test's server used the home folder instead of its own: {stray}")
-
-
-def rig(name: str) -> Path:
-    """The folder of a firmware rig (``../shared/rigs/NAME`` or ``$MOTIOND_RIGS/NAME``); the
-    calling test is skipped, naming the rig, only when the folder is absent."""
-    folder = RIGS / name
-    if not folder.is_dir():
-        pytest.skip(f"the {name} rig is not at {folder} (set MOTIOND_RIGS)")
-    return folder
 
 
 def make_config(extra: dict[str, Any] | None = None, **sections: Any) -> Config:

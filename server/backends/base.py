@@ -32,9 +32,11 @@ class Piece:
 class Backend(Protocol):
     """What a hardware or simulated machine must provide.
 
-    A backend whose ``sample()`` watches nothing may say ``ticks_when_idle = False`` (as
-    :class:`NoHardware` does): the step generator then sleeps while nothing moves. Without it,
-    it is ticked at ``tick_hz`` always.
+    A backend whose ``sample()`` has nothing to do while nothing moves says
+    ``ticks_when_idle = False`` (as :class:`NoHardware` does; Klipper's says so whenever it has
+    nothing queued, on or to report): the step generator then sleeps, until the machine has work
+    or the backend calls the function given to :meth:`wake_with`. Without the attribute, it is
+    ticked at ``tick_hz`` always.
     """
 
     wants_trajectory: bool
@@ -106,6 +108,11 @@ class Backend(Protocol):
         MCU's emergency stop mid-move): ``relocate`` is called with where the tool is (mm)."""
         ...
 
+    def wake_with(self, wake: Callable[[], None]) -> None:
+        """The machine's hook for a backend that needs ticks again while idle (a fault to
+        report from :meth:`sample`, an output to keep refreshed): it calls ``wake``."""
+        ...
+
     async def run(self) -> None:
         """Serve the hardware until cancelled (owned by the machine; may return at once)."""
         ...
@@ -141,6 +148,9 @@ class NoHardware:
         pass
 
     def motors(self, enabled: bool, time_s: float) -> None:
+        pass
+
+    def wake_with(self, wake: Callable[[], None]) -> None:
         pass
 
     async def run(self) -> None:

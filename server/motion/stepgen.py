@@ -127,8 +127,6 @@ class StepGenerator:
         self._resume_when_stopped = False
         # Called when motion may start (input, a start request): :meth:`run` sleeps while idle.
         self.wake: Callable[[], None] = lambda: None
-        # A backend that watches its hardware from sample() (Klipper) is ticked even when idle.
-        self._ticks_when_idle = bool(getattr(backend, "ticks_when_idle", True))
 
     # -- control (called by the machine) ----------------------------------------------------
     @property
@@ -140,7 +138,8 @@ class StepGenerator:
     def can_sleep(self) -> bool:
         """Nothing to tick for until :attr:`wake` is called: idle, not held, and a backend
         that needs no ticks while nothing moves."""
-        return self.idle and self.state.hold is HoldState.NONE and not self._ticks_when_idle
+        return (self.idle and self.state.hold is HoldState.NONE
+                and not getattr(self.backend, "ticks_when_idle", True))
 
     def note_input(self, now_s: float) -> None:
         """A block was appended at ``now_s``: motion starts after a short settling delay."""

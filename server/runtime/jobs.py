@@ -1,19 +1,13 @@
-"""Stored job files: upload, list, play through the dispatcher, progress, abort, suspend.
+"""Stored jobs: play through the dispatcher, progress, abort, suspend (the files themselves:
+:mod:`.job_store`).
 
-Files live flat in the data folder's ``jobs/`` (:func:`server.paths.jobs_dir`). A name is a
-plain file name: no folders, no ``..``, no leading dot, no control character and nothing
-``str.splitlines`` splits on (a name is sent inside reply and pushed lines: ``\n``, ``\r``,
-U+2028... would break them into several lines, a bare ``ok`` among them); Smoothie's ``/sd/``
-prefix is accepted and dropped. A file on disk whose name breaks these rules is never listed.
-Uploads are written to a hidden ``.upload-*`` file and renamed; such files left by a crash are
-removed at start-up. Playing a file streams its lines through the same dispatcher a sender
-uses, so the job is executed, flow-controlled and error-checked exactly like streamed G-code;
-the first line that is refused stops the job with a message naming the line. A line answered
-downstream (a Grbl controller) is deferred by the dispatcher: the job sends on while it is in
-the controller's buffer and stops at the first answer that is an error. File I/O runs in a
-thread. A job file is never held in memory whole: it is planned (time, extent, fit) by reading
-it through once in a thread before anything moves, then its lines are read again as they are
-sent.
+Playing a file streams its lines through the same dispatcher a sender uses, so the job is
+executed, flow-controlled and error-checked exactly like streamed G-code; the first line that is
+refused stops the job with a message naming the line. A line answered downstream (a Grbl
+controller) is deferred by the dispatcher: the job sends on while it is in the controller's
+buffer and stops at the first answer that is an error. A job file is never held in memory
+whole: it is planned (time, extent, fit) by reading it through once in a thread before anything
+moves, then its lines are read again as they are sent.
 """
 
 from __future__ import annotations
@@ -21,16 +15,12 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import os
-import re
-import tempfile
 import threading
-import time
 from collections import deque
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, BinaryIO
+from typing import TYPE_CHECKING
 
 from server.errors import CommandError, Error
 from server.gcode.parser import check_length
@@ -41,25 +31,15 @@ from server.runtime.dispatcher import Command
 from server.runtime.events import Event, MachineState
 from server.runtime.job_clock import JobClock, JobPlan, plan_job
 from server.runtime.job_reading import read_lines
+from server.runtime.job_store import JobStore
 
 if TYPE_CHECKING:
     from server.gcode.interpreter import Interpreter
     from server.runtime.kernel import Kernel
 
 log = logging.getLogger("motiond.jobs")
-MAX_NAME = 200
-UPLOAD_PREFIX = ".upload-"
-# Control characters (C0, DEL, C1) and every line break str.splitlines knows.
-_BAD_NAME_CHARACTER = re.compile("[\x00-\x1f\x7f-\x9f\u2028\u2029]")
 YIELD_AFTER_S = 0.0003  # the job feeder gives other tasks a turn at least this often
 KEPT_PLANS = 4  # job plans kept for files whose plan may be asked again (bounded memory each)
-
-
-@dataclass(slots=True)
-class JobFile:
-    name: str
-    size_bytes: int
-    modified_s: float
 
 
 @dataclass(slots=True)
@@ -96,14 +76,12 @@ class _JobSource:
     can_control: bool = True
 
 
-class Jobs:
+class Jobs(JobStore):
     """The job files of one kernel and the one job that may play at a time."""
 
     def __init__(self, kernel: Kernel) -> None:
+        super().__init__(jobs_dir(kernel.config.core), kernel.config.core.jobs.max_upload_bytes)
         self.kernel = kernel
-        self.jobs_dir = jobs_dir(kernel.config.core)
-        self.max_bytes = kernel.config.core.jobs.max_upload_bytes
-        remove_stale_uploads(self.jobs_dir)
         self._task: asyncio.Task[None] | None = None
         self._progress: JobProgress | None = None
         self._clock: JobClock | None = None
@@ -117,79 +95,6 @@ class Jobs:
         for name, handler in (("abort", self._abort), ("suspend", self._suspend),
                               ("resume", self._resume)):
             dispatcher.register_immediate(name, handler)  # a held job holds the stream
-
-    # -- files ------------------------------------------------------------------------------
-    def path(self, name: str) -> Path:
-        """The file for ``name``, refusing anything that could leave the data directory or
-        break a line of the protocol."""
-        if _BAD_NAME_CHARACTER.search(name):
-            raise CommandError(
-                Error.FILE_ERROR,
-                f"invalid job file name {name!r}: control characters or line breaks",
-            )
-        name = name.strip().removeprefix("/sd/")
-        bad = (
-            not name
-            or len(name) > MAX_NAME
-            or name.startswith(".")
-            or "\0" in name
-            or "/" in name
-            or "\\" in name
-            or name in ("..", ".")
-        )
-        if bad:
-            raise CommandError(Error.FILE_ERROR, f"invalid job file name {name!r}")
-        path = (self.jobs_dir / name).resolve()
-        if path.parent != self.jobs_dir.resolve():
-            raise CommandError(Error.FILE_ERROR, f"invalid job file name {name!r}")
-        return path
-
-    def files(self) -> list[JobFile]:
-        """Stored job files, by name."""
-        if not self.jobs_dir.is_dir():
-            return []
-        files = []
-        for entry in os.scandir(self.jobs_dir):
-            if entry.is_file() and valid_name(entry.name):
-                info = entry.stat()
-                files.append(JobFile(entry.name, info.st_size, info.st_mtime))
-        return sorted(files, key=lambda f: f.name)
-
-    async def save(self, name: str, data: bytes) -> JobFile:
-        async def one_chunk() -> AsyncIterator[bytes]:
-            yield data
-
-        return await self.save_stream(name, one_chunk(), self.max_bytes)
-
-    async def save_stream(
-        self, name: str, chunks: AsyncIterator[bytes], limit_bytes: int
-    ) -> JobFile:
-        """Write a file atomically (temp file, then rename); nothing is left behind on error."""
-        path = self.path(name)
-        await asyncio.to_thread(self.jobs_dir.mkdir, parents=True, exist_ok=True)
-        handle, temp = await asyncio.to_thread(_temp_file, self.jobs_dir)
-        size = 0
-        try:
-            async for chunk in chunks:
-                size += len(chunk)
-                if size > limit_bytes:
-                    raise CommandError(Error.FILE_ERROR, f"upload larger than {limit_bytes} bytes")
-                await asyncio.to_thread(handle.write, chunk)
-            await asyncio.to_thread(_finish_file, handle, temp, path)
-        except OSError as exc:
-            raise CommandError(Error.FILE_ERROR, f"cannot store {name}: {exc.strerror}") from exc
-        finally:
-            handle.close()
-            with contextlib.suppress(FileNotFoundError):
-                temp.unlink()
-        return JobFile(path.name, size, time.time())
-
-    async def delete(self, name: str) -> None:
-        path = self.path(name)
-        try:
-            await asyncio.to_thread(path.unlink)
-        except OSError as exc:
-            raise CommandError(Error.FILE_ERROR, f"cannot delete {name}: {exc.strerror}") from exc
 
     # -- playing ----------------------------------------------------------------------------
     @property
@@ -510,38 +415,3 @@ def _clock(seconds: float) -> str:
     return f"{hours:02d}:{minutes:02d}:{secs:02d}"
 
 
-def valid_name(name: str) -> bool:
-    """Whether a file in the data directory may be listed and played under ``name``."""
-    return not name.startswith(".") and len(name) <= MAX_NAME and not (
-        _BAD_NAME_CHARACTER.search(name) or "\\" in name or name != name.strip())
-
-
-def remove_stale_uploads(folder: Path) -> None:
-    """Remove ``.upload-*`` files a crash left in the data directory (start-up, one server per
-    data directory)."""
-    try:
-        entries = list(os.scandir(folder))
-    except FileNotFoundError:
-        return
-    except OSError as exc:
-        log.warning("cannot look for stale uploads in %s: %s", folder, exc.strerror)
-        return
-    for entry in entries:
-        if entry.name.startswith(UPLOAD_PREFIX) and entry.is_file(follow_symlinks=False):
-            try:
-                os.unlink(entry.path)
-                log.info("removed %s, left by an interrupted upload", entry.name)
-            except OSError as exc:
-                log.warning("cannot remove %s: %s", entry.path, exc.strerror)
-
-
-def _temp_file(folder: Path) -> tuple[BinaryIO, Path]:
-    descriptor, name = tempfile.mkstemp(dir=folder, prefix=UPLOAD_PREFIX)
-    return os.fdopen(descriptor, "wb"), Path(name)
-
-
-def _finish_file(handle: BinaryIO, temp: Path, path: Path) -> None:
-    handle.flush()
-    os.fsync(handle.fileno())
-    handle.close()
-    os.replace(temp, path)

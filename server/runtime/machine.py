@@ -86,6 +86,7 @@ class Machine(GcodeFeed, RealtimeCommands):
         self.room = asyncio.Event()
         self._work = asyncio.Event()  # motion may start: the step generator stops sleeping
         self.stepgen.wake = self._work.set
+        self.backend.wake_with(self._work.set)  # a fault or an output on: ticks again
         self.idle_event = asyncio.Event()
         self.idle_event.set()
         self.check_mode = False

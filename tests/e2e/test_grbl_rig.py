@@ -20,8 +20,9 @@ from server.runtime.clock import RealClock
 from server.runtime.events import MachineState
 from server.runtime.grbl import GrblMachine
 from server.transports.tcp import TcpTransport
-from tests.support.grbl_rig import FAST_SETTINGS, RIG, GrblClient, grbl_direct, grbl_on_pty
+from tests.support.grbl_rig import FAST_SETTINGS, GrblClient, grbl_direct, grbl_on_pty
 from tests.support.helpers import running
+from tests.support.rigs import rig
 from tests.support.senders import CharCountingClient, wait_for
 
 pytestmark = pytest.mark.usefixtures("quick_thread_switches")
@@ -30,7 +31,7 @@ DELIBERATE = {"M999": "ok", "%": "ok"}
 
 
 def edge_lines() -> list[str]:
-    lines = (RIG / "edge-lines.txt").read_text().split("\n")
+    lines = (rig("grbl-sim") / "edge-lines.txt").read_text().split("\n")
     return lines[:-1] if lines[-1] == "" else lines
 
 

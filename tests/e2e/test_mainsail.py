@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import os
 import re
 import shutil
 from collections.abc import AsyncIterator
@@ -25,9 +24,8 @@ from tests.e2e.test_mqtt import mpos, tcp_report
 from tests.e2e.test_web_e2e import CHROMIUM, CHROMIUM_ARGS, DESKTOP, SHOTS
 from tests.support.moonraker import Moonraker
 from tests.support.processes import free_port
+from tests.support.rigs import RIGS
 
-RIGS = Path(os.environ.get("MOTIOND_RIGS", Path(__file__).resolve().parents[2] / ".." / "shared"
-                           / "rigs"))
 DIST = RIGS / "mainsail" / "dist"
 UI_S = 30_000  # ms: Mainsail on a loaded machine
 pytestmark = pytest.mark.skipif(not DIST.is_dir(), reason=f"no Mainsail rig at {DIST}")

@@ -75,3 +75,45 @@ async def test_a_hold_with_moves_queued_keeps_ticking_and_resumes(tmp_path: Path
         app.kernel.control.resume()
         await asyncio.wait_for(machine.wait_idle(), 10)
         assert machine.stepgen.state.position_mm[0] == pytest.approx(40.0)
+
+
+async def test_the_klipper_backend_rests_while_idle_and_wakes_for_motion_outputs_and_faults(
+        ) -> None:
+    """The Klipper backend ticks only while it has steps queued, an output on or a fault to
+    report: idle, the step generator sleeps; the next moves after a rest step exactly."""
+    from server.backends.klipper.backend import KlipperBackend
+    from tests.integration.test_klipper_backend import LASER, check_steps, run_job
+    from tests.support.klipper_machine import klipper_machine
+    from tests.support.virtual_mcu import VirtualMcu
+
+    mcu = VirtualMcu(drift_ppm=40.0).start()
+    try:
+        async with klipper_machine(mcu, laser=LASER) as app:
+            machine = app.kernel.machine
+            backend = machine.backend
+            assert isinstance(backend, KlipperBackend)
+            await run_job(app, ["G1 X20 F6000"])
+            samples = counting(backend, "sample")
+            await asyncio.sleep(0.5)  # 500 ticks at 1 kHz if it still ticked
+            assert samples[0] <= 5 and machine.stepgen.can_sleep
+
+            await run_job(app, ["G1 X5 Y10 F6000", "G1 X30"])  # wakes; anchored afresh
+            assert check_steps(app, mcu) > 0
+
+            await submit_all(app, ["M3 S0", "M8"] if "air" in backend.outputs else ["M3 S0"])
+            await submit_all(app, ["G1 X31 S300 F600"])  # laser on while it moves
+            await asyncio.sleep(0.05)
+            assert not machine.stepgen.can_sleep
+            await machine.wait_idle()
+
+            await asyncio.sleep(backend.lead_s + 0.3)
+            resting = samples[0]
+            await asyncio.sleep(0.3)
+            assert samples[0] - resting <= 5, "rests again once the laser is off"
+            mcu.mute()  # a fault while resting still becomes an alarm at once
+            deadline = asyncio.get_running_loop().time() + 2.0
+            while app.kernel.state.name != "ALARM":
+                assert asyncio.get_running_loop().time() < deadline, "no alarm while resting"
+                await asyncio.sleep(0.01)
+    finally:
+        mcu.stop()

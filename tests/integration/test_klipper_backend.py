@@ -101,11 +101,30 @@ async def test_identify_reads_the_dictionary_and_configures_with_a_crc(mcu: Virt
         assert backend.mcu.move_count == mcu.move_count
 
 
+async def test_idle_polling_costs_under_20_bytes_a_second_and_draws_no_resend(
+    mcu: VirtualMcu
+) -> None:
+    """One request at a time (the firmware acks a response's block after it: no nak), a
+    get_clock every 0.4 s and a get_config every 4 s: about 16 bytes/s to the MCU."""
+    async with klipper_machine(mcu) as app:
+        backend = app.kernel.machine.backend
+        assert isinstance(backend, KlipperBackend) and backend.mcu is not None
+        await submit_all(app, ["G1 X20 Y10 F6000"])
+        await app.kernel.machine.wait_idle()
+        await asyncio.sleep(backend.lead_s + 0.2)
+        link = backend.mcu.link
+        sent, started = link.bytes_sent, time.monotonic()
+        await asyncio.sleep(4.5)
+        rate = (link.bytes_sent - sent) / (time.monotonic() - started)
+        assert 5.0 < rate <= 20.0, rate
+        assert link.window.retransmits == 0 and mcu.naks_sent == 0
+
+
 async def test_the_fitted_clock_maps_host_time_to_mcu_ticks(mcu: VirtualMcu) -> None:
     async with klipper_machine(mcu) as app:
         backend = app.kernel.machine.backend
         assert isinstance(backend, KlipperBackend) and backend.mcu is not None
-        await asyncio.sleep(1.2)  # a few periodic get_clock samples
+        await asyncio.sleep(2.0)  # a few periodic get_clock samples (0.4 s apart when idle)
         sync = backend.mcu.clock
         assert sync is not None
         errors = []
@@ -283,11 +302,11 @@ async def test_a_status_reply_from_before_an_emergency_stop_does_not_make_its_sh
         machine = app.kernel.machine
         backend = machine.backend
         assert isinstance(backend, KlipperBackend)
-        await submit_all(app, ["G1 X150 F6000"])
+        await submit_all(app, ["G1 X150 F1500"])  # still moving at the 10th poll (2 s)
         await asyncio.sleep(0.3)
         release = threading.Event()
         mcu.hold_config = release
-        assert await asyncio.to_thread(mcu.holding_config.wait, 2.0)
+        assert await asyncio.to_thread(mcu.holding_config.wait, 6.0)  # one poll in 10 (4 s)
         machine.soft_reset()  # the stop is sent while the stale reply is held
         await asyncio.sleep(0.05)
         release.set()
@@ -296,7 +315,7 @@ async def test_a_status_reply_from_before_an_emergency_stop_does_not_make_its_sh
                 break
             await asyncio.sleep(0.01)
         assert set(mcu.shutdowns) == {"Command request"}
-        await asyncio.sleep(0.3)  # two more polls
+        await asyncio.sleep(0.9)  # two more polls
         assert backend.fault is not None and "emergency stop;" in backend.fault  # ours
         await submit_all(app, ["$X", "G91", "G1 X-5 F3000"])
         await machine.wait_idle()

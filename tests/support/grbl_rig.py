@@ -18,10 +18,9 @@ import tty
 from collections.abc import AsyncIterator, Sequence
 from pathlib import Path
 
-import pytest
+from tests.support.rigs import REPO, RIGS, rig
 
-REPO = Path(__file__).resolve().parents[2]
-RIG = REPO.parent / "shared" / "rigs" / "grbl-sim"
+RIG = RIGS / "grbl-sim"
 BUILD = REPO / "build" / "grbl-sim"
 # Fast axes, so the edge cases' moves take milliseconds (Grbl's defaults: 500 mm/min, 10 mm/s²).
 # The rig's known residue (its README): very rarely a reply comes garbled (``0rror:20``, ``k``).
@@ -34,8 +33,7 @@ FAST_SETTINGS = ("$110=20000", "$111=20000", "$112=20000", "$120=2000", "$121=20
 
 def rig_executable() -> Path:
     """The built simulator; skips the test only when the rigs folder is absent."""
-    if not (RIG / "build").exists():
-        pytest.skip(f"the grbl-sim rig is absent ({RIG})")
+    rig("grbl-sim")
     done = subprocess.run([str(RIG / "build"), str(BUILD)], capture_output=True, text=True,
                           timeout=600, check=True)
     return Path(done.stdout.strip().splitlines()[-1])

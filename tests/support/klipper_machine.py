@@ -4,16 +4,19 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections.abc import AsyncIterator
+import sys
+from collections.abc import AsyncIterator, Iterator
 from typing import Any
 
-from server.app import App
+from server.app import App, TransportFactory
 from server.backends.klipper.backend import KlipperBackend
+from server.runtime import realtime
 from server.runtime.clock import RealClock
 from tests.conftest import make_config
 from tests.support.helpers import running
 from tests.support.virtual_mcu import VirtualMcu
 
+LOOP_PRIORITY = 4
 PINS = {"x": {"step_pin": "PB13", "dir_pin": "!PB12", "enable_pin": "!PB14"},
         "y": {"step_pin": "PB10", "dir_pin": "PB2", "enable_pin": "!PB11"},
         "z": {"step_pin": "PB0", "dir_pin": "PC5", "enable_pin": "!PB1"}}
@@ -29,20 +32,42 @@ def klipper_config(path: str, lead_time_s: float = 0.2, max_duration_s: float = 
 
 @contextlib.asynccontextmanager
 async def klipper_machine(mcu: VirtualMcu, lead_time_s: float = 0.2, max_duration_s: float = 1.0,
+                          transports: list[TransportFactory] | None = None,
                           **extra: Any) -> AsyncIterator[App]:
     """An in-process server on the real clock whose backend is a KlipperBackend on ``mcu``,
     recording its exact step times; yields once the MCU is configured."""
     config = klipper_config(mcu.path, lead_time_s, max_duration_s, **extra)
-    async with running(config, clock=RealClock()) as app:
-        machine = app.kernel.machine
-        backend = machine.backend
-        assert isinstance(backend, KlipperBackend)
-        for axis in backend.axes:
-            axis.exact = []
-        backend.pwm_log = []
-        for _ in range(300):
-            if backend.ready:
-                break
-            await asyncio.sleep(0.01)
-        assert backend.ready, backend.fault
-        yield app
+    with realtime_loop():
+        async with running(config, clock=RealClock(), transports=transports) as app:
+            yield await _configured(app)
+
+
+@contextlib.contextmanager
+def realtime_loop() -> Iterator[None]:
+    """The test's event loop at real-time priority while the machine runs, as ``motiond
+    serve`` runs it (priority 4: below the virtual MCU's thread and the latency probe; a board
+    runs on a core of its own, and the instrument must not be what is slow). At ordinary
+    priority a loaded machine preempts the loop's thread while it holds the GIL, and the virtual
+    MCU's thread, however urgent, waits with it: it then reads steps late and shuts down
+    ("Stepper too far in past") where no MCU would. Ordinary priority where not allowed."""
+    interval_s = sys.getswitchinterval()
+    priority = realtime.claim(LOOP_PRIORITY)
+    try:
+        yield
+    finally:
+        if priority.realtime:
+            realtime.release(interval_s)
+
+
+async def _configured(app: App) -> App:
+    backend = app.kernel.machine.backend
+    assert isinstance(backend, KlipperBackend)
+    for axis in backend.axes:
+        axis.exact = []
+    backend.pwm_log = []
+    for _ in range(300):
+        if backend.ready:
+            break
+        await asyncio.sleep(0.01)
+    assert backend.ready, backend.fault
+    return app

@@ -14,6 +14,7 @@ import pytest
 
 from tests.conftest import REPO
 
+# The firmware rigs (real firmware in simulators) are the one thing outside the repository.
 RIGS = Path(os.environ.get("MOTIOND_RIGS", REPO.parent / "shared" / "rigs"))
 KLIPPER_AVR = RIGS / "klipper-avr"
 
@@ -22,7 +23,7 @@ def rig(name: str) -> Path:
     """The rig's folder; the test is skipped, naming the rig, only when it is absent."""
     folder = RIGS / name
     if not folder.is_dir():
-        pytest.skip(f"rig {name} not found at {folder} (set MOTIOND_RIGS)")
+        pytest.skip(f"the {name} rig is not at {folder} (set MOTIOND_RIGS)")
     return folder
 
 

@@ -181,7 +181,11 @@ class VirtualMcu:
         with contextlib.suppress(OSError):  # not allowed: an ordinary thread, as before
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(5))  # this thread only
         while not self._stop.is_set():
-            ready, _, _ = select.select([self.master], [], [], 0.02)
+            try:  # the pty may be closed and replaced meanwhile (tests.support.hostile_mcu)
+                ready, _, _ = select.select([self.master], [], [], 0.02)
+            except (OSError, ValueError):
+                ready = []
+                time.sleep(0.02)
             if not ready:
                 with self.lock:
                     self._check_watchdogs()
@@ -229,14 +233,13 @@ class VirtualMcu:
             return
         self.expected_seq += 1
         self.blocks_received += 1
-        self._responded = False
-        pos = msgproto.MESSAGE_HEADER_SIZE
+        pos, resets = msgproto.MESSAGE_HEADER_SIZE, self.resets
         while pos < len(block) - msgproto.MESSAGE_TRAILER_SIZE:
             fmt = self.parser.messages_by_id[block[pos]]
             params, pos = fmt.parse(block, pos)
             self._command(fmt.name, params)
-        if not self._responded:
-            self._send_block(b"")
+        if self.resets == resets:  # acked after its responses, as src/command.c does (a
+            self._send_block(b"")  # reset reboots first)
 
     def _send_block(self, payload: bytes) -> None:
         out = bytearray([len(payload) + 5, 0x10 | (self.expected_seq & 0xF)]) + payload
@@ -246,7 +249,6 @@ class VirtualMcu:
     def respond(self, text: str, *values: Any) -> None:
         fmt = self.parser.lookup_command(text)
         self._send_block(bytes(fmt.encode(list(values))))
-        self._responded = True
 
     # -- commands -----------------------------------------------------------------------------
     def _command(self, name: str, params: dict[str, Any]) -> None:

@@ -22,9 +22,22 @@ def test_an_ack_releases_the_blocks_before_it_and_measures_the_round_trip() -> N
 def test_a_nak_resends_everything_unacknowledged_once() -> None:
     window = SendWindow()
     blocks = sent(window, 4)
-    window.on_block(1, False, 0.001)
-    assert window.on_block(1, True, 0.002) == blocks[1:]
+    window.on_block(1, False, 0.001)  # block 0's response...
+    assert window.on_block(1, True, 0.0012) == []  # ...and the ack that follows it
+    assert window.on_block(1, True, 0.002) == blocks[1:]  # the same number again: a nak
     assert window.on_block(1, True, 0.0021) == [], "the naks a resend causes are not obeyed"
+
+
+def test_the_ack_after_a_response_is_no_nak() -> None:
+    """The firmware answers a request, then acknowledges its block with an empty block of
+    the same number: with more blocks in flight (get_clock then get_config, or steps) that
+    ack is no nak, and nothing is sent again."""
+    window = SendWindow()
+    sent(window, 3)
+    for seq in (1, 2):
+        assert window.on_block(seq, False, 0.001 * seq) == []  # the response
+        assert window.on_block(seq, True, 0.001 * seq + 0.0002) == []  # then its ack
+    assert window.retransmits == 0 and len(window.inflight) == 1
 
 
 def test_a_timeout_resends_with_a_doubled_timeout() -> None:

@@ -3,7 +3,9 @@
 The step generator tells this backend every constant-acceleration piece of the trajectory
 (:meth:`trajectory`) and how far its clock has reached (:meth:`sample`, every tick). Up to that
 time each axis' exact step times are computed (:mod:`.steptimes`), mapped to MCU ticks at
-``t + lead_time_s`` through the fitted clock (:mod:`.clocksync`), and compressed into
+``t + lead_time_s`` in the MCU's own time base (:mod:`.printclock`: the nominal ``CLOCK_FREQ``;
+the fitted clock of :mod:`.clocksync` anchors the schedule's start and sets the host's
+deadlines), and compressed into
 ``queue_step`` runs within ``max_error_s`` (:mod:`.stepcompress`) every ``flush_s``, with
 ``set_next_step_dir`` on direction changes and ``reset_step_clock`` after a long idle or a
 reconfiguration. A run that may still grow is held back at most ``HOLD_BACK_S``, so a host
@@ -50,22 +52,25 @@ from server.backends.klipper.mcu import (
 )
 from server.backends.klipper.movequeue import MoveQueue
 from server.backends.klipper.pins import Axis, Output, config_commands
+from server.backends.klipper.printclock import PrintClock
 from server.backends.klipper.stepcompress import run_clocks
 from server.backends.klipper.steptimes import FloatArray, crossing_times, step_target
 from server.config import CoreConfig
 from server.errors import CommandError, Error
 
 log = logging.getLogger("motiond.klipper")
-SLEW_S = 2.0
 EXIT_GRACE_S = 0.3
 HOLD_BACK_S = 0.05
 """The longest a run that may still grow waits before it is sent anyway."""
-MAX_SLEW = 200e-6
+DRIFT_MAX_S = 0.01
+"""The most the schedule may drift from the clock fit (or a tenth of the lead) before it is
+steered back (:mod:`.printclock`)."""
 RESTART_WAIT_S = 0.3  # a restarted board boots before it is asked who it is
 RESTART_PATIENCE_S = 10.0  # a restarted board's first answer (a bootloader, a slow boot)
 RECOVER_TIMEOUT_S = 20.0  # $X waits this long for a restarted board to be configured
 DONE_MARGIN_S = 0.005
 STOP_FLUSH_S = 0.1  # a fault's emergency stop gets this long to leave before the link closes
+STOP_READ_S = 0.5  # reading where a shut-down board stopped (a few round trips) takes at most
 
 
 class KlipperBackend:
@@ -101,13 +106,26 @@ class KlipperBackend:
         self._sample_s: float | None = None
         self._next_flush_s = 0.0
         self._queue = MoveQueue()
-        self._map: tuple[float, float, float] = (0.0, 0.0, 0.0)  # host s, MCU clock, ticks/s
+        self._print = PrintClock(0.0, min(DRIFT_MAX_S, 0.1 * self.lead_s))
         self.identity: dict[str, str] = {}  # the board first served: another is refused
         self.shut_down = False  # the board is shut down until recover() restarts it
         self._recover = asyncio.Event()  # recover() asks the waiting run() to restart
         self._configured = asyncio.Event()  # ...which sets this once the board is ready
         self._config_base = [0] * len(self.axes)  # axis positions when the MCU was configured
         self.relocate: Callable[[Sequence[float]], None] = lambda _: None
+        self._wake: Callable[[], None] = lambda: None
+
+    @property
+    def ticks_when_idle(self) -> bool:
+        """Whether the step generator must keep ticking while nothing moves: while steps or
+        messages are queued, an output is on (it is refreshed from :meth:`sample`) or a fault
+        waits to be raised. Otherwise it sleeps (an idle server costs next to no CPU)."""
+        return (self._fault_to_raise is not None or bool(self._pieces)
+                or bool(self._queue.waiting) or self._busy())
+
+    def wake_with(self, wake: Callable[[], None]) -> None:
+        """The machine's hook: ``wake`` resumes ticks (a fault, an output switched on)."""
+        self._wake = wake
 
     def watch_position(self, relocate: Callable[[Sequence[float]], None]) -> None:
         """The machine's hook: called with where the tool really stopped (mm) after a stop."""
@@ -166,19 +184,23 @@ class KlipperBackend:
         if self._fault_to_raise is not None:
             message, self._fault_to_raise = self._fault_to_raise, None
             raise KlipperFault(message)
+        if self._rested(time_s):
+            self._print.unanchor()  # anchored afresh at the live fit
         self._sample_s = time_s
         if not self.ready:
             return
         history, here = self._history, tuple(cast("Sequence[float]", position_mm))
         if not history or history[-1][1] != here:
             history.append((time_s, here))
-        if time_s >= self._next_flush_s or self._map[2] == 0.0:
+        if time_s >= self._next_flush_s or not self._print.anchored:
             self._update_map(time_s + self.lead_s)
         self._generate(time_s)
         self._refresh_outputs(time_s)
         if time_s >= self._next_flush_s or not self._pieces:
             self._next_flush_s = time_s + self.flush_s
             self._flush(time_s)
+            if self.mcu is not None:
+                self.mcu.busy = self._busy()
         self._pump()
 
     def set_output(self, name: str, value: float, time_s: float) -> None:
@@ -188,9 +210,9 @@ class KlipperBackend:
             return
         if value == out.value:
             return
-        when_s = self._sample_s if self._sample_s is not None else time_s
-        self._queue_output(out, value, when_s)
+        self._queue_output(out, value, self._when_s(time_s))
         self._pump()
+        self._wake()  # refreshed from sample() while on
 
     def _refresh_outputs(self, time_s: float) -> None:
         """An output that is on is queued again (same value) every half ``max_duration``:
@@ -221,16 +243,32 @@ class KlipperBackend:
         (off lets the axes be moved by hand; the next move turns them on again first)."""
         if self.mcu is None or not self.ready or enabled == self.motors_on:
             return
-        when_s = self._sample_s if self._sample_s is not None else time_s
+        when_s = self._when_s(time_s)
         if self._pieces:  # the motion it waited for has steps still to come: after them
             last = self._pieces[-1]
             when_s = max(when_s, last.start_s + last.duration_s)
         self._switch_motors(enabled, self._scheduled_clock(when_s))
         self._pump()
 
+    def _when_s(self, time_s: float) -> float:
+        """When a change asked for at ``time_s`` happens: at the last sample while ticking
+        (the instant the laser's power was computed for), at ``time_s`` after a rest."""
+        if self._rested(time_s):
+            self._print.unanchor()  # anchored afresh at the live fit
+            return time_s
+        return self._sample_s if self._sample_s is not None else time_s
+
+    def _rested(self, time_s: float) -> bool:
+        """Whether the step generator slept since the last sample with nothing queued, moving
+        or on: the schedule may then start afresh from the live clock fit (a host stall in
+        motion is no rest: its schedule stays continuous)."""
+        sample_s = self._sample_s
+        return (sample_s is None or time_s - sample_s > HOLD_BACK_S) and not (
+            self._pieces or self._queue.waiting or self._busy())
+
     def _scheduled_clock(self, when_s: float) -> int:
         """The MCU clock at which what the machine does at ``when_s`` happens."""
-        if self._map[2] == 0.0:  # just (re)configured: no step has set the map yet
+        if not self._print.anchored:  # just (re)configured: no step has set the map yet
             self._update_map(when_s + self.lead_s)
         return int(self._motion_clock(when_s + self.lead_s))
 
@@ -340,7 +378,11 @@ class KlipperBackend:
         self._drop_motion()
         for out in self.outputs.values():
             out.value = 0.0
-        positions = await mcu.stopped_positions([axis.oid for axis in self.axes])
+        try:  # a board that stopped answering as it shut down: the alarm does not wait
+            positions = await asyncio.wait_for(
+                mcu.stopped_positions([axis.oid for axis in self.axes]), STOP_READ_S)
+        except TimeoutError:
+            positions = None
         if positions is None:
             where = "where it stopped is unknown"
         else:
@@ -380,6 +422,7 @@ class KlipperBackend:
         if message != self.fault:
             log.error("%s", message)
             self._fault_to_raise = message
+            self._wake()  # raised from the next sample(), even on a resting machine
         self.fault = message
         self._drop_motion()
         for out in self.outputs.values():
@@ -393,7 +436,7 @@ class KlipperBackend:
         for out in self.outputs.values():
             out.last_clock, out.value = 0, 0.0
         self._queue.in_use.clear()
-        self._map = (0.0, 0.0, 0.0)
+        self._print.unanchor()
 
     def _config_commands(self, d: Dictionary) -> list[Command]:
         return config_commands(self.cfg, self.axes, self.outputs, d)
@@ -404,24 +447,29 @@ class KlipperBackend:
         assert self.mcu is not None and self.mcu.clock is not None
         return self.mcu.clock.clock_at(host_s)
 
-    def _motion_clock(self, host_s: float | FloatArray) -> float | FloatArray:
-        """The MCU clock scheduled for host time ``host_s`` (already including the lead)."""
-        ref_s, ref_clock, freq = self._map
-        return ref_clock + freq * (host_s - ref_s)
+    def _motion_clock(self, print_s: float | FloatArray) -> float | FloatArray:
+        """The MCU clock scheduled for print time ``print_s`` (kernel time + the lead)."""
+        return self._print.clock(print_s)
 
     def _update_map(self, frontier_s: float) -> None:
-        """Steer the scheduling map towards the live fit without a jump: from ``frontier_s``
-        (the latest time steps were scheduled for) its rate is the fitted rate plus what closes
-        the gap in ``SLEW_S``, so step times stay continuous and in order while the fit moves."""
+        """Anchor the schedule to the fit while nothing is scheduled (a jump then moves no
+        step), else steer it from ``frontier_s`` (the latest time steps were scheduled for)."""
         assert self.mcu is not None and self.mcu.clock is not None
         fit = self.mcu.clock
-        if self._map[2] == 0.0:
-            self._map = (frontier_s, fit.clock_at(frontier_s), fit.freq_hz)
-            return
-        here = float(self._motion_clock(frontier_s))
-        correction = (fit.clock_at(frontier_s) - here) / SLEW_S
-        limit = fit.freq_hz * MAX_SLEW
-        self._map = (frontier_s, here, fit.freq_hz + min(limit, max(-limit, correction)))
+        if not self._print.anchored or self._schedule_idle():
+            self._print.nominal_hz = fit.nominal_hz  # the dictionary's CLOCK_FREQ
+            self._print.anchor(frontier_s, fit.clock_at(frontier_s))
+        else:
+            self._print.steer(frontier_s, fit.clock_at(frontier_s), fit.freq_hz)
+
+    def _schedule_idle(self) -> bool:
+        """Nothing waits to be scheduled or sent, and every step sent is already past."""
+        if self._pieces or self._queue.waiting or any(a.segments or a.pending
+                                                      for a in self.axes):
+            return False
+        now = self._now_clock()
+        return all(a.compressor.last_clock < now for a in self.axes) and all(
+            o.last_clock < now for o in self.outputs.values()) and self._enable_clock < now
 
     def _now_clock(self) -> float:
         return self._clock_at(time.monotonic())
@@ -482,6 +530,7 @@ class KlipperBackend:
         idle = not self._pieces
         force_clock = self._motion_clock(now_s + self.lead_s - min(HOLD_BACK_S, 0.5 * self.lead_s))
         for axis in self.axes:
+            axis.collect()
             while axis.segments:
                 direction, points = axis.segments[0]
                 final = idle or len(axis.segments) > 1 or points[0] < force_clock
@@ -542,7 +591,7 @@ class KlipperBackend:
         history = self._history
         if not self.ready or not history:
             return None
-        at_s = time_s - self.lead_s
+        at_s = self._print_time_at(time_s) - self.lead_s
         index = bisect.bisect_right(history, at_s, key=lambda entry: entry[0])
         return history[max(0, index - 1)][1]
 
@@ -551,7 +600,16 @@ class KlipperBackend:
         possible lag behind the MCU's own clock)."""
         if not self.ready or not self._motion_end_s:
             return 0.0
-        return self._motion_end_s + self.lead_s + DONE_MARGIN_S
+        end_s = self._motion_end_s + self.lead_s
+        if self.mcu is not None and self.mcu.clock is not None and self._print.anchored:
+            end_s = self.mcu.clock.host_at(float(self._print.clock(end_s)))
+        return end_s + DONE_MARGIN_S
+
+    def _print_time_at(self, host_s: float) -> float:
+        """The print time the MCU executes at host time ``host_s`` (through the fit)."""
+        if self.mcu is None or self.mcu.clock is None or not self._print.anchored:
+            return host_s
+        return self._print.time_at(self.mcu.clock.clock_at(host_s))
 
     def _drop_motion(self) -> None:
         self._motion_end_s = 0.0
@@ -560,3 +618,4 @@ class KlipperBackend:
         self._queue.waiting.clear()
         for axis in self.axes:
             axis.segments.clear()
+            axis.pending.clear()

@@ -60,11 +60,12 @@ class ClockSync:
         self._fit()
 
     def predict_error_s(self, sent_s: float, received_s: float, clock32: int) -> float:
-        """How far (seconds) a reading falls outside the prediction for its window (0 inside)."""
+        """How far (seconds) a reading falls outside the prediction for its window: 0 inside,
+        positive ahead of it (no host stall does that), negative behind it (the board lost
+        time, or went back). A host stall only widens the window: the reading stays inside."""
         clock = self.extend(clock32)
         low, high = self.clock_at(sent_s), self.clock_at(received_s)
-        outside = max(low - clock, clock - high, 0.0)
-        return outside / self.freq_hz
+        return (max(clock - high, 0.0) - max(low - clock, 0.0)) / self.freq_hz
 
     def _fit(self) -> None:
         host = np.array([s[0] for s in self._samples])

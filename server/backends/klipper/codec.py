@@ -32,13 +32,25 @@ class ProtocolError(Exception):
     """Bytes or a dictionary that do not follow the protocol."""
 
 
-def crc16_ccitt(data: bytes) -> int:
-    """The block checksum: CRC-16/MCRF4XX (CCITT polynomial, reflected, initial 0xFFFF)."""
-    crc = 0xFFFF
-    for byte in data:
-        crc ^= byte
+def _crc_table() -> tuple[int, ...]:
+    table = []
+    for byte in range(256):
+        crc = byte
         for _ in range(8):
             crc = (crc >> 1) ^ 0x8408 if crc & 1 else crc >> 1
+        table.append(crc)
+    return tuple(table)
+
+
+_CRC_TABLE = _crc_table()
+
+
+def crc16_ccitt(data: bytes) -> int:
+    """The block checksum: CRC-16/MCRF4XX (CCITT polynomial, reflected, initial 0xFFFF),
+    a byte at a time from a table (every block in and out is checked: a flooding board)."""
+    crc, table = 0xFFFF, _CRC_TABLE
+    for byte in data:
+        crc = (crc >> 8) ^ table[(crc ^ byte) & 0xFF]
     return crc
 
 

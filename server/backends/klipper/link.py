@@ -6,9 +6,10 @@ responses, which are decoded with the current :class:`~.dictionary.Dictionary` a
 ``on_message`` with their arrival time (``time.monotonic``, the clock the event loop and the
 kernel use). :meth:`Link.request` sends one command and waits for a matching response.
 A closed device is reported once to ``on_error`` and the link closed; an unreadable block
-stream or a restarted MCU (a sequence number never sent) is reported once and nothing more is
-read, but an emergency stop can still be written before :meth:`Link.close`. Either way the
-link is dead and must be replaced.
+stream, a restarted MCU (a sequence number never sent) or, once ``ack_timeout_s`` is set, a
+block left unacknowledged that long (a board that is silent, sends garbage, or floods messages
+without acknowledging ours) is reported once and nothing more is read, but an emergency stop
+can still be written before :meth:`Link.close`. Either way the link is dead and must be replaced.
 """
 
 from __future__ import annotations
@@ -27,6 +28,8 @@ from server.backends.klipper.dictionary import Dictionary
 from server.backends.klipper.window import SendWindow, SequenceError
 
 MessageHandler = Callable[[str, Params, float], None]
+READ_BYTES = 1024  # per turn of the event loop: a board that floods delays a status report
+# by one such turn (~2 ms of decoding), never more
 Match = Callable[[Params], bool]
 
 def open_serial(path: str, baud: int) -> int:
@@ -65,6 +68,10 @@ class Link:
         self._loop: asyncio.AbstractEventLoop | None = None
         self.closed = False
         self.failed = False  # a broken stream from the MCU: nothing more is read
+        self.ack_timeout_s: float | None = None  # None: no limit (connecting, a slow boot)
+        self._progress_s = 0.0  # when the window last moved (a block acknowledged or sent)
+        self._blocks_in = 0  # valid blocks received since then
+        self._bad_at_progress = 0  # the reader's count of damaged blocks then
 
     def open(self) -> None:
         self._loop = asyncio.get_running_loop()
@@ -93,7 +100,7 @@ class Link:
         self._keep.clear()
         if self.closed:
             return dropped
-        self._write(self.window.make_block(message, time.monotonic()))
+        self._new_block(message, time.monotonic())
         for queued in kept:
             self.send(queued, keep=True)
         self._arm_timer()
@@ -126,11 +133,13 @@ class Link:
                 self._keep.popleft()
             if not payload:
                 break
-            self._write(self.window.make_block(bytes(payload), now_s))
+            self._new_block(bytes(payload), now_s)
         self._arm_timer()
 
     def _arm_timer(self) -> None:
         deadline = self.window.deadline_s()
+        if deadline is not None and self.ack_timeout_s is not None:
+            deadline = min(deadline, self._progress_s + self.ack_timeout_s)
         if self._timer is not None:
             self._timer.cancel()
             self._timer = None
@@ -140,9 +149,32 @@ class Link:
 
     def _on_timer(self) -> None:
         self._timer = None
+        if self._unacknowledged(time.monotonic()):
+            return
         for block in self.window.on_timer(time.monotonic()):
             self._write(block)
         self._arm_timer()
+
+    def _unacknowledged(self, now_s: float) -> bool:
+        """Whether a block has waited ``ack_timeout_s`` for its acknowledgement (reported)."""
+        if (self.ack_timeout_s is None or self.failed or not self.window.inflight
+                or now_s - self._progress_s <= self.ack_timeout_s):
+            return False
+        bad = self._reader.bad_blocks - self._bad_at_progress
+        seen = f"{self._blocks_in} blocks and {bad} damaged" if self._blocks_in or bad else \
+            "nothing"
+        self._broken(f"the MCU acknowledged none of {len(self.window.inflight)} blocks for "
+                     f"{now_s - self._progress_s:.2f} s (it sent {seen} meanwhile)")
+        return True
+
+    def _new_block(self, payload: bytes, now_s: float) -> None:
+        if not self.window.inflight:  # the wait for an acknowledgement starts now
+            self._moved(now_s)
+        self._write(self.window.make_block(payload, now_s))
+
+    def _moved(self, now_s: float) -> None:
+        self._progress_s = now_s
+        self._blocks_in, self._bad_at_progress = 0, self._reader.bad_blocks
 
     def _write(self, data: bytes) -> None:
         self._out += data
@@ -169,7 +201,7 @@ class Link:
     def _on_readable(self) -> None:
         assert self._fd is not None
         try:
-            data = os.read(self._fd, 4096)
+            data = os.read(self._fd, READ_BYTES)
         except BlockingIOError:
             return
         except OSError as exc:
@@ -180,14 +212,20 @@ class Link:
             return
         self.bytes_received += len(data)
         now_s = time.monotonic()
+        acked = self.window.acked
         try:
             for block in self._reader.feed(data):
+                self._blocks_in += 1
                 for again in self.window.on_block(block.seq, not block.payload, now_s):
                     self._write(again)
                 if block.payload:
                     self._deliver(self.dictionary.decode(block.payload), now_s)
         except (SequenceError, ProtocolError) as exc:
             self._broken(str(exc))
+            return
+        if self.window.acked != acked:
+            self._moved(now_s)
+        elif self._unacknowledged(now_s):  # a board that talks but never acknowledges
             return
         self._pump()
 
@@ -211,11 +249,18 @@ class Link:
         assert self._loop is not None and self._fd is not None
         self._loop.remove_reader(self._fd)
         self._on_error(reason)
+        self._fail_waiters(reason)  # no answer can come: a request waits no longer
 
     def _fail(self, reason: str) -> None:
         if not self.closed:
             self.close()
             self._on_error(reason)
+
+    def _fail_waiters(self, reason: str) -> None:
+        for _, _, future in self._waiters:
+            if not future.done():
+                future.set_exception(ConnectionError(reason))
+        self._waiters.clear()
 
     def close(self) -> None:
         """Stop reading and writing and release the device; safe twice."""
@@ -224,10 +269,7 @@ class Link:
         self.closed = True
         if self._timer is not None:
             self._timer.cancel()
-        for _, _, future in self._waiters:
-            if not future.done():
-                future.set_exception(ConnectionError(f"link to {self.path} closed"))
-        self._waiters.clear()
+        self._fail_waiters(f"link to {self.path} closed")
         if self._fd is not None and self._loop is not None:
             self._loop.remove_reader(self._fd)
             self._loop.remove_writer(self._fd)

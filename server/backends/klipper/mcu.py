@@ -8,9 +8,16 @@ the clock map (``get_uptime`` then a burst of ``get_clock``) and configures a fr
 configured by someone else is refused (:class:`KlipperFault`); one still configured by us
 (outputs may be on from before) or shut down raises :class:`NeedsRestart`: it is restarted
 (:meth:`Mcu.restart`, as Klipper's host does for its ``restart_method``) and connected afresh.
-:meth:`Mcu.watch` samples the clock every ``poll_s`` and checks ``get_config``; silence for
-``timeout_s``, a restart, a foreign configuration or a link fault raise :class:`KlipperFault`,
-a shutdown (ours from :meth:`emergency_stop`, or the firmware's own) :class:`McuShutdown`.
+:meth:`Mcu.watch` samples the clock every ``poll_s`` (``BUSY_POLL_S`` while :attr:`Mcu.busy`:
+steps queued or an output on) and, one request at a time (never back to back), checks
+``get_config`` every ``CONFIG_EVERY`` polls: about 16 bytes a second to an idle MCU (klippy
+sends 6); silence for ``timeout_s`` (no block acknowledged), a restart, a clock that jumps
+ahead, a foreign configuration or a link fault raise :class:`KlipperFault`, a shutdown (ours
+from :meth:`emergency_stop`, or the firmware's own) :class:`McuShutdown`. A restart is told from
+the firmware's evidence, never from the host's timing: ``starting`` (sent at every boot),
+``get_config`` unconfigured, a sequence number never sent (:mod:`.window`), or a clock that
+went back, checked against its 64-bit ``get_uptime``; a host stall widens a reading's round
+trip and leaves it inside, and a reading behind the fit is left out of it.
 After a shutdown :meth:`stopped_positions` reads where each stepper stopped (``clear_shutdown``
 then ``stepper_get_position``) and shuts the board down again until it is restarted.
 """
@@ -44,6 +51,11 @@ CLOCK_SETTLE_S = 5.0
 RATE_PROBE_S = 0.15
 RATE_TOLERANCE = 0.05  # a round trip's jitter over RATE_PROBE_S stays well inside this
 RESET_SETTLE_S = 0.015  # klippy's pause after ``reset`` before it lets the port go
+POLL_S = 0.4  # a 6-byte get_clock block: 15 bytes/s
+BUSY_POLL_S = 0.2  # while steps are queued or an output is on
+CONFIG_EVERY = 10  # get_config once every 10 polls (4 s idle, 2 s busy)
+JUMP_S = 0.05  # a clock reading this far outside its round trip's window is looked into
+BEHIND_LIMIT_S = 1.0  # a clock that stays behind the fit this long: the fit starts over
 
 
 class KlipperFault(BackendFault):
@@ -104,7 +116,7 @@ def arduino_reset(path: str) -> None:
 class Mcu:
     """See the module docstring."""
 
-    def __init__(self, path: str, baud: int, timeout_s: float, poll_s: float = 0.2) -> None:
+    def __init__(self, path: str, baud: int, timeout_s: float, poll_s: float = POLL_S) -> None:
         self.path, self.baud = path, baud
         self.timeout_s, self.poll_s = timeout_s, poll_s
         self.link = Link(path, baud, self._on_message, self._on_link_error)
@@ -117,6 +129,10 @@ class Mcu:
         self.shutdown: McuShutdown | None = None
         self._fault: asyncio.Future[KlipperFault] | None = None
         self._last_heard_s = time.monotonic()
+        self._polls = 0
+        self.busy = False  # set by the backend: steps queued or an output on
+        self._behind_since_s: float | None = None  # the MCU's clock behind the fit since
+        self.running = False  # configured by us: a "starting" from now on is a restart
         self._commands: list[Command] = []
         self.on_configured: Callable[[], None] = lambda: None
 
@@ -203,9 +219,41 @@ class Mcu:
         sent = time.monotonic()
         reply = await self._ask("get_clock", "clock")
         received = reply["#received_s"]
-        if self.clock.synced and self.clock.predict_error_s(sent, received, reply["clock"]) > 0.05:
-            raise KlipperFault("the MCU clock jumped: the MCU restarted")
-        self.clock.add_sample(sent, received, self.clock.extend(reply["clock"]))
+        clock = self.clock.extend(reply["clock"])
+        if self.clock.synced:
+            off_s = self.clock.predict_error_s(sent, received, reply["clock"])
+            if abs(off_s) > JUMP_S and not await self._still_running(off_s, received):
+                return  # not a reading of the clock the fit follows
+            if abs(off_s) <= JUMP_S:
+                self._behind_since_s = None
+        self.clock.add_sample(sent, received, clock)
+
+    async def _still_running(self, off_s: float, received_s: float) -> bool:
+        """A clock reading far off its window: the firmware's own 64-bit uptime says whether
+        its clock went back (a restart: KlipperFault), jumped ahead (no host stall does that:
+        KlipperFault) or fell behind, which a board whose clock lost time does (a simulated one
+        catching up): not taken into the fit for ``BEHIND_LIMIT_S``, then the fit starts over
+        from it (False: skip the reading)."""
+        assert self.clock is not None
+        last = self.clock.last_clock
+        uptime = await self._ask("get_uptime", "uptime")
+        clock64 = (uptime["high"] << 32) | uptime["clock"]
+        freq = self.clock.freq_hz
+        if clock64 < last:
+            back_s = (last - clock64) / freq
+            raise KlipperFault(f"the MCU restarted: its clock went back {back_s:.3f} s (uptime "
+                               f"{clock64 / freq:.3f} s)")
+        if off_s > 0.0:
+            raise KlipperFault(f"the MCU's clock jumped {off_s * 1e3:.0f} ms ahead of the host's")
+        if self._behind_since_s is None:
+            self._behind_since_s = received_s
+            log.warning("the MCU's clock is %.0f ms behind the host's fit (a board that lost "
+                        "time; not a restart)", -off_s * 1e3)
+        if received_s - self._behind_since_s < BEHIND_LIMIT_S:
+            return False
+        self._behind_since_s = None
+        self.clock.reset(uptime["#received_s"], clock64)
+        return False
 
     async def _configure(self) -> None:
         config = await self._ask("get_config", "config")
@@ -222,6 +270,8 @@ class Mcu:
         if not config["is_config"] or config["crc"] != self.crc:
             raise KlipperFault("the MCU refused the configuration")
         self.move_count = int(config["move_count"])
+        self.running = True
+        self.link.ack_timeout_s = self.timeout_s  # a block unacknowledged that long: a fault
         self.on_configured()
 
     def _send_config(self) -> None:
@@ -241,20 +291,26 @@ class Mcu:
         """Poll clock and config until a fault; raises KlipperFault (McuShutdown)."""
         assert self._fault is not None
         while True:
-            done, _ = await asyncio.wait([self._fault], timeout=self.poll_s)
+            period_s = min(self.poll_s, BUSY_POLL_S) if self.busy else self.poll_s
+            done, _ = await asyncio.wait([self._fault], timeout=period_s)
             if done:
                 raise self._fault.result()
-            if time.monotonic() - self._last_heard_s > self.timeout_s:
-                raise KlipperFault(f"the MCU stopped answering for {self.timeout_s:g} s")
+            if time.monotonic() - self._last_heard_s > self.timeout_s + period_s:
+                raise KlipperFault(
+                    f"the MCU stopped answering for {self.timeout_s + period_s:g} s")
             try:
                 await self._poll()
-            except KlipperFault:
+            except (KlipperFault, ConnectionError):
                 if self._fault.done():  # the first word, with its reason, wins
                     raise self._fault.result() from None
                 raise
 
     async def _poll(self) -> None:
-        _, config = await asyncio.gather(self.sample_clock(), self._ask("get_config", "config"))
+        await self.sample_clock()
+        self._polls += 1
+        if self._polls % CONFIG_EVERY:
+            return
+        config = await self._ask("get_config", "config")
         if config["is_shutdown"]:
             raise self.shutdown or McuShutdown("the MCU shut down: reason unknown", None,
                                                self.stopping)
@@ -317,10 +373,13 @@ class Mcu:
 
     def _on_message(self, name: str, params: Params, now_s: float) -> None:
         self._last_heard_s = now_s
+        if name == "starting" and self.running:  # the firmware says it at every boot
+            self._report(KlipperFault("the MCU restarted (it said 'starting')"))
         if name in ("shutdown", "is_shutdown"):
             reason = str(params.get("static_string_id", "?"))
-            if self._clock_jumped(params.get("clock"), now_s):
-                self._report(KlipperFault("the MCU restarted (its clock started over)"))
+            jump = self._clock_jump(params.get("clock"), now_s)
+            if jump is not None:
+                self._report(KlipperFault(f"{jump}; it shut down: {reason}"))
                 return
             if self.shutdown is None:
                 clock = params.get("clock")
@@ -329,15 +388,20 @@ class Mcu:
                                             self.stopping)
             self._report(self.shutdown)
 
-    def _clock_jumped(self, clock32: int | None, now_s: float) -> bool:
-        """Whether a clock the MCU reported cannot be its running clock: earlier than one it
-        reported before (it started over), or 50 ms ahead of the fit. A late one is not a
-        jump: a busy host may read a message well after it was sent."""
+    def _clock_jump(self, clock32: int | None, now_s: float) -> str | None:
+        """What is wrong with a clock the MCU reported, if it cannot be its running clock:
+        earlier than one it reported before (it started over), or ``JUMP_S`` ahead of the fit.
+        A late one is not a jump: a busy host may read a message well after it was sent."""
         if clock32 is None or self.clock is None or not self.clock.synced:
-            return False
+            return None
         clock = self.clock.extend(clock32)
-        ahead = clock - self.clock.clock_at(now_s)
-        return clock < self.clock.last_clock or ahead > 0.05 * self.clock.freq_hz
+        freq, last = self.clock.freq_hz, self.clock.last_clock
+        ahead_s = (clock - self.clock.clock_at(now_s)) / freq
+        if clock < last:
+            return f"the MCU restarted: its clock went back {(last - clock) / freq:.3f} s"
+        if ahead_s > JUMP_S:
+            return f"the MCU's clock jumped {ahead_s * 1e3:.0f} ms ahead of the host's"
+        return None
 
     def _on_link_error(self, reason: str) -> None:
         self._report(KlipperFault(reason))

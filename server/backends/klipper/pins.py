@@ -28,6 +28,8 @@ class Axis:
     invert_dir: bool = False
     position: int = 0  # whole steps commanded so far
     segments: list[tuple[int, FloatArray]] = field(default_factory=list)  # (dir, exact clocks)
+    pending: list[FloatArray] = field(default_factory=list)  # added, not yet in segments
+    pending_dir: int = 0
     compressor: StepCompressor = field(default_factory=lambda: StepCompressor(1.0))
     sent_dir: int = 0
     needs_reset: bool = True
@@ -38,10 +40,23 @@ class Axis:
     def add(self, direction: int, clocks: FloatArray) -> None:
         if self.exact is not None:
             self.exact.append(clocks)
-        if self.segments and self.segments[-1][0] == direction:
-            self.segments[-1] = (direction, np.concatenate((self.segments[-1][1], clocks)))
+        if self.pending and self.pending_dir != direction:
+            self.collect()
+        self.pending.append(clocks)
+        self.pending_dir = direction
+
+    def collect(self) -> None:
+        """The pieces' step clocks added since the last call join :attr:`segments` (one
+        concatenation per flush, not one per piece)."""
+        if not self.pending:
+            return
+        clocks = self.pending[0] if len(self.pending) == 1 else np.concatenate(self.pending)
+        self.pending = []
+        if self.segments and self.segments[-1][0] == self.pending_dir:
+            clocks = np.concatenate((self.segments[-1][1], clocks))
+            self.segments[-1] = (self.pending_dir, clocks)
         else:
-            self.segments.append((direction, clocks))
+            self.segments.append((self.pending_dir, clocks))
 
 
 @dataclass(slots=True)

@@ -6,14 +6,17 @@ stepper's last step clock ``L``, step ``k`` (0-based) happens at
 ``[exact - err, exact]`` (never late, at most ``max_error`` early, and never more than half the
 gap to the previous step early, so steps keep their order). For a candidate ``add`` the windows
 bound ``interval`` from both sides; a running max/min over the windows gives the longest run
-that ``add`` allows (vectorised with numpy). Candidate adds come from least-squares fits of the
-exact times over shrinking spans (long runs at constant acceleration fit one ``add``), plus 0
-and the previous run's add; the longest run wins.
+that ``add`` allows (vectorised with numpy). The ``add`` is searched as Klipper's stepcompress
+does: a run that ends because its next step would come too early wants a larger ``add``, one
+whose next step would come too late a smaller one; the range narrows by a quarter each try and
+never beyond what the error bound allows two quadratic sequences of that length to differ by
+(``(6 + 4√2)·max_error / count²``). The run reaching furthest wins, and a run without ``add``
+(a shorter message) wins when it covers nearly as many steps. Runs grow up to 65,535 steps: the
+window considered grows while the best run fills it.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,7 +28,9 @@ IntArray = npt.NDArray[np.int64]
 MAX_COUNT = 65535
 ADD_MIN, ADD_MAX = -32768, 32767
 WINDOW = 1024
-"""Most steps considered for one run (bounds the work per run)."""
+"""Steps considered for one run at first (grown while a run fills it)."""
+QUADRATIC_DEV = 11  # (6 + 4√2) rounded down, as Klipper uses
+MAX_TRIES = 48
 
 
 @dataclass(frozen=True, slots=True)
@@ -69,36 +74,33 @@ def longest_run(lo: IntArray, hi: IntArray, add: int) -> tuple[int, int]:
     return count, int(interval_hi[count - 1])
 
 
-def _fitted_adds(q: FloatArray) -> list[int]:
-    """Adds from least-squares fits of ``q(m) = I·m + A·m(m-1)/2`` over shrinking spans."""
-    adds: list[int] = []
-    span = len(q)
-    while span >= 3:
-        m = np.arange(1, span + 1, dtype=np.float64)
-        tri = m * (m - 1) / 2
-        y = q[:span]
-        s_mm, s_mt, s_tt = (m * m).sum(), (m * tri).sum(), (tri * tri).sum()
-        s_my, s_ty = (m * y).sum(), (tri * y).sum()
-        det = s_mm * s_tt - s_mt * s_mt
-        if det > 0:
-            add = (s_mm * s_ty - s_mt * s_my) / det
-            for value in (math.floor(add), math.ceil(add)):
-                clamped = min(ADD_MAX, max(ADD_MIN, value))
-                if clamped not in adds:
-                    adds.append(clamped)
-        span //= 4
-    return adds
-
-
-def best_run(lo: IntArray, hi: IntArray, q: FloatArray, hint_add: int) -> StepRun:
-    """The longest run over the candidate adds (ties: the first candidate)."""
-    best = StepRun(0, 0, 0)
-    for add in [hint_add, 0, *_fitted_adds(q)]:
+def best_run(lo: IntArray, hi: IntArray, max_error: float) -> StepRun:
+    """The run reaching furthest over the ``add`` search (see the module docstring)."""
+    min_add, max_add, add = ADD_MIN, ADD_MAX, 0
+    best, best_reach, zero = StepRun(0, 0, 0), -1, StepRun(0, 0, 0)
+    for _ in range(MAX_TRIES):
         count, interval = longest_run(lo, hi, add)
-        if count > best.count:
-            best = StepRun(interval, count, add)
-            if count == len(lo):
-                break
+        if count == len(lo):
+            return StepRun(interval, count, add)
+        reach = add * (count * (count - 1) // 2) + interval * count
+        if count and (reach > best_reach or (reach == best_reach
+                                             and interval > best.interval)):
+            best, best_reach = StepRun(interval, count, add), reach
+            if add == 0:
+                zero = best
+        m = count + 1  # the first step it misses
+        if add * (m * (m - 1) // 2) + interval * m < lo[count]:
+            min_add = add + 1  # that step comes too early: more add
+        else:
+            max_add = add - 1
+        if count > 1:
+            spread = int(max_error * QUADRATIC_DEV) // (count * count)
+            min_add, max_add = max(min_add, add - spread), min(max_add, add + spread)
+        if min_add > max_add:
+            break
+        add = max_add - (max_add - min_add) // 4
+    if zero.count and zero.count + zero.count // 16 >= best.count:
+        return zero
     return best
 
 
@@ -109,7 +111,6 @@ class StepCompressor:
     max_error: float  # ticks
     last_clock: int = 0
     last_exact: float = 0.0
-    last_add: int = 0
 
     def compress(self, points: FloatArray, final: bool) -> tuple[list[StepRun], int]:
         """Runs for a prefix of ``points`` (exact step clocks, one direction, ascending) and how
@@ -117,16 +118,19 @@ class StepCompressor:
         is held back (more steps may extend it)."""
         runs: list[StepRun] = []
         done = 0
+        size = WINDOW
         while done < len(points):
-            window = points[done:done + WINDOW]
+            window = points[done:done + size]
             lo, hi = windows(window, self.last_clock, self.last_exact, self.max_error)
-            run = best_run(lo, hi, window - self.last_clock, self.last_add)
-            run = StepRun(run.interval, min(run.count, MAX_COUNT), run.add)
+            run = best_run(lo, hi, self.max_error)
+            if run.count == len(window) < len(points) - done and size < MAX_COUNT:
+                size = min(MAX_COUNT, size * 4)  # it may reach further: look further
+                continue
+            size = WINDOW
             if not final and done + run.count == len(points):
                 break
             runs.append(run)
             self.last_clock = int(run_clocks(self.last_clock, run)[-1])
             self.last_exact = float(window[run.count - 1])
-            self.last_add = run.add
             done += run.count
         return runs, done

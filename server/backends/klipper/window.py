@@ -3,6 +3,9 @@
 Every block the host sends carries a 4-bit sequence number; the MCU answers each block it
 accepts with the next sequence number it expects (in an empty "ack" block or in any response),
 and discards blocks out of order, answering those with the number it still expects (a "nak").
+A block that draws a response is acknowledged twice: by the response, then by the empty block
+that follows it, so a nak is an empty block repeating the number of the last *empty* one (as
+Klipper's host tells them apart), not merely one that acknowledges nothing new.
 The host keeps the blocks not yet acknowledged, at most ``max_blocks`` of them and
 ``window_bytes`` bytes (the MCU's ``RECEIVE_WINDOW``), and sends them all again from the first
 unacknowledged one when a nak arrives or the retransmission timeout passes (doubling each time,
@@ -53,6 +56,7 @@ class SendWindow:
         self.synced = False  # a response to one of our blocks was seen (the first command
         # always draws one: an empty block before it is a nak whatever its number)
         self._ignore_naks_until_s = 0.0
+        self._last_empty = 0  # the number the last empty block acknowledged (64-bit)
 
     @property
     def bytes_in_flight(self) -> int:
@@ -88,8 +92,12 @@ class SendWindow:
             raise SequenceError(f"the MCU expects block {seq4} of 16, never sent: it restarted")
         if rseq > self.acked:
             self._acknowledge(rseq, now_s)
+        if not empty:
             return []
-        if empty and self.inflight and now_s >= self._ignore_naks_until_s:
+        if rseq > self._last_empty:  # an ack (perhaps after the response that acked first)
+            self._last_empty = rseq
+            return []
+        if self.inflight and now_s >= self._ignore_naks_until_s:
             return self._resend(now_s)
         return []
 
@@ -98,7 +106,7 @@ class SendWindow:
         to a host before); what was in flight is framed again with the new numbers."""
         payloads = [sent.payload for sent in self.inflight]
         self.inflight.clear()
-        self.acked = self.next_seq = rseq
+        self.acked = self.next_seq = self._last_empty = rseq
         return [self.make_block(payload, now_s) for payload in payloads]
 
     def on_timer(self, now_s: float) -> list[bytes]:
