@@ -35,7 +35,7 @@ from server.backends.grbl.link import (
     parse_build_options,
     parse_settings,
 )
-from server.backends.grbl.reports import MAX_RX_BYTES, ControllerStatus
+from server.backends.grbl.reports import MAX_AXES, MAX_RX_BYTES, ControllerStatus
 
 if TYPE_CHECKING:
     from server.config import BackendConfig
@@ -62,6 +62,15 @@ class Handshake:
     settings: dict[int, float]
     offsets: tuple[str, ...]
     modal: tuple[str, ...]
+
+    @property
+    def axis_count(self) -> int | None:
+        """The board's axes: the values of its ``[G54:x,y,z]`` (None if it printed none)."""
+        for text in self.offsets:
+            if text.startswith("[G54:") and text.endswith("]"):
+                count = text.count(",") + 1
+                return count if count <= MAX_AXES else None
+        return None
 
 
 class ControllerListener(Protocol):

@@ -116,6 +116,11 @@ class Link:
         self._discarding = False  # inside a line already too long: drop up to its end
         self._wco: tuple[float, ...] | None = None
 
+    @property
+    def wco_mm(self) -> tuple[float, ...] | None:
+        """The last work coordinate offset the board reported (``WCO:``, sent now and then)."""
+        return self._wco
+
     # -- sending ----------------------------------------------------------------------------
     @property
     def in_flight(self) -> int:
