@@ -100,10 +100,12 @@ class GrblMachine(Machine):
     async def handle_gcode(self, command: Command) -> list[str]:
         line = command.line
         assert line is not None
+        await self._requeried()
         words = [letter for letter, value in line.words if letter != "N"]
-        if len(words) > 1 and not self.check_mode and any(
-                letter == "M" and value in LOCAL_M_CODES for letter, value in line.words):
-            raise _mixed()  # Grbl's own answer to these codes: error 20, first
+        codes = [value for letter, value in line.words
+                 if letter == "M" and value in LOCAL_M_CODES]
+        if len(words) > 1 and codes and not self.check_mode:
+            raise _mixed(max(codes))  # refused as the board refuses these codes, first
         before = self.interpreter.save()
         outputs = self.interpret(command)
         syncs = [out for out in outputs if type(out) is Sync]
@@ -112,7 +114,7 @@ class GrblMachine(Machine):
                 len(local) < len(outputs) or self.interpreter.save() != before):
             self.interpreter.restore(before)  # nothing of it reaches the board
             if not any(sync.kind in STOPS for sync in local):
-                raise _mixed()  # a module's local code: the same as above
+                raise _mixed(0.0)  # a module's local code: the same as above
             syncs = local  # a stop on the line wins: M112, M410 act, the rest is dropped
         if self.check_mode or local:
             messages: list[str] = []
@@ -215,11 +217,18 @@ class GrblMachine(Machine):
 
     async def _interpreted(self, command: Command, read: Callable[[], Sequence[Output]], *,
                            motion: bool = False) -> list[str]:
+        await self._requeried()
         before = self.interpreter.save()
         outputs = read()
         sent = self._sent.add(before, read)
         motion = motion or any(isinstance(out, Move) for out in outputs)
         return await self.forward(compact(command.text), command, motion=motion, sent=sent)
+
+    async def _requeried(self) -> None:
+        """After a reset, lines are read once the board's modes are known again (its start-up
+        lines may have changed them)."""
+        if not self.controller.requeried.is_set():
+            await self.controller.requeried.wait()
 
     def _front_buffer(self, messages: list[str]) -> list[str]:
         """``[OPT:V,15,128]``: the receive buffer a sender fills is the front's."""
@@ -239,6 +248,11 @@ class GrblMachine(Machine):
         await self._idle.wait()
 
     @property
+    def lines_undone(self) -> int:
+        """Lines motiond had read that the board then refused (and motiond undid)."""
+        return self._sent.undone
+
+    @property
     def busy(self) -> bool:
         return not self._idle.is_set()
 
@@ -252,6 +266,14 @@ class GrblMachine(Machine):
         adopt_offsets(self.interpreter, self.core.axis_names, handshake)
         self._position_synced = False
         self.status.push(f"[MSG:controller connected: {handshake.banner}]")
+
+    def on_requeried(self, modal: tuple[str, ...], offsets: tuple[str, ...]) -> None:
+        """After a reset: the board's modes and offsets (its start-up lines ran) are motiond's."""
+        handshake = self.controller.handshake
+        if handshake is not None:
+            adopt_offsets(self.interpreter, self.core.axis_names,
+                          replace(handshake, settings=self._board_settings, offsets=offsets,
+                                  modal=modal))
 
     def on_answer(self) -> None:
         """An answer alone says nothing about motion: the next report does."""
@@ -469,9 +491,12 @@ def _axes(values: Sequence[float], count: int) -> tuple[float, ...]:
     return (*values[:count], *(0.0,) * (count - len(values)))
 
 
-def _mixed() -> CommandError:
-    return CommandError(Error.UNSUPPORTED, "M105, M114, M115, M400 and M999 are motiond's "
-                        "own: send them on a line of their own")
+def _mixed(code: float) -> CommandError:
+    """A line mixing motiond's own M-code with words for the board: Grbl's answer to the code
+    (20 unsupported; 23 for a number it cannot hold, M256 and up, as on the rig)."""
+    number = Error.INTEGER_REQUIRED if code >= 256 else Error.UNSUPPORTED
+    return CommandError(number, "M105, M114, M115, M400 and M999 are motiond's own: send "
+                        "them on a line of their own")
 
 
 def _controller_error(code: int, text: str) -> CommandError:

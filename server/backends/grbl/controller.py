@@ -90,6 +90,8 @@ class ControllerListener(Protocol):
 
     def on_restart(self, banner: str) -> None: ...
 
+    def on_requeried(self, modal: tuple[str, ...], offsets: tuple[str, ...]) -> None: ...
+
 
 class Controller:
     """One downstream controller; see the module docstring."""
@@ -117,6 +119,10 @@ class Controller:
         self.motion_pending = False  # a motion line sent, not yet seen completed by the board
         self._motion_lines = 0  # motion lines sent on this connection (a generation count)
         self._polls: deque[tuple[int, bool]] = deque(maxlen=POLLS_REMEMBERED)
+        # After a reset the board runs its start-up lines ($N0, $N1): its modes and offsets are
+        # asked again before any other line (clear while they are being asked).
+        self.requeried = asyncio.Event()
+        self.requeried.set()
 
     @property
     def where(self) -> str:
@@ -274,6 +280,11 @@ class Controller:
             self._banner.set()
             if self.ready and not expected:  # reset button, power, a DTR pulse
                 self.listener.on_restart(event.text)
+            if not self.link.awaiting_banner:  # (not reset again meanwhile)
+                if self.ready:
+                    self._requery()
+                else:
+                    self.requeried.set()  # the handshake asks them
             self._room.set()
         elif isinstance(event, Feedback):
             if self.ready:
@@ -304,6 +315,29 @@ class Controller:
             self._buffer_from_report = False
             log.info("controller receive buffer: %d bytes (from Bf:)", self.link.buffer_bytes)
 
+    def _requery(self) -> None:
+        """``$G`` and ``$#`` right after the banner, ahead of any other line: the board ran
+        its start-up lines (``>G20:ok``, shown to the clients) before it reads them."""
+        self.requeried.clear()
+        asked = [self._write("$G"), self._write("$#")]
+
+        def answered(_: object) -> None:
+            if not all(future.done() for future in asked):
+                return
+            self.requeried.set()
+            if any(future.cancelled() or future.exception() is not None for future in asked):
+                return  # a reset or a lost connection meanwhile: asked again, or reconnected
+            modal, offsets = (future.result() for future in asked)
+            for text in modal.messages:
+                if text.startswith(">"):
+                    self.listener.on_feedback(text)
+            if modal.error is None and offsets.error is None:
+                self.listener.on_requeried(
+                    tuple(t for t in modal.messages if not t.startswith(">")), offsets.messages)
+
+        for future in asked:
+            future.add_done_callback(answered)
+
     # -- sending ----------------------------------------------------------------------------
     async def send_line(
         self, text: str, still_valid: Callable[[], bool] = lambda: True, *, motion: bool = False
@@ -332,15 +366,19 @@ class Controller:
                 raise LineDropped(f"the controller at {self.where} is not connected")
             self._room.clear()
             await self._room.wait()
-        writer = self._writer
-        if writer is None:
+        if self._writer is None:
             raise LineDropped(f"the controller at {self.where} is not connected")
         if not still_valid():
             raise LineDropped("motion was reset while this line waited")
+        return self._write(text)
+
+    def _write(self, text: str) -> asyncio.Future[Answered]:
+        """Write a line that fits now; the future of its answer."""
+        assert self._writer is not None
         token, data = self.link.send(text)
         future: asyncio.Future[Answered] = asyncio.get_running_loop().create_future()
         self._futures[token] = future
-        writer.write(data)
+        self._writer.write(data)
         self.lines_sent += 1
         return future
 
@@ -355,6 +393,7 @@ class Controller:
             return
         self._writer.write(bytes((RESET,)))
         self._reset_sent = True
+        self.requeried.clear()  # until the board's modes after its start-up lines are known
         self._forget_motion()
         self._fail(self.link.reset(), "reset")
         if self.ready and self._banner_watch is None:
@@ -391,6 +430,7 @@ class Controller:
     def _drop_connection(self, reason: str, *, tell: bool = True) -> None:
         writer, self._writer = self._writer, None
         was_ready, self.ready = self.ready, False
+        self.requeried.set()  # nothing to wait for: lines fail until the next handshake
         self._stop_banner_watch()
         self.status = None
         self._forget_motion()
