@@ -312,12 +312,11 @@ class GrblMachine(Machine):
         meaning = ALARM_MEANINGS.get(code, "see the controller's documentation")
         self.status.alarm(code, f"controller ALARM:{code}: {meaning}")
 
-    def on_feedback(self, text: str) -> None:
-        """A line the board printed on its own: pushed to every client, cleaned and at a
+    def on_feedback(self, texts: list[str]) -> None:
+        """Lines the board printed on its own: pushed to every client, cleaned and at a
         bounded rate (a summary line counts what was held back)."""
-        if text.lower() == "ok" or text.lower().startswith("error:"):
-            return  # the answer to a line a reset dropped
-        for line in self._feedback.offer(text, self.clock.now_s()):
+        shown = [text for text in texts if not _an_answer(text)]  # to a line a reset dropped
+        for line in self._feedback.offer_lines(shown, self.clock.now_s()):
             self.status.push(line)
 
     def on_lost(self, reason: str) -> None:
@@ -484,6 +483,10 @@ def _override_bytes(percent: int, steps: tuple[Realtime, ...]) -> list[int]:
     tens, ones = divmod(abs(percent - 100), 10)
     up = percent >= 100
     return [hundred, *[plus_10 if up else minus_10] * tens, *[plus_1 if up else minus_1] * ones]
+
+
+def _an_answer(text: str) -> bool:
+    return text[:1] in "oOeE" and (text.lower() == "ok" or text.lower().startswith("error:"))
 
 
 def _axes(values: Sequence[float], count: int) -> tuple[float, ...]:

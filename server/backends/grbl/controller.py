@@ -41,7 +41,7 @@ if TYPE_CHECKING:
     from server.config import BackendConfig
 
 log = logging.getLogger("motiond.grbl")
-READ_BYTES = 4096
+READ_BYTES = 1024  # per loop iteration: a burst from a chatty board must not hold up clients
 RESET = 0x18
 STATUS = 0x3F
 _STILL = frozenset({"Idle", "Alarm", "Check", "Sleep"})  # nothing moves without a command
@@ -84,7 +84,7 @@ class ControllerListener(Protocol):
 
     def on_alarm(self, code: int) -> None: ...
 
-    def on_feedback(self, text: str) -> None: ...
+    def on_feedback(self, texts: list[str]) -> None: ...
 
     def on_lost(self, reason: str) -> None: ...
 
@@ -190,8 +190,25 @@ class Controller:
                 return f"read failed: {exc}"
             if not data:
                 return "the controller closed the connection"
+            feedback: list[str] = []  # lines answering nothing, told in one call, in order
             for event in self.link.receive(data):
+                if isinstance(event, Feedback):
+                    feedback.append(event.text)
+                    continue
+                if feedback:
+                    self._feedback(feedback)
+                    feedback = []
                 self._event(event)
+            if feedback:
+                self._feedback(feedback)
+            await asyncio.sleep(0)  # a burst is read without suspending: let clients' '?' in
+
+    def _feedback(self, texts: list[str]) -> None:
+        if self.ready:
+            self.listener.on_feedback(texts)
+        else:  # a bootloader's noise, the start-up messages: nothing for the clients
+            log.debug("controller at %s, before the handshake: %d lines, first %r", self.where,
+                      len(texts), texts[0])
 
     async def _talk(self) -> str:
         """Banner, start-up queries, then status polling until the connection ends."""
@@ -259,8 +276,7 @@ class Controller:
 
     # -- events from the controller ---------------------------------------------------------
     def _event(self, event: LinkEvent) -> None:
-        if not isinstance(event, Feedback):  # a chatty board that answers nothing is not alive
-            self._heard_s = asyncio.get_running_loop().time()
+        self._heard_s = asyncio.get_running_loop().time()  # (a chatty board is not: Feedback)
         if isinstance(event, Answered):
             future = self._futures.pop(event.token, None)
             if future is not None and not future.done():
@@ -286,11 +302,6 @@ class Controller:
                 else:
                     self.requeried.set()  # the handshake asks them
             self._room.set()
-        elif isinstance(event, Feedback):
-            if self.ready:
-                self.listener.on_feedback(event.text)
-            else:  # a bootloader's noise, the start-up messages: nothing for the clients
-                log.debug("controller at %s, before the handshake: %r", self.where, event.text)
 
     def _status(self, status: ControllerStatus) -> None:
         self.status = status
@@ -328,9 +339,9 @@ class Controller:
             if any(future.cancelled() or future.exception() is not None for future in asked):
                 return  # a reset or a lost connection meanwhile: asked again, or reconnected
             modal, offsets = (future.result() for future in asked)
-            for text in modal.messages:
-                if text.startswith(">"):
-                    self.listener.on_feedback(text)
+            started = [text for text in modal.messages if text.startswith(">")]
+            if started:
+                self.listener.on_feedback(started)
             if modal.error is None and offsets.error is None:
                 self.listener.on_requeried(
                     tuple(t for t in modal.messages if not t.startswith(">")), offsets.messages)
