@@ -24,12 +24,15 @@ from tests.support.senders import CharCountingClient, wait_for
 # The front's '?' while a board misbehaves. Goal: p99 <= 10 ms, as with a healthy board. The
 # front's own work per '?' is ~0.03 ms (session._status, 2,000 calls, load 4.5); a round trip
 # here is several turns of one event loop shared by motiond, the scripted board and the test's
-# clients, on a 2-core machine shared with other runs (load 4-6: p99 0.7-9 ms in every case,
-# 1 MB/s of chatter included, once the board's bytes are read 1 kB per loop turn; load 8: up
-# to 40 ms with a healthy board). So the bound is relative: no worse than QUIET_FACTOR times
-# the same poller with a healthy board measured just before (or 10 ms), never over
-# P99_CEILING_S.
+# clients, on a 2-core machine shared with other runs. Seen at load 4-6: p99 0.7-15 ms in every
+# case (1.5 MB/s of chatter included, once the board's bytes are read 1 kB per loop turn;
+# before that, 30-100 ms), 0.6-18 ms with a healthy board; at load 8, up to 40 ms with a
+# healthy board. So the bound is relative, and printed beside the goal: no worse than
+# QUIET_FACTOR times the same poller with a healthy board measured just before, or than
+# P99_FLOOR_S (a p99 of ~50 samples is their second-worst: one preemption of a loaded machine
+# decides it), and never over P99_CEILING_S.
 P99_GOAL_S = 0.010
+P99_FLOOR_S = 0.025
 QUIET_FACTOR = 5.0
 P99_CEILING_S = 0.25
 NOISY_STATE = b"<Run\x0b|MPos:0.000,0.000|FS:0,0>\r\n"
@@ -72,24 +75,25 @@ async def front_polled(app: App, case: str, company: Callable[[], Awaitable[obje
         await quiet.close()
     client = await client_of(app)
     times: list[float] = []
+    done = asyncio.Event()
 
     async def poll() -> None:
-        while True:
+        while not done.is_set():
             times.extend(await poll_round_trips(client, 1))
 
     task = asyncio.create_task(poll())
     try:
         yield times
     finally:
-        task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await task
+        done.set()  # (not cancel: Python 3.11's wait_for can swallow it, and the poller runs on)
+        await asyncio.wait_for(task, 10.0)
         await client.close()
     worst_s, calm_s = p99(times), p99(baseline)
     print(f"front '?' p99 with {case}: {worst_s * 1e3:.1f} ms (n={len(times)}, max "
-          f"{max(times) * 1e3:.1f} ms); healthy board just before: {calm_s * 1e3:.1f} ms")
+          f"{max(times) * 1e3:.1f} ms; goal {P99_GOAL_S * 1e3:.0f} ms); healthy board just "
+          f"before: {calm_s * 1e3:.1f} ms")
     assert len(times) >= 10, "the poller kept its session"
-    assert worst_s <= max(P99_GOAL_S, QUIET_FACTOR * calm_s), case
+    assert worst_s <= max(P99_FLOOR_S, QUIET_FACTOR * calm_s), case
     assert worst_s <= P99_CEILING_S, case
 
 
