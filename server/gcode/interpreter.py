@@ -53,7 +53,10 @@ from server.gcode.modal import (
 from server.gcode.parser import Line
 from server.motion.moves import Action, ActionName, Move, MoveKind, Output, Position, ToolMode
 
-__all__ = ["Interpreter", "InterpreterSettings"]
+__all__ = ["Interpreter", "InterpreterSettings", "InterpreterState"]
+
+# What a line can change: modal state, offsets, position, work offset (see Interpreter.save).
+InterpreterState = tuple[ModalState, Offsets, Position, Position]
 
 _FEED, _RAPID = MoveKind.FEED, MoveKind.RAPID
 
@@ -284,6 +287,17 @@ class Interpreter:
         if not axes:
             raise CommandError(Error.INVALID_JOG, "a jog needs axis words")
         return modes, axes, feed
+
+    # -- saving and restoring -----------------------------------------------------------------
+    def save(self) -> InterpreterState:
+        """Everything a line can change, for :meth:`restore` (a downstream board that refuses
+        a line motiond accepted: its state did not change, so motiond's must not either)."""
+        return self._modal.copy(), self._offsets, self.position, self._wco
+
+    def restore(self, state: InterpreterState) -> None:
+        """Back to what :meth:`save` returned (the settings are not part of it)."""
+        modal, self._offsets, self.position, self._wco = state
+        self._modal = modal.copy()
 
     # -- position, offsets and probing -------------------------------------------------------
     def set_position(self, machine_mm: Position) -> None:

@@ -88,19 +88,25 @@ class CoreCommands:
     def help(self, command: Command) -> list[str]:
         return [format_help()]
 
-    def settings(self, command: Command) -> list[str]:
-        return format_settings(self.machine.settings.values())
+    async def settings(self, command: Command) -> list[str]:
+        board = await self.machine.board_answer(command)
+        return board if board is not None else format_settings(self.machine.settings.values())
 
     async def write_setting(self, command: Command) -> list[str]:
         return await self.machine.write_setting(command)
 
-    def offsets(self, command: Command) -> list[str]:
-        return self.machine.interpreter.offsets_report()
+    async def offsets(self, command: Command) -> list[str]:
+        board = await self.machine.board_answer(command)
+        return board if board is not None else self.machine.interpreter.offsets_report()
 
-    def modal(self, command: Command) -> list[str]:
-        return [self.machine.interpreter.gc_report()]
+    async def modal(self, command: Command) -> list[str]:
+        board = await self.machine.board_answer(command)
+        return board if board is not None else [self.machine.interpreter.gc_report()]
 
-    def build_info(self, command: Command) -> list[str]:
+    async def build_info(self, command: Command) -> list[str]:
+        board = await self.machine.board_answer(command)
+        if board is not None:
+            return board
         core = self.kernel.config.core
         return format_build_info(
             f"{BANNER_VERSION}.motiond-{__version__}",
@@ -108,10 +114,16 @@ class CoreCommands:
             core.protocol.rx_buffer_bytes,
         )
 
-    def startup(self, command: Command) -> list[str]:
+    async def startup(self, command: Command) -> list[str]:
+        board = await self.machine.board_answer(command)
+        if board is not None:
+            return board
         return [f"$N{n}={self.startup_lines.get(n, '')}" for n in (0, 1)]
 
-    def startup_set(self, command: Command) -> None:
+    async def startup_set(self, command: Command) -> list[str] | None:
+        board = await self.machine.board_answer(command)
+        if board is not None:
+            return board
         index = int(command.name[2])
         text = command.args.strip()
         if text:
@@ -119,6 +131,7 @@ class CoreCommands:
             if line.error is not None:
                 raise line.error
         self.startup_lines[index] = text
+        return None
 
     def check_mode(self, command: Command) -> list[str]:
         kernel = self.kernel
@@ -157,9 +170,7 @@ class CoreCommands:
         line = parse_line(command.args)
         if line.error is not None:
             raise CommandError(Error.INVALID_JOG, f"invalid jog: {line.error.message}")
-        for move in self.machine.interpreter.jog(line):
-            await self.machine.queue_move(move)
-        self.machine.stepgen.request_start()
+        await self.machine.jog(command, line)
 
     def version(self, command: Command) -> list[str]:
         name = self.kernel.config.core.machine.name

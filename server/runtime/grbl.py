@@ -28,6 +28,8 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import re
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 
 from server.backends.grbl.controller import Controller, Handshake, LineDropped
@@ -38,7 +40,8 @@ from server.backends.grbl.link import (
 from server.backends.grbl.reports import ControllerStatus
 from server.config import Config
 from server.errors import ALARM_MEANINGS, Alarm, CommandError, Error
-from server.motion.moves import Move, Sync, SyncKind, ToolMode
+from server.gcode.parser import Line, parse_line
+from server.motion.moves import Move, Output, Sync, SyncKind, ToolMode
 from server.motion.stepgen import HoldState
 from server.protocol.events import Realtime
 from server.protocol.reports import StatusSnapshot
@@ -47,6 +50,7 @@ from server.runtime.dispatcher import Command, Dispatcher
 from server.runtime.events import EventBus, MachineState
 from server.runtime.grbl_adopt import adopt_offsets, adopt_settings, adopt_space
 from server.runtime.grbl_feedback import FeedbackGate, clean_reply
+from server.runtime.grbl_journal import Sent, SentLines
 from server.runtime.machine import Machine
 from server.runtime.state import MachineStatus
 
@@ -54,12 +58,18 @@ log = logging.getLogger("motiond.grbl")
 CAUTION_UNLOCKED = "[MSG:Caution: Unlocked]"
 LOCAL_SYNCS = frozenset({SyncKind.HALT, SyncKind.CLEAR_HALT, SyncKind.MESSAGE,
                          SyncKind.REPORT_POSITION, SyncKind.WAIT, SyncKind.QUICKSTOP})
-# M112, M999, messages, M114, M400, M410: motiond's own
+# M112, M999, messages, M114, M400, M410: motiond's own, on a line of their own (Grbl has none
+# of them: error 20 for a line that mixes one with anything for the board; but a stop on a line
+# stops, whatever else the line says).
+LOCAL_M_CODES = frozenset({105.0, 114.0, 115.0, 400.0, 999.0})
+STOPS = frozenset({SyncKind.HALT, SyncKind.QUICKSTOP})
 _STATES = {"Idle": MachineState.IDLE, "Run": MachineState.RUN, "Hold": MachineState.HOLD,
            "Jog": MachineState.JOG, "Home": MachineState.HOME, "Door": MachineState.DOOR,
            "Sleep": MachineState.SLEEP, "Check": MachineState.CHECK}
 _MOVING = frozenset({"Run", "Jog", "Home"})
 _STILL = frozenset({"Idle", "Alarm", "Check", "Sleep"})  # nothing will move without a command
+_OPTIONS = re.compile(r"^(\[OPT:[^,\]]*,\d+),\d+(.*)$")  # [OPT:flags,blocks,bytes...]
+Edit = Callable[[list[str]], list[str]]
 
 
 class GrblMachine(Machine):
@@ -83,35 +93,57 @@ class GrblMachine(Machine):
         self._feedback = FeedbackGate(clock.now_s())
         self._board_settings: dict[int, float] = {}  # $$ at the connection, then $x= sent
         self._explicit_limits = "soft_limits" in self._defaults.machine.model_fields_set
+        self._sent = SentLines(lambda: self.interpreter)  # lines the board may still refuse
+        self.board_axes = len(config.core.axis_names)  # the board's, once it has told
 
     # -- lines ------------------------------------------------------------------------------
     async def handle_gcode(self, command: Command) -> list[str]:
+        line = command.line
+        assert line is not None
+        await self._requeried()
+        words = [letter for letter, value in line.words if letter != "N"]
+        codes = [value for letter, value in line.words
+                 if letter == "M" and value in LOCAL_M_CODES]
+        if len(words) > 1 and codes and not self.check_mode:
+            raise _mixed(max(codes))  # refused as the board refuses these codes, first
+        before = self.interpreter.save()
         outputs = self.interpret(command)
         syncs = [out for out in outputs if type(out) is Sync]
-        if self.check_mode or any(sync.kind in LOCAL_SYNCS for sync in syncs):
+        local = [sync for sync in syncs if sync.kind in LOCAL_SYNCS]
+        if local and not self.check_mode and (
+                len(local) < len(outputs) or self.interpreter.save() != before):
+            self.interpreter.restore(before)  # nothing of it reaches the board
+            if not any(sync.kind in STOPS for sync in local):
+                raise _mixed(0.0)  # a module's local code: the same as above
+            syncs = local  # a stop on the line wins: M112, M410 act, the rest is dropped
+        if self.check_mode or local:
             messages: list[str] = []
             for sync in syncs:
                 if not self.check_mode or sync.kind is SyncKind.MESSAGE:
                     messages += await self.sync(sync)
             return messages
+        sent = self._sent.add(before, lambda: self.interpreter.execute(line))
         if any(sync.kind is SyncKind.PROBE for sync in syncs):
-            return await self._probe(command)
+            return await self._probe(command, sent)
         motion = any(isinstance(out, Move) for out in outputs)
-        return await self.forward(compact(command.text), command, motion=motion)
+        return await self.forward(compact(command.text), command, motion=motion, sent=sent)
 
-    async def _probe(self, command: Command) -> list[str]:
+    async def _probe(self, command: Command, sent: Sent) -> list[str]:
         """G38.x: the board probes; motiond waits for it (Grbl's parser does too), then takes
         the position it stopped at."""
         messages = await self.forward(compact(command.text), replace(command, defer=None),
-                                      motion=True)
+                                      motion=True, sent=sent)
         await self.wait_idle()
         self.interpreter.set_position(self.stepgen.state.position_mm)
         return messages
 
-    async def forward(self, text: str, command: Command, *, motion: bool = False) -> list[str]:
+    async def forward(self, text: str, command: Command, *, motion: bool = False,
+                      sent: Sent | None = None, edit: Edit | None = None) -> list[str]:
         """Send one line to the controller; its reply is deferred when the caller allows.
         Only a ``motion`` line makes the machine busy (Run, its sender the owner) until the
-        board reports it done; ``$X``, ``G21`` or ``M5`` leave it as the board has it."""
+        board reports it done; ``$X``, ``G21`` or ``M5`` leave it as the board has it.
+        ``sent``: the line's entry in the journal (undone if the board refuses the line);
+        ``edit``: what to change in the board's messages before the client sees them."""
         if not text:
             return []
         epoch = self.epoch
@@ -119,6 +151,8 @@ class GrblMachine(Machine):
             answer = await self.controller.send_line(
                 text, lambda: epoch == self.epoch, motion=motion)
         except LineDropped as exc:
+            if sent is not None:
+                self._sent.refused(sent)
             raise CommandError(Error.BUSY, str(exc)) from exc
         if motion:
             self._idle.clear()
@@ -126,23 +160,21 @@ class GrblMachine(Machine):
             if self.status.state is MachineState.IDLE:
                 self.status.set_state(MachineState.RUN)
         reply: asyncio.Future[list[str]] = asyncio.get_running_loop().create_future()
-        answer.add_done_callback(lambda done: self._settle(done, reply, text))
+        answer.add_done_callback(lambda done: self._settle(done, reply, text, sent, edit))
         if command.defer is not None:
             command.defer(reply)
             return []
         return await reply
 
     async def _forward_command(self, command: Command) -> list[str]:
-        """``$X``, ``$H``, ``$J=``: after motiond's own handler (which checks the line), the
+        """``$X``, ``$H``: after motiond's own handler (which checks the line), the
         controller's turn."""
-        if command.name in ("$X", "$H"):
-            self._controller_alarm = False
-        motion = command.name in ("$H", "$J=")
+        self._controller_alarm = False
         try:
             if command.name == "$X":  # motiond's own unlock said it already: said once
                 messages = await self.forward(compact(command.text), replace(command, defer=None))
                 return [text for text in messages if text != CAUTION_UNLOCKED]
-            return await self.forward(compact(command.text), command, motion=motion)
+            return await self.forward(compact(command.text), command, motion=True)
         except CommandError:
             if command.name == "$X" and not self.controller.ready:  # nothing to unlock yet
                 self.status.alarm(Alarm.BACKEND_FAILED, "the controller is not connected")
@@ -163,17 +195,62 @@ class GrblMachine(Machine):
         self.apply_settings()
         return messages
 
+    async def board_answer(self, command: Command) -> list[str] | None:
+        """``$$``, ``$#``, ``$G``, ``$I``, ``$N``: the board's own answer, line for line
+        (``$I``'s receive buffer is the front's, which a sender fills); ``$N0=``/``$N1=``:
+        read by motiond's interpreter as Grbl runs the line it stores, then the board's.
+        None (motiond answers) while the board is not connected, or in check mode."""
+        if not self.controller.ready or self.check_mode:
+            return None
+        if command.name in ("$N0=", "$N1="):
+            line = parse_line(command.args)
+            if line.error is not None:
+                raise line.error
+            return await self._interpreted(command, lambda: self.interpreter.execute(line))
+        edit = self._front_buffer if command.name == "$I" else None
+        return await self.forward(compact(command.text), command, edit=edit)
+
+    async def jog(self, command: Command, line: Line) -> None:
+        """``$J=``: checked by motiond's interpreter (which moves to its target), then the
+        board's; a jog the board refuses leaves motiond where it was."""
+        await self._interpreted(command, lambda: self.interpreter.jog(line), motion=True)
+
+    async def _interpreted(self, command: Command, read: Callable[[], Sequence[Output]], *,
+                           motion: bool = False) -> list[str]:
+        await self._requeried()
+        before = self.interpreter.save()
+        outputs = read()
+        sent = self._sent.add(before, read)
+        motion = motion or any(isinstance(out, Move) for out in outputs)
+        return await self.forward(compact(command.text), command, motion=motion, sent=sent)
+
+    async def _requeried(self) -> None:
+        """After a reset, lines are read once the board's modes are known again (its start-up
+        lines may have changed them)."""
+        if not self.controller.requeried.is_set():
+            await self.controller.requeried.wait()
+
+    def _front_buffer(self, messages: list[str]) -> list[str]:
+        """``[OPT:V,15,128]``: the receive buffer a sender fills is the front's."""
+        front = self.core.protocol.rx_buffer_bytes
+        return [_OPTIONS.sub(lambda m: f"{m.group(1)},{front}{m.group(2)}", text)
+                for text in messages]
+
     def register_commands(self, dispatcher: Dispatcher) -> None:
         for name in ("$X", "$H"):
             dispatcher.register(name, self._forward_command, when_locked=True)
-        dispatcher.register("$J=", self._forward_command)
 
     async def queue_move(self, move: Move) -> None:
-        """Jogs and module moves are the controller's: motiond's planner stays empty."""
+        """Module moves are the controller's: motiond's planner stays empty."""
 
     async def wait_idle(self) -> None:
         """Until every line sent is answered and the controller reports Idle after that."""
         await self._idle.wait()
+
+    @property
+    def lines_undone(self) -> int:
+        """Lines motiond had read that the board then refused (and motiond undid)."""
+        return self._sent.undone
 
     @property
     def busy(self) -> bool:
@@ -181,6 +258,7 @@ class GrblMachine(Machine):
 
     # -- the controller's reports (ControllerListener) ---------------------------------------
     def on_connected(self, handshake: Handshake) -> None:
+        self.board_axes = handshake.axis_count or len(self.core.axis_names)
         self._board_settings = dict(handshake.settings)
         adopt_settings(self.settings, handshake.settings, len(self.core.axis_names))
         adopt_space(self.core, handshake.settings, keep_soft_limits=self._explicit_limits)
@@ -188,6 +266,14 @@ class GrblMachine(Machine):
         adopt_offsets(self.interpreter, self.core.axis_names, handshake)
         self._position_synced = False
         self.status.push(f"[MSG:controller connected: {handshake.banner}]")
+
+    def on_requeried(self, modal: tuple[str, ...], offsets: tuple[str, ...]) -> None:
+        """After a reset: the board's modes and offsets (its start-up lines ran) are motiond's."""
+        handshake = self.controller.handshake
+        if handshake is not None:
+            adopt_offsets(self.interpreter, self.core.axis_names,
+                          replace(handshake, settings=self._board_settings, offsets=offsets,
+                                  modal=modal))
 
     def on_answer(self) -> None:
         """An answer alone says nothing about motion: the next report does."""
@@ -226,12 +312,11 @@ class GrblMachine(Machine):
         meaning = ALARM_MEANINGS.get(code, "see the controller's documentation")
         self.status.alarm(code, f"controller ALARM:{code}: {meaning}")
 
-    def on_feedback(self, text: str) -> None:
-        """A line the board printed on its own: pushed to every client, cleaned and at a
+    def on_feedback(self, texts: list[str]) -> None:
+        """Lines the board printed on its own: pushed to every client, cleaned and at a
         bounded rate (a summary line counts what was held back)."""
-        if text.lower() == "ok" or text.lower().startswith("error:"):
-            return  # the answer to a line a reset dropped
-        for line in self._feedback.offer(text, self.clock.now_s()):
+        shown = [text for text in texts if not _an_answer(text)]  # to a line a reset dropped
+        for line in self._feedback.offer_lines(shown, self.clock.now_s()):
             self.status.push(line)
 
     def on_lost(self, reason: str) -> None:
@@ -316,6 +401,7 @@ class GrblMachine(Machine):
     def stop_now(self) -> None:
         """Stop the controller (Ctrl-X) unless the alarm is its own; lines in flight fail."""
         self.epoch += 1
+        self._sent.clear()  # the board's buffer is emptied; the interpreter resynchronised
         if not self._controller_alarm:
             self.controller.reset()
         self._position_synced = False
@@ -327,15 +413,16 @@ class GrblMachine(Machine):
         if report is None:
             return None
         motion = self.stepgen.state
-        wco = report.wco_mm or self.interpreter.wco()
-        axes = len(self.core.axis_names)
+        axes = self.board_axes
+        machine = report.machine_mm or motion.position_mm
+        wco = report.wco_mm or self.controller.link.wco_mm or self.interpreter.wco()
         state = "Alarm" if self.status.state is MachineState.ALARM else report.state
         if state == "Idle" and self.controller.motion_pending:
             state = "Run"  # the board has not started (or not reported) the motion sent
         return StatusSnapshot(
             state=state,
-            machine_mm=motion.position_mm,
-            wco_mm=tuple((list(wco) + [0.0] * axes)[:axes]),
+            machine_mm=_axes(machine, axes),
+            wco_mm=_axes(wco, axes),
             feed_mm_s=motion.speed_mm_s,
             spindle_s=report.spindle_s,
             planner_free_blocks=report.planner_free_blocks or 0,
@@ -347,19 +434,26 @@ class GrblMachine(Machine):
         )
 
     def _settle(self, answer: asyncio.Future[Answered], reply: asyncio.Future[list[str]],
-                text: str) -> None:
+                text: str, sent: Sent | None, edit: Edit | None) -> None:
         """The controller's answer becomes the line's reply (messages, or a CommandError); a
-        refusal is also told to every client (observers see why a job stopped)."""
-        if reply.done():
-            return
+        refusal is also told to every client (observers see why a job stopped), and undone in
+        motiond's interpreter as the board did not run it."""
         error: BaseException | None = (
             LineDropped("cancelled") if answer.cancelled() else answer.exception())
+        if sent is not None:
+            if error is None and answer.result().error is None:
+                self._sent.answered(sent)
+            else:
+                self._sent.refused(sent)
+        if reply.done():
+            return
         if isinstance(error, LineDropped):
             reply.set_exception(CommandError(Error.BUSY, f"not run: {error}"))
         elif error is not None:
             reply.set_exception(error)
         elif answer.result().error is None:
-            reply.set_result([clean_reply(text) for text in answer.result().messages])
+            messages = [clean_reply(text) for text in answer.result().messages]
+            reply.set_result(edit(messages) if edit is not None else messages)
         else:
             code = answer.result().error
             assert code is not None
@@ -389,6 +483,23 @@ def _override_bytes(percent: int, steps: tuple[Realtime, ...]) -> list[int]:
     tens, ones = divmod(abs(percent - 100), 10)
     up = percent >= 100
     return [hundred, *[plus_10 if up else minus_10] * tens, *[plus_1 if up else minus_1] * ones]
+
+
+def _an_answer(text: str) -> bool:
+    return text[:1] in "oOeE" and (text.lower() == "ok" or text.lower().startswith("error:"))
+
+
+def _axes(values: Sequence[float], count: int) -> tuple[float, ...]:
+    """``values`` for ``count`` axes: cut, or completed with zeros."""
+    return (*values[:count], *(0.0,) * (count - len(values)))
+
+
+def _mixed(code: float) -> CommandError:
+    """A line mixing motiond's own M-code with words for the board: Grbl's answer to the code
+    (20 unsupported; 23 for a number it cannot hold, M256 and up, as on the rig)."""
+    number = Error.INTEGER_REQUIRED if code >= 256 else Error.UNSUPPORTED
+    return CommandError(number, "M105, M114, M115, M400 and M999 are motiond's own: send "
+                        "them on a line of their own")
 
 
 def _controller_error(code: int, text: str) -> CommandError:

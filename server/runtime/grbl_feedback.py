@@ -56,6 +56,20 @@ class FeedbackGate:
             return []
         return [*self.flush(now_s, taken=True), clean_line(text)]
 
+    def offer_lines(self, texts: list[str], now_s: float) -> list[str]:
+        """:meth:`offer` for lines read at once: once over the rate, the rest of them are
+        counted in one step (a chatty board sends thousands a second)."""
+        shown: list[str] = []
+        for index, text in enumerate(texts):
+            lines = self.offer(text, now_s)
+            if not lines:  # no time passes within the batch: the rest are held back too
+                rest = len(texts) - index - 1
+                self.held_back += rest
+                self.total_held_back += rest
+                break
+            shown += lines
+        return shown
+
     def flush(self, now_s: float, *, taken: bool = False) -> list[str]:
         """The summary of what was held back, if any and if the rate allows it now."""
         if not self.held_back or (not taken and self._bucket.take(now_s) > 0):

@@ -25,6 +25,7 @@ from server.config import Config
 from server.errors import Alarm, BackendFault
 from server.gcode.codes import CodeTable
 from server.gcode.interpreter import Interpreter
+from server.gcode.parser import Line
 from server.motion.moves import Action, ActionName, SyncKind, ToolMode
 from server.motion.planner import Planner
 from server.motion.stepgen import HoldState, StepGenerator
@@ -118,6 +119,17 @@ class Machine(GcodeFeed, RealtimeCommands):
 
     def register_commands(self, dispatcher: Dispatcher) -> None:
         """Commands this machine adds to the core's (a downstream controller's); none here."""
+
+    async def board_answer(self, command: Command) -> list[str] | None:
+        """A downstream controller's own answer to ``$$``, ``$#``, ``$G``, ``$I``, ``$N``,
+        ``$N0=``/``$N1=``; None: motiond answers (always, here)."""
+        return None
+
+    async def jog(self, command: Command, line: Line) -> None:
+        """``$J=`` (checked for the state, parsed): the jog planned like any move."""
+        for move in self.interpreter.jog(line):
+            await self.queue_move(move)
+        self.stepgen.request_start()
 
     def status_snapshot(self, rx_free_bytes: int) -> StatusSnapshot | None:
         """A status report from elsewhere (a downstream controller), or None: motiond's own."""

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import re
 from collections.abc import AsyncIterator
 from pathlib import Path
 
@@ -35,13 +36,28 @@ def edge_lines() -> list[str]:
     return lines[:-1] if lines[-1] == "" else lines
 
 
+# Lines motiond accepts or owns that the board refuses: its own M-codes mixed with a move (Grbl:
+# error 20, and motiond runs nothing of the line), a line over Grbl's 80-character buffer once
+# compacted (the board's error 11; motiond had read it: undone).
+EXTRA_LINES = ["G1 X10 F100 M114", "G21 M400", "G0 X1 M115", "G20 G91 G0 X0." + "0" * 70 + "1",
+               "G0 X0 Y0"]
+_TOOL = re.compile(r" T\d+ ")
+
+
+def same_modes(board: str, interpreter: str) -> bool:
+    """``$G`` lines equal but for T: Grbl 1.1h sets T to 0 on every line without a T word
+    (gcode.c, "only tracks value": ``gc_state.tool = gc_block.values.t``), motiond keeps the
+    last one, as LinuxCNC; nothing depends on it on this backend."""
+    return _TOOL.sub(" ", board) == _TOOL.sub(" ", interpreter)
+
+
 @contextlib.asynccontextmanager
-async def fronted(tmp_path: Path) -> AsyncIterator[App]:
+async def fronted(tmp_path: Path, axes: str = "xyz") -> AsyncIterator[App]:
     """motiond (grbl backend, TCP front) on a fresh Grbl board, its axes made fast."""
     async with grbl_on_pty(tmp_path) as device:
         config = build_config({
             "axes": {axis: {"steps_per_mm": 80, "max_rate_mm_s": 100, "accel_mm_s2": 500,
-                            "max_mm": 300} for axis in "xyz"},
+                            "max_mm": 300} for axis in axes},
             "jobs": {"data_dir": str(tmp_path / "data")}, "tcp": {"port": 0},
             "backend": {"kind": "grbl", "serial": device, "status_hz": 20}}, "rig.toml")
         async with running(config, RealClock(), [TcpTransport]) as app:
@@ -62,31 +78,168 @@ async def connect(app: App) -> GrblClient:
     return await GrblClient.connect(port)
 
 
-async def test_every_edge_line_gets_the_boards_own_reply_through_motiond(
-        tmp_path: Path) -> None:
-    lines = edge_lines()
+async def modes(client: GrblClient) -> str:
+    """The ``$G`` line, asked until two answers in a row agree (the rig's residue garbles a
+    byte now and then on a loaded machine: ``F140`` for ``F100`` was seen)."""
+    last = ""
+    for _ in range(6):
+        found = [text for text in await client.send("$G") if text.startswith("[GC:")]
+        if found and found[0] == last:
+            return last
+        last = found[0] if found else ""
+    raise AssertionError("no two $G answers alike in six")
 
-    async def direct() -> tuple[list[tuple[str, ...]], int]:
+
+async def replies_and_modes(client: GrblClient, lines: list[str],
+                            machine: GrblMachine | None = None) -> list[tuple[str, str, str]]:
+    """For each line, sent alone and settled: its reply, ``$G`` after it, and motiond's
+    interpreter's own ``$G`` (through motiond)."""
+    rows = []
+    for text in lines:
+        try:
+            reply = (await client.send(text))[-1]
+        except TimeoutError as exc:
+            raise AssertionError(f"no reply to {text!r}: {client.pushed}") from exc
+        await client.settle()
+        ours = machine.interpreter.gc_report() if machine is not None else ""
+        rows.append((reply, await modes(client), ours))
+    return rows
+
+
+async def test_every_edge_line_gets_the_boards_own_reply_and_leaves_the_same_modes(
+        tmp_path: Path) -> None:
+    """After each line the board's ``$G`` (direct), the front's ``$G`` and motiond's own
+    interpreter agree: a line the board refuses changed nothing in motiond either."""
+    lines = edge_lines() + EXTRA_LINES
+
+    async def direct() -> tuple[list[tuple[str, str, str]], int]:
         async with grbl_direct(tmp_path) as board:
             for setting in FAST_SETTINGS:
                 await board.send(setting)
-            return await board.each(lines), board.garbled
+            return await replies_and_modes(board, lines), board.garbled
 
-    async def through_motiond() -> tuple[list[tuple[str, ...]], int]:
+    async def through_motiond() -> tuple[list[tuple[str, str, str]], int, int]:
         async with fronted(tmp_path) as app:
+            machine = app.kernel.machine
+            assert isinstance(machine, GrblMachine)
             client = await connect(app)
             try:
-                return await client.each(lines), client.garbled
+                rows = await replies_and_modes(client, lines, machine)
+                return rows, client.garbled, machine.lines_undone
             finally:
                 client.close()
 
-    (reference, garbled_a), (ours, garbled_b) = await asyncio.gather(direct(), through_motiond())
+    (reference, garbled_a), (ours, garbled_b, undone) = await asyncio.gather(
+        direct(), through_motiond())
     assert garbled_a + garbled_b <= 1, "the rig garbles a reply once in ~13,000 lines"
-    differ = [(line, a[-1], b[-1]) for line, a, b in zip(lines, reference, ours, strict=True)
-              if a[-1] != b[-1] and not a[-1].startswith("garbled:")
-              and not b[-1].startswith("garbled:") and DELIBERATE.get(line) != b[-1]]
+    rows = list(zip(lines, reference, ours, strict=True))
+    differ = [(line, a[0], b[0]) for line, a, b in rows
+              if a[0] != b[0] and not a[0].startswith("garbled:")
+              and not b[0].startswith("garbled:") and DELIBERATE.get(line) != b[0]]
     assert differ == [], "line, the board's reply, motiond's"
+    assert [(line, a[1], b[1]) for line, a, b in rows if a[1] != b[1]] == [], "front $G"
+    assert [(line, b[1], b[2]) for line, _, b in rows if not same_modes(b[1], b[2])] == [], \
+        "line, the board's modes, motiond's interpreter's"
+    assert [b[0] for _, _, b in rows[-len(EXTRA_LINES):-1]] == [
+        "error:20", "error:23", "error:20", "error:11"]
+    assert undone >= 1, "the long line was read by motiond, refused by the board, undone"
     assert len(lines) >= 100
+
+
+async def test_dollar_commands_are_answered_by_the_board_line_for_line(tmp_path: Path) -> None:
+    """``$$``, ``$#``, ``$G``, ``$I``, ``$N`` and writes to the board's settings and start-up
+    lines, through motiond as direct; after Ctrl-X the board runs its start-up line (G20) and
+    motiond reads the lines that follow in the board's modes."""
+    before = ["$$", "$#", "$G", "$I", "$N", "$N0=G20", "$N", "$G", "$130=150", "$$", "$#"]
+    after = ["$G", "G0 X1", "$N0=", "G21", "$N", "$G"]
+
+    async def session(client: GrblClient) -> list[list[str]]:
+        replies = [await client.send(text) for text in before]
+        client.writer.write(b"\x18")
+        await client.banner()
+        await asyncio.sleep(0.3)  # the start-up line's own line (>G20:ok) before the next
+        for line in after:
+            replies.append(await client.send(line))
+            await client.settle()
+        pushed = [text for reply in replies for text in reply if ">G20:ok" in text]
+        assert pushed in (["[MSG:controller: >G20:ok]"], [">G20:ok"]), "once, as a message"
+        return [[text for text in reply if ">G20:ok" not in text
+                 and not text.startswith("[MSG:controller error:")]  # told to every client
+                for reply in replies]
+
+    async def direct() -> list[list[str]]:
+        async with grbl_direct(tmp_path) as board:
+            for setting in FAST_SETTINGS:  # as fronted() writes them through motiond
+                await board.send(setting)
+            return await session(board)
+
+    async def through_motiond() -> tuple[list[list[str]], dict[int, float], str, float]:
+        async with fronted(tmp_path) as app:
+            machine = app.kernel.machine
+            assert isinstance(machine, GrblMachine)
+            client = await connect(app)
+            try:
+                replies = await session(client)
+                await client.settle()
+                return (replies, machine.settings.values(), machine.interpreter.gc_report(),
+                        machine.interpreter.position[0])
+            finally:
+                client.close()
+
+    reference, (ours, settings, gc_after, x_mm) = await asyncio.gather(direct(),
+                                                                      through_motiond())
+    for line, a, b in zip(before + after, reference, ours, strict=True):
+        if not any(text.startswith("garbled:") for text in a + b):  # the rig's residue
+            assert a == b, (line, a, b)
+    assert len(ours[0]) == 35 and ours[0][-2] == "$132=200.000", "all of the board's $$"
+    assert ours[before.index("$N") + 2] == ["$N0=G20", "$N1=", "ok"]
+    assert ours[len(before)][0].split()[3] == "G20", "the start-up line ran at the reset"
+    assert settings[130] == 150.0, "motiond adopts the board's travel"
+    assert x_mm == pytest.approx(25.4), "G0 X1 read in the board's G20"
+    assert gc_after.split()[3] == "G21"
+
+
+async def test_a_refused_line_is_undone_in_motiond_with_the_lines_streamed_after_it(
+        tmp_path: Path) -> None:
+    """Character counting: the board refuses the first line (too long for its buffer) after
+    motiond read it in G20 G91 and read the next one in those modes; the board ran the next
+    one in G21 G90, and so does motiond once the refusal arrives."""
+    long_line = "G20 G91 G0 X0." + "0" * 70 + "1"
+    async with fronted(tmp_path) as app:
+        machine = app.kernel.machine
+        assert isinstance(machine, GrblMachine)
+        client = await connect(app)
+        try:
+            client.writer.write(f"{long_line}\nG0 X1\n".encode())
+            replies = [await client.line() for _ in range(3)]
+            assert [text for text in replies if not text.startswith("[MSG:")] == [
+                "error:11", "ok"], replies
+            report = await client.settle()
+            assert report.startswith("<Idle|MPos:1.000,0.000,0.000"), report
+            assert machine.interpreter.gc_report() == await modes(client)
+            assert machine.interpreter.position == pytest.approx((1.0, 0.0, 0.0))
+            assert machine.lines_undone == 1
+        finally:
+            client.close()
+
+
+async def test_the_front_reports_the_boards_three_axes_with_two_configured(
+        tmp_path: Path) -> None:
+    async with fronted(tmp_path, axes="xy") as app:
+        client = await connect(app)
+        try:
+            assert (await client.send("G0 X5 Y6"))[-1] == "ok"
+            report = await client.settle()
+            assert report.startswith("<Idle|MPos:5.000,6.000,0.000|"), report
+            for _ in range(40):
+                if "WCO:" in report:
+                    break
+                report = await client.report()
+            assert "|WCO:0.000,0.000,0.000" in report, report
+            offsets = await client.send("$#")
+            assert offsets[0] == "[G54:0.000,0.000,0.000]"
+        finally:
+            client.close()
 
 
 async def test_two_clients_stream_in_turn_and_a_jog_follows_any_command(tmp_path: Path) -> None:

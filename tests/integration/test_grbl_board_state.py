@@ -70,3 +70,27 @@ async def test_motion_sent_is_run_at_the_front_until_a_report_after_its_answer_s
         finally:
             await client.close()
             await other.close()
+
+
+async def test_motionds_own_codes_on_a_line_with_a_move_are_refused_whole_but_a_stop_stops(
+        tmp_path: Path) -> None:
+    """M114, M400... are motiond's (Grbl has none: error 20, 23 from M256 on, as the rig
+    answers): mixed with words for the board, the line is refused and nothing of it runs, in
+    motiond or on the board; alone they run here. M112 on any line stops."""
+    async with linked(tmp_path) as (fake, app):
+        machine = app.kernel.machine
+        assert isinstance(machine, GrblMachine)
+        client = await client_of(app)
+        try:
+            for line, error in (("G1 X10 F100 M114", 20), ("G20 M400", 23), ("M115 G0 X5", 20)):
+                assert (await client.command(line))[-1] == f"error:{error}", line
+            assert machine.interpreter.gc_report().startswith("[GC:G0 G54 G17 G21 G90")
+            assert machine.interpreter.position == (0.0, 0.0)
+            assert not any(text.startswith(("G1X10", "G20", "M115")) for text in fake.lines)
+            assert (await client.command("M114"))[-1] == "ok"
+            assert (await client.command("M400"))[-1] == "ok"
+            client.writer.write(b"G1 X10 F100 M112\n")
+            await wait_for(lambda: app.kernel.state is MachineState.ALARM, 2.0, "the halt")
+            assert not any(text.startswith("G1X10") for text in fake.lines)
+        finally:
+            await client.close()

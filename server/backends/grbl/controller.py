@@ -35,13 +35,13 @@ from server.backends.grbl.link import (
     parse_build_options,
     parse_settings,
 )
-from server.backends.grbl.reports import MAX_RX_BYTES, ControllerStatus
+from server.backends.grbl.reports import MAX_AXES, MAX_RX_BYTES, ControllerStatus
 
 if TYPE_CHECKING:
     from server.config import BackendConfig
 
 log = logging.getLogger("motiond.grbl")
-READ_BYTES = 4096
+READ_BYTES = 1024  # per loop iteration: a burst from a chatty board must not hold up clients
 RESET = 0x18
 STATUS = 0x3F
 _STILL = frozenset({"Idle", "Alarm", "Check", "Sleep"})  # nothing moves without a command
@@ -63,6 +63,15 @@ class Handshake:
     offsets: tuple[str, ...]
     modal: tuple[str, ...]
 
+    @property
+    def axis_count(self) -> int | None:
+        """The board's axes: the values of its ``[G54:x,y,z]`` (None if it printed none)."""
+        for text in self.offsets:
+            if text.startswith("[G54:") and text.endswith("]"):
+                count = text.count(",") + 1
+                return count if count <= MAX_AXES else None
+        return None
+
 
 class ControllerListener(Protocol):
     """What the controller tells its owner (all called from the event loop)."""
@@ -75,11 +84,13 @@ class ControllerListener(Protocol):
 
     def on_alarm(self, code: int) -> None: ...
 
-    def on_feedback(self, text: str) -> None: ...
+    def on_feedback(self, texts: list[str]) -> None: ...
 
     def on_lost(self, reason: str) -> None: ...
 
     def on_restart(self, banner: str) -> None: ...
+
+    def on_requeried(self, modal: tuple[str, ...], offsets: tuple[str, ...]) -> None: ...
 
 
 class Controller:
@@ -108,6 +119,10 @@ class Controller:
         self.motion_pending = False  # a motion line sent, not yet seen completed by the board
         self._motion_lines = 0  # motion lines sent on this connection (a generation count)
         self._polls: deque[tuple[int, bool]] = deque(maxlen=POLLS_REMEMBERED)
+        # After a reset the board runs its start-up lines ($N0, $N1): its modes and offsets are
+        # asked again before any other line (clear while they are being asked).
+        self.requeried = asyncio.Event()
+        self.requeried.set()
 
     @property
     def where(self) -> str:
@@ -175,8 +190,25 @@ class Controller:
                 return f"read failed: {exc}"
             if not data:
                 return "the controller closed the connection"
+            feedback: list[str] = []  # lines answering nothing, told in one call, in order
             for event in self.link.receive(data):
+                if isinstance(event, Feedback):
+                    feedback.append(event.text)
+                    continue
+                if feedback:
+                    self._feedback(feedback)
+                    feedback = []
                 self._event(event)
+            if feedback:
+                self._feedback(feedback)
+            await asyncio.sleep(0)  # a burst is read without suspending: let clients' '?' in
+
+    def _feedback(self, texts: list[str]) -> None:
+        if self.ready:
+            self.listener.on_feedback(texts)
+        else:  # a bootloader's noise, the start-up messages: nothing for the clients
+            log.debug("controller at %s, before the handshake: %d lines, first %r", self.where,
+                      len(texts), texts[0])
 
     async def _talk(self) -> str:
         """Banner, start-up queries, then status polling until the connection ends."""
@@ -244,8 +276,7 @@ class Controller:
 
     # -- events from the controller ---------------------------------------------------------
     def _event(self, event: LinkEvent) -> None:
-        if not isinstance(event, Feedback):  # a chatty board that answers nothing is not alive
-            self._heard_s = asyncio.get_running_loop().time()
+        self._heard_s = asyncio.get_running_loop().time()  # (a chatty board is not: Feedback)
         if isinstance(event, Answered):
             future = self._futures.pop(event.token, None)
             if future is not None and not future.done():
@@ -265,12 +296,12 @@ class Controller:
             self._banner.set()
             if self.ready and not expected:  # reset button, power, a DTR pulse
                 self.listener.on_restart(event.text)
+            if not self.link.awaiting_banner:  # (not reset again meanwhile)
+                if self.ready:
+                    self._requery()
+                else:
+                    self.requeried.set()  # the handshake asks them
             self._room.set()
-        elif isinstance(event, Feedback):
-            if self.ready:
-                self.listener.on_feedback(event.text)
-            else:  # a bootloader's noise, the start-up messages: nothing for the clients
-                log.debug("controller at %s, before the handshake: %r", self.where, event.text)
 
     def _status(self, status: ControllerStatus) -> None:
         self.status = status
@@ -294,6 +325,29 @@ class Controller:
             self.link.buffer_bytes = max(16, min(seen, self._rx_bytes_cap))
             self._buffer_from_report = False
             log.info("controller receive buffer: %d bytes (from Bf:)", self.link.buffer_bytes)
+
+    def _requery(self) -> None:
+        """``$G`` and ``$#`` right after the banner, ahead of any other line: the board ran
+        its start-up lines (``>G20:ok``, shown to the clients) before it reads them."""
+        self.requeried.clear()
+        asked = [self._write("$G"), self._write("$#")]
+
+        def answered(_: object) -> None:
+            if not all(future.done() for future in asked):
+                return
+            self.requeried.set()
+            if any(future.cancelled() or future.exception() is not None for future in asked):
+                return  # a reset or a lost connection meanwhile: asked again, or reconnected
+            modal, offsets = (future.result() for future in asked)
+            started = [text for text in modal.messages if text.startswith(">")]
+            if started:
+                self.listener.on_feedback(started)
+            if modal.error is None and offsets.error is None:
+                self.listener.on_requeried(
+                    tuple(t for t in modal.messages if not t.startswith(">")), offsets.messages)
+
+        for future in asked:
+            future.add_done_callback(answered)
 
     # -- sending ----------------------------------------------------------------------------
     async def send_line(
@@ -323,15 +377,19 @@ class Controller:
                 raise LineDropped(f"the controller at {self.where} is not connected")
             self._room.clear()
             await self._room.wait()
-        writer = self._writer
-        if writer is None:
+        if self._writer is None:
             raise LineDropped(f"the controller at {self.where} is not connected")
         if not still_valid():
             raise LineDropped("motion was reset while this line waited")
+        return self._write(text)
+
+    def _write(self, text: str) -> asyncio.Future[Answered]:
+        """Write a line that fits now; the future of its answer."""
+        assert self._writer is not None
         token, data = self.link.send(text)
         future: asyncio.Future[Answered] = asyncio.get_running_loop().create_future()
         self._futures[token] = future
-        writer.write(data)
+        self._writer.write(data)
         self.lines_sent += 1
         return future
 
@@ -346,6 +404,7 @@ class Controller:
             return
         self._writer.write(bytes((RESET,)))
         self._reset_sent = True
+        self.requeried.clear()  # until the board's modes after its start-up lines are known
         self._forget_motion()
         self._fail(self.link.reset(), "reset")
         if self.ready and self._banner_watch is None:
@@ -382,6 +441,7 @@ class Controller:
     def _drop_connection(self, reason: str, *, tell: bool = True) -> None:
         writer, self._writer = self._writer, None
         was_ready, self.ready = self.ready, False
+        self.requeried.set()  # nothing to wait for: lines fail until the next handshake
         self._stop_banner_watch()
         self.status = None
         self._forget_motion()

@@ -116,6 +116,11 @@ class Link:
         self._discarding = False  # inside a line already too long: drop up to its end
         self._wco: tuple[float, ...] | None = None
 
+    @property
+    def wco_mm(self) -> tuple[float, ...] | None:
+        """The last work coordinate offset the board reported (``WCO:``, sent now and then)."""
+        return self._wco
+
     # -- sending ----------------------------------------------------------------------------
     @property
     def in_flight(self) -> int:
@@ -158,31 +163,33 @@ class Link:
 
     # -- receiving --------------------------------------------------------------------------
     def receive(self, data: bytes) -> list[LinkEvent]:
-        """Bytes from the controller, in order; complete lines become events."""
+        """Bytes from the controller, in order; complete lines become events. A chatty or
+        noisy board sends thousands of lines a second: each costs a split and a look at its
+        first character unless it can be a report, an answer, an alarm or the banner."""
         self._partial += data
         events: list[LinkEvent] = []
-        while True:
-            end = self._partial.find(b"\n")
-            if end < 0:
-                if len(self._partial) > MAX_LINE_BYTES:
-                    self._partial.clear()
-                    self._discarding = True
+        if b"\n" in data:
+            *lines, rest = self._partial.split(b"\n")
+            self._partial = bytearray(rest)
+            for raw in lines:
+                discarding, self._discarding = self._discarding, False
+                if len(raw) > MAX_LINE_BYTES:
                     self.dropped_lines += 1
-                return events
-            raw = bytes(self._partial[:end])
-            del self._partial[: end + 1]
-            discarding, self._discarding = self._discarding, False
-            if len(raw) > MAX_LINE_BYTES:
-                self.dropped_lines += 1
-                continue
-            text = raw.decode("ascii", "replace").strip()
-            if text and not discarding:
-                event = self._line(text)
-                if event is not None:
-                    events.append(event)
+                    continue
+                text = raw.decode("ascii", "replace").strip()
+                if text and not discarding:
+                    event = self._line(text)
+                    if event is not None:
+                        events.append(event)
+        if len(self._partial) > MAX_LINE_BYTES:
+            self._partial.clear()
+            self._discarding = True
+            self.dropped_lines += 1
+        return events
 
     def _line(self, text: str) -> LinkEvent | None:
-        if text.startswith("<") and text.endswith(">"):
+        first = text[0]
+        if first == "<" and text.endswith(">"):
             try:
                 status = parse_status(text, self._wco)
             except ValueError:  # noise on the wire: the next report (a poll away) will do
@@ -191,14 +198,14 @@ class Link:
             if status.wco_mm is not None:
                 self._wco = status.wco_mm
             return StatusReport(status)
-        if _BANNER.match(text):
+        if first in "Gg" and _BANNER.match(text):
             dropped = tuple(self.reset())
             self.awaiting_banner = False
             return Banner(text, dropped)
-        alarm = _ALARM.match(text)
+        alarm = _ALARM.match(text) if first in "Aa" else None
         if alarm:
             return AlarmReport(int(alarm.group(1)))
-        answer = _ANSWER.match(text)
+        answer = _ANSWER.match(text) if first in "OoEe" else None
         if answer:
             return self._answer(text, None if answer.group(1) is None else int(answer.group(1)))
         if self._in_flight and not self.awaiting_banner:
