@@ -185,6 +185,43 @@ async def stream_ahead(served: Served) -> None:
     writer.close()
 
 
+async def ws_stream_ahead(served: Served) -> None:
+    """The same from a ``/ws`` sender, whose ``!`` waited 6.2 s behind 100 queued lines (and a
+    Ctrl-X never acted while held): the hold must show within a second."""
+    lines = "".join(f"G1 X{i % 200} Y{i % 150} F3000\n" for i in range(100_000))[: 2 * MIB]
+    async with wsc.connect(f"ws://{served.http}/ws") as socket:
+        await socket.send(f"$AUTH={TOKEN}\n")
+        for start in range(0, len(lines), 60_000):  # under the 64 KiB message limit
+            await socket.send(lines[start : start + 60_000])
+        await asyncio.sleep(0.5)
+        await socket.send("!")
+        reader, writer = await asyncio.open_connection("127.0.0.1", served.tcp_port)
+        async with asyncio.timeout(1.0):  # (its own replies are far behind: ask another)
+            while not (await reader.readline()).startswith(b"<Hold"):
+                writer.write(b"?")
+        writer.close()
+        await socket.send("\x18")
+
+
+async def job_start_mid_stream(served: Served) -> None:
+    """``job.start`` on the API and ``play`` on a line connection while the moving sender
+    streams (a job took the machine from it): each refused (45), nothing of the job runs."""
+    (served.jobs_dir / "cut.nc").write_text("G0 X123 Y77\nM3 S1000\nG1 X140 F3000\n")
+    async with wsc.connect(f"ws://{served.http}/api?token={TOKEN}") as socket:
+        for request_id in range(10):
+            await socket.send(json.dumps({"jsonrpc": "2.0", "id": request_id,
+                                          "method": "job.start", "params": {"name": "cut.nc"}}))
+            reply = json.loads(await asyncio.wait_for(socket.recv(), 10))
+            assert reply["error"]["code"] == 45, reply
+    reader, writer = await asyncio.open_connection("127.0.0.1", served.tcp_port)
+    while not (await reader.readline()).startswith(b"Grbl"):
+        pass
+    writer.write(f"$AUTH={TOKEN}\nplay cut.nc\n".encode())
+    assert (await asyncio.wait_for(reader.readline(), 10)).strip() == b"ok"
+    assert (await asyncio.wait_for(reader.readline(), 10)).startswith(b"error:45")
+    writer.close()
+
+
 async def auth_guessing(served: Served) -> None:
     """Token guesses as fast as a connection can send them."""
     reader, writer = await asyncio.open_connection("127.0.0.1", served.tcp_port)
@@ -220,11 +257,17 @@ ATTACKS: dict[str, Attack] = {
     "gzip uploads": gzip_uploads,
     "20,000 $AUTH guesses": auth_guessing,
     "2 MB streamed ahead, then ! and Ctrl-X": stream_ahead,
+    "2 MB streamed ahead on /ws, then ! and Ctrl-X": ws_stream_ahead,
+    "job.start and play while a sender streams": job_start_mid_stream,
     "idle sockets": idle_sockets,
 }
 
 
-MAY_HOLD = {"a realtime flood from 15 logged-in clients"}  # they control: ! stops the motion
+MAY_HOLD = {  # attackers that control: ! or Ctrl-X stops the motion
+    "a realtime flood from 15 logged-in clients",
+    "2 MB streamed ahead, then ! and Ctrl-X",
+    "2 MB streamed ahead on /ws, then ! and Ctrl-X",
+}
 
 
 async def repeat_for(attack: Attack, served: Served, duration_s: float) -> None:
@@ -252,4 +295,5 @@ async def test_the_operators_status_stays_fast_during_an_attack(name: str, tmp_p
     assert probe["p90_ms"] < P90_MS and probe["max_ms"] < WORST_MS, probe
     if name not in MAY_HOLD:
         assert jumps["moved_mm"] > 20.0, "motion ran during the attack"
+    assert jumps["max_y_mm"] <= 20.0, "nothing but the moving sender's lines moved the machine"
     assert jumps["max_gap_ms"] < WORST_MS, jumps

@@ -33,6 +33,10 @@ EXECUTABLE = VENV / "bin" / "octoprint"
 OFFLINE_PLUGINS = ["announcements", "softwareupdate", "tracking", "errortracking", "discovery",
                    "pluginmanager", "backup", "achievements", "health_check", "virtual_printer",
                    "gcodeviewer", "firmware_check", "file_check", "pi_support"]
+# config.yaml's custom control for a machine in alarm, as the README gives it: a button
+# "Unlock" on the Control tab that sends M999 (Marlin's "restart after stop", motiond's $X)
+UNLOCK_CONTROL = [{"name": "motiond", "layout": "horizontal",
+                   "children": [{"name": "Unlock", "command": "M999"}]}]
 
 
 def ensure_venv() -> Path:
@@ -82,6 +86,7 @@ class OctoPrint:
                        "timeout": timeouts_s, "autoconnect": False},
             "plugins": {"_disabled": OFFLINE_PLUGINS},
             "feature": {"sdSupport": True},
+            "controls": UNLOCK_CONTROL,  # the README's "Unlock" button
         }
         (self.basedir / "config.yaml").write_text(json.dumps(config))
         users = {"motiond": {"active": True, "apikey": self.api_key, "groups": ["admins", "users"],
@@ -197,6 +202,18 @@ class Api:
     async def job(self) -> dict[str, Any]:
         result: dict[str, Any] = await self.get("/api/job")
         return result
+
+    async def custom_controls(self) -> list[dict[str, Any]]:
+        """The custom controls of the Control tab (``GET /api/printer/command/custom``)."""
+        result: list[dict[str, Any]] = (await self.get("/api/printer/command/custom"))["controls"]
+        return result
+
+    async def click_control(self, control: dict[str, Any]) -> None:
+        """What the Control tab's button for a custom command control sends when clicked
+        (``sendCustomCommand``: ``POST /api/printer/command`` with its commands and no
+        parameters)."""
+        commands = control.get("commands") or [control["command"]]
+        await self.post("/api/printer/command", {"commands": commands, "parameters": {}})
 
     async def terminal(self, *commands: str) -> None:
         await self.post("/api/printer/command", {"commands": list(commands)})

@@ -34,15 +34,20 @@ async def keep_moving(tcp_port: int, token: str | None = None) -> AsyncIterator[
     if token is not None:
         writer.write(f"$AUTH={token}\n".encode())
 
+    moving = asyncio.Event()
+
     async def move() -> None:
         for index in range(1_000_000):
             writer.write(b"G1 X%d Y20 F%d\n" % (250 if index % 2 else 10, FEED_MM_MIN))
             await writer.drain()
             if not (await reader.readline()).startswith(b"ok"):  # refused, or a push
                 await asyncio.sleep(0.1)  # (a banner, held, reset, owned by another)
+            elif index > 0:
+                moving.set()  # a move runs and the next is planned
 
     task = asyncio.create_task(move())
     try:
+        await asyncio.wait_for(moving.wait(), 10)
         yield
     finally:
         task.cancel()
@@ -53,8 +58,9 @@ async def keep_moving(tcp_port: int, token: str | None = None) -> AsyncIterator[
 
 def trace_jumps(path: Path) -> dict[str, float]:
     """From a trace file: ``max_gap_ms`` between two ticks while the tool moves,
-    ``max_step_mm`` moved in one tick, ``moved_mm`` in all (motion ran at all)."""
-    gap_s = step_mm = moved_mm = 0.0
+    ``max_step_mm`` moved in one tick, ``moved_mm`` in all (motion ran at all), ``max_y_mm``
+    (the moving sender stays at Y20: anything beyond moved by another's lines)."""
+    gap_s = step_mm = moved_mm = max_y_mm = 0.0
     previous: list[float] | None = None
     with path.open(newline="") as handle:
         rows = csv.reader(handle)
@@ -68,4 +74,6 @@ def trace_jumps(path: Path) -> dict[str, float]:
                     gap_s = max(gap_s, values[0] - previous[0])
                 step_mm, moved_mm = max(step_mm, step), moved_mm + step
             previous = values
-    return {"max_gap_ms": 1000.0 * gap_s, "max_step_mm": step_mm, "moved_mm": moved_mm}
+            max_y_mm = max(max_y_mm, values[header.index("y_mm")])
+    return {"max_gap_ms": 1000.0 * gap_s, "max_step_mm": step_mm, "moved_mm": moved_mm,
+            "max_y_mm": max_y_mm}
