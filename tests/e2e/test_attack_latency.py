@@ -26,7 +26,13 @@ import pytest
 from tests.e2e.test_hostile_web import client_frame, ws_handshake
 from tests.support import websocket_client as wsc
 from tests.support.processes import Served, latency_probe, motiond
-from tests.support.undisturbed import keep_moving, trace_jumps, trace_toml
+from tests.support.undisturbed import (
+    WORST_MS,
+    assert_prompt,
+    keep_moving,
+    trace_jumps,
+    trace_toml,
+)
 
 TOKEN = "attack-test-token"
 CONFIG = f"""
@@ -37,10 +43,6 @@ unauthenticated = "read-only"
 token = "{TOKEN}"
 """
 MIB = 1 << 20
-P90_MS = 20.0  # 10 ms held on the machine that measured the figures above; this one runs
-# Python about 3x slower and gave 12-14 ms at p90 for "2 MB streamed ahead", on the old code too
-# one round trip of 97 ms was seen with two CPU hogs beside the suite; the old code: 261 ms to 7 s
-WORST_MS = 150.0
 
 Attack = Callable[[Served], Awaitable[None]]
 
@@ -291,8 +293,7 @@ async def test_the_operators_status_stays_fast_during_an_attack(name: str, tmp_p
         assert served.process.returncode is None, "the server survived"
     jumps = trace_jumps(trace)
     print(f"{name}: probe {probe}, trace {jumps}")
-    assert probe["missed"] == 0 and probe["count"] > 80, probe
-    assert probe["p90_ms"] < P90_MS and probe["max_ms"] < WORST_MS, probe
+    assert_prompt(probe)
     if name not in MAY_HOLD:
         assert jumps["moved_mm"] > 20.0, "motion ran during the attack"
     assert jumps["max_y_mm"] <= 20.0, "nothing but the moving sender's lines moved the machine"
