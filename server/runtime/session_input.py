@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import re
 import time
 from typing import TYPE_CHECKING
 
@@ -69,6 +70,7 @@ SLICE_COST = 32  # realtime bytes examined in one loop turn at most (a few hundr
 RESET_COST = 8  # a Ctrl-X costs as much as this many other realtime bytes (banner, reset)
 REALTIME_BURST_BYTES = 256  # realtime bytes one connection may send at once (then at its rate)
 REALTIME_TOTAL_BURST_BYTES = 512  # what all flooding connections may send at once
+_STATUS_RUN = re.compile(rb"\?{2,}")
 _NOT_REALTIME = bytes(b for b in range(256) if b not in b"?!~\x18" and b < 0x80)
 REFILL_BYTES = 1024  # held-back input is fed to the protocol in slices of this size
 READ_CHUNK = 4096  # bytes a transport reads at a time (then gives the loop a turn)
@@ -330,8 +332,9 @@ def input_budget(rate_bytes_per_s: float, burst_bytes: float = BURST_BYTES) -> T
 
 def realtime_cost(data: bytes) -> int:
     """What examining ``data`` costs in realtime bytes: the bytes the protocol may take one
-    at a time (``?`` ``!`` ``~``, Ctrl-X, bytes above 0x7F), a Ctrl-X :data:`RESET_COST`.
-    Counted in C, without examining them."""
+    at a time (``?`` ``!`` ``~``, Ctrl-X, bytes above 0x7F; a run of ``?`` is taken at once),
+    a Ctrl-X :data:`RESET_COST`. Counted in C, without examining them one by one."""
+    data = _STATUS_RUN.sub(b"?", data) if b"??" in data else data  # a run is read at once
     return len(data.translate(None, _NOT_REALTIME)) + (RESET_COST - 1) * data.count(0x18)
 
 

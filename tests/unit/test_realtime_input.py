@@ -12,6 +12,7 @@ from server.runtime.session_input import RESET_COST, SLICE_COST, affordable, rea
 def test_realtime_cost_counts_the_bytes_the_protocol_reads_one_at_a_time() -> None:
     assert realtime_cost(b"G1 X10 Y20 F3000\r\n") == 0
     assert realtime_cost(b"!~?") == 3
+    assert realtime_cost(b"?" * 4096) == 1 and realtime_cost(b"??!??") == 3  # a run: one read
     assert realtime_cost(b"\x91\xc3\xa9") == 3  # an override, and UTF-8 text (refunded later)
     assert realtime_cost(b"\x18") == RESET_COST
 
