@@ -261,17 +261,17 @@ class LineAdmission:
             self._text_cost += realtime_cost(event.text.encode("utf-8", "surrogatepass"))
 
     def _act_on_realtime(self, batch: list[Realtime]) -> None:
-        """Act on the realtime commands gathered so far (then forget them): one status
-        report however many ``?`` (like Grbl's status flag), the others folded, a Ctrl-X
-        (only ever last) after them."""
+        """Act on the realtime commands gathered so far (then forget them): the others
+        folded, then one status report however many ``?`` (like Grbl's status flag; it shows
+        a hold sent with it), a Ctrl-X (only ever last) after them."""
         if not batch:
             return
-        if Realtime.STATUS in batch:
-            self._realtime(Realtime.STATUS)
         others = [command for command in batch
                   if command is not Realtime.STATUS and command is not Realtime.RESET]
         if others and self.may_observe and self.can_control:
             self.kernel.control.realtime_batch(others)
+        if Realtime.STATUS in batch:
+            self._realtime(Realtime.STATUS)
         if batch[-1] is Realtime.RESET:
             self._realtime(Realtime.RESET)
         batch.clear()

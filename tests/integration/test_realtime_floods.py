@@ -40,8 +40,12 @@ async def test_a_flood_of_holds_holds_once_and_a_resume_after_the_last_hold_resu
     app.kernel.events.subscribe(Event.HOLD, lambda *args: holds.append(args))
     session = await moving_session(app)
     try:
-        await session.feed(b"!" * 4096)
+        await session.feed(b"!" * 4095 + b"?")
         assert app.kernel.state is MachineState.HOLD and len(holds) == 1
+        sent = b""
+        while b"<" not in sent:
+            sent += await asyncio.wait_for(session.outbox.get(), 1) or b""
+        assert b"<Hold" in sent, "the report asked with the hold shows it"
         await session.feed(b"!" * 4096)
         assert len(holds) == 1, "a '!' while held changes nothing"
         await session.feed(b"~!~")
