@@ -87,6 +87,9 @@ class OctoPrint:
             "plugins": {"_disabled": OFFLINE_PLUGINS},
             "feature": {"sdSupport": True},
             "controls": UNLOCK_CONTROL,  # the README's "Unlock" button
+            # the web UI in a test's browser on this machine is this user, without a login
+            "accessControl": {"autologinLocal": True, "autologinAs": "motiond",
+                              "autologinHeadsupAcknowledged": True},
         }
         (self.basedir / "config.yaml").write_text(json.dumps(config))
         users = {"motiond": {"active": True, "apikey": self.api_key, "groups": ["admins", "users"],
@@ -202,18 +205,6 @@ class Api:
     async def job(self) -> dict[str, Any]:
         result: dict[str, Any] = await self.get("/api/job")
         return result
-
-    async def custom_controls(self) -> list[dict[str, Any]]:
-        """The custom controls of the Control tab (``GET /api/printer/command/custom``)."""
-        result: list[dict[str, Any]] = (await self.get("/api/printer/command/custom"))["controls"]
-        return result
-
-    async def click_control(self, control: dict[str, Any]) -> None:
-        """What the Control tab's button for a custom command control sends when clicked
-        (``sendCustomCommand``: ``POST /api/printer/command`` with its commands and no
-        parameters)."""
-        commands = control.get("commands") or [control["command"]]
-        await self.post("/api/printer/command", {"commands": commands, "parameters": {}})
 
     async def terminal(self, *commands: str) -> None:
         await self.post("/api/printer/command", {"commands": list(commands)})
