@@ -37,6 +37,7 @@ import asyncio
 import logging
 import re
 import time
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from server.errors import CommandError, Error
@@ -135,14 +136,21 @@ class LineAdmission:
             self._realtime(Realtime.RESET)  # drops what is held, as Grbl empties its buffer
             data = data[reset_at + 1 :]
 
-    async def feed(self, data: bytes, *, final: bool = True) -> None:
+    async def feed(self, data: bytes, *, final: bool = True,
+                   gone: Callable[[], bool] | None = None) -> None:
         """What a transport read, handed over: the one input path of every transport (TCP,
         serial, pty, WebSocket messages, ``final`` on a message's last part). Paced as
         :meth:`pace_input` and the realtime budget say, in slices of at most
         :data:`SLICE_COST` bytes the protocol reads one by one, with a loop turn between them,
         waiting while the backlog is full. What such bytes turn out to be inside complete lines
-        (UTF-8 text) is not charged to the realtime budget."""
+        (UTF-8 text) is not charged to the realtime budget. ``gone()`` says the client has
+        hung up: what of a flood it had sent is not examined yet is then dropped, so its
+        realtime bytes never act late, after it left (a ``~`` after the operator's ``!``)."""
+        first = True
         while True:
+            if not first and gone is not None and gone():
+                return
+            first = False
             size = affordable(data, SLICE_COST)
             piece, data = data[:size], data[size:]
             cost = realtime_cost(piece)

@@ -147,6 +147,10 @@ async def serve_stream(
     session.start()
     writer_task = asyncio.create_task(_write_loop(session, writer))
     received_bytes = 0
+
+    def gone() -> bool:  # the client hung up (or reset): a flood's rest is not examined
+        return reader.at_eof() or writer.transport.is_closing()
+
     try:
         while not session.closed:
             limit = None if deadline is None else deadline(received_bytes)
@@ -160,7 +164,7 @@ async def serve_stream(
             if not data:
                 break
             received_bytes += len(data)
-            await session.feed(data)  # paced, sliced, waits while the backlog is full
+            await session.feed(data, gone=gone)  # paced, sliced, waits while the backlog is full
             await asyncio.sleep(0)  # buffered input must not hold the loop: one slice a turn
     except (ConnectionError, OSError):
         pass

@@ -298,7 +298,7 @@ async def _feed(session: Session, data: str | bytes, gone: Callable[[], bool]) -
         end = start + min(SLICE_CHARS, session.read_size)
         piece = data[start:end]
         raw = piece.encode("utf-8", "surrogatepass") if isinstance(piece, str) else piece
-        await session.feed(raw, final=end >= size)
+        await session.feed(raw, final=end >= size, gone=gone)
         await asyncio.sleep(0)  # a large message must not hold the loop: one slice a turn
         if end >= size:
             return
