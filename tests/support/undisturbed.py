@@ -25,9 +25,10 @@ FEED_MM_MIN = 3000.0  # 50 mm/s: one tick at 1 kHz moves 0.05 mm
 # slower than the one that set the goal, gave up to 12-14 ms at p90 and 20 ms at p99 for the
 # attacks that stream (2 MB ahead, job.start beside a stream), on the old code too, and one
 # round trip of 97 ms with two CPU hogs beside the suite; the old code: 261 ms to 7 s.
-# Measured with this suite at load 4-5: p99 0.9-6.3 ms for every attack but the two that
-# stream 2 MB ahead (10-14 ms: the loop plans the attacker's own accepted moves), 26 ms at
-# load 9; tick gaps 1.5-12 ms, once 40 ms (no jump over 0.5 mm at 50 mm/s).
+# Measured with this suite at load 2-5: p99 0.8-6.3 ms for every attack but the two that
+# stream 2 MB ahead (5-27 ms: the loop plans the attacker's own accepted moves), 26 ms at
+# load 9; tick gaps 1.5-12 ms, 21 and once 40 ms beside the streams (no jump over 1 mm at
+# 50 mm/s).
 P90_MS = 20.0
 P99_MS = 40.0
 WORST_MS = 150.0
