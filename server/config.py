@@ -250,6 +250,15 @@ class ProtocolConfig(Strict):
         8192.0, gt=0, le=1 << 30,
         description="the same, all such connections together (their loop time stays bounded "
         "whatever their number)")
+    realtime_bytes_per_s: float = Field(
+        1024.0, gt=0, le=1 << 30,
+        description="realtime bytes ('?', '!', '~', Ctrl-X, overrides) examined per connection, "
+        "controlling ones too (senders send a few dozen a second): a flood beyond it waits "
+        "unread")
+    realtime_total_bytes_per_s: float = Field(
+        4096.0, gt=0, le=1 << 30,
+        description="the same, all flooding connections together; a connection within half its "
+        "own budget (the operator's '!') never waits for them")
     trusted_clients: list[str] = Field(
         default_factory=list,
         description="addresses and subnets (192.168.1.0/24) that control without the token: "

@@ -9,6 +9,7 @@ motion and ends the job, an emergency stop alarms the machine with the tools off
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 from server.protocol.events import Realtime
@@ -17,6 +18,10 @@ if TYPE_CHECKING:
     from server.runtime.jobs import Jobs
     from server.runtime.machine import Machine
 
+_HOLDS = frozenset({Realtime.HOLD, Realtime.DOOR})
+_TOGGLES = (Realtime.SPINDLE_STOP, Realtime.FLOOD, Realtime.MIST)
+_ONCE = frozenset({Realtime.HOLD, Realtime.DOOR, Realtime.RESUME, Realtime.JOG_CANCEL,
+                   Realtime.STATUS, Realtime.RESET})
 _M112 = re.compile(r"^\s*(?:N\d+\s*)?M\s*0*112(?:\D|$)", re.I)
 _M410 = re.compile(r"^\s*(?:N\d+\s*)?M\s*0*410(?:[^\d.]|$)", re.I)
 
@@ -49,6 +54,28 @@ class MachineControl:
             self.reset()
         else:
             self.machine.realtime(command)
+
+    def realtime_batch(self, commands: Sequence[Realtime]) -> None:
+        """Realtime bytes (not ``?``, not Ctrl-X) that arrived together, folded as Grbl's
+        realtime flags fold them, so a flood costs a few actions whatever its size: a hold
+        (``!``, safety door) acts once, at once; ``~`` resumes after it only when it came after
+        the last hold; a jog cancel acts once; the override steps give one change (each step
+        clamped as it would have been alone); a toggle acts if it came an odd number of times.
+        A command that repeats the state (a second ``!`` while held, an override at its
+        limit) changes nothing and costs nearly nothing."""
+        holds = [index for index, command in enumerate(commands) if command in _HOLDS]
+        if holds:
+            self.realtime(commands[holds[0]])
+        if Realtime.JOG_CANCEL in commands:
+            self.jog_cancel()
+        resumes = [index for index, command in enumerate(commands) if command is Realtime.RESUME]
+        if resumes and (not holds or resumes[-1] > holds[-1]):
+            self.resume()
+        self.machine.step_overrides([c for c in commands if c not in _ONCE
+                                     and c not in _TOGGLES])
+        for toggle in _TOGGLES:
+            if commands.count(toggle) % 2:
+                self.realtime(toggle)
 
     def hold(self) -> None:
         """``!``: decelerate to a stop on the path; a running job is paused."""

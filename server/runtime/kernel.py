@@ -31,7 +31,12 @@ from server.runtime.grbl import GrblMachine
 from server.runtime.jobs import Jobs
 from server.runtime.machine import Machine, SyncHandler
 from server.runtime.module import ApiHandler, ApiMethod, ApiParams, Module
-from server.runtime.session import TOTAL_BURST_BYTES, input_budget
+from server.runtime.session import (
+    REALTIME_TOTAL_BURST_BYTES,
+    TOTAL_BURST_BYTES,
+    input_budget,
+    realtime_allowance,
+)
 from server.runtime.state import MachineStatus
 from server.runtime.status import build_status
 
@@ -255,6 +260,9 @@ class Kernel:
         # what all connections that may not control may send together (see session_input)
         self.read_only_input = input_budget(
             config.core.protocol.read_only_input_total_bytes_per_s, TOTAL_BURST_BYTES)
+        # the realtime bytes all flooding connections may have examined together
+        self.realtime_input = realtime_allowance(
+            config.core.protocol.realtime_total_bytes_per_s, REALTIME_TOTAL_BURST_BYTES)
         self.modules: dict[str, Module] = {}
         self.api_methods: dict[str, ApiMethod] = {}  # contributed by modules
         self.status_fields: dict[str, Callable[[], Any]] = {}

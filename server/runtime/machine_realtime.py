@@ -73,6 +73,20 @@ class RealtimeCommands:
             else (100 if spindle == 0 else self.spindle_override + spindle),
         )
 
+    def step_overrides(self, commands: list[Realtime]) -> None:
+        """Several override bytes in a row (0x90-0x9D): one change, each step clamped as it
+        would have been alone; nothing when they leave the overrides as they are."""
+        feed, rapid, spindle = self.feed_override, self.rapid_override, self.spindle_override
+        for command in commands:
+            feed_step, rapid_value, spindle_step = _OVERRIDE_STEPS[command]
+            if feed_step is not None:
+                feed = 100 if feed_step == 0 else max(10, min(200, feed + feed_step))
+            if rapid_value is not None:
+                rapid = rapid_value
+            if spindle_step is not None:
+                spindle = 100 if spindle_step == 0 else max(10, min(200, spindle + spindle_step))
+        self.set_overrides(feed, rapid, spindle)
+
     def toggle_coolant(self, which: str) -> None:
         """Realtime flood/mist toggle (0xA0/0xA1): at once, reflected in status ``A:``."""
         if which == "flood":
@@ -101,6 +115,8 @@ class RealtimeCommands:
     def feed_hold(self) -> None:
         if self.status.state is MachineState.HOME:  # as in Grbl: homing ignores feed hold
             return
+        if self.status.state is MachineState.HOLD and self.stepgen.state.hold is not HoldState.NONE:
+            return  # already holding: a repeated '!' changes nothing
         if self.stepgen.idle and self.status.state is MachineState.IDLE:
             self.stepgen.hold()  # Hold:0 at once, as Grbl: queued motion waits for '~'
             self.status.set_state(MachineState.HOLD)
@@ -178,12 +194,15 @@ class RealtimeCommands:
     def set_overrides(
         self, feed: int | None = None, rapid: int | None = None, spindle: int | None = None
     ) -> None:
+        before = (self.feed_override, self.rapid_override, self.spindle_override)
         if feed is not None:
             self.feed_override = max(10, min(200, feed))
         if rapid is not None:
             self.rapid_override = rapid
         if spindle is not None:
             self.spindle_override = max(10, min(200, spindle))
+        if (self.feed_override, self.rapid_override, self.spindle_override) == before:
+            return  # an override at its limit, or repeated: nothing to re-plan or report
         self.planner.set_overrides(self.feed_override / 100, self.rapid_override / 100)
         self.events.emit(
             "override", self.feed_override, self.rapid_override, self.spindle_override

@@ -29,3 +29,32 @@ class TokenBucket:
         self._last_s = now_s
         missing = min(amount, self.burst) - self._tokens
         return 0.0 if missing <= 0 else missing / self.rate_per_s
+
+
+class Allowance:
+    """Paid after the fact: ``spend`` may take it below zero (a slice already examined costs
+    what it cost); :meth:`wait_s` says how long until it is above zero again. Refills at
+    ``rate_per_s`` up to ``burst``. Times are seconds on any monotonic clock, passed in."""
+
+    def __init__(self, rate_per_s: float, burst: float, now_s: float) -> None:
+        if rate_per_s <= 0 or burst <= 0:
+            raise ValueError("an allowance needs rate_per_s > 0 and burst > 0")
+        self.rate_per_s = rate_per_s
+        self.burst = burst
+        self._level = burst
+        self._last_s = now_s
+
+    def level(self, now_s: float) -> float:
+        """What is left (negative: overspent)."""
+        elapsed_s = max(0.0, now_s - self._last_s)
+        self._level = min(self.burst, self._level + elapsed_s * self.rate_per_s)
+        self._last_s = now_s
+        return self._level
+
+    def spend(self, now_s: float, amount: float) -> None:
+        self._level = self.level(now_s) - amount
+
+    def wait_s(self, now_s: float) -> float:
+        """Seconds until something is left again (0.0: now)."""
+        level = self.level(now_s)
+        return 0.0 if level > 0 else (1.0 - level) / self.rate_per_s

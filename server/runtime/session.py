@@ -53,10 +53,13 @@ from server.runtime.login_guard import LoginGuard, token_matches
 from server.runtime.ratelimit import TokenBucket
 from server.runtime.session_input import (
     INBOUND_LINES,
+    REALTIME_BURST_BYTES,
+    REALTIME_TOTAL_BURST_BYTES,
     TOTAL_BURST_BYTES,
     LineAdmission,
     input_budget,
     line_size,
+    realtime_allowance,
 )
 from server.runtime.session_output import STATUS_BURST, Outbox, SessionOutput
 
@@ -69,8 +72,8 @@ PROBATION_REFUSED = "this slot is reserved for logged-in connections: send $AUTH
 YIELD_AFTER_S = 0.0003  # the executor gives other tasks a turn at least this often
 BUSY_INTERVAL_S = 2.0  # Marlin's DEFAULT_KEEPALIVE_INTERVAL
 BUSY = "echo:busy: processing"
-__all__ = ["TOTAL_BURST_BYTES", "Session", "input_budget", "line_token", "login_guard",
-           "token_matches"]
+__all__ = ["REALTIME_TOTAL_BURST_BYTES", "TOTAL_BURST_BYTES", "Session", "input_budget",
+           "line_token", "login_guard", "realtime_allowance", "token_matches"]
 
 
 class Session(LineAdmission, SessionOutput):
@@ -132,6 +135,9 @@ class Session(LineAdmission, SessionOutput):
             core.protocol.status_reports_per_s, STATUS_BURST, time.monotonic())
         self._status_timer: asyncio.TimerHandle | None = None
         self._input_budget = input_budget(core.protocol.read_only_input_bytes_per_s)
+        self._realtime_budget = realtime_allowance(
+            core.protocol.realtime_bytes_per_s, REALTIME_BURST_BYTES)
+        self._text_cost = 0
         self._unsubscribe = kernel.events.subscribe(BusEvent.PUSH, self.push)
         self._task: asyncio.Task[None] | None = None
         self._replies: deque[tuple[int, asyncio.Future[bytes]]] = deque()  # behind a deferred

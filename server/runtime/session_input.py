@@ -6,6 +6,15 @@ it) that admits what the client sends. It:
 * closes a byte stream that starts as an HTTP request (:mod:`server.protocol.http_sniff`)
   before any of its bytes is acted on: a web page cannot drive the machine through the port;
 * paces what a connection that may not control sends (:meth:`LineAdmission.pace_input`);
+* bounds what realtime bytes cost, from every connection, controlling ones too
+  (:meth:`LineAdmission.feed`): at most :data:`SLICE_COST` of them are examined in one
+  loop turn, each connection may examine
+  ``[protocol] realtime_bytes_per_s`` of them and all flooding connections together
+  ``realtime_total_bytes_per_s`` (a connection within its own budget, such as the operator's
+  ``!``, never waits for the others'); what arrives beyond that waits unread. A batch of
+  realtime bytes acts as Grbl's realtime flags do: a command that repeats the state (a second
+  ``!`` while held, an override at its limit) costs nearly nothing, a hold acts on its first
+  byte, toggles and override steps are folded into one change (:mod:`server.runtime.control`);
 * acts on realtime bytes at once (status, hold, resume, reset, overrides, jog cancel), even
   while lines wait for planner room, and on ``M112`` the moment its line arrives; an ``M410``
   quickstop too (Marlin's emergency parser): motion stops, and the lines this connection queued
@@ -26,7 +35,9 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import re
 import time
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from server.errors import CommandError, Error
@@ -39,7 +50,7 @@ from server.protocol.events import (
 )
 from server.protocol.http_sniff import HttpSniffer
 from server.runtime.control import halts_at_once, quickstops_at_once
-from server.runtime.ratelimit import TokenBucket
+from server.runtime.ratelimit import Allowance, TokenBucket
 
 if TYPE_CHECKING:
     from collections import deque
@@ -56,6 +67,12 @@ READ_ONLY_CHUNK = 256  # bytes of a connection that may not control examined at 
 BURST_BYTES = 1024  # what such a connection may send at once (then at its rate)
 TOTAL_BURST_BYTES = 2048  # what all of them may send at once
 INBOUND_LINES = 64
+SLICE_COST = 32  # realtime bytes examined in one loop turn at most (a few hundred us)
+RESET_COST = 8  # a Ctrl-X costs as much as this many other realtime bytes (banner, reset)
+REALTIME_BURST_BYTES = 256  # realtime bytes one connection may send at once (then at its rate)
+REALTIME_TOTAL_BURST_BYTES = 512  # what all flooding connections may send at once
+_STATUS_RUN = re.compile(rb"\?{2,}")
+_NOT_REALTIME = bytes(b for b in range(256) if b not in b"?!~\x18" and b < 0x80)
 REFILL_BYTES = 1024  # held-back input is fed to the protocol in slices of this size
 READ_CHUNK = 4096  # bytes a transport reads at a time (then gives the loop a turn)
 
@@ -80,6 +97,8 @@ class LineAdmission:
     _scheduler: StatusScheduler
     _sniffer: HttpSniffer | None
     _input_budget: TokenBucket
+    _realtime_budget: Allowance
+    _text_cost: int  # of the bytes just examined, those in complete lines (text, not realtime)
 
     if TYPE_CHECKING:
         def _request_status(self) -> None: ...  # the session's output
@@ -117,6 +136,56 @@ class LineAdmission:
             self._realtime(Realtime.RESET)  # drops what is held, as Grbl empties its buffer
             data = data[reset_at + 1 :]
 
+    async def feed(self, data: bytes, *, final: bool = True,
+                   gone: Callable[[], bool] | None = None) -> None:
+        """What a transport read, handed over: the one input path of every transport (TCP,
+        serial, pty, WebSocket messages, ``final`` on a message's last part). Paced as
+        :meth:`pace_input` and the realtime budget say, in slices of at most
+        :data:`SLICE_COST` bytes the protocol reads one by one, with a loop turn between them,
+        waiting while the backlog is full. What such bytes turn out to be inside complete lines
+        (UTF-8 text) is not charged to the realtime budget. ``gone()`` says the client has
+        hung up: what of a flood it had sent is not examined yet is then dropped, so its
+        realtime bytes never act late, after it left (a ``~`` after the operator's ``!``)."""
+        first = True
+        while True:
+            if not first and gone is not None and gone():
+                return
+            first = False
+            size = affordable(data, SLICE_COST)
+            piece, data = data[:size], data[size:]
+            cost = realtime_cost(piece)
+            await self.pace_input(len(piece))
+            await self._pace_realtime()
+            if self.outbox.closed:
+                return
+            self._text_cost = 0
+            self.receive_data(piece, final=final and not data)
+            self._spend_realtime(max(0, cost - self._text_cost))
+            await self.wait_input_room()
+            if not data:
+                return
+            await asyncio.sleep(0)  # a large read must not hold the loop: one slice a turn
+
+    async def _pace_realtime(self) -> None:
+        """Wait while this connection has spent its realtime budget, or, flooding, while all
+        flooding connections have spent theirs together. A connection within half its own
+        budget never waits for the others: the operator's ``!`` acts at once."""
+        total = self.kernel.realtime_input
+        while not self.outbox.closed:
+            now_s = time.monotonic()
+            wait_s = self._realtime_budget.wait_s(now_s)
+            if self._realtime_budget.level(now_s) < self._realtime_budget.burst / 2:
+                wait_s = max(wait_s, total.wait_s(now_s))
+            if wait_s == 0.0:
+                return
+            await asyncio.sleep(wait_s)
+
+    def _spend_realtime(self, cost: int) -> None:
+        if cost:
+            now_s = time.monotonic()
+            self._realtime_budget.spend(now_s, cost)
+            self.kernel.realtime_input.spend(now_s, cost)
+
     @property
     def read_size(self) -> int:
         """How many bytes a transport should read (and feed) at a time."""
@@ -151,42 +220,69 @@ class LineAdmission:
 
     def _hold_back(self, data: bytes, final: bool) -> None:
         """The line queue is full: keep the bytes, act on their realtime commands now."""
-        reported = False
+        batch: list[Realtime] = []
         for event in self._backlog.hold(self.protocol, data, final):
             if isinstance(event, RealtimeReceived):
-                reported = self._on_realtime(event.command, reported)
-            elif self._is_emergency_stop(event):
-                self.kernel.control.emergency_stop()
-            elif self._is_quickstop(event):
-                self._quickstop()
+                batch.append(event.command)
+                continue
+            self._count_text(event)
+            if self._is_emergency_stop(event) or self._is_quickstop(event):
+                self._act_on_realtime(batch)  # in stream order with the stop
+                if self._is_emergency_stop(event):
+                    self.kernel.control.emergency_stop()
+                else:
+                    self._quickstop()
+        self._act_on_realtime(batch)
         if self._backlog.full:
             self._input_room.clear()
 
     def _handle(self, events: list[Event], *, replayed: bool = False) -> None:
         """Protocol events in stream order; ``replayed``: from held-back bytes, whose realtime
-        commands and M112 were acted on when they arrived."""
-        reported = False
+        commands and M112 were acted on when they arrived. Realtime commands are acted on as
+        one batch (see ``MachineControl.realtime_batch``), cut where order matters: at a
+        Ctrl-X (lines before it are dropped, lines after it kept), an M112 or an M410."""
+        batch: list[Realtime] = []
         for event in events:
             if isinstance(event, RealtimeReceived):
                 if not replayed:
-                    reported = self._on_realtime(event.command, reported)
+                    batch.append(event.command)
+                    if event.command is Realtime.RESET:
+                        self._act_on_realtime(batch)
                 continue
+            if not replayed:
+                self._count_text(event)
             if not replayed and self._is_emergency_stop(event):
+                self._act_on_realtime(batch)
                 self.kernel.control.emergency_stop()
             if not replayed and self._is_quickstop(event):
+                self._act_on_realtime(batch)
                 self._quickstop()
             self._lines.append((self._epoch, event))
             self._queued_bytes += line_size(event)
+        self._act_on_realtime(batch)
         self._lines_ready.set()
 
-    def _on_realtime(self, command: Realtime, reported: bool) -> bool:
-        """Act on one realtime byte; like Grbl's status flag, one report per batch of '?'."""
-        if command is Realtime.STATUS:
-            if not reported:
-                self._realtime(command)
-            return True
-        self._realtime(command)
-        return reported
+    def _count_text(self, event: Event) -> None:
+        """A line's bytes that look like realtime ones (UTF-8 text; ``!`` in a RepRap host's
+        ``M117``) were text: they do not count against the realtime budget."""
+        if isinstance(event, LineReceived):
+            self._text_cost += realtime_cost(event.text.encode("utf-8", "surrogatepass"))
+
+    def _act_on_realtime(self, batch: list[Realtime]) -> None:
+        """Act on the realtime commands gathered so far (then forget them): the others
+        folded, then one status report however many ``?`` (like Grbl's status flag; it shows
+        a hold sent with it), a Ctrl-X (only ever last) after them."""
+        if not batch:
+            return
+        others = [command for command in batch
+                  if command is not Realtime.STATUS and command is not Realtime.RESET]
+        if others and self.may_observe and self.can_control:
+            self.kernel.control.realtime_batch(others)
+        if Realtime.STATUS in batch:
+            self._realtime(Realtime.STATUS)
+        if batch[-1] is Realtime.RESET:
+            self._realtime(Realtime.RESET)
+        batch.clear()
 
     def _is_emergency_stop(self, event: Event) -> bool:
         """M112 from a connection that may control: acted on the moment its line arrives."""
@@ -240,6 +336,34 @@ class LineAdmission:
 def input_budget(rate_bytes_per_s: float, burst_bytes: float = BURST_BYTES) -> TokenBucket:
     """A budget of input bytes for connections that may not control (see ``pace_input``)."""
     return TokenBucket(rate_bytes_per_s, burst_bytes, time.monotonic())
+
+
+def realtime_cost(data: bytes) -> int:
+    """What examining ``data`` costs in realtime bytes: the bytes the protocol may take one
+    at a time (``?`` ``!`` ``~``, Ctrl-X, bytes above 0x7F; a run of ``?`` is taken at once),
+    a Ctrl-X :data:`RESET_COST`. Counted in C, without examining them one by one."""
+    data = _STATUS_RUN.sub(b"?", data) if b"??" in data else data  # a run is read at once
+    return len(data.translate(None, _NOT_REALTIME)) + (RESET_COST - 1) * data.count(0x18)
+
+
+def affordable(data: bytes, cost_limit: int) -> int:
+    """The length of the longest start of ``data`` whose :func:`realtime_cost` is at most
+    ``cost_limit`` (at least one byte): a bisection of C-speed counts."""
+    if realtime_cost(data) <= cost_limit:
+        return len(data)
+    low, high = 1, len(data)  # data[:high] costs too much; data[:low] is the least we take
+    while high - low > 1:
+        middle = (low + high) // 2
+        if realtime_cost(data[:middle]) <= cost_limit:
+            low = middle
+        else:
+            high = middle
+    return low
+
+
+def realtime_allowance(rate_bytes_per_s: float, burst_bytes: float) -> Allowance:
+    """A budget of realtime bytes (see :meth:`LineAdmission.feed`)."""
+    return Allowance(rate_bytes_per_s, burst_bytes, time.monotonic())
 
 
 def line_size(event: LineReceived | LineRejected) -> int:

@@ -150,18 +150,17 @@ class PtyPort:
         loop.add_reader(self.master, readable.set)
         try:
             if first:
-                session.receive_data(first)
+                await session.feed(first)
             while not session.closed:
                 await readable.wait()
                 readable.clear()
                 data = self._read()
                 if data is None:
                     break
-                session.receive_data(data)
-                if session.backlog_full:  # stop reading (and watching) until there is room
-                    loop.remove_reader(self.master)
-                    await session.wait_input_room()
-                    loop.add_reader(self.master, readable.set)
+                # stop watching while the session paces or its backlog is full
+                loop.remove_reader(self.master)
+                await session.feed(data)
+                loop.add_reader(self.master, readable.set)
                 await asyncio.sleep(0)  # one slice a turn
         finally:
             loop.remove_reader(self.master)

@@ -2,7 +2,8 @@
 
 Reading: bytes are read in slices (``session.read_size``: 4096 bytes, 256 from a connection
 that may not control, whose input is also paced) with a loop turn between slices, so a flood
-from one client never holds the loop; the session takes every slice (holding lines back
+from one client never holds the loop; the session takes every slice (``Session.feed``, which
+also bounds what realtime bytes cost) (holding lines back
 in its bounded backlog when its line queue is full, acting on realtime bytes at once) and the
 read loop pauses only while that backlog is full.
 
@@ -146,6 +147,10 @@ async def serve_stream(
     session.start()
     writer_task = asyncio.create_task(_write_loop(session, writer))
     received_bytes = 0
+
+    def gone() -> bool:  # the client hung up (or reset): a flood's rest is not examined
+        return reader.at_eof() or writer.transport.is_closing()
+
     try:
         while not session.closed:
             limit = None if deadline is None else deadline(received_bytes)
@@ -159,9 +164,7 @@ async def serve_stream(
             if not data:
                 break
             received_bytes += len(data)
-            await session.pace_input(len(data))
-            session.receive_data(data)
-            await session.wait_input_room()
+            await session.feed(data, gone=gone)  # paced, sliced, waits while the backlog is full
             await asyncio.sleep(0)  # buffered input must not hold the loop: one slice a turn
     except (ConnectionError, OSError):
         pass

@@ -86,17 +86,6 @@ def presented_token(request: web.Request) -> str | None:
     return usable_token(request.query.get("token") or request.headers.get("X-Motiond-Token"))
 
 
-class LineSocketSession(Session):
-    """A session fed a WebSocket message a slice at a time."""
-
-    def receive_slice(self, piece: str | bytes, *, final: bool) -> None:
-        """Part of one message; ``final`` for its last part (which ends its last line).
-        Text goes the byte path UTF-8 encoded (a realtime code point such as U+0091 is then
-        ``C2 91``, which the protocol reads as that realtime byte)."""
-        data = piece.encode("utf-8", "surrogatepass") if isinstance(piece, str) else piece
-        self.receive_data(data, final=final)
-
-
 class HttpTransport:
     """Serves ``[http] host:port``."""
 
@@ -260,7 +249,7 @@ class HttpTransport:
         token: str | None,
         authenticated: bool,
     ) -> None:
-        session = LineSocketSession(
+        session = Session(
             self.kernel, f"ws-{next(self._ids)}", websocket=True, token=token,
             observer=request.query.get("mode") == "observe", peer=request.remote or "?",
             guard=self._login_guard,
@@ -282,7 +271,7 @@ class HttpTransport:
         self,
         request: web.Request,
         socket: web.WebSocketResponse,
-        session: LineSocketSession,
+        session: Session,
         idle: asyncio.Timeout,
         authenticated: bool,
     ) -> None:
@@ -296,20 +285,20 @@ class HttpTransport:
             await _feed(session, message.data, gone)
 
 
-async def _feed(
-    session: LineSocketSession, data: str | bytes, gone: Callable[[], bool]
-) -> None:
-    """One message, a slice per loop turn, waiting while the session's backlog is full (its
-    realtime bytes are acted on as they arrive, whatever lines wait in front of them); the
-    rest is dropped once the client is gone."""
+async def _feed(session: Session, data: str | bytes, gone: Callable[[], bool]) -> None:
+    """One message, a slice at a time, through the session's one input path
+    (``Session.feed``: paced, a loop turn between slices, waiting while its backlog is full;
+    realtime bytes acted on as they arrive, whatever lines wait in front of them); the rest
+    is dropped once the client is gone. Text goes the byte path UTF-8 encoded (a realtime
+    code point such as U+0091 is then ``C2 91``, which the protocol reads as that byte)."""
     size, start = len(data), 0
     while True:
         if gone():
             return
         end = start + min(SLICE_CHARS, session.read_size)
-        await session.pace_input(min(end, size) - start)
-        session.receive_slice(data[start:end], final=end >= size)
-        await session.wait_input_room()
+        piece = data[start:end]
+        raw = piece.encode("utf-8", "surrogatepass") if isinstance(piece, str) else piece
+        await session.feed(raw, final=end >= size, gone=gone)
         await asyncio.sleep(0)  # a large message must not hold the loop: one slice a turn
         if end >= size:
             return

@@ -26,6 +26,13 @@ import pytest
 from tests.e2e.test_hostile_web import client_frame, ws_handshake
 from tests.support import websocket_client as wsc
 from tests.support.processes import Served, latency_probe, motiond
+from tests.support.undisturbed import (
+    WORST_MS,
+    assert_prompt,
+    keep_moving,
+    trace_jumps,
+    trace_toml,
+)
 
 TOKEN = "attack-test-token"
 CONFIG = f"""
@@ -36,10 +43,6 @@ unauthenticated = "read-only"
 token = "{TOKEN}"
 """
 MIB = 1 << 20
-P90_MS = 20.0  # 10 ms held on the machine that measured the figures above; this one runs
-# Python about 3x slower and gave 12-14 ms at p90 for "2 MB streamed ahead", on the old code too
-# one round trip of 97 ms was seen with two CPU hogs beside the suite; the old code: 261 ms to 7 s
-WORST_MS = 150.0
 
 Attack = Callable[[Served], Awaitable[None]]
 
@@ -91,10 +94,11 @@ async def status_flood(served: Served) -> None:
     machine's two cores with the server and the probe, so it paces itself a little)."""
     async def one() -> None:
         reader, writer = await asyncio.open_connection("127.0.0.1", served.tcp_port)
-        for _ in range(100):
-            writer.write(b"?" * 4096)
-            await writer.drain()
-            await asyncio.sleep(0.01)
+        with contextlib.suppress(ConnectionError):  # a reserved slot, taken by a newcomer
+            for _ in range(100):
+                writer.write(b"?" * 4096)
+                await writer.drain()
+                await asyncio.sleep(0.01)
         writer.close()
 
     await asyncio.gather(*(one() for _ in range(15)))
@@ -105,13 +109,35 @@ async def realtime_flood(served: Served) -> None:
     ``?`` took 354-405 ms and motion ticks 284-329 ms; the operator's ``?`` went unanswered)."""
     async def one() -> None:
         reader, writer = await asyncio.open_connection("127.0.0.1", served.tcp_port)
-        for _ in range(100):
-            writer.write(b"!\x91" * 2048)
-            await writer.drain()
-            await asyncio.sleep(0.01)
+        with contextlib.suppress(ConnectionError):  # a reserved slot, taken by a newcomer
+            for _ in range(100):
+                writer.write(b"!\x91" * 2048)
+                await writer.drain()
+                await asyncio.sleep(0.01)
         writer.close()
 
     await asyncio.gather(*(one() for _ in range(15)))
+
+
+async def controlling_realtime_flood(served: Served) -> None:
+    """Fifteen logged-in clients (the connection cap lets in those it has room for beside the
+    operator and the moving sender) sending ``!``, ``~``, ``0x91``, ``?``, Ctrl-X and 0x85
+    as fast as they can, also between text and UTF-8 lead bytes, which the protocol reads one
+    at a time (before: the probe's ``?`` went unanswered, ticks came 1.8 s apart)."""
+    patterns = [b"!", b"!~", b"\x91\x92?", b"!A~B\x91", b"\xc3!\xc3~", b"\x18\x85!"]
+
+    async def one(pattern: bytes) -> None:
+        reader, writer = await asyncio.open_connection("127.0.0.1", served.tcp_port)
+        writer.write(f"$AUTH={TOKEN}\n".encode())
+        flood = pattern * (4096 // len(pattern))
+        with contextlib.suppress(ConnectionError):
+            for _ in range(100):
+                writer.write(flood)
+                await writer.drain()
+                await asyncio.sleep(0.01)
+        writer.close()
+
+    await asyncio.gather(*(one(patterns[i % len(patterns)]) for i in range(15)))
 
 
 async def http_on_the_tcp_port(served: Served) -> None:
@@ -161,6 +187,43 @@ async def stream_ahead(served: Served) -> None:
     writer.close()
 
 
+async def ws_stream_ahead(served: Served) -> None:
+    """The same from a ``/ws`` sender, whose ``!`` waited 6.2 s behind 100 queued lines (and a
+    Ctrl-X never acted while held): the hold must show within a second."""
+    lines = "".join(f"G1 X{i % 200} Y{i % 150} F3000\n" for i in range(100_000))[: 2 * MIB]
+    async with wsc.connect(f"ws://{served.http}/ws") as socket:
+        await socket.send(f"$AUTH={TOKEN}\n")
+        for start in range(0, len(lines), 60_000):  # under the 64 KiB message limit
+            await socket.send(lines[start : start + 60_000])
+        await asyncio.sleep(0.5)
+        await socket.send("!")
+        reader, writer = await asyncio.open_connection("127.0.0.1", served.tcp_port)
+        async with asyncio.timeout(1.0):  # (its own replies are far behind: ask another)
+            while not (await reader.readline()).startswith(b"<Hold"):
+                writer.write(b"?")
+        writer.close()
+        await socket.send("\x18")
+
+
+async def job_start_mid_stream(served: Served) -> None:
+    """``job.start`` on the API and ``play`` on a line connection while the moving sender
+    streams (a job took the machine from it): each refused (45), nothing of the job runs."""
+    (served.jobs_dir / "cut.nc").write_text("G0 X123 Y77\nM3 S1000\nG1 X140 F3000\n")
+    async with wsc.connect(f"ws://{served.http}/api?token={TOKEN}") as socket:
+        for request_id in range(10):
+            await socket.send(json.dumps({"jsonrpc": "2.0", "id": request_id,
+                                          "method": "job.start", "params": {"name": "cut.nc"}}))
+            reply = json.loads(await asyncio.wait_for(socket.recv(), 10))
+            assert reply["error"]["code"] == 45, reply
+    reader, writer = await asyncio.open_connection("127.0.0.1", served.tcp_port)
+    while not (await reader.readline()).startswith(b"Grbl"):
+        pass
+    writer.write(f"$AUTH={TOKEN}\nplay cut.nc\n".encode())
+    assert (await asyncio.wait_for(reader.readline(), 10)).strip() == b"ok"
+    assert (await asyncio.wait_for(reader.readline(), 10)).startswith(b"error:45")
+    writer.close()
+
+
 async def auth_guessing(served: Served) -> None:
     """Token guesses as fast as a connection can send them."""
     reader, writer = await asyncio.open_connection("127.0.0.1", served.tcp_port)
@@ -191,11 +254,21 @@ ATTACKS: dict[str, Attack] = {
     "deeply nested JSON": nested_json,
     "a ? flood from 15 clients": status_flood,
     "a ! and 0x91 flood from 15 clients": realtime_flood,
+    "a realtime flood from 15 logged-in clients": controlling_realtime_flood,
     "HTTP requests on the TCP port": http_on_the_tcp_port,
     "gzip uploads": gzip_uploads,
     "20,000 $AUTH guesses": auth_guessing,
     "2 MB streamed ahead, then ! and Ctrl-X": stream_ahead,
+    "2 MB streamed ahead on /ws, then ! and Ctrl-X": ws_stream_ahead,
+    "job.start and play while a sender streams": job_start_mid_stream,
     "idle sockets": idle_sockets,
+}
+
+
+MAY_HOLD = {  # attackers that control: ! or Ctrl-X stops the motion
+    "a realtime flood from 15 logged-in clients",
+    "2 MB streamed ahead, then ! and Ctrl-X",
+    "2 MB streamed ahead on /ws, then ! and Ctrl-X",
 }
 
 
@@ -211,10 +284,17 @@ async def repeat_for(attack: Attack, served: Served, duration_s: float) -> None:
 
 @pytest.mark.parametrize("name", list(ATTACKS))
 async def test_the_operators_status_stays_fast_during_an_attack(name: str, tmp_path: Path) -> None:
-    async with motiond(tmp_path, CONFIG) as served:
-        async with latency_probe(served.tcp_port, token=TOKEN) as probe:
+    trace = tmp_path / "trace.csv"
+    async with motiond(tmp_path, CONFIG + trace_toml(trace)) as served:
+        async with (latency_probe(served.tcp_port, token=TOKEN) as probe,
+                    keep_moving(served.tcp_port, TOKEN)):
             await asyncio.wait_for(repeat_for(ATTACKS[name], served, 1.0), 60)
             await asyncio.sleep(0.3)
         assert served.process.returncode is None, "the server survived"
-    assert probe["missed"] == 0 and probe["count"] > 80, probe
-    assert probe["p90_ms"] < P90_MS and probe["max_ms"] < WORST_MS, probe
+    jumps = trace_jumps(trace)
+    print(f"{name}: probe {probe}, trace {jumps}")
+    assert_prompt(probe)
+    if name not in MAY_HOLD:
+        assert jumps["moved_mm"] > 20.0, "motion ran during the attack"
+    assert jumps["max_y_mm"] <= 20.0, "nothing but the moving sender's lines moved the machine"
+    assert jumps["max_gap_ms"] < WORST_MS, jumps

@@ -17,7 +17,8 @@ from playwright.async_api import Browser, async_playwright
 
 from tests.e2e.test_mqtt import mpos, tcp_report
 from tests.e2e.test_web_e2e import CHROMIUM, CHROMIUM_ARGS
-from tests.support.processes import free_port, motiond
+from tests.support.processes import free_port, latency_probe, motiond
+from tests.support.undisturbed import assert_prompt
 
 LASER = "[laser]\n"
 ATTACK_BODY = "G0 X123 Y77\\nM3 S1000\\nG1 X140 F3000\\n"
@@ -63,6 +64,7 @@ async def test_a_page_from_another_address_posting_gcode_to_the_tcp_port_moves_n
         pytest.fail(f"{CHROMIUM} is missing: apt-get install chromium (see .ci/run)")
     async with (
         motiond(tmp_path, LASER) as served,
+        latency_probe(served.tcp_port) as probe,
         page_server(attack_page(served.tcp_port)) as origin,
         async_playwright() as playwright,
     ):
@@ -81,3 +83,4 @@ async def test_a_page_from_another_address_posting_gcode_to_the_tcp_port_moves_n
         assert not re.search(r"\|FS:\d+,[1-9]", report), report  # no spindle/laser power
         log = (tmp_path / "machine.log").read_text()
         assert log.count("an HTTP request on the line protocol port") >= 1, log
+    assert_prompt(probe, least_count=50)  # the operator's ? stayed prompt meanwhile

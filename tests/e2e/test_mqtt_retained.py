@@ -21,7 +21,8 @@ import pytest
 
 from tests.e2e.test_mqtt import MACHINE, PREFIX, is_online, mpos, tcp_report
 from tests.support.broker import Broker, Watcher, mosquitto, mqtt_toml, watching
-from tests.support.processes import motiond
+from tests.support.processes import latency_probe, motiond
+from tests.support.undisturbed import assert_prompt
 
 CLIENT_ID = "motiond-mill-1"
 MOVE = {"id": "stored", "lines": ["G0 X123 Y45"]}
@@ -74,6 +75,7 @@ async def test_retained_commands_never_run_at_start_or_after_a_reconnect(
         async with (
             watching(broker, f"{PREFIX}/#") as watch,
             motiond(tmp_path, toml) as served,
+            latency_probe(served.tcp_port) as probe,
         ):
             (served.jobs_dir / "cut.nc").write_text("G0 X100\n")
             await watch.wait_for(f"{PREFIX}/availability", is_online, timeout_s=15)
@@ -109,3 +111,4 @@ async def test_retained_commands_never_run_at_start_or_after_a_reconnect(
     assert plain["ok"] is True
     assert mpos(end) == [5.0, 0.0], end
     assert kept == [], "replies and events are never retained"
+    assert_prompt(probe)  # the operator's ? stayed prompt through starts and reconnects

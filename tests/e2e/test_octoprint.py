@@ -2,9 +2,9 @@
 
 One OctoPrint server runs for the module (it takes 10-30 s to start here); each test starts a
 motiond on the same pty path, connects OctoPrint to it through its REST API, does what a user
-does in OctoPrint's UI, and checks what the machine did. OctoPrint's timeouts are shortened
-(4 s without a line, where its default is 30 s) so that a hold of 9 s proves what a 100 s move
-would: the busy keep-alive, not luck, keeps the connection. Every online feature is off (see
+does in OctoPrint's UI, and checks what the machine did. OctoPrint keeps its own timeouts
+(30 s without a line, 3 s once it has seen the busy keep-alive): a single move of 100 s holds
+an ``ok`` through all of them, as a long laser line does. Every online feature is off (see
 :mod:`tests.support.octoprint`).
 """
 
@@ -15,20 +15,24 @@ import contextlib
 import re
 import time
 from collections.abc import AsyncIterator, Iterator
+from pathlib import Path
 
 import aiohttp
 import pytest
+from playwright.async_api import async_playwright, expect
 
 from server.app import App
 from server.runtime.clock import RealClock
 from server.runtime.events import MachineState
 from server.transports.serial import SerialTransport
 from tests.conftest import make_config
+from tests.e2e.test_web_e2e import CHROMIUM, CHROMIUM_ARGS
 from tests.support.octoprint import Api, OctoPrint
 from tests.support.senders import wait_for
 
 LASER = {"minimum_power": 0.1, "maximum_power": 0.8, "maximum_s_value": 1000}
-TIMEOUTS_S = {"communication": 4.0, "temperature": 3.0, "temperatureTargetSet": 3.0}
+TIMEOUTS_S: dict[str, float] = {}  # OctoPrint's own defaults
+COMMUNICATION_TIMEOUT_S = 30.0  # OctoPrint's default serial.timeout.communication
 CANCEL_SCRIPT = "M410\nM5\n"  # the README's cancel script for a laser
 _PAUSE_EVENT = re.compile(r"event: PrintPaused \(Payload: .*?'position': \{[^}]*'x': ([-\d.]+)")
 
@@ -98,15 +102,36 @@ async def machine(server: OctoPrint, *, connect: bool = True) -> AsyncIterator[R
         await asyncio.wait_for(task, 10)
 
 
+async def click_in_control_tab(server: OctoPrint, button: str) -> None:
+    """Open OctoPrint's web UI in headless Chromium (logged in as its local user), go to the
+    Control tab and click ``button`` once it is enabled (the printer connected)."""
+    if not Path(CHROMIUM).exists():
+        pytest.fail(f"{CHROMIUM} is missing: apt-get install chromium (see .ci/run)")
+    async with async_playwright() as playwright:
+        browser = await playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        try:
+            page = await browser.new_page()
+            await page.goto(f"{server.url}/", timeout=120_000)  # 20 s here, with its assets
+            await page.locator('a[href="#control"]').click(timeout=60_000)
+            target = page.get_by_role("button", name=button, exact=True)
+            await expect(target).to_be_enabled(timeout=30_000)
+            await target.click()
+        finally:
+            await browser.close()
+
+
 async def printing(run: Run, name: str, lines: list[str]) -> None:
     await run.api.upload(name, "\n".join(lines) + "\n")
     await run.api.print_file(name)
     await run.api.wait_state("Printing", 10)
 
 
-async def test_octoprint_connects_to_a_machine_in_alarm_and_unlocks_it_with_x(
+async def test_octoprint_connects_to_a_machine_in_alarm_and_its_unlock_button_unlocks_it(
     octoprint: OctoPrint,
 ) -> None:
+    """No terminal: the user connects, sees the alarm, clicks Reconnect (which must not
+    unlock: Grbl clears an alarm only on purpose), then, in OctoPrint's web UI in Chromium,
+    the Control tab's "Unlock" button (the README's custom control, M999)."""
     async with machine(octoprint, connect=False) as run:
         run.app.kernel.machine.emergency_stop()  # ALARM:40, as after an M112
         await run.api.connect()
@@ -114,13 +139,20 @@ async def test_octoprint_connects_to_a_machine_in_alarm_and_unlocks_it_with_x(
         await wait_for(lambda: "Recv: Cap:EMERGENCY_PARSER:1" in run.serial
                        and 'Unknown command: "unsupported M code M21"' in run.serial,
                        10, "OctoPrint's M115 and M21 answered")
-        await run.api.terminal("$X")
-        await wait_for(lambda: run.app.kernel.state is MachineState.IDLE, 5, "$X unlocking")
-        await run.api.terminal("G0 X10 Y5")
-        await wait_for(lambda: run.machine_x == pytest.approx(10.0), 5, "the move after $X")
+        await run.api.disconnect()
+        await run.api.wait_state(("Offline", "Closed"), 10)
+        await run.api.connect()
+        await run.api.wait_state("Operational", 20)
+        still_locked = run.app.kernel.state is MachineState.ALARM
+        await click_in_control_tab(octoprint, "Unlock")
+        await wait_for(lambda: run.app.kernel.state is MachineState.IDLE, 5, "Unlock (M999)")
+        await run.api.post("/api/printer/printhead", {"command": "jog", "x": 10, "y": 5})
+        await wait_for(lambda: run.machine_x == pytest.approx(10.0), 5, "a jog after Unlock")
         state = await run.api.state()
+    assert still_locked, "a reconnect never clears an alarm"
     assert state == "Operational"
     assert "Error:" not in run.serial and "M112" not in run.serial
+    assert re.search(r"Send: (N\d+ )?M999", run.serial), "the button sent M999"
 
 
 async def test_octoprint_prints_a_job_and_is_done_only_when_motion_is_done(
@@ -193,17 +225,17 @@ async def test_octoprint_keeps_the_connection_through_a_long_move_and_a_refused_
     octoprint: OctoPrint,
 ) -> None:
     async with machine(octoprint) as run:
-        # 9 s at 4 mm/s: with the moves back queued behind it, the planner is full and the
-        # ok of a line after them is held more than twice OctoPrint's timeout
-        await run.api.terminal("G1 X36 F240", "G0 X500", "G1 X0 F3000", "G1 X5", "G1 X0",
+        # one move of 100 s (100 mm at 1 mm/s): with the moves back queued behind it, the
+        # planner is full and the ok of a line after them is held for the whole move
+        await run.api.terminal("G1 X100 F60", "G0 X500", "G1 X0 F3000", "G1 X5", "G1 X0",
                                "G1 X5")
         await wait_for(lambda: run.moving, 5, "the long move")
         started_s = time.monotonic()
-        await wait_for(lambda: not run.moving and run.machine_x == 5.0, 20, "the moves")
+        await wait_for(lambda: not run.moving and run.machine_x == 5.0, 130, "the moves")
         held_s = time.monotonic() - started_s
         state = await run.api.state()
         kernel_state = run.app.kernel.state
-    assert held_s > 2 * TIMEOUTS_S["communication"]
+    assert held_s > 3 * COMMUNICATION_TIMEOUT_S
     assert state == "Operational" and kernel_state is MachineState.IDLE
     assert "Recv: echo:busy: processing" in run.serial
     refused = [line for line in run.serial.splitlines() if "(code 40)" in line]
