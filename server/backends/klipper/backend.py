@@ -196,12 +196,13 @@ class KlipperBackend:
             self._update_map(time_s + self.lead_s)
         self._generate(time_s)
         self._refresh_outputs(time_s)
-        if time_s >= self._next_flush_s or not self._pieces:
+        flushing = time_s >= self._next_flush_s or not self._pieces
+        if flushing:
             self._next_flush_s = time_s + self.flush_s
             self._flush(time_s)
             if self.mcu is not None:
                 self.mcu.busy = self._busy()
-        self._pump()
+        self._pump(hold=not flushing)
 
     def set_output(self, name: str, value: float, time_s: float) -> None:
         self.values[name] = value
@@ -211,7 +212,7 @@ class KlipperBackend:
         if value == out.value:
             return
         self._queue_output(out, value, self._when_s(time_s))
-        self._pump()
+        self._pump(hold=True)  # sent with the next flush's burst (at most flush_s later)
         self._wake()  # refreshed from sample() while on
 
     def _refresh_outputs(self, time_s: float) -> None:
@@ -567,12 +568,20 @@ class KlipperBackend:
             last = int(clocks[-1])
         return done
 
-    def _pump(self) -> None:
-        """Send queued messages in order while the MCU's move queue has room."""
+    def _pump(self, hold: bool = False) -> None:
+        """Send queued messages in order while the MCU's move queue has room. ``hold``
+        (between flushes): less than a block of messages due later than the runs a flush
+        sends (``lead_s`` - ``HOLD_BACK_S`` ahead) waits for the next flush, so they share
+        blocks; a message so held still leaves at least ``lead_s`` - ``flush_s`` ahead."""
         mcu = self.mcu
         if mcu is None or not self._queue.waiting:
             return
-        late_ms = self._queue.pump(mcu, self._now_clock())
+        now = self._now_clock()
+        hold_after = None
+        if hold and mcu.clock is not None:
+            hold_after = now + (self.lead_s - min(HOLD_BACK_S, 0.5 * self.lead_s)) * \
+                mcu.clock.freq_hz
+        late_ms = self._queue.pump(mcu, now, hold_after)
         if late_ms is not None:
             self.halt()
             self._on_fault(f"steps due {late_ms:.1f} ms ago were not sent in time (host "
