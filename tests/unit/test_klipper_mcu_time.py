@@ -34,8 +34,9 @@ class Sink:
     def __init__(self, dictionary: Dictionary) -> None:
         self.dictionary, self.messages = dictionary, []  # type: list[tuple[str, Any]]
 
-    def send(self, message: bytes) -> None:
-        self.messages.extend(self.dictionary.decode(message))
+    def send(self, *messages: bytes) -> None:
+        for message in messages:
+            self.messages.extend(self.dictionary.decode(message))
 
 
 class FittedMcu:
