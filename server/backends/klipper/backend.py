@@ -9,8 +9,10 @@ deadlines), and compressed into
 ``queue_step`` runs within ``max_error_s`` (:mod:`.stepcompress`) every ``flush_s``, with
 ``set_next_step_dir`` on direction changes and ``reset_step_clock`` after a long idle or a
 reconfiguration. A run that may still grow is held back at most ``HOLD_BACK_S``, so a host
-stall of up to ``lead_time_s`` - 50 ms never starves the MCU. Messages leave in order while the
-MCU's move queue (``move_count`` from its config) has room (:mod:`.movequeue`).
+stall of up to ``lead_time_s`` - 50 ms - ``flush_s`` never starves the MCU. Messages leave in
+order while the MCU's move queue (``move_count`` from its config) has room (:mod:`.movequeue`),
+each flush's in one burst that the link packs into as few message blocks as fit; a message
+made between flushes (an output's change) waits for the next one unless a block's worth waits.
 
 Outputs named in ``[backend.outputs]`` become ``queue_pwm_out``/``queue_digital_out`` at the
 MCU time of the last sample (the instant whose speed the laser's power was computed from) plus
