@@ -34,8 +34,13 @@ class Sink:
     def __init__(self, dictionary: Dictionary) -> None:
         self.dictionary, self.messages = dictionary, []  # type: list[tuple[str, Any]]
 
-    def send(self, message: bytes) -> None:
-        self.messages.extend(self.dictionary.decode(message))
+        self.now_s, self.sent_s = 0.0, []  # type: float, list[float]
+
+    def send(self, *messages: bytes) -> None:
+        for message in messages:
+            decoded = self.dictionary.decode(message)
+            self.messages.extend(decoded)
+            self.sent_s += [self.now_s] * len(decoded)
 
 
 class FittedMcu:
@@ -63,16 +68,21 @@ class Listener:
     def on_hold_stopped(self) -> None: ...
 
 
-def run(moves: list[Move], fitted_hz: float) -> list[tuple[str, Any]]:
-    """Every message the backend sends for ``moves`` with the fit at ``fitted_hz``."""
+def run(moves: list[Move], fitted_hz: float, lead_time_s: float = 0.2,
+        sink: Sink | None = None) -> list[tuple[str, Any]]:
+    """Every message the backend sends for ``moves`` with the fit at ``fitted_hz``
+    (``sink``: where they go, with the virtual time each was sent at)."""
     axes = {a: {"steps_per_mm": 80, "max_rate_mm_s": 300, "accel_mm_s2": 3000, "max_mm": 400}
             for a in "xy"}
     pins = {"x": {"step_pin": "PB13", "dir_pin": "PB12"},
             "y": {"step_pin": "PB10", "dir_pin": "PB2"}}
     core = build_config({"axes": axes, "backend": {
-        "kind": "klipper", "serial": "/dev/null", "axes": pins}}).core
+        "kind": "klipper", "serial": "/dev/null", "axes": pins,
+        "lead_time_s": lead_time_s}}).core
     backend = VirtualTime(core)
     mcu = FittedMcu(fitted_hz)
+    if sink is not None:
+        mcu.link = sink
     backend.mcu, backend.ready = mcu, True  # type: ignore[assignment]
     for oid, axis in enumerate(backend.axes):  # what configuring the MCU sets
         axis.oid, axis.compressor = oid, StepCompressor(backend.cfg.max_error_s * CLOCK_HZ)
@@ -85,11 +95,11 @@ def run(moves: list[Move], fitted_hz: float) -> list[tuple[str, Any]]:
     stepgen.request_start()
     while not stepgen.idle or now_s < 0.5:
         now_s += 0.001
-        backend.now_s = now_s
+        backend.now_s = mcu.link.now_s = now_s
         stepgen.tick(now_s)
-    for _ in range(400):  # past the lead: everything flushed
+    for _ in range(int(lead_time_s * 1000) + 200):  # past the lead: everything flushed
         now_s += 0.001
-        backend.now_s = now_s
+        backend.now_s = mcu.link.now_s = now_s
         stepgen.tick(now_s)
     return mcu.link.messages
 
@@ -155,3 +165,35 @@ def test_the_schedule_runs_at_nominal_until_it_drifts_then_follows_the_fit() -> 
             assert sched.hz == CLOCK_HZ
     assert max(abs(d) for d in drifts) < 0.0101
     assert sched.hz != CLOCK_HZ or abs(drifts[-1]) < 0.01
+
+
+def first_step_leads_s(sink: Sink, oid: int) -> tuple[int, float]:
+    """How many queue_step messages ``oid`` got, and the least time between sending one and
+    its first step (the fit is exact from 0: clock / CLOCK_HZ is host time)."""
+    runs, least_s, last = 0, float("inf"), 0
+    for (name, p), sent_s in zip(sink.messages, sink.sent_s, strict=True):
+        if p.get("oid") != oid:
+            continue
+        if name == "reset_step_clock":
+            last = p["clock"]
+        if name == "queue_step":
+            runs += 1
+            least_s = min(least_s, (last + p["interval"]) / CLOCK_HZ - sent_s)
+            k = p["count"] - 1
+            last += p["count"] * p["interval"] + p["add"] * (k * (k + 1) // 2)
+    return runs, least_s
+
+
+def test_a_longer_lead_holds_runs_back_longer_and_each_still_leaves_ahead() -> None:
+    """A run that may still grow waits up to a quarter of the lead: a longer lead sends
+    a cruise in fewer queue_steps, and every one leaves at least 3/4 lead - flush_s ahead
+    of its first step (the host stall the MCU rides through)."""
+    move = [Move((300.0, 0.0), 100.0, MoveKind.FEED, ToolMode.OFF, 0.0)]
+    found = {}
+    for lead_s in (0.2, 0.5):
+        sink = Sink(Dictionary(FORMATS))
+        run(move, CLOCK_HZ, lead_s, sink)
+        runs, least_s = first_step_leads_s(sink, 0)
+        assert least_s >= 0.75 * lead_s - 0.02 - 0.002, (lead_s, least_s)
+        found[lead_s] = runs
+    assert found[0.5] < 0.75 * found[0.2], found

@@ -8,9 +8,12 @@ the fitted clock of :mod:`.clocksync` anchors the schedule's start and sets the 
 deadlines), and compressed into
 ``queue_step`` runs within ``max_error_s`` (:mod:`.stepcompress`) every ``flush_s``, with
 ``set_next_step_dir`` on direction changes and ``reset_step_clock`` after a long idle or a
-reconfiguration. A run that may still grow is held back at most ``HOLD_BACK_S``, so a host
-stall of up to ``lead_time_s`` - 50 ms never starves the MCU. Messages leave in order while the
-MCU's move queue (``move_count`` from its config) has room (:mod:`.movequeue`).
+reconfiguration. A run that may still grow is held back at most a quarter of the lead
+(``HOLD_BACK_SHARE``), so a host stall of up to 3/4 ``lead_time_s`` - ``flush_s`` (130 ms at
+the default 0.2 s) never starves the MCU. Messages leave in
+order while the MCU's move queue (``move_count`` from its config) has room (:mod:`.movequeue`),
+each flush's in one burst that the link packs into as few message blocks as fit; a message
+made between flushes (an output's change) waits for the next one unless a block's worth waits.
 
 Outputs named in ``[backend.outputs]`` become ``queue_pwm_out``/``queue_digital_out`` at the
 MCU time of the last sample (the instant whose speed the laser's power was computed from) plus
@@ -60,8 +63,11 @@ from server.errors import CommandError, Error
 
 log = logging.getLogger("motiond.klipper")
 EXIT_GRACE_S = 0.3
-HOLD_BACK_S = 0.05
-"""The longest a run that may still grow waits before it is sent anyway."""
+REST_S = 0.05
+"""A pause in sampling longer than this is a rest (the schedule may start afresh)."""
+HOLD_BACK_SHARE = 0.25
+"""The longest a run that may still grow waits before it is sent anyway, as a share of the
+lead (50 ms at the default 0.2 s): a longer lead buys longer runs, fewer bytes."""
 DRIFT_MAX_S = 0.01
 """The most the schedule may drift from the clock fit (or a tenth of the lead) before it is
 steered back (:mod:`.printclock`)."""
@@ -84,6 +90,7 @@ class KlipperBackend:
         assert cfg.serial is not None
         self.cfg, self.retry_s, self.flush_s = cfg, retry_s, flush_s
         self.lead_s = cfg.lead_time_s
+        self.hold_back_s = HOLD_BACK_SHARE * self.lead_s
         self.axis_names = core.axis_names
         self.axes = [Axis(n, a.steps_per_mm, exact=[] if record else None)
                      for n, a in zip(core.axis_names, core.axes.values(), strict=True)]
@@ -196,12 +203,13 @@ class KlipperBackend:
             self._update_map(time_s + self.lead_s)
         self._generate(time_s)
         self._refresh_outputs(time_s)
-        if time_s >= self._next_flush_s or not self._pieces:
+        flushing = time_s >= self._next_flush_s or not self._pieces
+        if flushing:
             self._next_flush_s = time_s + self.flush_s
             self._flush(time_s)
             if self.mcu is not None:
                 self.mcu.busy = self._busy()
-        self._pump()
+        self._pump(hold=not flushing)
 
     def set_output(self, name: str, value: float, time_s: float) -> None:
         self.values[name] = value
@@ -211,7 +219,7 @@ class KlipperBackend:
         if value == out.value:
             return
         self._queue_output(out, value, self._when_s(time_s))
-        self._pump()
+        self._pump(hold=True)  # sent with the next flush's burst (at most flush_s later)
         self._wake()  # refreshed from sample() while on
 
     def _refresh_outputs(self, time_s: float) -> None:
@@ -263,7 +271,7 @@ class KlipperBackend:
         or on: the schedule may then start afresh from the live clock fit (a host stall in
         motion is no rest: its schedule stays continuous)."""
         sample_s = self._sample_s
-        return (sample_s is None or time_s - sample_s > HOLD_BACK_S) and not (
+        return (sample_s is None or time_s - sample_s > REST_S) and not (
             self._pieces or self._queue.waiting or self._busy())
 
     def _scheduled_clock(self, when_s: float) -> int:
@@ -528,7 +536,7 @@ class KlipperBackend:
     def _flush(self, now_s: float) -> None:
         """Compress what is due soon (all of it when motion has no more pieces)."""
         idle = not self._pieces
-        force_clock = self._motion_clock(now_s + self.lead_s - min(HOLD_BACK_S, 0.5 * self.lead_s))
+        force_clock = self._motion_clock(now_s + self.lead_s - self.hold_back_s)
         for axis in self.axes:
             axis.collect()
             while axis.segments:
@@ -567,12 +575,19 @@ class KlipperBackend:
             last = int(clocks[-1])
         return done
 
-    def _pump(self) -> None:
-        """Send queued messages in order while the MCU's move queue has room."""
+    def _pump(self, hold: bool = False) -> None:
+        """Send queued messages in order while the MCU's move queue has room. ``hold``
+        (between flushes): less than a block of messages due later than the runs a flush
+        sends (``lead_s`` - ``hold_back_s`` ahead) waits for the next flush, so they share
+        blocks; a message so held still leaves at least ``lead_s`` - ``flush_s`` ahead."""
         mcu = self.mcu
         if mcu is None or not self._queue.waiting:
             return
-        late_ms = self._queue.pump(mcu, self._now_clock())
+        now = self._now_clock()
+        hold_after = None
+        if hold and mcu.clock is not None:
+            hold_after = now + (self.lead_s - self.hold_back_s) * mcu.clock.freq_hz
+        late_ms = self._queue.pump(mcu, now, hold_after)
         if late_ms is not None:
             self.halt()
             self._on_fault(f"steps due {late_ms:.1f} ms ago were not sent in time (host "

@@ -83,11 +83,12 @@ class Link:
         """Message bytes waiting for room in the window."""
         return sum(len(m) for m in self._queue)
 
-    def send(self, message: bytes, keep: bool = False) -> None:
-        """Queue one encoded command; it goes out as soon as the window allows."""
+    def send(self, *messages: bytes, keep: bool = False) -> None:
+        """Queue encoded commands; they go out as soon as the window allows, as many to a
+        block as fit (messages sent together share blocks: send a burst in one call)."""
         if not self.closed:
-            self._queue.append(message)
-            self._keep.append(keep)
+            self._queue.extend(messages)
+            self._keep.extend([keep] * len(messages))
             self._pump()
 
     def send_first(self, message: bytes) -> list[bytes]:
@@ -101,8 +102,7 @@ class Link:
         if self.closed:
             return dropped
         self._new_block(message, time.monotonic())
-        for queued in kept:
-            self.send(queued, keep=True)
+        self.send(*kept, keep=True)
         self._arm_timer()
         return dropped
 

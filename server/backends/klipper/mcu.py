@@ -279,8 +279,7 @@ class Mcu:
         messages = [encode("allocate_oids", count=self._oid_count())]
         messages += [encode(name, **params) for name, params in self._commands]
         messages.append(encode("finalize_config", crc=self.crc))
-        for message in messages:
-            self.link.send(message)
+        self.link.send(*messages)
 
     def _oid_count(self) -> int:
         oids = {int(p["oid"]) for _, p in self._commands if "oid" in p}

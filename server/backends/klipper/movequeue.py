@@ -1,5 +1,7 @@
 """The MCU's move queue, seen from the host: messages leave in order while it has room.
 
+What has room leaves in one burst, which the link packs into as few blocks as fit; between
+bursts, messages not yet urgent may wait for the next one (less than a block's worth).
 Every ``queue_step`` and scheduled output takes one of the MCU's ``move_count`` slots until
 the MCU has reached it. The host counts a slot as taken from sending the message until its
 clock has passed (plus ``QUEUE_MARGIN_S``, the clock fit's possible lead over the MCU's own),
@@ -12,6 +14,7 @@ from __future__ import annotations
 import heapq
 from collections import deque
 
+from server.backends.klipper.codec import PAYLOAD_MAX
 from server.backends.klipper.mcu import Mcu
 
 LATE_MARGIN_S = 0.002
@@ -29,26 +32,42 @@ class MoveQueue:
         """Queue ``message``; ``until`` is the MCU clock its slot frees at (None: no slot)."""
         self.waiting.append((message, until, due))
 
-    def pump(self, mcu: Mcu, now: float) -> float | None:
-        """Send what the queue has room for at MCU clock ``now``; returns how many ms late
-        the next message would be (nothing more is sent), or None."""
+    def pump(self, mcu: Mcu, now: float, hold_after: float | None = None) -> float | None:
+        """Send what the queue has room for at MCU clock ``now``, all in one burst (the link
+        packs it into as few blocks as fit); returns how many ms late the next message would
+        be (nothing more is sent), or None. ``hold_after``: an MCU clock; while the first
+        message is due after it and less than a block's worth waits, nothing is sent (the
+        next burst will share its blocks)."""
         freq = mcu.clock.freq_hz if mcu.clock else 0.0
         in_use, waiting = self.in_use, self.waiting
+        if hold_after is not None and waiting and waiting[0][2] > hold_after:
+            size = 0
+            for message, _, _ in waiting:
+                size += len(message)
+                if size >= PAYLOAD_MAX:
+                    break
+            else:
+                return None
         freed = now - QUEUE_MARGIN_S * freq
         while in_use and in_use[0] <= freed:
             heapq.heappop(in_use)
         late = now + LATE_MARGIN_S * freq
+        burst: list[bytes] = []
+        late_ms: float | None = None
         while waiting:
             message, until, due = waiting[0]
             if until is not None:
                 if len(in_use) >= mcu.move_count:
-                    return None
+                    break
                 if due < late:
-                    return (late - due) / freq * 1e3 if freq else 0.0
+                    late_ms = (late - due) / freq * 1e3 if freq else 0.0
+                    break
                 heapq.heappush(in_use, until)
             waiting.popleft()
-            mcu.link.send(message)
-        return None
+            burst.append(message)
+        if burst:
+            mcu.link.send(*burst)
+        return late_ms
 
     def busy(self, now: float) -> bool:
         """Whether a message waits or a slot is still taken at MCU clock ``now``."""
