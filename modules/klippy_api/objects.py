@@ -62,12 +62,14 @@ class JobTimes:
             self.ended_s = now_s
 
     def durations(self, now_s: float) -> tuple[float, float]:
-        """(total, printing) seconds, now."""
+        """(total, printing) seconds, now, unrounded: as Klipper's, the total grows between
+        any two updates of a job (Moonraker takes a ``printing`` whose total did not grow
+        since ``paused`` for a new job, not a resume)."""
         end_s = now_s if self.ended_s is None else self.ended_s
         paused_s = self.paused_s + (0.0 if self.pause_began_s is None
                                     else end_s - self.pause_began_s)
         total_s = max(0.0, end_s - self.started_s)
-        return round(total_s, 3), round(max(0.0, total_s - paused_s), 3)
+        return total_s, max(0.0, total_s - paused_s)
 
 
 @dataclass(slots=True)
