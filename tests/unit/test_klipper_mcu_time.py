@@ -11,13 +11,13 @@ from typing import Any
 
 import numpy as np
 
-from server.backends.klipper.backend import KlipperBackend
+from benchmarks.bench_klipper_host import Listener, OfflineBackend
 from server.backends.klipper.clocksync import ClockSync
 from server.backends.klipper.dictionary import Dictionary
 from server.backends.klipper.printclock import PrintClock
 from server.backends.klipper.stepcompress import StepCompressor
 from server.config_loader import build_config
-from server.motion.moves import Action, Move, MoveKind, ToolMode
+from server.motion.moves import Move, MoveKind, ToolMode
 from server.motion.planner import Planner
 from server.motion.stepgen import StepGenerator
 from server.runtime.parts import planner_settings
@@ -55,19 +55,6 @@ class FittedMcu:
         self.link = Sink(self.dictionary)
 
 
-class VirtualTime(KlipperBackend):
-    now_s = 0.0
-
-    def _now_clock(self) -> float:
-        return self._clock_at(self.now_s)
-
-
-class Listener:
-    def on_action(self, action: Action) -> None: ...
-    def on_idle(self) -> None: ...
-    def on_hold_stopped(self) -> None: ...
-
-
 def run(moves: list[Move], fitted_hz: float, lead_time_s: float = 0.2,
         sink: Sink | None = None) -> list[tuple[str, Any]]:
     """Every message the backend sends for ``moves`` with the fit at ``fitted_hz``
@@ -79,7 +66,7 @@ def run(moves: list[Move], fitted_hz: float, lead_time_s: float = 0.2,
     core = build_config({"axes": axes, "backend": {
         "kind": "klipper", "serial": "/dev/null", "axes": pins,
         "lead_time_s": lead_time_s}}).core
-    backend = VirtualTime(core)
+    backend = OfflineBackend(core)
     mcu = FittedMcu(fitted_hz)
     if sink is not None:
         mcu.link = sink
