@@ -52,6 +52,7 @@ _REPRAP_GREETING = re.compile(r"[Mm]0*(?:105|110|115)(?![\d.])")
 _COMMENT = re.compile(r"\([^)]*\)|;.*")
 _MSG_FIELD = re.compile(r"\[MSG:[^\]]*\]")
 _REPLY_ONLY = ("[VER:", "[OPT:", "[HLP:")
+_NUMBERING = re.compile(rb"[Mm]0*110")  # in lines that may set the line number
 
 
 class LineProtocol(ByteScanner):
@@ -148,6 +149,15 @@ class LineProtocol(ByteScanner):
         if stripped[:1] in (b"N", b"n") and b"*" in stripped:
             return LineRejected(ResendError(Error.CHECKSUM, reason, self._last_line))
         return LineRejected(CommandError(Error.EXPECTED_COMMAND_LETTER, reason))
+
+    def _may_skim(self, lines: bytes) -> bool:
+        """Lines read ahead go unread only once the dialect is known, and when none of them
+        may be framed or an ``M110`` (the line numbering later lines are checked against)."""
+        if self._detecting or b"*" in lines:
+            return False
+        if b"110" not in lines or (b"M" not in lines and b"m" not in lines):
+            return True  # (faster than the search below, which decides)
+        return _NUMBERING.search(lines) is None
 
     def _detect_dialect(self, text: str, *, framed: bool) -> None:
         if not self._detecting:

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import copy
 import re
+from collections.abc import Callable
 from typing import Self
 
 from server.errors import CommandError, Error
@@ -30,6 +31,10 @@ from server.protocol.events import Dialect, Event, LineRejected, Realtime, Realt
 _ALWAYS_REALTIME = bytes(value for value in Realtime if value not in b"?!~")
 _SPECIAL_GRBL = re.compile(rb"[\r\n?!~\x18\x80-\xff]")
 _SPECIAL_REPRAP = re.compile(rb"[\r\n\x18\x80-\xff]")
+_RUN_GRBL = re.compile(rb"[?!~\x18\x80-\xff]+")  # bytes taken one by one, line ends aside
+_RUN_REPRAP = re.compile(rb"[\x18\x80-\xff]+")
+_PLAIN_GRBL = bytes(b for b in range(0x80) if b not in b"?!~\x18")  # to delete: the rest is
+_PLAIN_REPRAP = bytes(b for b in range(0x80) if b != 0x18)  # what the runs above would find
 _STATUS_RUN = re.compile(rb"\?+")
 _TEXT_REALTIME = re.compile("([" + "".join(chr(v) for v in Realtime if v >= 0x80) + "])")
 
@@ -82,6 +87,57 @@ class ByteScanner:
         if final:
             self._end_message(events)
         return events
+
+    def receive_ahead(self, data: bytes, *, final: bool = True,
+                      keep: Callable[[bytes], bool] | None = None) -> list[Event]:
+        """:meth:`receive_data` for bytes read ahead of the protocol that will execute them
+        (the session's backlog twin): the same state afterwards and the same realtime events,
+        but of the lines completed only those that may matter ahead of time are built and
+        returned: those of which ``keep(bytes holding them)`` says so (the bytes may hold
+        other lines too, with their line ends), and those that change how later bytes read
+        (:meth:`_may_skim`). The rest cost a few passes in C per read, not Python work per
+        line (2 MB of plain G-code: about 1 s of loop time line by line, 35 ms skimmed)."""
+        events: list[Event] = []
+        position = 0
+        while position < len(data):
+            grbl = self.dialect is Dialect.GRBL
+            if position == 0 and not data.translate(None, _PLAIN_GRBL if grbl else _PLAIN_REPRAP):
+                special = None  # the usual case, found without a search: no realtime byte
+            else:
+                special = (_RUN_GRBL if grbl else _RUN_REPRAP).search(data, position)
+            end = len(data) if special is None else special.start()
+            if end > position:
+                self._take_plain(data[position:end], events, keep)
+            if special is None:
+                break
+            self._feed(special.group(), events)  # exactly as receive_data, run by run
+            position = special.end()
+        if self._websocket and final:
+            self._end_message(events)
+        return events
+
+    def _take_plain(self, text: bytes, events: list[Event],
+                    keep: Callable[[bytes], bool] | None) -> None:
+        """Bytes that hold no realtime byte (text and line ends): the lines they complete
+        are skipped, unless ``keep`` or :meth:`_may_skim` asks to see them."""
+        last_end = max(text.rfind(b"\n"), text.rfind(b"\r"))
+        if last_end < 0:
+            self._take_text(text)
+            return
+        self._end_utf8_character()
+        lines = bytes(self._buffer) + text[: last_end + 1]
+        if not self._may_skim(lines) or (keep is not None and keep(lines)):
+            self._feed(text, events)
+            return
+        self.reset()  # every line but the last partial one has ended
+        self._skip_lf = text[last_end] == 0x0D  # a LF may follow in the next bytes
+        if last_end + 1 < len(text):
+            self._append(text[last_end + 1 :])
+
+    def _may_skim(self, lines: bytes) -> bool:
+        """Whether complete ``lines`` (no realtime byte in them) may go unread: they change
+        nothing in how later bytes are read (subclasses add line-level state)."""
+        return True
 
     def copy(self) -> Self:
         """An independent twin in the same state: it sees bytes ahead of this one exactly as

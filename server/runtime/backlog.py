@@ -21,6 +21,7 @@ then fills); realtime bytes already received are still acted on.
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Callable
 
 from server.protocol.events import Event
 from server.protocol.lines import LineProtocol
@@ -46,9 +47,12 @@ class Backlog:
     def full(self) -> bool:
         return self._size >= self.limit_bytes
 
-    def hold(self, protocol: LineProtocol, data: bytes, final: bool = False) -> list[Event]:
+    def hold(self, protocol: LineProtocol, data: bytes, final: bool = False,
+             keep: Callable[[bytes], bool] | None = None) -> list[Event]:
         """Keep ``data`` (no ``0x18`` in it) after what is held; return what the twin of
-        ``protocol`` finds in it: realtime commands to act on now, lines only to look at.
+        ``protocol`` finds in it: realtime commands to act on now, and lines only to look at,
+        those ``keep`` asks for (:meth:`LineProtocol.receive_ahead`: the others are not even
+        built, so holding a stream back costs little whatever its size).
         ``final``: the end of a WebSocket message."""
         if b"\x18" in data:
             raise ValueError("Ctrl-X is never held back: split the input at it")
@@ -62,7 +66,7 @@ class Backlog:
         else:
             self._segments.append((bytearray(data), final))
         self._size += len(data)
-        return self._twin.receive_data(data, final=final)
+        return self._twin.receive_ahead(data, final=final, keep=keep)
 
     def take(self, size_bytes: int) -> tuple[bytes, bool]:
         """The oldest held bytes, at most ``size_bytes``, for the protocol itself, and whether

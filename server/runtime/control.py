@@ -24,6 +24,9 @@ _ONCE = frozenset({Realtime.HOLD, Realtime.DOOR, Realtime.RESUME, Realtime.JOG_C
                    Realtime.STATUS, Realtime.RESET})
 _M112 = re.compile(r"^\s*(?:N\d+\s*)?M\s*0*112(?:\D|$)", re.I)
 _M410 = re.compile(r"^\s*(?:N\d+\s*)?M\s*0*410(?:[^\d.]|$)", re.I)
+# bytes in which a line may be one of those two (found anywhere; a line with other whitespace
+# than ASCII's has bytes above 0x7F, one with control characters is refused)
+MAY_STOP_AT_ONCE = re.compile(rb"[Mm]\s*0*(?:112|410)")
 
 
 def halts_at_once(text: str) -> bool:

@@ -49,7 +49,7 @@ from server.protocol.events import (
     RealtimeReceived,
 )
 from server.protocol.http_sniff import HttpSniffer
-from server.runtime.control import halts_at_once, quickstops_at_once
+from server.runtime.control import MAY_STOP_AT_ONCE, halts_at_once, quickstops_at_once
 from server.runtime.ratelimit import Allowance, TokenBucket
 
 if TYPE_CHECKING:
@@ -73,6 +73,7 @@ REALTIME_BURST_BYTES = 256  # realtime bytes one connection may send at once (th
 REALTIME_TOTAL_BURST_BYTES = 512  # what all flooding connections may send at once
 _STATUS_RUN = re.compile(rb"\?{2,}")
 _NOT_REALTIME = bytes(b for b in range(256) if b not in b"?!~\x18" and b < 0x80)
+_LOOKS_REALTIME = bytes(b for b in range(0x80) if b not in b"?!~")  # to delete: the rest does
 REFILL_BYTES = 1024  # held-back input is fed to the protocol in slices of this size
 READ_CHUNK = 4096  # bytes a transport reads at a time (then gives the loop a turn)
 
@@ -221,7 +222,7 @@ class LineAdmission:
     def _hold_back(self, data: bytes, final: bool) -> None:
         """The line queue is full: keep the bytes, act on their realtime commands now."""
         batch: list[Realtime] = []
-        for event in self._backlog.hold(self.protocol, data, final):
+        for event in self._backlog.hold(self.protocol, data, final, keep=seen_ahead):
             if isinstance(event, RealtimeReceived):
                 batch.append(event.command)
                 continue
@@ -359,6 +360,17 @@ def affordable(data: bytes, cost_limit: int) -> int:
         else:
             high = middle
     return low
+
+
+def seen_ahead(lines: bytes) -> bool:
+    """Whether held-back ``lines`` must be looked at when they arrive: one may be an M112 or
+    M410, or hold bytes that look like realtime ones (text: not charged to the realtime
+    budget). The others wait unread until the protocol itself reads them."""
+    if lines.translate(None, _LOOKS_REALTIME):
+        return True
+    if (b"112" not in lines and b"410" not in lines) or (b"M" not in lines and b"m" not in lines):
+        return False  # (faster than the search below, which decides)
+    return MAY_STOP_AT_ONCE.search(lines) is not None
 
 
 def realtime_allowance(rate_bytes_per_s: float, burst_bytes: float) -> Allowance:
