@@ -7,7 +7,7 @@ allowed, so that what it times is the server and not its own wait for a CPU. Eac
 from this test process for at least a second; the probe must miss no report and stay within
 the bounds of tests/support/undisturbed.py (p90 20 ms, p99 40 ms, worst 150 ms), and the
 moving tool's ticks within 50 ms of each other. Measured on this 2-core machine the 99th
-percentile is 0.8-7.7 ms per attack and ticks 1.4-14 ms apart (the old code: a 7 s freeze,
+percentile is 0.8-10.4 ms per attack and ticks 1.4-14 ms apart (the old code: a 7 s freeze,
 261 ms status times...); the bounds leave room for the scheduling noise of a shared CI machine,
 which runs the attacker, the server and the probe on two cores.
 """
