@@ -57,7 +57,7 @@ from server.backends.klipper.movequeue import MoveQueue
 from server.backends.klipper.pins import Axis, Output, config_commands
 from server.backends.klipper.printclock import PrintClock
 from server.backends.klipper.stepcompress import run_clocks
-from server.backends.klipper.steptimes import FloatArray, crossing_times, step_target
+from server.backends.klipper.steptimes import FloatArray, Spans, step_target
 from server.backends.klipper.trail import Trail
 from server.config import CoreConfig
 from server.errors import CommandError, Error
@@ -502,17 +502,27 @@ class KlipperBackend:
         """Exact step clocks of every axis (and the followed output's power) for the
         trajectory up to ``until_s``."""
         pieces = self._pieces
+        spans = [Spans() for _ in self.axes]
         while pieces:
             piece = pieces[0]
             end_s = min(until_s, piece.start_s + piece.duration_s)
             rel_s = end_s - piece.start_s
             if rel_s < 0.0:
                 break
-            self._piece_steps(piece, rel_s)
+            self._piece_steps(piece, rel_s, spans)
             if end_s < piece.start_s + piece.duration_s:
                 break
             pieces.popleft()
             self._generated_s = end_s
+        for axis, axis_spans in zip(self.axes, spans, strict=True):
+            if not axis_spans.runs:
+                continue
+            clocks = self._motion_clock(axis_spans.solve())
+            assert isinstance(clocks, np.ndarray)
+            first = 0
+            for direction, count in axis_spans.runs:
+                axis.add(direction, clocks[first:first + count])
+                first += count
         if self._follow_on and not pieces and until_s > self._generated_s:
             self._follow_on = False  # motion ended (not merely a slice of a late tick)
             self._set_followed(0.0, self._generated_s)
@@ -537,7 +547,7 @@ class KlipperBackend:
     def _set_followed(self, value: float, when_s: float) -> None:
         out = self._follow
         assert out is not None
-        if self._level(out, value) == self._level(out, out.value):
+        if value == out.value or self._level(out, value) == self._level(out, out.value):
             return
         self.values[out.name] = value
         self._follow_on = value > 0.0
@@ -551,7 +561,8 @@ class KlipperBackend:
         top = self.mcu.dictionary.constant_int("PWM_MAX", 255)
         return round(min(1.0, max(0.0, value)) * top)
 
-    def _piece_steps(self, piece: Piece, rel_s: float) -> None:
+    def _piece_steps(self, piece: Piece, rel_s: float, spans: list[Spans]) -> None:
+        """Each axis' whole steps along ``piece`` up to ``rel_s`` into it join ``spans``."""
         v0, a = piece.start_mm_s, piece.accel_mm_s2
         if piece is not self._head:  # first look at this piece
             self._head, self._follow_next_s = piece, 0.0
@@ -566,17 +577,15 @@ class KlipperBackend:
             return
         distance = v0 * rel_s + 0.5 * a * rel_s * rel_s
         base_s = piece.start_s + self.lead_s
-        for axis, start, unit in zip(self.axes, piece.start_mm, piece.unit, strict=True):
+        for axis, start, unit, axis_spans in zip(self.axes, piece.start_mm, piece.unit, spans,
+                                                 strict=True):
             if unit == 0.0:
                 continue
             x0, u = start * axis.steps_per_mm, unit * axis.steps_per_mm
             target = step_target(x0 + u * distance)
             if target == axis.position:
                 continue
-            times = crossing_times(x0, u, v0, a, rel_s, axis.position, target)
-            clocks = self._motion_clock(base_s + times)
-            assert isinstance(clocks, np.ndarray)
-            axis.add(1 if target > axis.position else -1, clocks)
+            axis_spans.add(x0, u, v0, a, rel_s, axis.position, target, base_s)
             axis.position = target
 
     def _rebased(self, piece: Piece) -> bool:
@@ -592,15 +601,18 @@ class KlipperBackend:
         return jumped and piece.duration_s == 0.0
 
     def _flush(self, now_s: float) -> None:
-        """Compress what is due soon (all of it when motion has no more pieces)."""
+        """Compress what is due soon (all of it when motion has no more pieces): steps that
+        may still join a longer run wait until their first is due within the lead less the
+        hold-back (compressed once then, not at every flush)."""
         idle = not self._pieces
         force_clock = self._motion_clock(now_s + self.lead_s - self.hold_back_s)
         for axis in self.axes:
             axis.collect()
             while axis.segments:
                 direction, points = axis.segments[0]
-                final = idle or len(axis.segments) > 1 or points[0] < force_clock
-                done = self._emit(axis, direction, points, final)
+                if not (idle or len(axis.segments) > 1 or points[0] < force_clock):
+                    break
+                done = self._emit(axis, direction, points, True)
                 if done < len(points):
                     axis.segments[0] = (direction, points[done:])
                     break
