@@ -34,7 +34,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import math
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -113,7 +112,7 @@ class KlipperBackend:
         self._sample_s: float | None = None
         self._follow: Output | None = None  # the output timed from the pieces' power
         self._follow_period_s = 0.001
-        self._follow_next_s = 0.0  # into the head piece: when its power is looked at next
+        self._follow_next_s = 0.0  # the next motion time the followed power is looked at
         self._follow_on = False  # the followed output is on because motion turned it on
         self._generated_s = 0.0  # where the last generated piece ended (kernel clock)
         self._queue = MoveQueue()
@@ -221,7 +220,7 @@ class KlipperBackend:
         self._flush(time_s)  # every sample is a flush (see tick_s)
         if self.mcu is not None:
             self.mcu.busy = self._busy()
-        self._pump()
+        self._pump(hold=True)  # what is not due soon waits to share a block
 
     def set_output(self, name: str, value: float, time_s: float) -> None:
         self.values[name] = value
@@ -527,21 +526,28 @@ class KlipperBackend:
             self._follow_on = False  # motion ended (not merely a slice of a late tick)
             self._set_followed(0.0, self._generated_s)
 
-    def _follow_piece(self, piece: Piece, rel_s: float) -> None:
-        """The followed output's duty along ``piece`` up to ``rel_s`` into it: once at its
-        start where it is constant, every ``_follow_period_s`` where it follows the speed."""
-        law, t = piece.power, self._follow_next_s
-        if t > rel_s:
+    def _follow_piece(self, piece: Piece, rel_s: float, first: bool) -> None:
+        """The followed output's duty along ``piece`` up to ``rel_s`` into it. Turning on or
+        off happens exactly where the piece starts; otherwise the duty is the piece's at
+        every ``_follow_period_s`` of motion time (the laser's sample rate: S changing every
+        segment of a fast raster costs at most one message a period)."""
+        out, law, v0 = self._follow, piece.power, piece.start_mm_s
+        assert out is not None
+        start_s = piece.start_s
+        if first:
+            on = self._level(out, out.value) > 0
+            if law is None or self._level(out, law.at(v0)) == 0:
+                if on:
+                    self._set_followed(0.0, start_s)
+            elif not on:
+                self._set_followed(law.at(v0), start_s)
+                self._follow_next_s = start_s + self._follow_period_s
+        if law is None:
             return
-        if law is None or law.per_mm_s == 0.0 or piece.accel_mm_s2 == 0.0:
-            speed = piece.start_mm_s
-            self._set_followed(0.0 if law is None else law.at(speed), piece.start_s)
-            self._follow_next_s = math.inf
-            return
-        v0, a, period = piece.start_mm_s, piece.accel_mm_s2, self._follow_period_s
-        while t <= rel_s:
-            self._set_followed(law.at(v0 + a * t), piece.start_s + t)
-            t += period
+        t, a, end_s = max(self._follow_next_s, start_s), piece.accel_mm_s2, start_s + rel_s
+        while t <= end_s:
+            self._set_followed(law.at(v0 + a * (t - start_s)), t)
+            t += self._follow_period_s
         self._follow_next_s = t
 
     def _set_followed(self, value: float, when_s: float) -> None:
@@ -564,15 +570,16 @@ class KlipperBackend:
     def _piece_steps(self, piece: Piece, rel_s: float, spans: list[Spans]) -> None:
         """Each axis' whole steps along ``piece`` up to ``rel_s`` into it join ``spans``."""
         v0, a = piece.start_mm_s, piece.accel_mm_s2
-        if piece is not self._head:  # first look at this piece
-            self._head, self._follow_next_s = piece, 0.0
+        first = piece is not self._head
+        if first:  # first look at this piece
+            self._head = piece
             self._trail.add(piece)
             if self._rebased(piece):
                 return
             if not self.motors_on and piece.duration_s > 0.0:  # enabled as it starts
                 self._switch_motors(True, int(self._motion_clock(piece.start_s + self.lead_s)))
         if self._follow is not None:
-            self._follow_piece(piece, rel_s)
+            self._follow_piece(piece, rel_s, first)
         if rel_s == 0.0:
             return
         distance = v0 * rel_s + 0.5 * a * rel_s * rel_s
@@ -603,8 +610,9 @@ class KlipperBackend:
     def _flush(self, now_s: float) -> None:
         """Compress what is due soon (all of it when motion has no more pieces): steps that
         may still join a longer run wait until their first is due within the lead less the
-        hold-back (compressed once then, not at every flush)."""
-        idle = not self._pieces
+        hold-back (compressed once then, not at every flush). Motion has ended once the
+        samples pass the last piece's end (a late tick's slice ends exactly on one)."""
+        idle = not self._pieces and now_s > self._generated_s
         force_clock = self._motion_clock(now_s + self.lead_s - self.hold_back_s)
         for axis in self.axes:
             axis.collect()
