@@ -292,9 +292,13 @@ class StepGenerator:
         return block
 
     def motion_time_s(self, now_s: float) -> float:
-        """When an output set at ``now_s`` takes effect on the motion's timeline: at the start
+        """When an output set at ``now_s`` takes effect on the motion's timeline. For a
+        backend that times its own steps from the pieces (ticks a flush apart): at the start
         of the block whose actions run (exact, whatever the tick), else at the last tick while
-        moving (where a feed hold's deceleration starts), else ``now_s``."""
+        moving (where a feed hold's deceleration starts). Otherwise, and when still: ``now_s``
+        (the tick itself is the timeline)."""
+        if self._pieces is None:
+            return now_s
         if self.action_s is not None:
             return self.action_s
         if self._cursor.block is not None and self._last_tick_s is not None:
