@@ -210,6 +210,21 @@ async def test_laser_pwm_switches_at_the_mcu_clock_its_piece_starts_and_ends_m3(
         assert x_clocks[1607] < off < x_clocks[1608], "between the G1's last and the G0's first"
 
 
+async def test_an_output_a_line_switches_is_timed_at_that_lines_start(mcu: VirtualMcu) -> None:
+    """M8 between two moves: on the board where the first move's steps end and the second's
+    begin, not at the step generator's tick (a flush apart)."""
+    switch = {"air": {"pin": "PA8", "on_mcode": 8, "off_mcode": 9}}
+    async with klipper_machine(mcu, switch=switch) as app:
+        backend = app.kernel.machine.backend
+        assert isinstance(backend, KlipperBackend) and backend.pwm_log is not None
+        await run_job(app, ["G1 X7.3 F3000", "M8", "G1 X15.1", "M9", "G1 X20"])
+        check_steps(app, mcu)
+        on, off = (clock for _, name, _, clock in backend.pwm_log if name == "PA8")
+        x_clocks, _ = mcu.step_clocks(backend.axes[0].oid)  # X7.3 is step 584, X15.1 1208
+        assert x_clocks[583] < on < x_clocks[584], "between the moves' steps"
+        assert x_clocks[1207] < off < x_clocks[1208]
+
+
 def speed_at(pieces: list[Piece], when_s: float) -> float | None:
     """Path speed at ``when_s`` from the pieces (a later piece overrides from its start)."""
     found: Any = None
