@@ -58,7 +58,12 @@ class Spans:
         the square root is 0 and the clamp puts the step at the piece's end."""
         if len(self.rows) == 1:
             x0, u, v0, a, duration_s, first, direction, base_s = self.rows[0]
-            boundaries = first + direction * np.arange(self.counts[0], dtype=np.float64)
+            boundaries = np.arange(first, first + direction * self.counts[0], direction,
+                                   dtype=np.float64)[:self.counts[0]]
+            if a == 0.0 and v0 > 0.0:  # a cruise: d/v0
+                times = np.clip((boundaries - x0) * (1.0 / (u * v0)), 0.0, duration_s)
+                times += base_s
+                return times
             return _times(x0, u, v0, a, duration_s, boundaries, base_s)
         counts = np.array(self.counts)
         table = np.repeat(np.array(self.rows).T, counts, axis=1)
