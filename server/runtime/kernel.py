@@ -219,7 +219,7 @@ class LoopMonitor:
 
     def __init__(self, period_s: float = 0.001, gc_pacer: GcPacer | None = None,
                  is_quiet: Callable[[], bool] = lambda: False,
-                 quiet_period_s: float = 0.05) -> None:
+                 quiet_period_s: float = 0.25) -> None:
         self.period_s = period_s
         self.quiet_period_s = quiet_period_s
         self.is_quiet = is_quiet
