@@ -1,8 +1,10 @@
 """The Klipper backend's host half: CPU per second of motion, bytes on the wire, step error.
 
 A raster of 0.025 mm segments at up to 500 mm/s (20,000 segments/s at full speed, power
-changing every segment, the laser's PWM sampled at 1 kHz) runs through the real planner, step
-generator and :class:`~server.backends.klipper.backend.KlipperBackend` on a virtual clock; the
+changing every segment and following the speed, M4, the laser's PWM timed from the pieces at
+most every millisecond) runs through the real planner, step generator (ticking once a flush, as
+it does for this backend) and :class:`~server.backends.klipper.backend.KlipperBackend` on a
+virtual clock; the
 MCU side is a sink that frames each burst of messages into blocks as the link does and
 counts the bytes. Reported:
 
@@ -23,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks.common import BenchResult, standalone
+from server.backends.base import PowerLaw
 from server.backends.klipper.backend import KlipperBackend
 from server.backends.klipper.clocksync import ClockSync
 from server.backends.klipper.codec import PAYLOAD_MAX
@@ -118,6 +121,9 @@ def execute(motion_s: float) -> tuple[float, float, OfflineBackend]:
         axis.compressor = StepCompressor(backend.cfg.max_error_s * CLOCK_HZ)
     planner = Planner(planner_settings(core), (0.0, 0.0))
     stepgen = StepGenerator(planner, backend, (80.0, 80.0), Listener())
+    backend.follow_power("PA8", 0.001)  # the laser module's law: S/1000 of 80 %, M4
+    stepgen.follow_power(lambda move, nominal_mm_s: PowerLaw(0.0, move.s_value / 1000 * 0.8
+                                                             / nominal_mm_s, 0.8))
     all_moves = raster(motion_s)
     moves = iter(all_moves)
     pending: Move | None = next(moves)
@@ -128,10 +134,9 @@ def execute(motion_s: float) -> tuple[float, float, OfflineBackend]:
             planner.append(pending)
             pending = next(moves, None)
         stepgen.request_start()
-        now_s += 0.001
+        now_s += stepgen.tick_s
         backend.now_s = now_s
         stepgen.tick(now_s)
-        backend.set_output("PA8", round(stepgen.state.s_value) / 1000 * 0.8, now_s)
     backend.segments = len(all_moves)  # type: ignore[attr-defined]
     return time.process_time() - started, stepgen.state.motion_time_s, backend
 

@@ -143,6 +143,7 @@ class Motiond:
     def __init__(self, process: asyncio.subprocess.Process, port: int, workdir: Path,
                  source: Path) -> None:
         self.process, self.port, self.workdir, self.source = process, port, workdir, source
+        self._poll: tuple[asyncio.StreamReader, asyncio.StreamWriter] | None = None
 
     @classmethod
     @contextlib.asynccontextmanager
@@ -165,6 +166,8 @@ class Motiond:
             await host.wait_ready(rig)
             yield host
         finally:
+            if host._poll is not None:
+                host._poll[1].close()
             await stop(process)
 
     @property
@@ -172,14 +175,20 @@ class Motiond:
         return self.process.pid
 
     async def status(self) -> str:
-        reader, writer = await asyncio.open_connection("127.0.0.1", self.port)
+        """A ``?`` on one connection kept open (a connection per poll would cost motiond an
+        accept, a banner and a close ten times a second: CPU that is not the job's)."""
+        if self._poll is None:
+            self._poll = await asyncio.open_connection("127.0.0.1", self.port)
+        reader, writer = self._poll
         try:
             writer.write(b"?")
             while not (line := await asyncio.wait_for(reader.readline(), 5.0)).startswith(b"<"):
                 pass
             return line.decode().strip()
-        finally:
+        except (OSError, TimeoutError):
             writer.close()
+            self._poll = None
+            raise
 
     async def wait_ready(self, rig: Rig, limit_s: float = 30.0) -> None:
         """Until the board is configured (its PWM timer set up) and motiond is idle."""

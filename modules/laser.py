@@ -3,7 +3,11 @@
 A task samples the step generator's motion state on its own fixed-rate timer (``sample_hz``,
 capped by ``pwm_frequency_hz``) and sets the PWM duty of ``pin`` on the backend. S and M3/M4/M5
 come from the block being executed (``MotionState.s_value``/``tool_mode``), so S changes between
-segments ride inside the blocks and never stop motion.
+segments ride inside the blocks and never stop motion. Where the backend times its own steps
+from the trajectory (a Klipper MCU) and no ``ttl_pin`` is set, it times the PWM too: each block's
+power law (:func:`power_law`) rides on its pieces, and the board changes the duty on the very
+steps it belongs to, at most every sample period along an acceleration; the sampler then only
+ends a ``fire``.
 
 Power while a G1/G2/G3 block executes (``r = S / maximum_s_value * scale``):
 
@@ -38,9 +42,10 @@ from typing import Any
 
 from pydantic import Field, model_validator
 
+from server.backends.base import PowerLaw
 from server.errors import CommandError, Error
 from server.gcode.codes import CodeCall
-from server.motion.moves import Action, MoveKind, Output, Sync, SyncKind, ToolMode
+from server.motion.moves import Action, Move, MoveKind, Output, Sync, SyncKind, ToolMode
 from server.motion.stepgen import HoldState, MotionState
 from server.runtime.clock import VirtualClock
 from server.runtime.dispatcher import Command
@@ -82,20 +87,27 @@ class LaserConfig(ModuleConfig):
         return 1.0 / min(self.sample_hz, self.pwm_frequency_hz)
 
 
+def power_law(config: LaserConfig, kind: MoveKind | None, tool_mode: ToolMode, s_value: float,
+              nominal_mm_s: float, scale: float) -> PowerLaw | None:
+    """The duty as a function of the speed along a move (see the module docstring); None:
+    the laser is off along it."""
+    if kind not in CUTTING_KINDS or tool_mode is ToolMode.OFF or s_value <= 0.0:
+        return None
+    ratio = s_value / config.maximum_s_value * scale
+    low, high = config.minimum_power, config.maximum_power
+    if tool_mode is ToolMode.CCW or config.proportional_power:
+        per_mm_s = (high - low) * ratio / nominal_mm_s if nominal_mm_s > 0.0 else 0.0
+        return PowerLaw(low, per_mm_s, high)
+    return PowerLaw(low + (high - low) * ratio, 0.0, high)
+
+
 def laser_power(config: LaserConfig, motion: MotionState, scale: float) -> float:
     """The duty cycle in [0, maximum_power] for the motion state (see the module docstring)."""
     if not motion.moving or motion.hold is not HoldState.NONE:
         return 0.0
-    if motion.kind not in CUTTING_KINDS or motion.tool_mode is ToolMode.OFF:
-        return 0.0
-    if motion.s_value <= 0.0:
-        return 0.0
-    ratio = motion.s_value / config.maximum_s_value * scale
-    if motion.tool_mode is ToolMode.CCW or config.proportional_power:
-        nominal = motion.nominal_mm_s
-        ratio *= motion.speed_mm_s / nominal if nominal > 0.0 else 0.0
-    low, high = config.minimum_power, config.maximum_power
-    return min(high, max(0.0, low + (high - low) * ratio))
+    law = power_law(config, motion.kind, motion.tool_mode, motion.s_value, motion.nominal_mm_s,
+                    scale)
+    return 0.0 if law is None else law.at(motion.speed_mm_s)
 
 
 class FireParams(ApiParams):
@@ -123,9 +135,13 @@ class Laser(Module):
         ctx.register_command("fire", self._fire)
         ctx.register_api_method("laser.fire", self._api_fire, FireParams, control=True)
         ctx.register_api_method("laser.off", self._api_off, control=True)
-        ctx.add_status_field("power_pct", lambda: round(100.0 * self.power, 1))
+        ctx.add_status_field("power_pct", lambda: round(100.0 * self.output_power, 1))
         ctx.add_feature("laser")
         ctx.outputs.declare_tool(config.pin)
+        # a backend that times the pin from the trajectory itself (a Klipper MCU) gets each
+        # block's power law; the sampler then only ends a fire
+        self.follows = config.ttl_pin is None and ctx.outputs.follow_motion(
+            config.pin, self._power_of, config.period_s)
         ctx.register_code(221, self._m221, uses="S", query=True)
         for event in ("halt", "hold", "shutdown", "reset"):
             ctx.subscribe(event, self._off_now)
@@ -137,6 +153,11 @@ class Laser(Module):
     def scale(self) -> float:
         """M221 percentage times the spindle override percentage, as a factor."""
         return self.m221_percent / 100.0 * self.override_percent / 100.0
+
+    @property
+    def output_power(self) -> float:
+        """The duty on the pin now (where the backend times it, the last it scheduled)."""
+        return self.ctx.outputs.value(self.config.pin) if self.follows else self.power
 
     @property
     def firing(self) -> bool:
@@ -168,6 +189,8 @@ class Laser(Module):
             self._off_now()
 
     def _resting(self) -> bool:
+        if self.follows:
+            return not self.firing
         return (self._state in RESTING_STATES and not self.firing and self.power == 0.0
                 and not self.ctx.motion().moving)
 
@@ -177,7 +200,12 @@ class Laser(Module):
                 return
             self._fire_until_s = None  # expired (halt, hold and reset end it at once)
             self.ctx.log.info("fire: stopped")
-        self._apply(laser_power(self.config, self.ctx.motion(), self.scale))
+        self._apply(0.0 if self.follows else laser_power(self.config, self.ctx.motion(),
+                                                         self.scale))
+
+    def _power_of(self, move: Move, nominal_mm_s: float) -> PowerLaw | None:
+        return power_law(self.config, move.kind, move.tool_mode, move.s_value, nominal_mm_s,
+                         self.scale)
 
     def _apply(self, power: float) -> None:
         if power == self.power:
@@ -191,6 +219,8 @@ class Laser(Module):
     # -- events (synchronous: the laser is off before emit() returns) ----------------------
     def _off_now(self, *_: Any) -> None:
         self._fire_until_s = None
+        if self.follows:  # the backend may have it on from the trajectory
+            self.ctx.outputs.set(self.config.pin, 0.0)
         self._apply(0.0)
 
     def _on_state(self, state: MachineState) -> None:
@@ -262,5 +292,5 @@ class Laser(Module):
 
     def status(self) -> dict[str, Any]:
         motion = self.ctx.motion()
-        return {"power": self.power, "s": motion.s_value, "scale": self.scale,
+        return {"power": self.output_power, "s": motion.s_value, "scale": self.scale,
                 "firing": self.firing}

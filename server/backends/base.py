@@ -13,12 +13,27 @@ from typing import Protocol
 
 
 @dataclass(frozen=True, slots=True)
+class PowerLaw:
+    """The tool's duty along a piece as a function of the speed (a laser's power following the
+    speed, Grbl's M4): ``min(ceiling, max(0, offset + per_mm_s · speed))``."""
+
+    offset: float
+    per_mm_s: float = 0.0
+    ceiling: float = 1.0
+
+    def at(self, speed_mm_s: float) -> float:
+        return min(self.ceiling, max(0.0, self.offset + self.per_mm_s * speed_mm_s))
+
+
+@dataclass(frozen=True, slots=True)
 class Piece:
     """A stretch of trajectory at constant acceleration along a straight line (Klipper's trapq).
 
     Position at ``start_s + t`` (``0 <= t <= duration_s``) is
     ``start_mm + unit * (start_mm_s * t + accel_mm_s2 * t² / 2)``. A piece replaces whatever
     trajectory an earlier piece described from ``start_s`` on (a feed hold cuts a block short).
+    ``power``: the duty of the output that follows motion (``follow_power``) along the piece,
+    None where it is off (rapids, a feed hold's deceleration, no tool on).
     """
 
     start_s: float
@@ -27,6 +42,7 @@ class Piece:
     unit: tuple[float, ...]
     start_mm_s: float
     accel_mm_s2: float
+    power: PowerLaw | None = None
 
 
 class Backend(Protocol):
@@ -37,6 +53,12 @@ class Backend(Protocol):
     nothing queued, on or to report): the step generator then sleeps, until the machine has work
     or the backend calls the function given to :meth:`wake_with`. Without the attribute, it is
     ticked at ``tick_hz`` always.
+
+    A backend that times its own steps from the pieces may set ``tick_s``: the step generator
+    then ticks that often instead of at ``tick_hz`` (Klipper's: every flush; steps, actions and
+    the laser's power are timed from the pieces, not from the ticks). One that has
+    ``follow_power(name, period_s)`` returning True drives the output ``name`` from each piece's
+    ``power`` itself, at most every ``period_s`` (the laser module then stops sampling).
     """
 
     wants_trajectory: bool

@@ -6,16 +6,23 @@ a Klipper MCU needs the exact path between ticks to compute every step's time. T
 duration, start position, unit vector, start speed, acceleration) as the step generator takes a
 block (its three phases), as a feed hold decelerates (each tick's deceleration, split exactly
 at block boundaries) and when motion stops at once (a zero-length piece that cuts the rest).
+Where an output follows motion (a laser whose power the backend times), ``power_of`` gives each
+block's :class:`~server.backends.base.PowerLaw`, evaluated as the block is taken (after its
+ordered actions, M221 among them); a feed hold's pieces carry none (the tool is off).
 Units: seconds on the kernel's clock, mm, mm/s, mm/s².
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
-from server.backends.base import Backend, Piece
-from server.motion.moves import Position
+from server.backends.base import Backend, Piece, PowerLaw
+from server.motion.moves import Move, Position
 from server.motion.planner import Block
+
+PowerOf = Callable[[Move, float], PowerLaw | None]
+"""A block's tool power from its move and nominal speed (mm/s); None: off."""
 
 
 class PieceReporter:
@@ -23,6 +30,7 @@ class PieceReporter:
 
     def __init__(self, backend: Backend) -> None:
         self.backend = backend
+        self.power_of: PowerOf | None = None
 
     def block(self, start_s: float, block: Block) -> None:
         """A block's three phases, starting at ``start_s``."""
@@ -30,13 +38,14 @@ class PieceReporter:
             return
         entry, cruise, t1, t2 = block.entry_mm_s, block.cruise_mm_s, block.accel_s, block.cruise_s
         d1 = 0.5 * t1 * (entry + cruise)
+        power = None if self.power_of is None else self.power_of(block.move, block.nominal_mm_s)
         if t1 > 0.0:
-            self._piece(start_s, t1, block, 0.0, entry, (cruise - entry) / t1)
+            self._piece(start_s, t1, block, 0.0, entry, (cruise - entry) / t1, power)
         if t2 > 0.0:
-            self._piece(start_s + t1, t2, block, d1, cruise, 0.0)
+            self._piece(start_s + t1, t2, block, d1, cruise, 0.0, power)
         if block.decel_s > 0.0:
             self._piece(start_s + t1 + t2, block.decel_s, block, d1 + cruise * t2, cruise,
-                        (block.exit_mm_s - cruise) / block.decel_s)
+                        (block.exit_mm_s - cruise) / block.decel_s, power)
 
     def hold(self, block: Block | None, distance_mm: float, tick_s: float, v: float, a: float,
              used_s: float) -> None:
@@ -72,10 +81,10 @@ class PieceReporter:
         self.backend.trajectory(Piece(tick_s, 0.0, position_mm, zeros, 0.0, 0.0))
 
     def _piece(self, start_s: float, duration_s: float, block: Block, from_mm: float,
-               speed_mm_s: float, accel_mm_s2: float) -> None:
+               speed_mm_s: float, accel_mm_s2: float, power: PowerLaw | None = None) -> None:
         start = tuple(p + u * from_mm for p, u in zip(block.start_mm, block.unit, strict=True))
         self.backend.trajectory(
-            Piece(start_s, duration_s, start, block.unit, speed_mm_s, accel_mm_s2))
+            Piece(start_s, duration_s, start, block.unit, speed_mm_s, accel_mm_s2, power))
 
 
 def back_s(v_end: float, a: float, distance_mm: float) -> float:

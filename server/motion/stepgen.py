@@ -25,7 +25,7 @@ from typing import Protocol
 
 from server.backends.base import Backend
 from server.motion.moves import Action, MoveKind, Position, ToolMode
-from server.motion.pieces import PieceReporter
+from server.motion.pieces import PieceReporter, PowerOf
 from server.motion.planner import Block, Planner
 
 
@@ -108,7 +108,8 @@ class StepGenerator:
         self.backend = backend
         self.steps_per_mm = steps_per_mm
         self.listener = listener
-        self.tick_s = 1.0 / tick_hz
+        # a backend that times its own steps from the pieces needs fewer ticks (Klipper's)
+        self.tick_s = getattr(backend, "tick_s", None) or 1.0 / tick_hz
         self.start_delay_s = start_delay_s
         self.max_blocks_per_call = max_blocks_per_call
         self.last_input_s = -math.inf
@@ -125,6 +126,8 @@ class StepGenerator:
         # backends that time their own steps get the trajectory as pieces
         self._pieces = PieceReporter(backend) if backend.wants_trajectory else None
         self._resume_when_stopped = False
+        # the start of the block whose ordered actions run now (outputs they set are timed there)
+        self.action_s: float | None = None
         # Called when motion may start (input, a start request): :meth:`run` sleeps while idle.
         self.wake: Callable[[], None] = lambda: None
 
@@ -234,7 +237,7 @@ class StepGenerator:
         budget = self.max_blocks_per_call
         while True:
             if block is None:
-                block = self._next_block(now_s)
+                block = self._next_block(now_s, now_s - t)
                 budget -= 1
                 if block is None:
                     t = 0.0
@@ -259,7 +262,7 @@ class StepGenerator:
             self.state.motion_time_s += dt
         return 0.0
 
-    def _next_block(self, now_s: float) -> Block | None:
+    def _next_block(self, now_s: float, start_s: float) -> Block | None:
         planner = self.planner
         if not self._running:
             if len(planner) == 0:
@@ -279,9 +282,34 @@ class StepGenerator:
             self.listener.on_idle()
             return None
         self.state.kind = block.move.kind if block.move else None
-        for action in block.actions:
-            self.listener.on_action(action)
+        if block.actions:
+            self.action_s = start_s
+            try:
+                for action in block.actions:
+                    self.listener.on_action(action)
+            finally:
+                self.action_s = None
         return block
+
+    def motion_time_s(self, now_s: float) -> float:
+        """When an output set at ``now_s`` takes effect on the motion's timeline. For a
+        backend that times its own steps from the pieces (ticks a flush apart): at the start
+        of the block whose actions run (exact, whatever the tick), else at the last tick while
+        moving (where a feed hold's deceleration starts). Otherwise, and when still: ``now_s``
+        (the tick itself is the timeline)."""
+        if self._pieces is None:
+            return now_s
+        if self.action_s is not None:
+            return self.action_s
+        if self._cursor.block is not None and self._last_tick_s is not None:
+            return min(now_s, self._last_tick_s)
+        return now_s
+
+    def follow_power(self, power_of: PowerOf) -> None:
+        """Give each piece its tool power (``power_of(move, nominal_mm_s)``): the backend
+        times the output from the pieces (see :mod:`server.motion.pieces`)."""
+        if self._pieces is not None:
+            self._pieces.power_of = power_of
 
     def pop_block(self) -> Block | None:
         """The next block, re-planned first when the last plan's look-ahead ran short.

@@ -20,6 +20,7 @@ from server.config import Config, ModuleSpec
 from server.errors import Alarm, ConfigError
 from server.gcode.codes import CodeConflict, CodeFactory
 from server.motion.moves import Action, Move, Position, SyncKind
+from server.motion.pieces import PowerOf
 from server.motion.stepgen import MotionState
 from server.runtime.clock import Clock
 from server.runtime.commands import CoreCommands
@@ -50,7 +51,18 @@ class _Outputs:
         self._machine, self._clock = machine, clock
 
     def set(self, pin: str, value: float) -> None:
-        self._machine.backend.set_output(pin, value, self._clock.now_s())
+        time_s = self._machine.stepgen.motion_time_s(self._clock.now_s())
+        self._machine.backend.set_output(pin, value, time_s)
+
+    def follow_motion(self, pin: str, power_of: PowerOf, period_s: float) -> bool:
+        """Where the backend times ``pin`` from the trajectory itself (a Klipper MCU), each
+        block's power comes from ``power_of`` and True is returned; else False (the caller
+        samples the motion and sets the pin)."""
+        follow = getattr(self._machine.backend, "follow_power", None)
+        if follow is None or not follow(pin, period_s):
+            return False
+        self._machine.stepgen.follow_power(power_of)
+        return True
 
     def value(self, pin: str) -> float:
         return self._machine.backend.output(pin)
@@ -189,7 +201,8 @@ QUIET_AFTER_S = 1.0  # no command for this long (and nothing moving): the loop m
 
 
 class LoopMonitor:
-    """Measures how late the event loop wakes a 1 ms sleeper: the worst stall, in seconds.
+    """Measures how late the event loop wakes a sleeper of ``period_s`` (1 ms; a step
+    generator that ticks less often, less often too): the worst stall, in seconds.
 
     It uses monotonic time whatever the kernel's clock (not the loop's ``time()``, which uvloop
     counts in whole milliseconds), since stalls are a property of the process;
@@ -206,7 +219,7 @@ class LoopMonitor:
 
     def __init__(self, period_s: float = 0.001, gc_pacer: GcPacer | None = None,
                  is_quiet: Callable[[], bool] = lambda: False,
-                 quiet_period_s: float = 0.05) -> None:
+                 quiet_period_s: float = 0.25) -> None:
         self.period_s = period_s
         self.quiet_period_s = quiet_period_s
         self.is_quiet = is_quiet
@@ -273,8 +286,9 @@ class Kernel:
         self.machine.register_commands(self.dispatcher)
         self._load_modules(config)
         commands.register_fallbacks(self.dispatcher)
-        self.loop_monitor = LoopMonitor(gc_pacer=GcPacer(lambda: not self.machine.stepgen.idle),
-                                        is_quiet=self._quiet)
+        self.loop_monitor = LoopMonitor(  # as often as the step generator ticks, at most 1 kHz
+            period_s=max(0.001, self.machine.stepgen.tick_s),
+            gc_pacer=GcPacer(lambda: not self.machine.stepgen.idle), is_quiet=self._quiet)
         self._stop = asyncio.Event()
         self.started = asyncio.Event()
         self.stopped = False

@@ -26,6 +26,7 @@ if TYPE_CHECKING:
     from server.config import CoreConfig
     from server.gcode.codes import CodeFactory
     from server.motion.moves import Action, Move, Position, SyncKind
+    from server.motion.pieces import PowerOf
     from server.motion.stepgen import MotionState
     from server.runtime.clock import Clock
     from server.runtime.dispatcher import Handler
@@ -79,6 +80,12 @@ class Outputs(Protocol):
         ...
 
     def value(self, pin: str) -> float: ...
+
+    def follow_motion(self, pin: str, power_of: PowerOf, period_s: float) -> bool:
+        """Let the backend time ``pin`` from the trajectory (``power_of(move, nominal_mm_s)``
+        per block, updated at most every ``period_s``): True where it can (a Klipper MCU),
+        else False and the module sets the pin itself."""
+        ...
 
 
 class Inputs(Protocol):

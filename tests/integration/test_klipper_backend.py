@@ -179,6 +179,52 @@ async def test_laser_pwm_follows_speed_at_each_sample_m4(mcu: VirtualMcu) -> Non
         assert checked > 20 and events[-1][1] == 0
 
 
+async def test_laser_pwm_switches_at_the_mcu_clock_its_piece_starts_and_ends_m3(
+    mcu: VirtualMcu
+) -> None:
+    """The PWM is timed from the same pieces as the steps, not from the step generator's
+    ticks (a flush apart): on where the first cutting move starts, off where it ends."""
+    pieces: list[Piece] = []
+    async with klipper_machine(mcu, laser=LASER) as app:
+        backend = app.kernel.machine.backend
+        assert isinstance(backend, KlipperBackend) and backend.mcu is not None
+        assert app.kernel.modules["laser"].follows  # type: ignore[attr-defined]
+        assert app.kernel.machine.stepgen.tick_s == backend.flush_s > 0.01
+        original = backend.trajectory
+        backend.trajectory = lambda piece: (pieces.append(piece), original(piece))[1]  # type: ignore[method-assign]
+        await run_job(app, ["G0 X5", "M3 S500", "G1 X12.3 F3000", "G1 X20.1 Y3.7",
+                            "G0 X40 Y0", "M5"])
+        check_steps(app, mcu)
+        assert backend.pwm_log is not None
+        sent = [(when_s, value, clock) for when_s, name, value, clock in backend.pwm_log
+                if name == "PA8"]
+        assert [value for _, value, _ in sent] == [0.4, 0.0], "on once, off once: M3"
+        cutting = [piece for piece in pieces if piece.power is not None]
+        start_s = cutting[0].start_s
+        end_s = cutting[-1].start_s + cutting[-1].duration_s
+        assert sent[0][0] == start_s and sent[1][0] == pytest.approx(end_s, abs=1e-9)
+        on, off = (clock for _, _, clock in sent)
+        assert mcu.output_events("PA8")[1:] == [(on, 102), (off, 0)]
+        x_clocks, _ = mcu.step_clocks(backend.axes[0].oid)  # X5 is step 400, X20.1 1608
+        assert x_clocks[399] < on < x_clocks[400], "between the G0's last step and the G1's first"
+        assert x_clocks[1607] < off < x_clocks[1608], "between the G1's last and the G0's first"
+
+
+async def test_an_output_a_line_switches_is_timed_at_that_lines_start(mcu: VirtualMcu) -> None:
+    """M8 between two moves: on the board where the first move's steps end and the second's
+    begin, not at the step generator's tick (a flush apart)."""
+    switch = {"air": {"pin": "PA8", "on_mcode": 8, "off_mcode": 9}}
+    async with klipper_machine(mcu, switch=switch) as app:
+        backend = app.kernel.machine.backend
+        assert isinstance(backend, KlipperBackend) and backend.pwm_log is not None
+        await run_job(app, ["G1 X7.3 F3000", "M8", "G1 X15.1", "M9", "G1 X20"])
+        check_steps(app, mcu)
+        on, off = (clock for _, name, _, clock in backend.pwm_log if name == "PA8")
+        x_clocks, _ = mcu.step_clocks(backend.axes[0].oid)  # X7.3 is step 584, X15.1 1208
+        assert x_clocks[583] < on < x_clocks[584], "between the moves' steps"
+        assert x_clocks[1207] < off < x_clocks[1208]
+
+
 def speed_at(pieces: list[Piece], when_s: float) -> float | None:
     """Path speed at ``when_s`` from the pieces (a later piece overrides from its start)."""
     found: Any = None

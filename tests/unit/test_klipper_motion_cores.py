@@ -9,7 +9,7 @@ import numpy as np
 
 from server.backends.klipper.clocksync import ClockSync
 from server.backends.klipper.stepcompress import StepCompressor, run_clocks
-from server.backends.klipper.steptimes import crossing_times, step_target
+from server.backends.klipper.steptimes import Spans, crossing_times, step_target
 
 CLOCK_HZ = 72e6
 
@@ -53,6 +53,36 @@ def test_step_times_match_a_dense_sampling_of_the_trajectory() -> None:
         reference = brute_force_times(x0, u, v0, a, dur)
         assert len(exact) == len(reference) == abs(step_target(end) - step_target(x0))
         assert np.max(np.abs(exact - np.array(reference))) < 2 * dur / 2_000_000
+
+
+def test_the_steps_of_many_pieces_solved_at_once_are_each_pieces_own() -> None:
+    """A flush solves all its pieces in one pass (Spans): the same times as piece by piece,
+    through reversals, standstills and pieces a few steps long, and runs split by direction."""
+    rng = random.Random(11)
+    spans, expected, runs = Spans(), [], []
+    position, base_s = 0, 100.0
+    for _ in range(300):
+        u = rng.choice([80.0, -80.0, 56.6, -13.0])
+        v0, a = rng.choice([(0.0, 2000.0), (60.0, 0.0), (60.0, -1500.0), (5.0, 300.0)])
+        duration_s = rng.uniform(0.0002, 0.04)
+        if a < 0.0:
+            duration_s = min(duration_s, v0 / -a)
+        x0 = position + rng.uniform(-0.49, 0.49)  # where the axis is, between steps
+        end = x0 + u * (v0 * duration_s + 0.5 * a * duration_s * duration_s)
+        target = step_target(end)
+        if target != position:
+            spans.add(x0, u, v0, a, duration_s, position, target, base_s)
+            expected.append(base_s + crossing_times(x0, u, v0, a, duration_s, position, target))
+            direction = 1 if target > position else -1
+            if runs and runs[-1][0] == direction:
+                runs[-1] = (direction, runs[-1][1] + abs(target - position))
+            else:
+                runs.append((direction, abs(target - position)))
+        position, base_s = target, base_s + duration_s
+    times = spans.solve()
+    assert spans.runs == runs and len(runs) > 20
+    assert len(times) == sum(count for _, count in runs) > 1000
+    assert np.max(np.abs(times - np.concatenate(expected))) < 1e-12  # (rounding: a cruise is d/v0)
 
 
 def test_compression_keeps_every_step_within_the_bound_and_never_late() -> None:

@@ -32,13 +32,12 @@ machine turns into an alarm; the backend then reconnects every ``retry_s``.
 from __future__ import annotations
 
 import asyncio
-import bisect
 import contextlib
 import logging
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
-from typing import cast
+from dataclasses import replace
 
 import numpy as np
 
@@ -57,7 +56,8 @@ from server.backends.klipper.movequeue import MoveQueue
 from server.backends.klipper.pins import Axis, Output, config_commands
 from server.backends.klipper.printclock import PrintClock
 from server.backends.klipper.stepcompress import run_clocks
-from server.backends.klipper.steptimes import FloatArray, crossing_times, step_target
+from server.backends.klipper.steptimes import FloatArray, Spans, step_target
+from server.backends.klipper.trail import Trail
 from server.config import CoreConfig
 from server.errors import CommandError, Error
 
@@ -75,6 +75,7 @@ RESTART_WAIT_S = 0.3  # a restarted board boots before it is asked who it is
 RESTART_PATIENCE_S = 10.0  # a restarted board's first answer (a bootloader, a slow boot)
 RECOVER_TIMEOUT_S = 20.0  # $X waits this long for a restarted board to be configured
 DONE_MARGIN_S = 0.005
+TRAIL_EXTRA_S = 1.0  # the pieces are kept this long beyond the lead (where the tool was)
 STOP_FLUSH_S = 0.1  # a fault's emergency stop gets this long to leave before the link closes
 STOP_READ_S = 0.5  # reading where a shut-down board stopped (a few round trips) takes at most
 
@@ -105,13 +106,15 @@ class KlipperBackend:
         self._fault_to_raise: str | None = None
         self._pieces: deque[Piece] = deque()
         self._motion_end_s = 0.0  # where the trajectory given ends (kernel clock)
-        # (time, planned position) of the recent samples: the MCU is where the plan was a
-        # lead time ago
-        self._history: deque[tuple[float, tuple[float, ...]]] = deque(
-            maxlen=int(self.lead_s * core.stepgen.tick_hz * 2) + 16)
+        # the pieces steps were generated from: the MCU is where they were a lead time ago
+        self._trail = Trail(self.lead_s + TRAIL_EXTRA_S)
         self._head: Piece | None = None  # the piece steps are being generated from
         self._sample_s: float | None = None
-        self._next_flush_s = 0.0
+        self._follow: Output | None = None  # the output timed from the pieces' power
+        self._follow_period_s = 0.001
+        self._follow_next_s = 0.0  # the next motion time the followed power is looked at
+        self._follow_on = False  # the followed output is on because motion turned it on
+        self._generated_s = 0.0  # where the last generated piece ended (kernel clock)
         self._queue = MoveQueue()
         self._print = PrintClock(0.0, min(DRIFT_MAX_S, 0.1 * self.lead_s))
         self.identity: dict[str, str] = {}  # the board first served: another is refused
@@ -121,6 +124,21 @@ class KlipperBackend:
         self._config_base = [0] * len(self.axes)  # axis positions when the MCU was configured
         self.relocate: Callable[[Sequence[float]], None] = lambda _: None
         self._wake: Callable[[], None] = lambda: None
+
+    @property
+    def tick_s(self) -> float:
+        """The step generator ticks once a flush: steps, outputs and the followed output's
+        power are timed from the pieces, not from the ticks."""
+        return self.flush_s
+
+    def follow_power(self, name: str, period_s: float) -> bool:
+        """The output ``name`` follows each piece's ``power`` (updated at most every
+        ``period_s`` along an acceleration): the laser's PWM from the same piece as its steps."""
+        out = self.outputs.get(name)
+        if out is None:
+            return False
+        self._follow, self._follow_period_s = out, period_s
+        return True
 
     @property
     def ticks_when_idle(self) -> bool:
@@ -179,11 +197,11 @@ class KlipperBackend:
             pieces.pop()
         if pieces and pieces[-1].start_s + pieces[-1].duration_s > piece.start_s:
             last = pieces.pop()
-            cut = Piece(last.start_s, piece.start_s - last.start_s, last.start_mm, last.unit,
-                        last.start_mm_s, last.accel_mm_s2)
+            cut = replace(last, duration_s=piece.start_s - last.start_s)
             pieces.append(cut)
             if last is self._head:
                 self._head = cut
+        self._trail.cut(piece.start_s)
         if piece.duration_s > 0.0:
             pieces.append(piece)
 
@@ -196,26 +214,21 @@ class KlipperBackend:
         self._sample_s = time_s
         if not self.ready:
             return
-        history, here = self._history, tuple(cast("Sequence[float]", position_mm))
-        if not history or history[-1][1] != here:
-            history.append((time_s, here))
-        if time_s >= self._next_flush_s or not self._print.anchored:
-            self._update_map(time_s + self.lead_s)
+        self._update_map(time_s + self.lead_s)
         self._generate(time_s)
         self._refresh_outputs(time_s)
-        flushing = time_s >= self._next_flush_s or not self._pieces
-        if flushing:
-            self._next_flush_s = time_s + self.flush_s
-            self._flush(time_s)
-            if self.mcu is not None:
-                self.mcu.busy = self._busy()
-        self._pump(hold=not flushing)
+        self._flush(time_s)  # every sample is a flush (see tick_s)
+        if self.mcu is not None:
+            self.mcu.busy = self._busy()
+        self._pump(hold=True)  # what is not due soon waits to share a block
 
     def set_output(self, name: str, value: float, time_s: float) -> None:
         self.values[name] = value
         out = self.outputs.get(name)
         if out is None or self.mcu is None or not self.ready:
             return
+        if out is self._follow:
+            self._follow_on = False  # set from outside: motion's end does not turn it off
         if value == out.value:
             return
         self._queue_output(out, value, self._when_s(time_s))
@@ -259,12 +272,13 @@ class KlipperBackend:
         self._pump()
 
     def _when_s(self, time_s: float) -> float:
-        """When a change asked for at ``time_s`` happens: at the last sample while ticking
-        (the instant the laser's power was computed for), at ``time_s`` after a rest."""
+        """When a change asked for at ``time_s`` (on the motion's timeline: a block's start
+        for its actions) happens: then, or at the last sample if that is later; at ``time_s``
+        after a rest (the schedule starts afresh)."""
         if self._rested(time_s):
             self._print.unanchor()  # anchored afresh at the live fit
             return time_s
-        return self._sample_s if self._sample_s is not None else time_s
+        return time_s if self._sample_s is None else max(time_s, self._sample_s)
 
     def _rested(self, time_s: float) -> bool:
         """Whether the step generator slept since the last sample with nothing queued, moving
@@ -429,7 +443,8 @@ class KlipperBackend:
         message = f"klipper MCU on {self.cfg.serial}: {reason}"
         if message != self.fault:
             log.error("%s", message)
-            self._fault_to_raise = message
+            pending = self._fault_to_raise  # the cause leads until the next tick raises it
+            self._fault_to_raise = message if pending is None else f"{pending}; then {reason}"
             self._wake()  # raised from the next sample(), even on a resting machine
         self.fault = message
         self._drop_motion()
@@ -483,42 +498,101 @@ class KlipperBackend:
         return self._clock_at(time.monotonic())
 
     def _generate(self, until_s: float) -> None:
-        """Exact step clocks of every axis for the trajectory up to ``until_s``."""
+        """Exact step clocks of every axis (and the followed output's power) for the
+        trajectory up to ``until_s``."""
         pieces = self._pieces
+        spans = [Spans() for _ in self.axes]
         while pieces:
             piece = pieces[0]
             end_s = min(until_s, piece.start_s + piece.duration_s)
             rel_s = end_s - piece.start_s
             if rel_s < 0.0:
                 break
-            self._piece_steps(piece, rel_s)
+            self._piece_steps(piece, rel_s, spans)
             if end_s < piece.start_s + piece.duration_s:
                 break
             pieces.popleft()
+            self._generated_s = end_s
+        for axis, axis_spans in zip(self.axes, spans, strict=True):
+            if not axis_spans.runs:
+                continue
+            clocks = self._motion_clock(axis_spans.solve())
+            assert isinstance(clocks, np.ndarray)
+            first = 0
+            for direction, count in axis_spans.runs:
+                axis.add(direction, clocks[first:first + count])
+                first += count
+        if self._follow_on and not pieces and until_s > self._generated_s:
+            self._follow_on = False  # motion ended (not merely a slice of a late tick)
+            self._set_followed(0.0, self._generated_s)
 
-    def _piece_steps(self, piece: Piece, rel_s: float) -> None:
+    def _follow_piece(self, piece: Piece, rel_s: float, first: bool) -> None:
+        """The followed output's duty along ``piece`` up to ``rel_s`` into it. Turning on or
+        off happens exactly where the piece starts; otherwise the duty is the piece's at
+        every ``_follow_period_s`` of motion time (the laser's sample rate: S changing every
+        segment of a fast raster costs at most one message a period)."""
+        out, law, v0 = self._follow, piece.power, piece.start_mm_s
+        assert out is not None
+        start_s = piece.start_s
+        if first:
+            on = self._level(out, out.value) > 0
+            if law is None or self._level(out, law.at(v0)) == 0:
+                if on:
+                    self._set_followed(0.0, start_s)
+            elif not on:
+                self._set_followed(law.at(v0), start_s)
+                self._follow_next_s = start_s + self._follow_period_s
+        if law is None:
+            return
+        t, a, end_s = max(self._follow_next_s, start_s), piece.accel_mm_s2, start_s + rel_s
+        while t <= end_s:
+            self._set_followed(law.at(v0 + a * (t - start_s)), t)
+            t += self._follow_period_s
+        self._follow_next_s = t
+
+    def _set_followed(self, value: float, when_s: float) -> None:
+        out = self._follow
+        assert out is not None
+        if value == out.value or self._level(out, value) == self._level(out, out.value):
+            return
+        self.values[out.name] = value
+        self._follow_on = value > 0.0
+        self._queue_output(out, value, when_s)
+
+    def _level(self, out: Output, value: float) -> int:
+        """What the MCU is sent for ``value``: the PWM level, or on/off."""
+        if not out.config.pwm:
+            return int(value > 0.5)
+        assert self.mcu is not None
+        top = self.mcu.dictionary.constant_int("PWM_MAX", 255)
+        return round(min(1.0, max(0.0, value)) * top)
+
+    def _piece_steps(self, piece: Piece, rel_s: float, spans: list[Spans]) -> None:
+        """Each axis' whole steps along ``piece`` up to ``rel_s`` into it join ``spans``."""
         v0, a = piece.start_mm_s, piece.accel_mm_s2
-        if piece is not self._head:  # first look at this piece
+        first = piece is not self._head
+        if first:  # first look at this piece
             self._head = piece
+            self._trail.add(piece)
             if self._rebased(piece):
                 return
             if not self.motors_on and piece.duration_s > 0.0:  # enabled as it starts
                 self._switch_motors(True, int(self._motion_clock(piece.start_s + self.lead_s)))
+        if self._follow is not None:
+            self._follow_piece(piece, rel_s, first)
         if rel_s == 0.0:
             return
         distance = v0 * rel_s + 0.5 * a * rel_s * rel_s
         base_s = piece.start_s + self.lead_s
-        for axis, start, unit in zip(self.axes, piece.start_mm, piece.unit, strict=True):
+        for axis, start, unit, axis_spans in zip(self.axes, piece.start_mm, piece.unit, spans,
+                                                 strict=True):
             if unit == 0.0:
                 continue
             x0, u = start * axis.steps_per_mm, unit * axis.steps_per_mm
             target = step_target(x0 + u * distance)
             if target == axis.position:
                 continue
-            times = crossing_times(x0, u, v0, a, rel_s, axis.position, target)
-            clocks = self._motion_clock(base_s + times)
-            assert isinstance(clocks, np.ndarray)
-            axis.add(1 if target > axis.position else -1, clocks)
+            axis_spans.add(x0, u, v0, a, rel_s, axis.position, target, base_s)
             axis.position = target
 
     def _rebased(self, piece: Piece) -> bool:
@@ -534,15 +608,19 @@ class KlipperBackend:
         return jumped and piece.duration_s == 0.0
 
     def _flush(self, now_s: float) -> None:
-        """Compress what is due soon (all of it when motion has no more pieces)."""
-        idle = not self._pieces
+        """Compress what is due soon (all of it when motion has no more pieces): steps that
+        may still join a longer run wait until their first is due within the lead less the
+        hold-back (compressed once then, not at every flush). Motion has ended once the
+        samples pass the last piece's end (a late tick's slice ends exactly on one)."""
+        idle = not self._pieces and now_s > self._generated_s
         force_clock = self._motion_clock(now_s + self.lead_s - self.hold_back_s)
         for axis in self.axes:
             axis.collect()
             while axis.segments:
                 direction, points = axis.segments[0]
-                final = idle or len(axis.segments) > 1 or points[0] < force_clock
-                done = self._emit(axis, direction, points, final)
+                if not (idle or len(axis.segments) > 1 or points[0] < force_clock):
+                    break
+                done = self._emit(axis, direction, points, True)
                 if done < len(points):
                     axis.segments[0] = (direction, points[done:])
                     break
@@ -603,12 +681,9 @@ class KlipperBackend:
     def position_at_mm(self, time_s: float) -> tuple[float, ...] | None:
         """The planned position a lead time before ``time_s``: what the MCU has executed
         (the step schedule runs ``lead_s`` behind the step generator)."""
-        history = self._history
-        if not self.ready or not history:
+        if not self.ready:
             return None
-        at_s = self._print_time_at(time_s) - self.lead_s
-        index = bisect.bisect_right(history, at_s, key=lambda entry: entry[0])
-        return history[max(0, index - 1)][1]
+        return self._trail.position_at(self._print_time_at(time_s) - self.lead_s)
 
     def done_at_s(self) -> float:
         """The last step executes a lead time after the trajectory ends (+ the clock fit's
@@ -628,7 +703,8 @@ class KlipperBackend:
 
     def _drop_motion(self) -> None:
         self._motion_end_s = 0.0
-        self._history.clear()
+        self._trail.clear()
+        self._follow_on = False
         self._pieces.clear()
         self._queue.waiting.clear()
         for axis in self.axes:

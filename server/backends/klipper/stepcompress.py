@@ -53,7 +53,9 @@ def windows(
 ) -> tuple[IntArray, IntArray]:
     """Integer windows ``[lo, hi]`` (relative to ``last_clock``) for each exact step clock."""
     q = points - last_clock
-    gaps = np.diff(points, prepend=previous)
+    gaps = np.empty_like(points)
+    gaps[0] = points[0] - previous
+    np.subtract(points[1:], points[:-1], out=gaps[1:])
     err = np.minimum(max_error, 0.5 * np.maximum(gaps, 0.0))
     hi = np.maximum(np.floor(q), 1.0).astype(np.int64)
     lo = np.ceil(q - err).astype(np.int64)

@@ -11,6 +11,7 @@ carries the integer position and the end target from piece to piece.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
@@ -23,32 +24,72 @@ def step_target(position_steps: float) -> int:
     return math.floor(position_steps + 0.5)
 
 
-SCALAR_STEPS = 8
-"""Pieces of at most this many steps are solved step by step (numpy's overhead per call is
-that of about 30 steps in plain Python)."""
+@dataclass(slots=True)
+class Spans:
+    """One axis' stretches of pieces whose steps are solved together: one numpy pass for all
+    that a flush generates, whatever the number of pieces (a raster's have a few steps each).
+    A span: the axis position in steps at its piece's start ``x0``, steps per mm of path ``u``
+    (not 0), start speed and acceleration, how far into the piece (s), the whole steps before
+    and after, and the print time its piece starts."""
+
+    rows: list[tuple[float, float, float, float, float, float, float, float]] = field(
+        default_factory=list)  # x0, u, v0, a, duration, first boundary, direction, base
+    counts: list[int] = field(default_factory=list)
+    runs: list[tuple[int, int]] = field(default_factory=list)  # (direction, steps) in order
+
+    def add(self, x0: float, u: float, v0: float, a: float, duration_s: float, current: int,
+            target: int, base_s: float) -> None:
+        direction = 1 if target > current else -1
+        count = abs(target - current)
+        self.rows.append((x0, u, v0, a, duration_s, current + 0.5 * direction, direction,
+                          base_s))
+        self.counts.append(count)
+        runs = self.runs
+        if runs and runs[-1][0] == direction:
+            runs[-1] = (direction, runs[-1][1] + count)
+        else:
+            runs.append((direction, count))
+
+    def solve(self) -> FloatArray:
+        """Every step's print time, ascending (the runs of :attr:`runs` one after another).
+
+        Solving ``d(t) = (b - x0)/u`` as ``t = 2d / (v0 + sqrt(v0² + 2ad))`` (no cancellation
+        near standstill), clamped to the span; beyond a decelerating piece's stop (rounding)
+        the square root is 0 and the clamp puts the step at the piece's end."""
+        if len(self.rows) == 1:
+            x0, u, v0, a, duration_s, first, direction, base_s = self.rows[0]
+            boundaries = np.arange(first, first + direction * self.counts[0], direction,
+                                   dtype=np.float64)[:self.counts[0]]
+            if a == 0.0 and v0 > 0.0:  # a cruise: d/v0
+                times = np.clip((boundaries - x0) * (1.0 / (u * v0)), 0.0, duration_s)
+                times += base_s
+                return times
+            return _times(x0, u, v0, a, duration_s, boundaries, base_s)
+        counts = np.array(self.counts)
+        table = np.repeat(np.array(self.rows).T, counts, axis=1)
+        x0s, us, v0s, accels, durations, firsts, directions, bases = table
+        k = np.arange(len(x0s), dtype=np.float64) - np.repeat(np.cumsum(counts) - counts,
+                                                               counts)
+        times = _times(x0s, us, v0s, accels, durations, firsts + directions * k, bases)
+        return np.maximum.accumulate(times)
 
 
-def _scalar_times(x0: float, u: float, v0: float, a: float, duration_s: float, current: int,
-                  direction: int, count: int) -> list[float]:
-    """:func:`crossing_times` for a few steps, one at a time (the same arithmetic)."""
-    times, latest = [], 0.0
-    stop_s = -v0 / a if a < 0.0 else 0.0
-    for k in range(count):
-        distance = max((current + direction * (k + 0.5) - x0) / u, 0.0)
-        radicand = v0 * v0 + 2.0 * a * distance
-        root = math.sqrt(max(radicand, 0.0))
-        time_s = 2.0 * distance / (v0 + root) if v0 + root > 0.0 else duration_s
-        if a < 0.0 and radicand < 0.0:
-            time_s = stop_s
-        latest = max(latest, min(max(time_s, 0.0), duration_s))
-        times.append(latest)
-    return times
+Floats = float | FloatArray
+
+
+def _times(x0: Floats, u: Floats, v0: Floats, a: Floats, duration_s: Floats,
+           boundaries: FloatArray, base_s: Floats) -> FloatArray:
+    distance = np.maximum((boundaries - x0) / u, 0.0)
+    root = np.sqrt(np.maximum(v0 * v0 + 2.0 * a * distance, 0.0))
+    times = 2.0 * distance / np.maximum(v0 + root, 1e-300)
+    return np.asarray(base_s + np.clip(times, 0.0, duration_s), dtype=np.float64)
 
 
 def crossing_times(
     x0: float, u: float, v0: float, a: float, duration_s: float, current: int, target: int
 ) -> FloatArray:
-    """Seconds from the piece start at which each step from ``current`` to ``target`` happens.
+    """Seconds from the piece start at which each step from ``current`` to ``target`` happens
+    (one piece of :class:`Spans`).
 
     Args:
         x0: axis position in steps at the piece start.
@@ -59,22 +100,10 @@ def crossing_times(
     Returns:
         ``abs(target - current)`` non-decreasing times.
     """
-    count = abs(target - current)
-    if count == 0:
+    if target == current:
         return np.empty(0)
-    direction = 1 if target > current else -1
-    if count <= SCALAR_STEPS and u != 0.0:  # a short piece (a raster's): numpy costs more
-        return np.array(_scalar_times(x0, u, v0, a, duration_s, current, direction, count))
-    boundaries = current + direction * (np.arange(count, dtype=np.float64) + 0.5)
     if u == 0.0:
-        return np.full(count, duration_s)
-    distance = np.maximum((boundaries - x0) / u, 0.0)
-    root = np.sqrt(np.maximum(v0 * v0 + 2.0 * a * distance, 0.0))
-    denominator = v0 + root
-    with np.errstate(divide="ignore", invalid="ignore"):
-        times = np.where(denominator > 0.0, 2.0 * distance / denominator, duration_s)
-    if a < 0.0:  # a boundary beyond the stopping point (rounding): at the stop
-        stop_s = -v0 / a
-        times = np.where(v0 * v0 + 2.0 * a * distance < 0.0, stop_s, times)
-    times = np.clip(times, 0.0, duration_s)
-    return np.maximum.accumulate(times)
+        return np.full(abs(target - current), duration_s)
+    spans = Spans()
+    spans.add(x0, u, v0, a, duration_s, current, target, 0.0)
+    return spans.solve()
