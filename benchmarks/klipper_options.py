@@ -17,7 +17,10 @@ def add_options(parser: argparse.ArgumentParser) -> None:
                         "to measure (default: this checkout)")
     parser.add_argument("--hosts", nargs="+", choices=HOSTS, default=list(HOSTS),
                         help="klipper: which hosts to measure")
+    parser.add_argument("--logs", type=Path, help="klipper: keep the rigs' serial and GPIO "
+                        "logs and the hosts' logs in this folder (default: a temporary one)")
 
 
 def options_of(options: Any) -> dict[str, Any]:
-    return {"runs": options.runs, "motiond_tree": options.motiond_tree, "hosts": options.hosts}
+    return {"runs": options.runs, "motiond_tree": options.motiond_tree, "hosts": options.hosts,
+            "logs": options.logs}
