@@ -68,9 +68,12 @@ REST_S = 0.05
 HOLD_BACK_SHARE = 0.25
 """The longest a run that may still grow waits before it is sent anyway, as a share of the
 lead (50 ms at the default 0.2 s): a longer lead buys longer runs, fewer bytes."""
-DRIFT_MAX_S = 0.01
-"""The most the schedule may drift from the clock fit (or a tenth of the lead) before it is
-steered back (:mod:`.printclock`)."""
+AHEAD_MAX_S = 0.01
+"""The most the board's clock may run ahead of the schedule as fitted (or a tenth of the
+lead; the lead, and the stall the MCU rides through, shrink by as much) before the schedule
+is steered back (:mod:`.printclock`)."""
+BEHIND_MAX_S = 0.05
+"""The most it may fall behind (or a quarter of the lead: the lead grows by as much)."""
 RESTART_WAIT_S = 0.3  # a restarted board boots before it is asked who it is
 RESTART_PATIENCE_S = 10.0  # a restarted board's first answer (a bootloader, a slow boot)
 RECOVER_TIMEOUT_S = 20.0  # $X waits this long for a restarted board to be configured
@@ -113,7 +116,8 @@ class KlipperBackend:
         self._sample_s: float | None = None
         self._next_flush_s = 0.0
         self._queue = MoveQueue()
-        self._print = PrintClock(0.0, min(DRIFT_MAX_S, 0.1 * self.lead_s))
+        self._print = PrintClock(0.0, min(AHEAD_MAX_S, 0.1 * self.lead_s),
+                                 min(BEHIND_MAX_S, 0.25 * self.lead_s))
         self.identity: dict[str, str] = {}  # the board first served: another is refused
         self.shut_down = False  # the board is shut down until recover() restarts it
         self._recover = asyncio.Event()  # recover() asks the waiting run() to restart
@@ -468,7 +472,7 @@ class KlipperBackend:
             self._print.nominal_hz = fit.nominal_hz  # the dictionary's CLOCK_FREQ
             self._print.anchor(frontier_s, fit.clock_at(frontier_s))
         else:
-            self._print.steer(frontier_s, fit.clock_at(frontier_s), fit.freq_hz)
+            self._print.steer(frontier_s, fit.clock_at(frontier_s))
 
     def _schedule_idle(self) -> bool:
         """Nothing waits to be scheduled or sent, and every step sent is already past."""
