@@ -14,6 +14,7 @@ import numpy as np
 
 from benchmarks.bench_klipper_host import Listener, OfflineBackend
 from server.backends.klipper.clocksync import ClockSync
+from server.backends.klipper.codec import PAYLOAD_MAX
 from server.backends.klipper.dictionary import Dictionary
 from server.backends.klipper.printclock import PrintClock
 from server.backends.klipper.stepcompress import StepCompressor
@@ -36,8 +37,10 @@ class Sink:
         self.dictionary, self.messages = dictionary, []  # type: list[tuple[str, Any]]
 
         self.now_s, self.sent_s = 0.0, []  # type: float, list[float]
+        self.bursts: list[tuple[int, int]] = []  # (messages, bytes) of each send
 
     def send(self, *messages: bytes) -> None:
+        self.bursts.append((len(messages), sum(len(m) for m in messages)))
         for message in messages:
             decoded = self.dictionary.decode(message)
             self.messages.extend(decoded)
@@ -237,3 +240,27 @@ def test_a_longer_lead_holds_runs_back_longer_and_each_still_leaves_ahead() -> N
         assert least_s >= 0.75 * lead_s - 0.02 - 0.002, (lead_s, least_s)
         found[lead_s] = runs
     assert found[0.5] < 0.75 * found[0.2], found
+
+
+def test_a_burst_smaller_than_a_block_leaves_only_once_something_in_it_is_due() -> None:
+    """Messages not yet urgent wait to share a block: every burst under a block's worth has a
+    queue_step due within 3/4 lead (150 ms) of leaving (the urgent ones: a flush's horizon),
+    and the job's accelerations leave in fewer bursts than flushes."""
+    sink = Sink(Dictionary(FORMATS))
+    run(JOB, CLOCK_HZ, 0.2, sink)
+    firsts, last = {}, {0: 0, 1: 0}  # message index: its first step's clock
+    for index, (name, p) in enumerate(sink.messages):
+        if name == "reset_step_clock":
+            last[p["oid"]] = p["clock"]
+        if name == "queue_step":
+            firsts[index] = last[p["oid"]] + p["interval"]
+            k = p["count"] - 1
+            last[p["oid"]] += p["count"] * p["interval"] + p["add"] * (k * (k + 1) // 2)
+    index = 0
+    for count, size in sink.bursts:
+        leads = [firsts[i] / CLOCK_HZ - sink.sent_s[i] for i in range(index, index + count)
+                 if i in firsts]
+        assert size >= PAYLOAD_MAX or min(leads) <= 0.15 + 0.001, (count, size, leads)
+        index += count
+    small = sum(1 for _, size in sink.bursts if size < PAYLOAD_MAX)
+    assert len(sink.messages) > 2.5 * len(sink.bursts) and small < len(sink.bursts)

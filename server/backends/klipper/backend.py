@@ -261,6 +261,7 @@ class KlipperBackend:
             when_s = max(when_s, last.start_s + last.duration_s)
         self._switch_motors(enabled, self._scheduled_clock(when_s))
         self._pump()
+        self._wake()  # ticks send it once due (it may wait to share a block)
 
     def _when_s(self, time_s: float) -> float:
         """When a change asked for at ``time_s`` happens: at the last sample while ticking
@@ -562,9 +563,10 @@ class KlipperBackend:
             self._queue.add(d.encode("reset_step_clock", oid=axis.oid,
                                      clock=start & 0xFFFFFFFF), None, start)
             axis.needs_reset = False
-        if direction != axis.sent_dir:
+        if direction != axis.sent_dir:  # due with the first step it turns
             self._queue.add(d.encode("set_next_step_dir", oid=axis.oid,
-                                     dir=int((direction > 0) != axis.invert_dir)), None, 0)
+                                     dir=int((direction > 0) != axis.invert_dir)), None,
+                            int(points[0]))
             axis.sent_dir = direction
         last, index = compressor.last_clock, 0
         runs, done = compressor.compress(points, final)
@@ -579,17 +581,20 @@ class KlipperBackend:
             last = int(clocks[-1])
         return done
 
-    def _pump(self, hold: bool = False) -> None:
-        """Send queued messages in order while the MCU's move queue has room. ``hold``
-        (between flushes): less than a block of messages due later than the runs a flush
-        sends (``lead_s`` - ``hold_back_s`` ahead) waits for the next flush, so they share
-        blocks; a message so held still leaves at least ``lead_s`` - ``flush_s`` ahead."""
+    def _pump(self, hold: bool = True) -> None:
+        """Send queued messages in order while the MCU's move queue has room. Less than a
+        block of messages all due later than a flush must send (``lead_s`` - ``hold_back_s``
+        ahead) waits for more, at flushes and between them alike, so they share blocks; a
+        message so held still leaves at least ``lead_s`` - ``hold_back_s`` - ``flush_s``
+        ahead, as a held-back run does. (``hold`` changes nothing any more: the callers'
+        argument is left for them.)"""
+        del hold
         mcu = self.mcu
         if mcu is None or not self._queue.waiting:
             return
         now = self._now_clock()
         hold_after = None
-        if hold and mcu.clock is not None:
+        if mcu.clock is not None:
             hold_after = now + (self.lead_s - self.hold_back_s) * mcu.clock.freq_hz
         late_ms = self._queue.pump(mcu, now, hold_after)
         if late_ms is not None:

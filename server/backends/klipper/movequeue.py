@@ -1,7 +1,8 @@
 """The MCU's move queue, seen from the host: messages leave in order while it has room.
 
-What has room leaves in one burst, which the link packs into as few blocks as fit; between
-bursts, messages not yet urgent may wait for the next one (less than a block's worth).
+What has room leaves in one burst, which the link packs into as few blocks as fit; while no
+waiting message is urgent and less than a block's worth waits, the burst waits to grow (fewer,
+fuller blocks: a block costs 5 bytes besides its messages).
 Every ``queue_step`` and scheduled output takes one of the MCU's ``move_count`` slots until
 the MCU has reached it. The host counts a slot as taken from sending the message until its
 clock has passed (plus ``QUEUE_MARGIN_S``, the clock fit's possible lead over the MCU's own),
@@ -35,19 +36,13 @@ class MoveQueue:
     def pump(self, mcu: Mcu, now: float, hold_after: float | None = None) -> float | None:
         """Send what the queue has room for at MCU clock ``now``, all in one burst (the link
         packs it into as few blocks as fit); returns how many ms late the next message would
-        be (nothing more is sent), or None. ``hold_after``: an MCU clock; while the first
-        message is due after it and less than a block's worth waits, nothing is sent (the
-        next burst will share its blocks)."""
+        be (nothing more is sent), or None. ``hold_after``: an MCU clock; while every
+        message waiting is due after it and less than a block's worth waits, nothing is sent
+        (the next burst will share its blocks)."""
         freq = mcu.clock.freq_hz if mcu.clock else 0.0
         in_use, waiting = self.in_use, self.waiting
-        if hold_after is not None and waiting and waiting[0][2] > hold_after:
-            size = 0
-            for message, _, _ in waiting:
-                size += len(message)
-                if size >= PAYLOAD_MAX:
-                    break
-            else:
-                return None
+        if hold_after is not None and self._holds(hold_after):
+            return None
         freed = now - QUEUE_MARGIN_S * freq
         while in_use and in_use[0] <= freed:
             heapq.heappop(in_use)
@@ -68,6 +63,15 @@ class MoveQueue:
         if burst:
             mcu.link.send(*burst)
         return late_ms
+
+    def _holds(self, hold_after: float) -> bool:
+        """Whether what waits may wait: none of it due by ``hold_after``, under a block."""
+        size = 0
+        for message, _, due in self.waiting:
+            size += len(message)
+            if due <= hold_after or size >= PAYLOAD_MAX:
+                return False
+        return bool(self.waiting)
 
     def busy(self, now: float) -> bool:
         """Whether a message waits or a slot is still taken at MCU clock ``now``."""
