@@ -53,12 +53,15 @@ def test_a_message_due_by_the_horizon_anywhere_in_the_queue_sends_all_before_it(
     assert [len(burst) for burst in mcu.link.bursts] == [3] and not queue.waiting
 
 
-def test_a_block_s_worth_waiting_leaves_at_once() -> None:
+def test_full_blocks_leave_at_once_and_the_part_filled_last_one_waits_unless_due() -> None:
     mcu = Mcu()
-    count = PAYLOAD_MAX // 7 + 1
-    queue = queue_of([100_000 + k for k in range(count)])
+    per_block = PAYLOAD_MAX // 7
+    queue = queue_of([100_000 + k for k in range(per_block + 3)])
     queue.pump(mcu, 0.0, hold_after=40_000.0)  # type: ignore[arg-type]
-    assert [len(burst) for burst in mcu.link.bursts] == [count]
+    assert [len(burst) for burst in mcu.link.bursts] == [per_block] and len(queue.waiting) == 3
+    queue.add(bytes(7), 50_000, 50_000)  # due soon, in the last block: it goes with it
+    queue.pump(mcu, 10_000.0, hold_after=60_000.0)  # type: ignore[arg-type]
+    assert [len(burst) for burst in mcu.link.bursts] == [per_block, 4] and not queue.waiting
 
 
 def test_without_a_horizon_everything_with_room_leaves() -> None:

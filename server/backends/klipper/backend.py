@@ -12,8 +12,9 @@ reconfiguration. A run that may still grow is held back at most a quarter of the
 (``HOLD_BACK_SHARE``), so a host stall of up to 3/4 ``lead_time_s`` - ``flush_s`` (130 ms at
 the default 0.2 s) never starves the MCU. Messages leave in
 order while the MCU's move queue (``move_count`` from its config) has room (:mod:`.movequeue`),
-each flush's in one burst that the link packs into as few message blocks as fit; a message
-made between flushes (an output's change) waits for the next one unless a block's worth waits.
+in bursts that the link packs into as few message blocks as fit; messages that would only
+part-fill a burst's last block wait for more while none of them is due within ``lead_time_s`` -
+``hold_back_s`` (as a held-back run does), so blocks leave fuller.
 
 Outputs named in ``[backend.outputs]`` become ``queue_pwm_out``/``queue_digital_out`` at the
 MCU time of the last sample (the instant whose speed the laser's power was computed from) plus
