@@ -16,8 +16,10 @@ the rig's serial log and its GPIO log (cycles at 20 MHz: the MCU's own time), pe
 * wall time from sending the job to its last step, and whether every step count is exact;
 * LAG records (the simulation fell behind wall-clock time: a loaded machine) in the window.
 
-Run: ``python -m benchmarks klipper [--quick] [--json] [--runs N] [--motiond-tree DIR]``
-(``--motiond-tree``: measure motiond from another checkout, e.g. a branch's worktree).
+Run: ``python -m benchmarks klipper [--quick] [--json] [--runs N] [--motiond-tree DIR]
+[--hosts klippy motiond] [--logs DIR] [--lead-time-s S]`` (``--motiond-tree``: measure motiond
+from another checkout, e.g. a branch's worktree; ``--logs``: keep the logs there;
+``--lead-time-s``: motiond's ``[backend] lead_time_s``, default its own 0.2 s).
 """
 
 from __future__ import annotations
@@ -85,11 +87,11 @@ class Figures:
 
 
 async def run_host(host: str, job_list: list[Job], runs: int, workdir: Path,
-                   tree: Path) -> tuple[Rig, list[Window]]:
+                   tree: Path, lead_time_s: float | None) -> tuple[Rig, list[Window]]:
     windows: list[Window] = []
     async with klipper_rig(workdir, host) as rig:
         starter = Klippy.start(rig, workdir) if host == "klippy" else \
-            Motiond.start(rig, workdir, tree)
+            Motiond.start(rig, workdir, tree, lead_time_s)
         async with starter as driver:
             for _ in range(runs):
                 for job in job_list:
@@ -285,14 +287,15 @@ def report(result: BenchResult, figures: dict[str, dict[str, list[Figures]]]) ->
 
 
 async def measure(quick: bool, runs: int, tree: Path, hosts: Sequence[str],
-                  logs: Path | None = None) -> dict[str, dict[str, list[Figures]]]:
+                  logs: Path | None = None, lead_time_s: float | None = None
+                  ) -> dict[str, dict[str, list[Figures]]]:
     job_list = jobs(quick)
     figures: dict[str, dict[str, list[Figures]]] = {}
     with tempfile.TemporaryDirectory(prefix="motiond-bench-klipper-") as name:
         for host in hosts:
             workdir = (logs or Path(name)) / host
             workdir.mkdir(parents=True, exist_ok=True)
-            rig, windows = await run_host(host, job_list, runs, workdir, tree)
+            rig, windows = await run_host(host, job_list, runs, workdir, tree, lead_time_s)
             by_job: dict[str, list[Figures]] = {job.name: [] for job in job_list}
             for window, fig in zip(windows, analyse(rig, windows), strict=True):
                 by_job[window.job.name].append(fig)
@@ -301,13 +304,15 @@ async def measure(quick: bool, runs: int, tree: Path, hosts: Sequence[str],
 
 
 def run(quick: bool, runs: int | None = None, motiond_tree: Path | None = None,
-        hosts: Sequence[str] = HOSTS, logs: Path | None = None) -> BenchResult:
+        hosts: Sequence[str] = HOSTS, logs: Path | None = None,
+        lead_time_s: float | None = None) -> BenchResult:
     result = BenchResult("klipper", quick)
     runs = runs or (1 if quick else 3)
     tree = (motiond_tree or REPO).resolve()
     print(f"stock Klipper firmware (klipper-avr rig), {runs} run(s) per job and host; "
-          f"motiond from {tree}; commanded {SPEED_MM_S:.0f} mm/s")
-    report(result, asyncio.run(measure(quick, runs, tree, hosts, logs)))
+          f"motiond from {tree}" + (f" (lead_time_s {lead_time_s})" if lead_time_s else "")
+          + f"; commanded {SPEED_MM_S:.0f} mm/s")
+    report(result, asyncio.run(measure(quick, runs, tree, hosts, logs, lead_time_s)))
     return result
 
 

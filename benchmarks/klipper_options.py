@@ -19,8 +19,10 @@ def add_options(parser: argparse.ArgumentParser) -> None:
                         help="klipper: which hosts to measure")
     parser.add_argument("--logs", type=Path, help="klipper: keep the rigs' serial and GPIO "
                         "logs and the hosts' logs in this folder (default: a temporary one)")
+    parser.add_argument("--lead-time-s", type=float, help="klipper: motiond's [backend] "
+                        "lead_time_s (default: motiond's own, 0.2 s)")
 
 
 def options_of(options: Any) -> dict[str, Any]:
     return {"runs": options.runs, "motiond_tree": options.motiond_tree, "hosts": options.hosts,
-            "logs": options.logs}
+            "logs": options.logs, "lead_time_s": options.lead_time_s}

@@ -107,7 +107,7 @@ def chrt_prefix() -> list[str]:
 
 
 # -- motiond -----------------------------------------------------------------------------------
-def motiond_toml(serial: str, data_dir: Path) -> str:
+def motiond_toml(serial: str, data_dir: Path, lead_time_s: float | None = None) -> str:
     axes = "".join(f"[axes.{a}]\nsteps_per_mm = {STEPS_PER_MM}\nmax_rate_mm_s = {MAX_RATE_MM_S}\n"
                    f"accel_mm_s2 = {ACCEL_MM_S2}\nmax_mm = {TRAVEL_MM}\n" for a in "xy")
     return f"""[machine]
@@ -121,6 +121,7 @@ enabled = false
 [backend]
 kind = "klipper"
 serial = "{serial}"
+{f"lead_time_s = {lead_time_s}" if lead_time_s else ""}
 [backend.axes.x]
 step_pin = "PA0"
 dir_pin = "!PA1"
@@ -146,10 +147,11 @@ class Motiond:
 
     @classmethod
     @contextlib.asynccontextmanager
-    async def start(cls, rig: Rig, workdir: Path, source: Path = REPO) -> AsyncIterator[Motiond]:
+    async def start(cls, rig: Rig, workdir: Path, source: Path = REPO,
+                    lead_time_s: float | None = None) -> AsyncIterator[Motiond]:
         (workdir / "data").mkdir(exist_ok=True)
         config = workdir / "motiond.toml"
-        config.write_text(motiond_toml(rig.path, workdir / "data"))
+        config.write_text(motiond_toml(rig.path, workdir / "data", lead_time_s))
         from benchmarks.bench_grbl_link import free_port  # noqa: PLC0415
 
         port = free_port()
