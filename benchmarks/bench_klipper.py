@@ -17,9 +17,11 @@ the rig's serial log and its GPIO log (cycles at 20 MHz: the MCU's own time), pe
 * LAG records (the simulation fell behind wall-clock time: a loaded machine) in the window.
 
 Run: ``python -m benchmarks klipper [--quick] [--json] [--runs N] [--motiond-tree DIR]
-[--hosts klippy motiond] [--logs DIR] [--lead-time-s S]`` (``--motiond-tree``: measure motiond
-from another checkout, e.g. a branch's worktree; ``--logs``: keep the logs there;
-``--lead-time-s``: motiond's ``[backend] lead_time_s``, default its own 0.2 s).
+[--hosts klippy motiond] [--logs DIR] [--lead-time-s S] [--rig-pause-ms MS]``
+(``--motiond-tree``: measure motiond from another checkout, e.g. a branch's worktree;
+``--logs``: keep the logs there; ``--lead-time-s``: motiond's ``[backend] lead_time_s``,
+default its own 0.2 s; ``--rig-pause-ms``: stop the simulator that long every 1.5 s, the lag
+of a loaded host made repeatable).
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ from benchmarks.common import REPO, BenchResult, add_run_options, execute
 from benchmarks.klipper_options import HOSTS, add_options, options_of
 from benchmarks.klipper_rig_hosts import (
     KLIPPER_AVR,
+    PAUSE_EVERY_S,
     STEPS_PER_MM,
     Klippy,
     Motiond,
@@ -87,9 +90,10 @@ class Figures:
 
 
 async def run_host(host: str, job_list: list[Job], runs: int, workdir: Path,
-                   tree: Path, lead_time_s: float | None) -> tuple[Rig, list[Window]]:
+                   tree: Path, lead_time_s: float | None, rig_pause_ms: float
+                   ) -> tuple[Rig, list[Window]]:
     windows: list[Window] = []
-    async with klipper_rig(workdir, host) as rig:
+    async with klipper_rig(workdir, host, rig_pause_ms) as rig:
         starter = Klippy.start(rig, workdir) if host == "klippy" else \
             Motiond.start(rig, workdir, tree, lead_time_s)
         async with starter as driver:
@@ -287,15 +291,16 @@ def report(result: BenchResult, figures: dict[str, dict[str, list[Figures]]]) ->
 
 
 async def measure(quick: bool, runs: int, tree: Path, hosts: Sequence[str],
-                  logs: Path | None = None, lead_time_s: float | None = None
-                  ) -> dict[str, dict[str, list[Figures]]]:
+                  logs: Path | None = None, lead_time_s: float | None = None,
+                  rig_pause_ms: float = 0.0) -> dict[str, dict[str, list[Figures]]]:
     job_list = jobs(quick)
     figures: dict[str, dict[str, list[Figures]]] = {}
     with tempfile.TemporaryDirectory(prefix="motiond-bench-klipper-") as name:
         for host in hosts:
             workdir = (logs or Path(name)) / host
             workdir.mkdir(parents=True, exist_ok=True)
-            rig, windows = await run_host(host, job_list, runs, workdir, tree, lead_time_s)
+            rig, windows = await run_host(host, job_list, runs, workdir, tree, lead_time_s,
+                                          rig_pause_ms)
             by_job: dict[str, list[Figures]] = {job.name: [] for job in job_list}
             for window, fig in zip(windows, analyse(rig, windows), strict=True):
                 by_job[window.job.name].append(fig)
@@ -305,14 +310,17 @@ async def measure(quick: bool, runs: int, tree: Path, hosts: Sequence[str],
 
 def run(quick: bool, runs: int | None = None, motiond_tree: Path | None = None,
         hosts: Sequence[str] = HOSTS, logs: Path | None = None,
-        lead_time_s: float | None = None) -> BenchResult:
+        lead_time_s: float | None = None, rig_pause_ms: float = 0.0) -> BenchResult:
     result = BenchResult("klipper", quick)
     runs = runs or (1 if quick else 3)
     tree = (motiond_tree or REPO).resolve()
     print(f"stock Klipper firmware (klipper-avr rig), {runs} run(s) per job and host; "
           f"motiond from {tree}" + (f" (lead_time_s {lead_time_s})" if lead_time_s else "")
-          + f"; commanded {SPEED_MM_S:.0f} mm/s")
-    report(result, asyncio.run(measure(quick, runs, tree, hosts, logs, lead_time_s)))
+          + f"; commanded {SPEED_MM_S:.0f} mm/s"
+          + (f"; the rig paused {rig_pause_ms:g} ms every {PAUSE_EVERY_S:g} s"
+             if rig_pause_ms else ""))
+    report(result, asyncio.run(measure(quick, runs, tree, hosts, logs, lead_time_s,
+                                       rig_pause_ms)))
     return result
 
 

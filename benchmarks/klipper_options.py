@@ -21,8 +21,11 @@ def add_options(parser: argparse.ArgumentParser) -> None:
                         "logs and the hosts' logs in this folder (default: a temporary one)")
     parser.add_argument("--lead-time-s", type=float, help="klipper: motiond's [backend] "
                         "lead_time_s (default: motiond's own, 0.2 s)")
+    parser.add_argument("--rig-pause-ms", type=float, default=0.0, help="klipper: stop the "
+                        "rig's simulator this long every 1.5 s (a loaded host's lag)")
 
 
 def options_of(options: Any) -> dict[str, Any]:
     return {"runs": options.runs, "motiond_tree": options.motiond_tree, "hosts": options.hosts,
-            "logs": options.logs, "lead_time_s": options.lead_time_s}
+            "logs": options.logs, "lead_time_s": options.lead_time_s,
+            "rig_pause_ms": options.rig_pause_ms}
