@@ -16,8 +16,12 @@ the rig's serial log and its GPIO log (cycles at 20 MHz: the MCU's own time), pe
 * wall time from sending the job to its last step, and whether every step count is exact;
 * LAG records (the simulation fell behind wall-clock time: a loaded machine) in the window.
 
-Run: ``python -m benchmarks klipper [--quick] [--json] [--runs N] [--motiond-tree DIR]``
-(``--motiond-tree``: measure motiond from another checkout, e.g. a branch's worktree).
+Run: ``python -m benchmarks klipper [--quick] [--json] [--runs N] [--motiond-tree DIR]
+[--hosts klippy motiond] [--logs DIR] [--lead-time-s S] [--rig-pause-ms MS]``
+(``--motiond-tree``: measure motiond from another checkout, e.g. a branch's worktree;
+``--logs``: keep the logs there; ``--lead-time-s``: motiond's ``[backend] lead_time_s``,
+default its own 0.2 s; ``--rig-pause-ms``: stop the simulator that long every 1.5 s, the lag
+of a loaded host made repeatable).
 """
 
 from __future__ import annotations
@@ -35,9 +39,10 @@ import numpy as np
 
 from benchmarks import klipper_rig_analysis as analysis
 from benchmarks.common import REPO, BenchResult, add_run_options, execute
-from benchmarks.klipper_options import HOSTS, add_options
+from benchmarks.klipper_options import HOSTS, add_options, options_of
 from benchmarks.klipper_rig_hosts import (
     KLIPPER_AVR,
+    PAUSE_EVERY_S,
     STEPS_PER_MM,
     Klippy,
     Motiond,
@@ -77,17 +82,20 @@ class Figures:
     exact: bool = True
     lag_records: int = 0
     lag_max_ms: float = 0.0
+    by_message: dict[str, float] = field(default_factory=dict)  # messages/s by name
+    bytes_per_block: float = float("nan")
     slips: int = 0
     slips_in_moves: int = 0
     failure: str = ""
 
 
 async def run_host(host: str, job_list: list[Job], runs: int, workdir: Path,
-                   tree: Path) -> tuple[Rig, list[Window]]:
+                   tree: Path, lead_time_s: float | None, rig_pause_ms: float
+                   ) -> tuple[Rig, list[Window]]:
     windows: list[Window] = []
-    async with klipper_rig(workdir, host) as rig:
+    async with klipper_rig(workdir, host, rig_pause_ms) as rig:
         starter = Klippy.start(rig, workdir) if host == "klippy" else \
-            Motiond.start(rig, workdir, tree)
+            Motiond.start(rig, workdir, tree, lead_time_s)
         async with starter as driver:
             for _ in range(runs):
                 for job in job_list:
@@ -170,6 +178,8 @@ def analyse(rig: Rig, windows: list[Window]) -> list[Figures]:
         fig.bytes_per_s, fig.blocks_per_s = wire.bytes / seconds, wire.blocks / seconds
         fig.messages_per_s = wire.messages / seconds
         fig.retransmits_per_s = wire.retransmitted / seconds
+        fig.by_message = {n: c / seconds for n, c in wire.by_name.items()}
+        fig.bytes_per_block = wire.bytes / wire.blocks if wire.blocks else float("nan")
         errors: list[np.ndarray] = []
         timeline: list[tuple[np.ndarray, np.ndarray]] = []  # (edges, ideal s) on the job's
         starts = window.job.move_starts_s()
@@ -218,6 +228,19 @@ def span(values: Sequence[float], fmt: str) -> str:
         f"{format(low, fmt)}..{format(high, fmt)}"
 
 
+def message_mix(runs: list[Figures]) -> str:
+    """Where the bytes go: bytes a block, and messages per second by name (median of runs)."""
+    names = sorted({n for f in runs for n in f.by_message},
+                   key=lambda n: -median_of([f.by_message.get(n, 0.0) for f in runs]))
+    mix = ", ".join(f"{n} {median_of([f.by_message.get(n, 0.0) for f in runs]):.1f}"
+                    for n in names)
+    return f"{median(runs, 'bytes_per_block'):.1f} bytes/block; messages/s: {mix or '-'}"
+
+
+def median_of(values: list[float]) -> float:
+    return float(np.median(values)) if values else 0.0
+
+
 def report(result: BenchResult, figures: dict[str, dict[str, list[Figures]]]) -> None:
     names = list(next(iter(figures.values())))
     columns = (("cpu_per_s", "CPU s/s", ".4f", "s/s"), ("bytes_per_s", "bytes/s", ",.0f", "B/s"),
@@ -239,6 +262,8 @@ def report(result: BenchResult, figures: dict[str, dict[str, list[Figures]]]) ->
             print(f"{name:11} {host:8} " + " ".join(f"{c:>16}" for c in cells)
                   + f" {span(ppm, '+.0f'):>16} {exact!s:5} {lag:4} "
                   f"{sum(f.slips_in_moves for f in runs):5} {len(failed):6}")
+            traffic = message_mix(runs)
+            print(f"{'':11} {'':8} {traffic}")
             per_run = "; per run: step p99 µs " + ", ".join(
                 f"{f.error_p99_us:.0f}" for f in runs) + "; cruise ppm " + " | ".join(
                 ", ".join(f"{p:+.0f}" for p in f.cruise_ppm) for f in runs)
@@ -265,15 +290,17 @@ def report(result: BenchResult, figures: dict[str, dict[str, list[Figures]]]) ->
             result.add(name, "motiond / klippy", **{k: (v, "x") for k, v in ratios.items()})
 
 
-async def measure(quick: bool, runs: int, tree: Path, hosts: Sequence[str]
-                  ) -> dict[str, dict[str, list[Figures]]]:
+async def measure(quick: bool, runs: int, tree: Path, hosts: Sequence[str],
+                  logs: Path | None = None, lead_time_s: float | None = None,
+                  rig_pause_ms: float = 0.0) -> dict[str, dict[str, list[Figures]]]:
     job_list = jobs(quick)
     figures: dict[str, dict[str, list[Figures]]] = {}
     with tempfile.TemporaryDirectory(prefix="motiond-bench-klipper-") as name:
         for host in hosts:
-            workdir = Path(name) / host
-            workdir.mkdir()
-            rig, windows = await run_host(host, job_list, runs, workdir, tree)
+            workdir = (logs or Path(name)) / host
+            workdir.mkdir(parents=True, exist_ok=True)
+            rig, windows = await run_host(host, job_list, runs, workdir, tree, lead_time_s,
+                                          rig_pause_ms)
             by_job: dict[str, list[Figures]] = {job.name: [] for job in job_list}
             for window, fig in zip(windows, analyse(rig, windows), strict=True):
                 by_job[window.job.name].append(fig)
@@ -282,13 +309,18 @@ async def measure(quick: bool, runs: int, tree: Path, hosts: Sequence[str]
 
 
 def run(quick: bool, runs: int | None = None, motiond_tree: Path | None = None,
-        hosts: Sequence[str] = HOSTS) -> BenchResult:
+        hosts: Sequence[str] = HOSTS, logs: Path | None = None,
+        lead_time_s: float | None = None, rig_pause_ms: float = 0.0) -> BenchResult:
     result = BenchResult("klipper", quick)
     runs = runs or (1 if quick else 3)
     tree = (motiond_tree or REPO).resolve()
     print(f"stock Klipper firmware (klipper-avr rig), {runs} run(s) per job and host; "
-          f"motiond from {tree}; commanded {SPEED_MM_S:.0f} mm/s")
-    report(result, asyncio.run(measure(quick, runs, tree, hosts)))
+          f"motiond from {tree}" + (f" (lead_time_s {lead_time_s})" if lead_time_s else "")
+          + f"; commanded {SPEED_MM_S:.0f} mm/s"
+          + (f"; the rig paused {rig_pause_ms:g} ms every {PAUSE_EVERY_S:g} s"
+             if rig_pause_ms else ""))
+    report(result, asyncio.run(measure(quick, runs, tree, hosts, logs, lead_time_s,
+                                       rig_pause_ms)))
     return result
 
 
@@ -297,8 +329,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     add_run_options(parser)
     add_options(parser)
     options = parser.parse_args(argv)
-    return execute([lambda: run(options.quick, options.runs, options.motiond_tree,
-                                options.hosts)], options.json)
+    return execute([lambda: run(options.quick, **options_of(options))], options.json)
 
 
 if __name__ == "__main__":

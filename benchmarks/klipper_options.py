@@ -17,7 +17,15 @@ def add_options(parser: argparse.ArgumentParser) -> None:
                         "to measure (default: this checkout)")
     parser.add_argument("--hosts", nargs="+", choices=HOSTS, default=list(HOSTS),
                         help="klipper: which hosts to measure")
+    parser.add_argument("--logs", type=Path, help="klipper: keep the rigs' serial and GPIO "
+                        "logs and the hosts' logs in this folder (default: a temporary one)")
+    parser.add_argument("--lead-time-s", type=float, help="klipper: motiond's [backend] "
+                        "lead_time_s (default: motiond's own, 0.2 s)")
+    parser.add_argument("--rig-pause-ms", type=float, default=0.0, help="klipper: stop the "
+                        "rig's simulator this long every 1.5 s (a loaded host's lag)")
 
 
 def options_of(options: Any) -> dict[str, Any]:
-    return {"runs": options.runs, "motiond_tree": options.motiond_tree, "hosts": options.hosts}
+    return {"runs": options.runs, "motiond_tree": options.motiond_tree, "hosts": options.hosts,
+            "logs": options.logs, "lead_time_s": options.lead_time_s,
+            "rig_pause_ms": options.rig_pause_ms}

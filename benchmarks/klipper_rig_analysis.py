@@ -62,9 +62,13 @@ class SerialLog:
                 fresh = (block.seq + 1) & 0x0F
             elif start <= block.cycle:
                 retransmitted += 1  # an earlier sequence number again: sent anew
+        by_name: dict[str, int] = {}
+        for block in blocks:
+            for name in block.messages or ["(ack)"]:
+                by_name[name] = by_name.get(name, 0) + 1
         return SerialFigures(bytes=sum(b.size for b in blocks), blocks=len(blocks),
                              messages=sum(len(b.messages) for b in blocks),
-                             retransmitted=retransmitted)
+                             retransmitted=retransmitted, by_name=by_name)
 
 
 @dataclass(frozen=True, slots=True)
@@ -73,6 +77,7 @@ class SerialFigures:
     blocks: int
     messages: int
     retransmitted: int
+    by_name: dict[str, int] = field(default_factory=dict)  # messages by name ("(ack)": empty)
 
 
 def crc16(data: bytes) -> bytes:

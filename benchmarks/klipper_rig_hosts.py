@@ -22,6 +22,7 @@ import contextlib
 import json
 import math
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -40,6 +41,7 @@ SQUARE_CORNER_MM_S = math.sqrt(JUNCTION_DEVIATION_MM * ACCEL_MM_S2 / (math.sqrt(
 LASER_S_MAX = 1000
 RT_PRIORITY = 10  # motiond's [stepgen] realtime_priority default
 POLL_S = 0.1
+PAUSE_EVERY_S = 1.5  # --rig-pause-ms: how often the simulator is stopped
 RUN_LIMIT_S = 60.0  # a job (a few seconds of motion) not done in this long has failed
 
 
@@ -60,9 +62,25 @@ class Rig:
     serial_log: Path
 
 
+async def pause_now_and_then(pid: int, pause_ms: float) -> None:
+    """Stop the simulator for ``pause_ms`` every ``PAUSE_EVERY_S``: it then runs flat out until
+    it has caught up with the wall clock, as it does on a loaded host (``LAG`` records)."""
+    try:
+        while True:
+            await asyncio.sleep(PAUSE_EVERY_S)
+            os.kill(pid, signal.SIGSTOP)
+            try:
+                await asyncio.sleep(pause_ms / 1e3)
+            finally:
+                os.kill(pid, signal.SIGCONT)
+    except ProcessLookupError:
+        return
+
+
 @contextlib.asynccontextmanager
-async def klipper_rig(workdir: Path, name: str) -> AsyncIterator[Rig]:
-    """The stock firmware in simavr, logging its pins and its serial bytes."""
+async def klipper_rig(workdir: Path, name: str, pause_ms: float = 0.0) -> AsyncIterator[Rig]:
+    """The stock firmware in simavr, logging its pins and its serial bytes (``pause_ms``:
+    stopped that long now and then, see :func:`pause_now_and_then`)."""
     gpio, serial = workdir / f"{name}-gpio.log", workdir / f"{name}-serial.log"
     stderr = (workdir / f"{name}-rig.err").open("wb")
     process = await asyncio.create_subprocess_exec(
@@ -74,7 +92,14 @@ async def klipper_rig(workdir: Path, name: str) -> AsyncIterator[Rig]:
         path = (await asyncio.wait_for(process.stdout.readline(), 10.0)).decode().strip()
         if not path.startswith("/dev/"):
             raise RuntimeError(f"the rig printed {path!r}")
-        yield Rig(process, path, gpio, serial)
+        async with asyncio.TaskGroup() as group:
+            pauses = group.create_task(pause_now_and_then(process.pid, pause_ms)) \
+                if pause_ms > 0 else None
+            try:
+                yield Rig(process, path, gpio, serial)
+            finally:
+                if pauses is not None:
+                    pauses.cancel()
     finally:
         await stop(process)
 
@@ -107,7 +132,7 @@ def chrt_prefix() -> list[str]:
 
 
 # -- motiond -----------------------------------------------------------------------------------
-def motiond_toml(serial: str, data_dir: Path) -> str:
+def motiond_toml(serial: str, data_dir: Path, lead_time_s: float | None = None) -> str:
     axes = "".join(f"[axes.{a}]\nsteps_per_mm = {STEPS_PER_MM}\nmax_rate_mm_s = {MAX_RATE_MM_S}\n"
                    f"accel_mm_s2 = {ACCEL_MM_S2}\nmax_mm = {TRAVEL_MM}\n" for a in "xy")
     return f"""[machine]
@@ -121,6 +146,7 @@ enabled = false
 [backend]
 kind = "klipper"
 serial = "{serial}"
+{f"lead_time_s = {lead_time_s}" if lead_time_s else ""}
 [backend.axes.x]
 step_pin = "PA0"
 dir_pin = "!PA1"
@@ -147,10 +173,11 @@ class Motiond:
 
     @classmethod
     @contextlib.asynccontextmanager
-    async def start(cls, rig: Rig, workdir: Path, source: Path = REPO) -> AsyncIterator[Motiond]:
+    async def start(cls, rig: Rig, workdir: Path, source: Path = REPO,
+                    lead_time_s: float | None = None) -> AsyncIterator[Motiond]:
         (workdir / "data").mkdir(exist_ok=True)
         config = workdir / "motiond.toml"
-        config.write_text(motiond_toml(rig.path, workdir / "data"))
+        config.write_text(motiond_toml(rig.path, workdir / "data", lead_time_s))
         from benchmarks.bench_grbl_link import free_port  # noqa: PLC0415
 
         port = free_port()

@@ -105,7 +105,7 @@ async def test_idle_polling_costs_under_20_bytes_a_second_and_draws_no_resend(
     mcu: VirtualMcu
 ) -> None:
     """One request at a time (the firmware acks a response's block after it: no nak), a
-    get_clock every 0.4 s and a get_config every 4 s: about 16 bytes/s to the MCU."""
+    get_clock every 0.5 s and a get_config every 4 s: about 14 bytes/s to the MCU."""
     async with klipper_machine(mcu) as app:
         backend = app.kernel.machine.backend
         assert isinstance(backend, KlipperBackend) and backend.mcu is not None
@@ -124,7 +124,7 @@ async def test_the_fitted_clock_maps_host_time_to_mcu_ticks(mcu: VirtualMcu) -> 
     async with klipper_machine(mcu) as app:
         backend = app.kernel.machine.backend
         assert isinstance(backend, KlipperBackend) and backend.mcu is not None
-        await asyncio.sleep(2.0)  # a few periodic get_clock samples (0.4 s apart when idle)
+        await asyncio.sleep(2.0)  # a few periodic get_clock samples (0.5 s apart when idle)
         sync = backend.mcu.clock
         assert sync is not None
         errors = []

@@ -7,12 +7,14 @@ the clock fit (set as a running fit would be) and a sink that decodes every mess
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
 from benchmarks.bench_klipper_host import Listener, OfflineBackend
 from server.backends.klipper.clocksync import ClockSync
+from server.backends.klipper.codec import PAYLOAD_MAX
 from server.backends.klipper.dictionary import Dictionary
 from server.backends.klipper.printclock import PrintClock
 from server.backends.klipper.stepcompress import StepCompressor
@@ -35,8 +37,10 @@ class Sink:
         self.dictionary, self.messages = dictionary, []  # type: list[tuple[str, Any]]
 
         self.now_s, self.sent_s = 0.0, []  # type: float, list[float]
+        self.bursts: list[list[int]] = []  # the size of each message of each send
 
     def send(self, *messages: bytes) -> None:
+        self.bursts.append([len(m) for m in messages])
         for message in messages:
             decoded = self.dictionary.decode(message)
             self.messages.extend(decoded)
@@ -56,7 +60,7 @@ class FittedMcu:
 
 
 def run(moves: list[Move], fitted_hz: float, lead_time_s: float = 0.2,
-        sink: Sink | None = None) -> list[tuple[str, Any]]:
+        sink: Sink | None = None, clock: ClockSync | None = None) -> list[tuple[str, Any]]:
     """Every message the backend sends for ``moves`` with the fit at ``fitted_hz``
     (``sink``: where they go, with the virtual time each was sent at)."""
     axes = {a: {"steps_per_mm": 80, "max_rate_mm_s": 300, "accel_mm_s2": 3000, "max_mm": 400}
@@ -68,6 +72,8 @@ def run(moves: list[Move], fitted_hz: float, lead_time_s: float = 0.2,
         "lead_time_s": lead_time_s}}).core
     backend = OfflineBackend(core)
     mcu = FittedMcu(fitted_hz)
+    if clock is not None:
+        mcu.clock = clock
     if sink is not None:
         mcu.link = sink
     backend.mcu, backend.ready = mcu, True  # type: ignore[assignment]
@@ -133,25 +139,75 @@ def test_cruise_speed_in_mcu_ticks_is_the_commanded_speed() -> None:
     assert abs(cruise.mean() / 1000.0 - 1.0) < 5e-6  # within 5 ppm
 
 
-def test_the_schedule_runs_at_nominal_until_it_drifts_then_follows_the_fit() -> None:
-    """A fit 1,000 ppm off: nominal for the first 10 ms of drift, then steered back; the
-    schedule never jumps and never strays beyond the bound by more than a flush's drift."""
-    sched = PrintClock(CLOCK_HZ, 0.01)
-    sched.anchor(0.0, 0.0)
-    fitted_hz = CLOCK_HZ * 1.001
-    previous, drifts = 0.0, []
-    for k in range(1, 60 * 50 + 1):  # 60 s of flushes every 20 ms
+def steer_through(sched: PrintClock, fitted_clock: Callable[[float], float], seconds: float
+                  ) -> tuple[list[float], list[float]]:
+    """Flushes every 20 ms for ``seconds`` against a fit that puts print time ``t`` at
+    ``fitted_clock(t)``; the drift and the schedule's rate after each. Nothing already
+    scheduled ever moves, and the schedule never goes back."""
+    previous, drifts, rates = 0.0, [], []
+    for k in range(1, round(seconds / 0.02) + 1):
         t = 0.02 * k
         before = float(sched.clock(t))
-        sched.steer(t, fitted_hz * t, fitted_hz)
+        sched.steer(t, fitted_clock(t))
         assert float(sched.clock(t)) == before, "steering changes nothing already scheduled"
         assert before > previous
         previous = before
-        drifts.append(sched.drift_s(t, fitted_hz * t))
-        if t < 9.9:
-            assert sched.hz == CLOCK_HZ
-    assert max(abs(d) for d in drifts) < 0.0101
-    assert sched.hz != CLOCK_HZ or abs(drifts[-1]) < 0.01
+        drifts.append(sched.drift_s(t, fitted_clock(t)))
+        rates.append(sched.hz / CLOCK_HZ - 1.0)
+    return drifts, rates
+
+
+def new_schedule() -> PrintClock:
+    sched = PrintClock(CLOCK_HZ, 0.01, 0.05)
+    sched.anchor(0.0, 0.0)
+    return sched
+
+
+def test_a_board_that_falls_behind_and_catches_up_moves_no_step_interval() -> None:
+    """A simulated board on a loaded host: 40 ms behind over 2 s, then caught up in 0.5 s (the
+    fit's rate bent by -20,000 and +80,000 ppm meanwhile). The lead only grew: the schedule
+    keeps its nominal rate throughout."""
+    def lagging(t: float) -> float:
+        behind_s = float(np.interp(t, [10.0, 12.0, 12.5], [0.0, 0.04, 0.0]))
+        return CLOCK_HZ * (t - behind_s)
+
+    drifts, rates = steer_through(new_schedule(), lagging, 30.0)
+    assert min(drifts) < -0.039 and max(drifts) < 1e-9
+    assert set(rates) == {0.0}
+
+
+def test_a_board_ahead_beyond_10_ms_is_caught_up_at_most_500_ppm_fast_never_at_the_fit() -> None:
+    """A board 300 ppm fast (its fit too): nominal until the lead has shrunk 10 ms, then the
+    steps run at most 500 ppm fast (not the fit's rate), and the lead never shrinks much more;
+    a fit 5,000 ppm fast is never followed beyond 500 ppm either."""
+    drifts, rates = steer_through(new_schedule(), lambda t: CLOCK_HZ * 1.0003 * t, 300.0)
+    first = next(k for k, rate in enumerate(rates) if rate)
+    assert 0.0098 < drifts[first] < 0.0101 and set(rates[:first]) == {0.0}
+    assert max(drifts) < 0.02 and min(rates[first:]) > 0.0 and max(rates) <= 500e-6
+    _, rates = steer_through(new_schedule(), lambda t: CLOCK_HZ * 1.005 * t, 60.0)
+    assert abs(max(rates) - 500e-6) < 1e-12
+
+
+def test_a_board_behind_beyond_50_ms_is_slowed_down_by_at_most_500_ppm() -> None:
+    """A board 300 ppm slow: the lead may grow 50 ms before the steps slow down, by at most
+    500 ppm; it then stays within reach of the bound."""
+    drifts, rates = steer_through(new_schedule(), lambda t: CLOCK_HZ * 0.9997 * t, 400.0)
+    first = next(k for k, rate in enumerate(rates) if rate)
+    assert -0.0501 < drifts[first] < -0.0499 and set(rates[:first]) == {0.0}
+    assert min(drifts) > -0.06 and max(rates[first:]) < 0.0 and min(rates) >= -500e-6
+
+
+def test_a_fit_that_bends_by_thousands_of_ppm_mid_move_changes_no_step_interval() -> None:
+    """The backend through a fit that says the board fell 30 ms behind mid-job and caught up
+    (its rate 3,000 ppm off): every queue_step is the one a steady fit gives."""
+    class Bent(ClockSync):
+        def clock_at(self, host_s: float) -> float:
+            behind_s = float(np.interp(host_s, [0.3, 0.8, 1.0], [0.0, 0.03, 0.0]))
+            self.freq_hz = CLOCK_HZ * (1.003 if 0.3 < host_s < 1.0 else 1.0)
+            return CLOCK_HZ * (host_s - behind_s)
+
+    nominal = steps(run(JOB, CLOCK_HZ))
+    assert steps(run(JOB, CLOCK_HZ, clock=Bent(CLOCK_HZ))) == nominal
 
 
 def first_step_leads_s(sink: Sink, oid: int) -> tuple[int, float]:
@@ -184,3 +240,35 @@ def test_a_longer_lead_holds_runs_back_longer_and_each_still_leaves_ahead() -> N
         assert least_s >= 0.75 * lead_s - 0.02 - 0.002, (lead_s, least_s)
         found[lead_s] = runs
     assert found[0.5] < 0.75 * found[0.2], found
+
+
+def last_block_bytes(sizes: list[int]) -> int:
+    """How full the last block of messages of these sizes is, packed in order."""
+    fill = 0
+    for size in sizes:
+        fill = size if fill + size > PAYLOAD_MAX else fill + size
+    return fill
+
+
+def test_a_part_filled_block_leaves_only_once_something_in_it_is_due() -> None:
+    """Messages not yet urgent wait to share a block: every burst whose last block is not
+    full (no room for a queue_step of 13 bytes more) has a queue_step due within 3/4 lead
+    (150 ms) of leaving (a flush's horizon), and the job's messages share blocks."""
+    sink = Sink(Dictionary(FORMATS))
+    run(JOB, CLOCK_HZ, 0.2, sink)
+    firsts, last = {}, {0: 0, 1: 0}  # message index: its first step's clock
+    for index, (name, p) in enumerate(sink.messages):
+        if name == "reset_step_clock":
+            last[p["oid"]] = p["clock"]
+        if name == "queue_step":
+            firsts[index] = last[p["oid"]] + p["interval"]
+            k = p["count"] - 1
+            last[p["oid"]] += p["count"] * p["interval"] + p["add"] * (k * (k + 1) // 2)
+    index = 0
+    for sizes in sink.bursts:
+        leads = [firsts[i] / CLOCK_HZ - sink.sent_s[i] for i in range(index, index + len(sizes))
+                 if i in firsts]
+        full = last_block_bytes(sizes) > PAYLOAD_MAX - 13
+        assert full or min(leads) <= 0.15 + 0.001, (sizes, leads)
+        index += len(sizes)
+    assert len(sink.messages) > 2.5 * len(sink.bursts)

@@ -86,6 +86,8 @@ def test_blocks_are_split_on_the_wire_and_a_resent_sequence_is_a_retransmission(
     figures = log.window(150, 450)
     assert (figures.bytes, figures.blocks, figures.messages) == (80, 4, 5)
     assert figures.retransmitted == 2
+    assert figures.by_name == {"a": 1, "b": 2, "c": 1, "d": 1}
+    assert log.window(450, 550).by_name == {"(ack)": 1}
 
 
 @pytest.mark.skipif(not (KLIPPER_AVR / "klipper.dict").is_file(), reason="rig klipper-avr absent")

@@ -12,8 +12,9 @@ reconfiguration. A run that may still grow is held back at most a quarter of the
 (``HOLD_BACK_SHARE``), so a host stall of up to 3/4 ``lead_time_s`` - ``flush_s`` (130 ms at
 the default 0.2 s) never starves the MCU. Messages leave in
 order while the MCU's move queue (``move_count`` from its config) has room (:mod:`.movequeue`),
-each flush's in one burst that the link packs into as few message blocks as fit; a message
-made between flushes (an output's change) waits for the next one unless a block's worth waits.
+in bursts that the link packs into as few message blocks as fit; messages that would only
+part-fill a burst's last block wait for more while none of them is due within ``lead_time_s`` -
+``hold_back_s`` (as a held-back run does), so blocks leave fuller.
 
 Outputs named in ``[backend.outputs]`` become ``queue_pwm_out``/``queue_digital_out`` at the
 MCU time of the last sample (the instant whose speed the laser's power was computed from) plus
@@ -68,9 +69,12 @@ REST_S = 0.05
 HOLD_BACK_SHARE = 0.25
 """The longest a run that may still grow waits before it is sent anyway, as a share of the
 lead (50 ms at the default 0.2 s): a longer lead buys longer runs, fewer bytes."""
-DRIFT_MAX_S = 0.01
-"""The most the schedule may drift from the clock fit (or a tenth of the lead) before it is
-steered back (:mod:`.printclock`)."""
+AHEAD_MAX_S = 0.01
+"""The most the board's clock may run ahead of the schedule as fitted (or a tenth of the
+lead; the lead, and the stall the MCU rides through, shrink by as much) before the schedule
+is steered back (:mod:`.printclock`)."""
+BEHIND_MAX_S = 0.05
+"""The most it may fall behind (or a quarter of the lead: the lead grows by as much)."""
 RESTART_WAIT_S = 0.3  # a restarted board boots before it is asked who it is
 RESTART_PATIENCE_S = 10.0  # a restarted board's first answer (a bootloader, a slow boot)
 RECOVER_TIMEOUT_S = 20.0  # $X waits this long for a restarted board to be configured
@@ -116,7 +120,8 @@ class KlipperBackend:
         self._follow_on = False  # the followed output is on because motion turned it on
         self._generated_s = 0.0  # where the last generated piece ended (kernel clock)
         self._queue = MoveQueue()
-        self._print = PrintClock(0.0, min(DRIFT_MAX_S, 0.1 * self.lead_s))
+        self._print = PrintClock(0.0, min(AHEAD_MAX_S, 0.1 * self.lead_s),
+                                 min(BEHIND_MAX_S, 0.25 * self.lead_s))
         self.identity: dict[str, str] = {}  # the board first served: another is refused
         self.shut_down = False  # the board is shut down until recover() restarts it
         self._recover = asyncio.Event()  # recover() asks the waiting run() to restart
@@ -270,6 +275,7 @@ class KlipperBackend:
             when_s = max(when_s, last.start_s + last.duration_s)
         self._switch_motors(enabled, self._scheduled_clock(when_s))
         self._pump()
+        self._wake()  # ticks send it once due (it may wait to share a block)
 
     def _when_s(self, time_s: float) -> float:
         """When a change asked for at ``time_s`` (on the motion's timeline: a block's start
@@ -483,7 +489,7 @@ class KlipperBackend:
             self._print.nominal_hz = fit.nominal_hz  # the dictionary's CLOCK_FREQ
             self._print.anchor(frontier_s, fit.clock_at(frontier_s))
         else:
-            self._print.steer(frontier_s, fit.clock_at(frontier_s), fit.freq_hz)
+            self._print.steer(frontier_s, fit.clock_at(frontier_s))
 
     def _schedule_idle(self) -> bool:
         """Nothing waits to be scheduled or sent, and every step sent is already past."""
@@ -636,9 +642,10 @@ class KlipperBackend:
             self._queue.add(d.encode("reset_step_clock", oid=axis.oid,
                                      clock=start & 0xFFFFFFFF), None, start)
             axis.needs_reset = False
-        if direction != axis.sent_dir:
+        if direction != axis.sent_dir:  # due with the first step it turns
             self._queue.add(d.encode("set_next_step_dir", oid=axis.oid,
-                                     dir=int((direction > 0) != axis.invert_dir)), None, 0)
+                                     dir=int((direction > 0) != axis.invert_dir)), None,
+                            int(points[0]))
             axis.sent_dir = direction
         last, index = compressor.last_clock, 0
         runs, done = compressor.compress(points, final)
@@ -653,17 +660,20 @@ class KlipperBackend:
             last = int(clocks[-1])
         return done
 
-    def _pump(self, hold: bool = False) -> None:
-        """Send queued messages in order while the MCU's move queue has room. ``hold``
-        (between flushes): less than a block of messages due later than the runs a flush
-        sends (``lead_s`` - ``hold_back_s`` ahead) waits for the next flush, so they share
-        blocks; a message so held still leaves at least ``lead_s`` - ``flush_s`` ahead."""
+    def _pump(self, hold: bool = True) -> None:
+        """Send queued messages in order while the MCU's move queue has room. Less than a
+        block of messages all due later than a flush must send (``lead_s`` - ``hold_back_s``
+        ahead) waits for more, at flushes and between them alike, so they share blocks; a
+        message so held still leaves at least ``lead_s`` - ``hold_back_s`` - ``flush_s``
+        ahead, as a held-back run does. (``hold`` changes nothing any more: the callers'
+        argument is left for them.)"""
+        del hold
         mcu = self.mcu
         if mcu is None or not self._queue.waiting:
             return
         now = self._now_clock()
         hold_after = None
-        if hold and mcu.clock is not None:
+        if mcu.clock is not None:
             hold_after = now + (self.lead_s - self.hold_back_s) * mcu.clock.freq_hz
         late_ms = self._queue.pump(mcu, now, hold_after)
         if late_ms is not None:

@@ -10,14 +10,14 @@ configured by someone else is refused (:class:`KlipperFault`); one still configu
 (:meth:`Mcu.restart`, as Klipper's host does for its ``restart_method``) and connected afresh.
 :meth:`Mcu.watch` samples the clock every ``poll_s`` (``BUSY_POLL_S`` while :attr:`Mcu.busy`:
 steps queued or an output on) and, one request at a time (never back to back), checks
-``get_config`` every ``CONFIG_EVERY`` polls: about 16 bytes a second to an idle MCU (klippy
-sends 6); silence for ``timeout_s`` (no block acknowledged), a restart, a clock that jumps
-ahead, a foreign configuration or a link fault raise :class:`KlipperFault`, a shutdown (ours
-from :meth:`emergency_stop`, or the firmware's own) :class:`McuShutdown`. A restart is told from
-the firmware's evidence, never from the host's timing: ``starting`` (sent at every boot),
-``get_config`` unconfigured, a sequence number never sent (:mod:`.window`), or a clock that
-went back, checked against its 64-bit ``get_uptime``; a host stall widens a reading's round
-trip and leaves it inside, and a reading behind the fit is left out of it.
+``get_config`` every ``CONFIG_EVERY`` polls: about 14 bytes a second to an idle MCU (klippy
+sends 6), 17 to a busy one; silence for ``timeout_s`` (no block acknowledged), a restart, a
+clock that jumps ahead, a foreign configuration or a link fault raise :class:`KlipperFault`, a
+shutdown (ours from :meth:`emergency_stop`, or the firmware's own) :class:`McuShutdown`. A
+restart is told from the firmware's evidence, never from the host's timing: ``starting`` (sent
+at every boot), ``get_config`` unconfigured, a sequence number never sent (:mod:`.window`), or a
+clock that went back, checked against its 64-bit ``get_uptime``; a host stall widens a reading's
+round trip and leaves it inside, and a reading behind the fit is left out of it.
 After a shutdown :meth:`stopped_positions` reads where each stepper stopped (``clear_shutdown``
 then ``stepper_get_position``) and shuts the board down again until it is restarted.
 """
@@ -51,9 +51,10 @@ CLOCK_SETTLE_S = 5.0
 RATE_PROBE_S = 0.15
 RATE_TOLERANCE = 0.05  # a round trip's jitter over RATE_PROBE_S stays well inside this
 RESET_SETTLE_S = 0.015  # klippy's pause after ``reset`` before it lets the port go
-POLL_S = 0.4  # a 6-byte get_clock block: 15 bytes/s
-BUSY_POLL_S = 0.2  # while steps are queued or an output is on
-CONFIG_EVERY = 10  # get_config once every 10 polls (4 s idle, 2 s busy)
+POLL_S = 0.5  # a 6-byte get_clock block: 12 bytes/s; a clock set back by more than this is
+# caught at the next reading (behind the last one)
+BUSY_POLL_S = 0.4  # while steps are queued or an output is on (15 bytes/s)
+CONFIG_EVERY = 8  # get_config once every 8 polls (4 s idle, 3.2 s busy)
 JUMP_S = 0.05  # a clock reading this far outside its round trip's window is looked into
 BEHIND_LIMIT_S = 1.0  # a clock that stays behind the fit this long: the fit starts over
 

@@ -1,7 +1,8 @@
 """The MCU's move queue, seen from the host: messages leave in order while it has room.
 
-What has room leaves in one burst, which the link packs into as few blocks as fit; between
-bursts, messages not yet urgent may wait for the next one (less than a block's worth).
+What has room leaves in one burst, which the link packs into as few blocks as fit; the
+messages that would only part-fill the burst's last block wait while none of them is urgent
+(fewer, fuller blocks: a block costs 5 bytes besides its messages).
 Every ``queue_step`` and scheduled output takes one of the MCU's ``move_count`` slots until
 the MCU has reached it. The host counts a slot as taken from sending the message until its
 clock has passed (plus ``QUEUE_MARGIN_S``, the clock fit's possible lead over the MCU's own),
@@ -35,26 +36,21 @@ class MoveQueue:
     def pump(self, mcu: Mcu, now: float, hold_after: float | None = None) -> float | None:
         """Send what the queue has room for at MCU clock ``now``, all in one burst (the link
         packs it into as few blocks as fit); returns how many ms late the next message would
-        be (nothing more is sent), or None. ``hold_after``: an MCU clock; while the first
-        message is due after it and less than a block's worth waits, nothing is sent (the
-        next burst will share its blocks)."""
+        be (nothing more is sent), or None. ``hold_after``: an MCU clock; the messages of a
+        last block not filled wait while none of them is due by it (the next burst will share
+        their block), the blocks before it go."""
         freq = mcu.clock.freq_hz if mcu.clock else 0.0
         in_use, waiting = self.in_use, self.waiting
-        if hold_after is not None and waiting and waiting[0][2] > hold_after:
-            size = 0
-            for message, _, _ in waiting:
-                size += len(message)
-                if size >= PAYLOAD_MAX:
-                    break
-            else:
-                return None
+        ready = len(waiting) if hold_after is None else self._ready(hold_after)
+        if not ready:
+            return None
         freed = now - QUEUE_MARGIN_S * freq
         while in_use and in_use[0] <= freed:
             heapq.heappop(in_use)
         late = now + LATE_MARGIN_S * freq
         burst: list[bytes] = []
         late_ms: float | None = None
-        while waiting:
+        while waiting and len(burst) < ready:
             message, until, due = waiting[0]
             if until is not None:
                 if len(in_use) >= mcu.move_count:
@@ -68,6 +64,17 @@ class MoveQueue:
         if burst:
             mcu.link.send(*burst)
         return late_ms
+
+    def _ready(self, hold_after: float) -> int:
+        """How many waiting messages go now: all if the last block they fill (packed in order,
+        as the link does) has one due by ``hold_after``, else those of the blocks before it."""
+        ready, fill, due_soon = 0, 0, False
+        for index, (message, _, due) in enumerate(self.waiting):
+            if fill + len(message) > PAYLOAD_MAX:  # the block before is full: it goes
+                ready, fill, due_soon = index, 0, False
+            fill += len(message)
+            due_soon = due_soon or due <= hold_after
+        return len(self.waiting) if due_soon else ready
 
     def busy(self, now: float) -> bool:
         """Whether a message waits or a slot is still taken at MCU clock ``now``."""
