@@ -1,8 +1,10 @@
 """``[backend] kind = "klipper"``: stock Klipper MCU firmware executes the step generator's steps.
 
 The step generator tells this backend every constant-acceleration piece of the trajectory
-(:meth:`trajectory`) and how far its clock has reached (:meth:`sample`, every tick). Up to that
-time each axis' exact step times are computed (:mod:`.steptimes`), mapped to MCU ticks at
+(:meth:`trajectory`) and how far its clock has reached (:meth:`sample`, every tick: once a
+``flush_s``, :attr:`tick_s`, since nothing here is timed by the ticks). Up to that time each
+axis' exact step times are computed for all the pieces at once (:mod:`.steptimes`), mapped to
+MCU ticks at
 ``t + lead_time_s`` in the MCU's own time base (:mod:`.printclock`: the nominal ``CLOCK_FREQ``;
 the fitted clock of :mod:`.clocksync` anchors the schedule's start and sets the host's
 deadlines), and compressed into
@@ -17,9 +19,12 @@ part-fill a burst's last block wait for more while none of them is due within ``
 ``hold_back_s`` (as a held-back run does), so blocks leave fuller.
 
 Outputs named in ``[backend.outputs]`` become ``queue_pwm_out``/``queue_digital_out`` at the
-MCU time of the last sample (the instant whose speed the laser's power was computed from) plus
-the lead, so power changes land on the steps they belong to. An output that is on is sent again
-every half ``max_duration_s``: the firmware's watchdog turns it off when motiond stops doing so.
+MCU time of the motion time they are set for (a line's actions: its block's start; otherwise
+the last sample) plus the lead, so they land on the steps they belong to. The laser's output
+follows the pieces themselves (:meth:`follow_power`: each piece carries its power law): on and
+off exactly where a piece starts, and along the speed on a 1 ms grid of motion time. An output
+that is on is sent again every half ``max_duration_s``: the firmware's watchdog turns it off
+when motiond stops doing so. ``?`` reads where the board is from the pieces (:mod:`.trail`).
 
 Stopping: halt (alarm, M112, Ctrl-X) sends ``emergency_stop`` at once when the MCU has anything
 queued or an output on, and so does every fault while the board can still hear. A shut-down
@@ -225,7 +230,7 @@ class KlipperBackend:
         self._flush(time_s)  # every sample is a flush (see tick_s)
         if self.mcu is not None:
             self.mcu.busy = self._busy()
-        self._pump(hold=True)  # what is not due soon waits to share a block
+        self._pump()
 
     def set_output(self, name: str, value: float, time_s: float) -> None:
         self.values[name] = value
@@ -237,7 +242,7 @@ class KlipperBackend:
         if value == out.value:
             return
         self._queue_output(out, value, self._when_s(time_s))
-        self._pump(hold=True)  # sent with the next flush's burst (at most flush_s later)
+        self._pump()  # what is not due soon waits to share a block
         self._wake()  # refreshed from sample() while on
 
     def _refresh_outputs(self, time_s: float) -> None:
@@ -660,14 +665,12 @@ class KlipperBackend:
             last = int(clocks[-1])
         return done
 
-    def _pump(self, hold: bool = True) -> None:
+    def _pump(self) -> None:
         """Send queued messages in order while the MCU's move queue has room. Less than a
         block of messages all due later than a flush must send (``lead_s`` - ``hold_back_s``
         ahead) waits for more, at flushes and between them alike, so they share blocks; a
         message so held still leaves at least ``lead_s`` - ``hold_back_s`` - ``flush_s``
-        ahead, as a held-back run does. (``hold`` changes nothing any more: the callers'
-        argument is left for them.)"""
-        del hold
+        ahead, as a held-back run does."""
         mcu = self.mcu
         if mcu is None or not self._queue.waiting:
             return
