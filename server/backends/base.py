@@ -120,6 +120,11 @@ class Backend(Protocol):
         generator (a Klipper MCU: a lead time); None where it does not."""
         ...
 
+    def speed_at_mm_s(self, time_s: float) -> float | None:
+        """The path speed at ``time_s`` (now) when the hardware runs behind the step
+        generator; None where it does not."""
+        ...
+
     async def recover(self) -> None:
         """``$X`` / M999 after an alarm: make the hardware usable again (a Klipper MCU that
         shut down is restarted and configured); CommandError while it cannot be."""
@@ -161,6 +166,9 @@ class NoHardware:
         return 0.0
 
     def position_at_mm(self, time_s: float) -> Sequence[float] | None:
+        return None
+
+    def speed_at_mm_s(self, time_s: float) -> float | None:
         return None
 
     async def recover(self) -> None:

@@ -295,6 +295,11 @@ class Machine(GcodeFeed, RealtimeCommands):
         executed = self.backend.position_at_mm(self.clock.now_s())
         return self.stepgen.state.position_mm if executed is None else tuple(executed)
 
+    def speed_now_mm_s(self) -> float:
+        """The path speed now: the hardware's where it runs behind the step generator."""
+        executed = self.backend.speed_at_mm_s(self.clock.now_s())
+        return self.stepgen.state.speed_mm_s if executed is None else executed
+
     def relocate(self, position_mm: Sequence[float]) -> None:
         """The hardware stopped at ``position_mm`` (not where motion was planned to be):
         that is the machine position now."""

@@ -48,7 +48,7 @@ def snapshot(kernel: Kernel, rx_free_bytes: int) -> StatusSnapshot:
         state=state_text(kernel),
         machine_mm=machine.position_now_mm(),
         wco_mm=machine.interpreter.wco(),
-        feed_mm_s=motion.speed_mm_s,
+        feed_mm_s=machine.speed_now_mm_s(),
         spindle_s=_spindle_s(motion.s_value if motion.moving else tool.s, tool.mode, motion),
         planner_free_blocks=max(0, machine.core.planner.max_blocks - len(machine.planner)),
         rx_free_bytes=rx_free_bytes,
@@ -85,7 +85,7 @@ def build_status(kernel: Kernel) -> dict[str, Any]:
         "mpos": _round(mpos),
         "wpos": _round(interpreter.work_position(mpos)),
         "wco": _round(interpreter.wco()),
-        "speed_mm_min": round(motion.speed_mm_s * 60.0, 1),
+        "speed_mm_min": round(machine.speed_now_mm_s() * 60.0, 1),
         "power_pct": round(tool_power_pct(kernel), 1),
         "tool": {
             "mode": f"M{int(machine.tool.mode)}",

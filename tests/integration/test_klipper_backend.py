@@ -23,6 +23,7 @@ from server.backends.klipper.steptimes import step_target
 from server.errors import CommandError
 from server.motion.stepgen import HoldState
 from server.runtime.events import MachineState
+from server.runtime.status import snapshot
 from tests.conftest import CORPUS
 from tests.support.helpers import submit_all
 from tests.support.klipper_machine import klipper_machine
@@ -234,6 +235,43 @@ def speed_at(pieces: list[Piece], when_s: float) -> float | None:
     if found is None:
         return None
     return float(found.start_mm_s + found.accel_mm_s2 * (when_s - found.start_s))
+
+
+async def test_status_shows_the_boards_position_and_speed_a_lead_behind_the_plan(
+    mcu: VirtualMcu
+) -> None:
+    """``?`` reports what the board executes: still at rest while the plan already moves (the
+    first lead time), then the board's cruise speed, and the position the pieces give between
+    the step generator's ticks (a flush apart), as the MCU's executed steps say."""
+    async with klipper_machine(mcu) as app:
+        machine = app.kernel.machine
+        backend = machine.backend
+        assert isinstance(backend, KlipperBackend) and backend.mcu is not None
+        await submit_all(app, ["G1 X200 F6000"])  # 100 mm/s, 2 s
+        for _ in range(400):
+            if machine.stepgen.state.moving:
+                break
+            await asyncio.sleep(0.005)
+        await asyncio.sleep(0.05)
+        report = snapshot(app.kernel, 128)
+        assert machine.stepgen.state.speed_mm_s > 10.0, "the plan moves"
+        assert report.feed_mm_s == 0.0 and report.machine_mm[0] == 0.0, "the board does not"
+        await asyncio.sleep(0.8)  # cruising on the board too
+        samples = []
+        for _ in range(20):
+            report = snapshot(app.kernel, 128)
+            host_s = time.monotonic()
+            clock = backend.mcu.clock.clock_at(host_s)  # type: ignore[union-attr]
+            samples.append((report.machine_mm[0], report.feed_mm_s, clock))
+            await asyncio.sleep(0.007)
+        await machine.wait_idle()
+        await asyncio.sleep(backend.lead_s + 0.1)
+        clocks, _ = mcu.step_clocks(backend.axes[0].oid)
+        for x_mm, feed_mm_s, clock in samples:
+            assert feed_mm_s == pytest.approx(100.0)
+            executed_mm = np.searchsorted(clocks, clock) / 80.0  # steps the board had made
+            assert abs(x_mm - executed_mm) < 0.1, (x_mm, executed_mm)  # 1 ms at 100 mm/s
+        assert len({x for x, _, _ in samples}) == len(samples), "a new position every report"
 
 
 async def test_feed_hold_decelerates_within_the_lead_time_and_resume_is_exact(

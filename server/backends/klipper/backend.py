@@ -698,6 +698,12 @@ class KlipperBackend:
             return None
         return self._trail.position_at(self._print_time_at(time_s) - self.lead_s)
 
+    def speed_at_mm_s(self, time_s: float) -> float | None:
+        """The path speed the MCU runs at at ``time_s`` (the plan a lead time before)."""
+        if not self.ready or not len(self._trail):
+            return None
+        return self._trail.speed_at(self._print_time_at(time_s) - self.lead_s)
+
     def done_at_s(self) -> float:
         """The last step executes a lead time after the trajectory ends (+ the clock fit's
         possible lag behind the MCU's own clock)."""

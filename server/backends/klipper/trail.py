@@ -50,11 +50,26 @@ class Trail:
     def position_at(self, at_s: float) -> tuple[float, ...] | None:
         """The position at print time ``at_s`` (before the first piece: its start; after the
         last: its end); None when there is no piece."""
+        found = self._at(at_s)
+        if found is None:
+            return None
+        piece, t = found
+        distance = piece.start_mm_s * t + 0.5 * piece.accel_mm_s2 * t * t
+        return tuple(p + u * distance for p, u in zip(piece.start_mm, piece.unit, strict=True))
+
+    def speed_at(self, at_s: float) -> float:
+        """The path speed at print time ``at_s`` (0 outside the pieces: at rest)."""
+        found = self._at(at_s)
+        if found is None or not 0.0 < at_s - found[0].start_s < found[0].duration_s:
+            return 0.0
+        piece, t = found
+        return piece.start_mm_s + piece.accel_mm_s2 * t
+
+    def _at(self, at_s: float) -> tuple[Piece, float] | None:
+        """The piece covering ``at_s`` (or the nearest) and the time into it, clamped."""
         pieces = self._pieces
         if not pieces:
             return None
         index = bisect.bisect_right(pieces, at_s, key=lambda piece: piece.start_s) - 1
         piece = pieces[max(index, 0)]
-        t = min(max(at_s - piece.start_s, 0.0), piece.duration_s)
-        distance = piece.start_mm_s * t + 0.5 * piece.accel_mm_s2 * t * t
-        return tuple(p + u * distance for p, u in zip(piece.start_mm, piece.unit, strict=True))
+        return piece, min(max(at_s - piece.start_s, 0.0), piece.duration_s)
