@@ -40,11 +40,15 @@ from server.runtime.parts import planner_settings
 CLOCK_HZ = 72_000_000
 BAUD_BYTES_S = 250_000 / 10
 SEGMENT_MM, SPEED_MM_S, LINE_MM = 0.025, 500.0, 300.0
-FORMATS = {"commands": {"queue_step oid=%c interval=%u count=%hu add=%hi": 2,
-                        "set_next_step_dir oid=%c dir=%c": 3,
-                        "reset_step_clock oid=%c clock=%u": 4,
-                        "queue_pwm_out oid=%c clock=%u value=%hu": 5},
-           "config": {"CLOCK_FREQ": CLOCK_HZ, "PWM_MAX": 255}}
+
+
+def dictionary(clock_hz: float = CLOCK_HZ) -> Dictionary:
+    """The data dictionary of an MCU that only steps and drives a PWM output."""
+    return Dictionary({"commands": {"queue_step oid=%c interval=%u count=%hu add=%hi": 2,
+                                    "set_next_step_dir oid=%c dir=%c": 3,
+                                    "reset_step_clock oid=%c clock=%u": 4,
+                                    "queue_pwm_out oid=%c clock=%u value=%hu": 5},
+                       "config": {"CLOCK_FREQ": clock_hz, "PWM_MAX": 255}})
 
 
 class WireCount:
@@ -67,7 +71,7 @@ class WireCount:
 
 class BenchMcu:
     def __init__(self) -> None:
-        self.dictionary = Dictionary(FORMATS)
+        self.dictionary = dictionary()
         self.clock = ClockSync(CLOCK_HZ)
         self.clock.reset(0.0, 0)
         self.move_count = 1 << 30

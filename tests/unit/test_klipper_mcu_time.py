@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.bench_klipper_host import Listener, OfflineBackend
+from benchmarks.bench_klipper_host import Listener, OfflineBackend, dictionary
 from server.backends.klipper.clocksync import ClockSync
 from server.backends.klipper.codec import PAYLOAD_MAX
 from server.backends.klipper.dictionary import Dictionary
@@ -25,11 +25,6 @@ from server.motion.stepgen import StepGenerator
 from server.runtime.parts import planner_settings
 
 CLOCK_HZ = 16_000_000
-FORMATS = {"commands": {"queue_step oid=%c interval=%u count=%hu add=%hi": 2,
-                        "set_next_step_dir oid=%c dir=%c": 3,
-                        "reset_step_clock oid=%c clock=%u": 4,
-                        "queue_pwm_out oid=%c clock=%u value=%hu": 5},
-           "config": {"CLOCK_FREQ": CLOCK_HZ, "PWM_MAX": 255}}
 
 
 class Sink:
@@ -51,7 +46,7 @@ class FittedMcu:
     """What the backend reads of an MCU: its dictionary, the clock fit, its move queue."""
 
     def __init__(self, fitted_hz: float) -> None:
-        self.dictionary = Dictionary(FORMATS)
+        self.dictionary = dictionary(CLOCK_HZ)
         self.clock = ClockSync(CLOCK_HZ)
         self.clock.reset(0.0, 0)
         self.clock.freq_hz = fitted_hz  # what a fit of an MCU this far off the host says
@@ -234,7 +229,7 @@ def test_a_longer_lead_holds_runs_back_longer_and_each_still_leaves_ahead() -> N
     move = [Move((300.0, 0.0), 100.0, MoveKind.FEED, ToolMode.OFF, 0.0)]
     found = {}
     for lead_s in (0.2, 0.5):
-        sink = Sink(Dictionary(FORMATS))
+        sink = Sink(dictionary(CLOCK_HZ))
         run(move, CLOCK_HZ, lead_s, sink)
         runs, least_s = first_step_leads_s(sink, 0)
         assert least_s >= 0.75 * lead_s - 0.02 - 0.002, (lead_s, least_s)
@@ -254,7 +249,7 @@ def test_a_part_filled_block_leaves_only_once_something_in_it_is_due() -> None:
     """Messages not yet urgent wait to share a block: every burst whose last block is not
     full (no room for a queue_step of 13 bytes more) has a queue_step due within 3/4 lead
     (150 ms) of leaving (a flush's horizon), and the job's messages share blocks."""
-    sink = Sink(Dictionary(FORMATS))
+    sink = Sink(dictionary(CLOCK_HZ))
     run(JOB, CLOCK_HZ, 0.2, sink)
     firsts, last = {}, {0: 0, 1: 0}  # message index: its first step's clock
     for index, (name, p) in enumerate(sink.messages):

@@ -93,7 +93,7 @@ def crossing_times(
 
     Args:
         x0: axis position in steps at the piece start.
-        u: steps per mm of path (signed; the axis' share of the direction).
+        u: steps per mm of path (signed, not 0; the axis' share of the direction).
         v0, a: path speed (mm/s) and acceleration (mm/s²) at the start.
         duration_s: length of the piece; times are clamped to ``[0, duration_s]``.
         current, target: whole-step positions before and after the piece.
@@ -102,8 +102,6 @@ def crossing_times(
     """
     if target == current:
         return np.empty(0)
-    if u == 0.0:
-        return np.full(abs(target - current), duration_s)
     spans = Spans()
     spans.add(x0, u, v0, a, duration_s, current, target, 0.0)
     return spans.solve()
