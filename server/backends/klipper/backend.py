@@ -45,8 +45,6 @@ from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 
-import numpy as np
-
 from server.backends.base import Piece
 from server.backends.klipper.codec import ProtocolError
 from server.backends.klipper.dictionary import Dictionary
@@ -61,7 +59,6 @@ from server.backends.klipper.mcu import (
 from server.backends.klipper.movequeue import MoveQueue
 from server.backends.klipper.pins import Axis, Output, config_commands
 from server.backends.klipper.printclock import PrintClock
-from server.backends.klipper.stepcompress import run_clocks
 from server.backends.klipper.steptimes import FloatArray, Spans, step_target
 from server.backends.klipper.trail import Trail
 from server.config import CoreConfig
@@ -524,11 +521,11 @@ class KlipperBackend:
                 break
             pieces.popleft()
             self._generated_s = end_s
+        to_clock = (self._print.ref_clock, self._print.hz, self._print.ref_s)  # _motion_clock
         for axis, axis_spans in zip(self.axes, spans, strict=True):
             if not axis_spans.runs:
                 continue
-            clocks = self._motion_clock(axis_spans.solve())
-            assert isinstance(clocks, np.ndarray)
+            clocks = axis_spans.solve(to_clock)
             first = 0
             for direction, count in axis_spans.runs:
                 axis.add(direction, clocks[first:first + count])
@@ -652,17 +649,13 @@ class KlipperBackend:
                                      dir=int((direction > 0) != axis.invert_dir)), None,
                             int(points[0]))
             axis.sent_dir = direction
-        last, index = compressor.last_clock, 0
-        runs, done = compressor.compress(points, final)
+        last = compressor.last_clock
+        runs, done = compressor.compress(points, final, self.errors)  # errors: how early, ticks
         for run in runs:
             first = last + run.interval
             self._queue.add(d.encode("queue_step", oid=axis.oid, interval=run.interval,
                                      count=run.count, add=run.add), first, first)
-            clocks = run_clocks(last, run)
-            if self.errors is not None:  # how early each step is, in ticks
-                self.errors.append(points[index:index + run.count] - clocks)
-            index += run.count
-            last = int(clocks[-1])
+            last += run.count * run.interval + run.add * (run.count * (run.count - 1) // 2)
         return done
 
     def _pump(self) -> None:

@@ -16,6 +16,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
+from server.backends.klipper.stepcore import solve
+
 FloatArray = npt.NDArray[np.float64]
 
 
@@ -26,7 +28,7 @@ def step_target(position_steps: float) -> int:
 
 @dataclass(slots=True)
 class Spans:
-    """One axis' stretches of pieces whose steps are solved together: one numpy pass for all
+    """One axis' stretches of pieces whose steps are solved together: one compiled pass for all
     that a flush generates, whatever the number of pieces (a raster's have a few steps each).
     A span: the axis position in steps at its piece's start ``x0``, steps per mm of path ``u``
     (not 0), start speed and acceleration, how far into the piece (s), the whole steps before
@@ -50,39 +52,18 @@ class Spans:
         else:
             runs.append((direction, count))
 
-    def solve(self) -> FloatArray:
-        """Every step's print time, ascending (the runs of :attr:`runs` one after another).
+    def solve(self, to_clock: tuple[float, float, float] = (0.0, 1.0, 0.0)) -> FloatArray:
+        """Every step's print time, ascending (the runs of :attr:`runs` one after another),
+        or with ``to_clock`` = ``(ref_clock, hz, ref_s)`` its MCU clock
+        ``ref_clock + hz·(t - ref_s)`` (the print clock's affine map, in the same pass).
 
         Solving ``d(t) = (b - x0)/u`` as ``t = 2d / (v0 + sqrt(v0² + 2ad))`` (no cancellation
         near standstill), clamped to the span; beyond a decelerating piece's stop (rounding)
-        the square root is 0 and the clamp puts the step at the piece's end."""
-        if len(self.rows) == 1:
-            x0, u, v0, a, duration_s, first, direction, base_s = self.rows[0]
-            boundaries = np.arange(first, first + direction * self.counts[0], direction,
-                                   dtype=np.float64)[:self.counts[0]]
-            if a == 0.0 and v0 > 0.0:  # a cruise: d/v0
-                times = np.clip((boundaries - x0) * (1.0 / (u * v0)), 0.0, duration_s)
-                times += base_s
-                return times
-            return _times(x0, u, v0, a, duration_s, boundaries, base_s)
-        counts = np.array(self.counts)
-        table = np.repeat(np.array(self.rows).T, counts, axis=1)
-        x0s, us, v0s, accels, durations, firsts, directions, bases = table
-        k = np.arange(len(x0s), dtype=np.float64) - np.repeat(np.cumsum(counts) - counts,
-                                                               counts)
-        times = _times(x0s, us, v0s, accels, durations, firsts + directions * k, bases)
-        return np.maximum.accumulate(times)
-
-
-Floats = float | FloatArray
-
-
-def _times(x0: Floats, u: Floats, v0: Floats, a: Floats, duration_s: Floats,
-           boundaries: FloatArray, base_s: Floats) -> FloatArray:
-    distance = np.maximum((boundaries - x0) / u, 0.0)
-    root = np.sqrt(np.maximum(v0 * v0 + 2.0 * a * distance, 0.0))
-    times = 2.0 * distance / np.maximum(v0 + root, 1e-300)
-    return np.asarray(base_s + np.clip(times, 0.0, duration_s), dtype=np.float64)
+        the square root is 0 and the clamp puts the step at the piece's end. Compiled
+        (``_stepcore.c``): one pass, no numpy temporaries."""
+        out = np.empty(sum(self.counts))
+        solve(self.rows, self.counts, out, *to_clock)
+        return out
 
 
 def crossing_times(

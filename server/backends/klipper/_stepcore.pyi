@@ -1,0 +1,14 @@
+"""The compiled step core (``_stepcore.c``); see :mod:`.stepcore`."""
+
+import numpy as np
+import numpy.typing as npt
+
+def compress(
+    points: npt.NDArray[np.float64], last_clock: int, last_exact: float, max_error: float,
+    final: bool, errors: npt.NDArray[np.float64] | None, /,
+) -> tuple[list[tuple[int, int, int]], int, int, float]: ...
+def solve(
+    rows: list[tuple[float, float, float, float, float, float, float, float]],
+    counts: list[int], out: npt.NDArray[np.float64], ref_clock: float, hz: float,
+    ref_s: float, /,
+) -> int: ...

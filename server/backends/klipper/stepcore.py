@@ -1,0 +1,20 @@
+"""The compiled step core (``_stepcore.c``): step times and their compression.
+
+``pip install`` builds it when a C compiler and Python's headers are there; it is optional so
+that motiond installs without them (the simulated machine needs no core). Without it the Klipper
+backend refuses to start, as a configuration problem naming what to install.
+"""
+
+from __future__ import annotations
+
+from server.errors import ConfigError
+
+MISSING = ('[backend] kind = "klipper" needs the compiled step core, which was not built: '
+           "sudo apt install gcc python3-dev, then pip install -e . again")
+
+try:
+    from server.backends.klipper._stepcore import compress, solve
+except ImportError:
+    raise ConfigError([MISSING]) from None
+
+__all__ = ["compress", "solve"]
