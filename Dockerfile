@@ -1,18 +1,34 @@
 # Headless motiond: docker build -t motiond . && docker run -p 127.0.0.1:2323:2323 -p 127.0.0.1:8080:8080 -v motiond-data:/data motiond
 # It listens on every interface inside the container, so it never runs without a token: the first
 # start makes one in /data/jobs/.token and prints it (docker logs); or pass -e MOTIOND_TOKEN=...
+# The build stage compiles the Klipper backend's step core (gcc; the image's Python has its
+# headers) into a virtual environment the image copies: no compiler in the image.
+FROM python:3.11-slim AS build
+
+# unpinned (DL3008): the versions are the base image's Debian release's
+# hadolint ignore=DL3008
+RUN apt-get update \
+    && apt-get install -y --no-install-recommends gcc libc6-dev \
+    && rm -rf /var/lib/apt/lists/*
+RUN python -m venv /opt/motiond
+WORKDIR /src
+COPY pyproject.toml setup.py README.md ./
+COPY server ./server
+COPY modules ./modules
+COPY web ./web
+# a non-editable install: the package and its core live in the environment (-I: not /src)
+RUN /opt/motiond/bin/pip install --no-cache-dir "./[mqtt,fast]" \
+    && /opt/motiond/bin/python -I -c "import server.backends.klipper._stepcore"
+
 FROM python:3.11-slim
 
 RUN useradd --create-home --uid 10001 motiond \
     && mkdir -p /data \
     && chown motiond:motiond /data
 
+COPY --from=build /opt/motiond /opt/motiond
+ENV PATH=/opt/motiond/bin:$PATH
 WORKDIR /app
-COPY pyproject.toml README.md ./
-COPY server ./server
-COPY modules ./modules
-COPY web ./web
-RUN pip install --no-cache-dir "./[mqtt,fast]"
 
 USER 10001
 VOLUME ["/data"]
