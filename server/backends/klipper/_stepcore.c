@@ -320,10 +320,23 @@ static PyMethodDef methods[] = {
 static struct PyModuleDef module = {
     PyModuleDef_HEAD_INIT, "_stepcore",
     "The Klipper backend's step times and step compression, compiled (see _stepcore.c).", -1,
-    methods,
+    methods, NULL, NULL, NULL, NULL,
 };
 
 PyMODINIT_FUNC PyInit__stepcore(void)
 {
-    return PyModule_Create(&module);
+    PyObject *m = PyModule_Create(&module);
+    if (m == NULL)
+        return NULL;
+    /* the compression's constants, for the Python side to name (stepcompress.py) */
+    if (PyModule_AddIntConstant(m, "MAX_COUNT", MAX_COUNT) < 0
+        || PyModule_AddIntConstant(m, "ADD_MIN", ADD_MIN) < 0
+        || PyModule_AddIntConstant(m, "ADD_MAX", ADD_MAX) < 0
+        || PyModule_AddIntConstant(m, "WINDOW", WINDOW) < 0
+        || PyModule_AddIntConstant(m, "QUADRATIC_DEV", QUADRATIC_DEV) < 0
+        || PyModule_AddIntConstant(m, "MAX_TRIES", MAX_TRIES) < 0) {
+        Py_DECREF(m);
+        return NULL;
+    }
+    return m;
 }

@@ -3,6 +3,13 @@
 import numpy as np
 import numpy.typing as npt
 
+MAX_COUNT: int
+ADD_MIN: int
+ADD_MAX: int
+WINDOW: int
+QUADRATIC_DEV: int
+MAX_TRIES: int
+
 def compress(
     points: npt.NDArray[np.float64], last_clock: int, last_exact: float, max_error: float,
     final: bool, errors: npt.NDArray[np.float64] | None, /,

@@ -6,10 +6,10 @@ stepper's last step clock ``L``, step ``k`` (0-based) happens at
 ``[exact - err, exact]`` (never late, at most ``max_error`` early, and never more than half the
 gap to the previous step early, so steps keep their order). For a candidate ``add`` the windows
 bound ``interval`` from both sides; a running max/min over the windows gives the longest run
-that ``add`` allows. The ``add`` is searched as Klipper's stepcompress
-does: a run that ends because its next step would come too early wants a larger ``add``, one
-whose next step would come too late a smaller one; the range narrows by a quarter each try and
-never beyond what the error bound allows two quadratic sequences of that length to differ by
+that ``add`` allows. The ``add`` is searched as Klipper's stepcompress does: a run that ends
+because its next step would come too early wants a larger ``add``, one whose next step would
+come too late a smaller one; the range narrows by a quarter each try and never beyond what the
+error bound allows two quadratic sequences of that length to differ by
 (``(6 + 4√2)·max_error / count²``). The run reaching furthest wins, and a run without ``add``
 (a shorter message) wins when it covers nearly as many steps. Runs grow up to 65,535 steps: the
 window considered grows while the best run fills it.
@@ -26,17 +26,24 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from server.backends.klipper.stepcore import compress
+from server.backends.klipper.stepcore import (
+    ADD_MAX,
+    ADD_MIN,
+    MAX_COUNT,
+    MAX_TRIES,
+    QUADRATIC_DEV,
+    WINDOW,
+    compress,
+)
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
-MAX_COUNT = 65535
-ADD_MIN, ADD_MAX = -32768, 32767
-WINDOW = 1024
-"""Steps considered for one run at first (grown while a run fills it)."""
-QUADRATIC_DEV = 11  # (6 + 4√2) rounded down, as Klipper uses
-MAX_TRIES = 48
+# The constants are the compiled core's: MAX_COUNT (65,535) steps a run at most, ADD_MIN..ADD_MAX
+# (-32,768..32,767) the add, WINDOW (1,024) steps considered for one run at first (grown while a
+# run fills it), QUADRATIC_DEV (11: 6 + 4√2 rounded down, as Klipper uses), MAX_TRIES (48) adds.
+__all__ = ["ADD_MAX", "ADD_MIN", "MAX_COUNT", "MAX_TRIES", "QUADRATIC_DEV", "WINDOW",
+           "StepCompressor", "StepRun", "run_clocks"]
 
 
 @dataclass(frozen=True, slots=True)

@@ -13,8 +13,18 @@ MISSING = ('[backend] kind = "klipper" needs the compiled step core, which was n
            "sudo apt install gcc python3-dev, then pip install -e . again")
 
 try:
-    from server.backends.klipper._stepcore import compress, solve
+    from server.backends.klipper._stepcore import (
+        ADD_MAX,
+        ADD_MIN,
+        MAX_COUNT,
+        MAX_TRIES,
+        QUADRATIC_DEV,
+        WINDOW,
+        compress,
+        solve,
+    )
 except ImportError:
     raise ConfigError([MISSING]) from None
 
-__all__ = ["compress", "solve"]
+__all__ = ["ADD_MAX", "ADD_MIN", "MAX_COUNT", "MAX_TRIES", "QUADRATIC_DEV", "WINDOW", "compress",
+           "solve"]
