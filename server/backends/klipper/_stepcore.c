@@ -159,6 +159,7 @@ PyDoc_STRVAR(compress_doc,
 
 static PyObject *compress(PyObject *self, PyObject *args)
 {
+    (void)self;
     PyObject *points_obj, *errors_obj;
     long long last_clock;
     double last_exact, max_error;
@@ -251,6 +252,7 @@ PyDoc_STRVAR(solve_doc,
 
 static PyObject *solve(PyObject *self, PyObject *args)
 {
+    (void)self;
     PyObject *rows, *counts, *out_obj;
     double ref_clock, hz, ref_s;
     if (!PyArg_ParseTuple(args, "O!O!Oddd", &PyList_Type, &rows, &PyList_Type, &counts,
