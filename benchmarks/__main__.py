@@ -1,7 +1,8 @@
 """Run motiond's benchmarks by name.
 
     python -m benchmarks NAME [--quick] [--json]     # NAME: parser, planner, offline, streaming,
-                                                     #       grbl, klipper, klipper-host, lines, idle
+                                                     #       grbl, klipper, klipper-host, lines,
+                                                     #       idle
     python -m benchmarks klipper [--runs N] [--motiond-tree DIR] [--hosts klippy motiond]
     python -m benchmarks all [--quick] [--json]
     python -m benchmarks --list

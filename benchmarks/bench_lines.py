@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import os
 import statistics
 import sys
 import tempfile
@@ -69,7 +70,7 @@ class Server:
             process = await asyncio.create_subprocess_exec(
                 sys.executable, "-m", "server.cli", "--config", str(config), "--host",
                 "127.0.0.1", "--tcp-port", str(port), "--log-level", "warning", cwd=tree,
-                env={"PYTHONPATH": str(tree), "PATH": "/usr/bin:/bin"},
+                env={**os.environ, "PYTHONPATH": str(tree)},
                 stdout=asyncio.subprocess.DEVNULL, stderr=err)
         server = cls(process, port, workdir)
         try:
