@@ -154,10 +154,9 @@ async def serve_stream(
     try:
         while not session.closed:
             limit = None if deadline is None else deadline(received_bytes)
-            size = session.read_size
             try:
                 async with asyncio.timeout(None if limit is None else max(0.0, limit[0])):
-                    data = await reader.read(size)
+                    data = await reader.read(session.read_size)
             except TimeoutError:
                 assert limit is not None
                 session.end(f"closing: {limit[1]}")
@@ -166,8 +165,7 @@ async def serve_stream(
                 break
             received_bytes += len(data)
             await session.feed(data, gone=gone)  # paced, sliced, waits while the backlog is full
-            if len(data) == size:  # more may be buffered: it must not hold the loop
-                await asyncio.sleep(0)  # (a shorter read emptied the buffer: the next waits)
+            await asyncio.sleep(0)  # buffered input must not hold the loop: one slice a turn
     except (ConnectionError, OSError):
         pass
     finally:
