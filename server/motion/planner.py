@@ -230,7 +230,8 @@ class Planner:
         The hysteresis of back-pressure: a writer that found the window full is woken when
         this holds, not at every popped block, so it takes lines in batches: one wake-up of
         the writer, one reply and one read of the sender's next lines per batch, not per
-        line (at 1,000 lines/s, most of a line's CPU). While lines wait, the window stays
+        line (a 0.1 mm raster at F6000 on the simulated machine: half of what a line cost
+        beyond the tick, ``python -m benchmarks lines``). While lines wait, the window stays
         above 15/16 of its bounds: the blocks are the same, and a block's speeds differ
         only where that much look-ahead is what limits them (a stop longer than 0.47 s of
         motion at the default ``max_planned_s``), as they would for a sender a little slower.
