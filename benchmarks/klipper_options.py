@@ -11,9 +11,9 @@ HOSTS = ("klippy", "motiond")
 
 
 def add_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--runs", type=int, help="klipper: runs of each job per host "
-                        "(default 3, 1 with --quick)")
-    parser.add_argument("--motiond-tree", type=Path, help="klipper: motiond's source tree "
+    parser.add_argument("--runs", type=int, help="klipper, lines: runs of each job per host "
+                        "(default 3, 1 with --quick; lines: 5, 2)")
+    parser.add_argument("--motiond-tree", type=Path, help="klipper, lines: motiond's source tree "
                         "to measure (default: this checkout)")
     parser.add_argument("--hosts", nargs="+", choices=HOSTS, default=list(HOSTS),
                         help="klipper: which hosts to measure")

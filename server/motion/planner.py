@@ -3,17 +3,18 @@
 Pure computation (no asyncio, no I/O). Units are machine mm, mm/s, mm/s² and seconds.
 
 The interpreter side calls :meth:`Planner.append` / :meth:`Planner.append_action` and watches
-:meth:`Planner.is_full` for back-pressure; the step generator calls :meth:`Planner.pop` for the
-next block to run, and :meth:`Planner.plan` first whenever :meth:`Planner.lookahead_short`.
-Appending is O(1) plain Python: the block's length, feed and direction are staged; every
-``sync_blocks`` appends (and at ``plan()``) the staged blocks are copied into the columns of
-one growable numpy array and their limits derived in a batch (projected axis rates and
-accelerations, nominal speeds, junction limits and node caps). ``plan()`` plans at most
-``plan_blocks`` blocks from the head with a handful of numpy operations
-(:func:`server.motion.trapezoid.plan_prefix`): the rest of the window enters the backward pass
-through one minimum, taken with three array operations, so the plan of those blocks is the plan
-of the whole window and no call does Python-level work in proportion to the window.
-:class:`~server.motion.block.Block` objects are only built at ``pop()``.
+:meth:`Planner.is_full` for back-pressure (a writer that found it full waits until
+:meth:`Planner.has_room`: a batch's worth below the bounds); the step generator calls
+:meth:`Planner.pop` for the next block to run, and :meth:`Planner.plan` first whenever
+:meth:`Planner.lookahead_short`. Appending is O(1) plain Python: the block's length, feed and
+direction are staged; every ``sync_blocks`` appends (and at ``plan()``) the staged blocks are
+copied into the columns of one growable numpy array and their limits derived in a batch
+(projected axis rates and accelerations, nominal speeds, junction limits and node caps).
+``plan()`` plans at most ``plan_blocks`` blocks from the head with a handful of numpy
+operations (:func:`server.motion.trapezoid.plan_prefix`): the rest of the window enters the
+backward pass through one minimum, taken with three array operations, so the plan of those
+blocks is the plan of the whole window and no call does Python-level work in proportion to the
+window. :class:`~server.motion.block.Block` objects are only built at ``pop()``.
 
 Why ``pop()`` may use a plan made before more blocks were appended: appending only adds
 look-ahead, which can only raise the limits, so the old plan (which stops at the old end of the
@@ -62,6 +63,9 @@ __all__ = ["MIN_LENGTH_MM", "Block", "Planner", "PlannerSettings", "SettledBlock
 MIN_LENGTH_MM = 1e-6
 """Moves shorter than this are dropped; the next block starts where the last one ended, so
 the skipped displacement is not lost."""
+REFILL_FRACTION = 16
+"""A full window takes more blocks once it has drained 1/16 of its bounds (of ``max_blocks``,
+at least one block, and of ``max_planned_s``): see :meth:`Planner.has_room`."""
 PREALLOCATED_BLOCKS = 16384
 GEOMETRY_COMPACT = 1024  # popped blocks' geometry entries dropped at once
 _RAPID, _JOG, _HOMING = MoveKind.RAPID, MoveKind.JOG, MoveKind.HOMING
@@ -117,6 +121,8 @@ class Planner:
         self._columns.sync_every = settings.sync_blocks
         self._min_feed_mm_s = settings.min_feed_mm_s
         self._max_blocks, self._max_planned_s = settings.max_blocks, settings.max_planned_s
+        self._refill_blocks = settings.max_blocks - max(1, settings.max_blocks // REFILL_FRACTION)
+        self._refill_s = settings.max_planned_s * (1 - 1 / REFILL_FRACTION)
         self._inv_rate = tuple(1.0 / rate for rate in settings.max_rate_mm_s)
         limits = Limits(self._columns, settings.accel_mm_s2, settings.max_rate_mm_s,
                         settings.junction_deviation_mm, settings.min_feed_mm_s)
@@ -215,6 +221,26 @@ class Planner:
         return count >= 2 and (
             count >= self._max_blocks
             or self._time_planned_s + self._time_estimate_s >= self._max_planned_s
+        )
+
+    def has_room(self) -> bool:
+        """True when the window has drained :data:`REFILL_FRACTION` of its bounds below them
+        (or holds fewer than two blocks); never while :meth:`is_full`.
+
+        The hysteresis of back-pressure: a writer that found the window full is woken when
+        this holds, not at every popped block, so it takes lines in batches: one wake-up of
+        the writer, one reply and one read of the sender's next lines per batch, not per
+        line (a 0.1 mm raster at F6000 on the simulated machine: half of what a line cost
+        beyond the tick, ``python -m benchmarks lines``). While lines wait, the window stays
+        above 15/16 of its bounds: the blocks are the same, and a block's speeds differ
+        only where that much look-ahead is what limits them (a stop longer than 0.47 s of
+        motion at the default ``max_planned_s``), as they would for a sender a little slower.
+        """
+        columns = self._columns
+        count = columns.tail - columns.head
+        return count < 2 or (
+            count <= self._refill_blocks
+            and self._time_planned_s + self._time_estimate_s <= self._refill_s
         )
 
     def planned_time_s(self) -> float:

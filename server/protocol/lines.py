@@ -92,6 +92,8 @@ class LineProtocol(ByteScanner):
         asks for it with a last message ``ok <suffix>`` (M105's ``ok T:..``: Marlin answers
         on one line, and OctoPrint takes a ``T:`` line without ``ok`` for a heat-up).
         """
+        if not messages and not ok_suffix:
+            return _OK  # the reply to almost every line
         if messages and messages[-1].startswith(OK_PREFIX) and not ok_suffix:
             ok_suffix, messages = messages[-1][len(OK_PREFIX) :], messages[:-1]
         lines = [_checked_line(message) for message in messages]
@@ -220,6 +222,9 @@ def _checked_line(line: str) -> str:
     if line.startswith("ok"):
         raise ValueError(f"a message line must not read as 'ok': {line!r}")
     return line
+
+
+_OK = b"ok\r\n"
 
 
 def _encode(lines: Sequence[str]) -> bytes:

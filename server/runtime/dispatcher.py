@@ -34,6 +34,7 @@ import asyncio
 import inspect
 import math
 import re
+import string
 import time
 from collections import defaultdict
 from collections.abc import Awaitable, Callable
@@ -50,6 +51,7 @@ Handler = Callable[["Command"], Awaitable[HandlerResult] | HandlerResult]
 Classifier = Callable[[Line], LineKind]
 
 _NAMED = re.compile(r"([A-Za-z][A-Za-z_\-]+)(?:\s+(.*))?$", re.S)
+_NAME_LETTERS = frozenset(string.ascii_letters + "_-")  # a name's second character
 _GM_NAME = re.compile(r"[GMgm]\d")
 _GRBL_DOLLAR_LETTERS = "$#CGHIJNRSX"  # Grbl 1.1's $ commands: $$ $# $C $G $H $I $J= $N $RST $SLP $X
 _DOLLAR = re.compile(r"\$([$#]|[A-Za-z]*)\s*(.*)$", re.S)
@@ -182,29 +184,34 @@ class Dispatcher:
         if self._closed:
             raise CommandError(Error.BUSY, "shutting down")
         self.last_command_s = time.monotonic()
-        named = _NAMED.match(text.strip())
+        stripped = text.strip()
+        named = _named(stripped)
         if named and _key(named.group(1)) in self._immediate:
-            return await self.execute(text, source)
+            return await self._route(text, stripped, named, source, None)
         async with self._lock:
             if self._closed:
                 raise CommandError(Error.BUSY, "shutting down")
             if still_valid is not None and not still_valid():
                 raise CommandError(Error.BUSY, "overtaken by a reset")
-            return await self.execute(text, source, defer)
+            return await self._route(text, stripped, named, source, defer)
 
     async def execute(self, text: str, source: Source, defer: Deferred | None = None) -> list[str]:
         """Execute one line now (the caller holds the order); raise CommandError to refuse it."""
         stripped = text.strip()
+        return await self._route(text, stripped, _named(stripped), source, defer)
+
+    async def _route(self, text: str, stripped: str, named: re.Match[str] | None,
+                     source: Source, defer: Deferred | None) -> list[str]:
+        """:meth:`execute`, with the line stripped and matched as a named command already."""
         if not stripped:
             return []
-        if stripped.startswith("$"):
+        if stripped[0] == "$":
             name, args = _dollar_name(stripped)
             return await self._run(name, Command(name, text, args, source, defer=defer))
-        named = _NAMED.match(stripped)
         if named and _key(named.group(1)) in self._entries:
             name = _key(named.group(1))
             return await self._run(name, Command(name, text, named.group(2) or "", source))
-        text_code = _TEXT_CODE.match(stripped)
+        text_code = _TEXT_CODE.match(stripped) if stripped[0] in "Mm" else None
         if text_code and f"M{text_code.group(1)}" in self._entries:
             name = f"M{text_code.group(1)}"
             return await self._run(name, Command(name, text, text_code.group(2), source))
@@ -261,6 +268,14 @@ class Dispatcher:
     def claim(self, source: Source) -> None:
         """``source`` (a job just started) owns the machine from now on."""
         self._owner = source
+
+
+def _named(stripped: str) -> re.Match[str] | None:
+    """``_NAMED.match(stripped)``, without the regular expression for a line whose second
+    character rules a name out (every G-code line: ``G1``, ``M3``, ``X10``)."""
+    if len(stripped) < 2 or stripped[1] not in _NAME_LETTERS:
+        return None
+    return _NAMED.match(stripped)
 
 
 def _dollar_name(stripped: str) -> tuple[str, str]:

@@ -306,7 +306,7 @@ class Machine(GcodeFeed, RealtimeCommands):
         self.set_machine_position(tuple(position_mm))
 
     def _after_tick(self) -> None:
-        if not self.room.is_set() and not self.planner.is_full():
+        if not self.room.is_set() and self.planner.has_room():
             self.room.set()
 
 

@@ -138,6 +138,7 @@ class Session(LineAdmission, SessionOutput):
         self._realtime_budget = realtime_allowance(
             core.protocol.realtime_bytes_per_s, REALTIME_BURST_BYTES)
         self._text_cost = 0
+        self._text_counting = True
         self._unsubscribe = kernel.events.subscribe(BusEvent.PUSH, self.push)
         self._task: asyncio.Task[None] | None = None
         self._replies: deque[tuple[int, asyncio.Future[bytes]]] = deque()  # behind a deferred
@@ -280,7 +281,7 @@ class Session(LineAdmission, SessionOutput):
             return self.protocol.reply_error(event.error)
         if event.handled:  # M110: the protocol already set the line number
             return self.protocol.reply_ok()
-        login = _AUTH.match(event.text)
+        login = _AUTH.match(event.text) if "$" in event.text else None
         if login is not None:
             return await self._login(login.group(1))
         if self.on_probation:

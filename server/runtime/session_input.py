@@ -100,6 +100,7 @@ class LineAdmission:
     _input_budget: TokenBucket
     _realtime_budget: Allowance
     _text_cost: int  # of the bytes just examined, those in complete lines (text, not realtime)
+    _text_counting: bool  # whether to count them (not when those bytes cost nothing anyway)
 
     if TYPE_CHECKING:
         def _request_status(self) -> None: ...  # the session's output
@@ -160,7 +161,11 @@ class LineAdmission:
             if self.outbox.closed:
                 return
             self._text_cost = 0
-            self.receive_data(piece, final=final and not data)
+            self._text_counting = cost > 0  # nothing to refund: no line's text is looked at
+            try:
+                self.receive_data(piece, final=final and not data)
+            finally:
+                self._text_counting = True
             self._spend_realtime(max(0, cost - self._text_cost))
             await self.wait_input_room()
             if not data:
@@ -266,7 +271,7 @@ class LineAdmission:
     def _count_text(self, event: Event) -> None:
         """A line's bytes that look like realtime ones (UTF-8 text; ``!`` in a RepRap host's
         ``M117``) were text: they do not count against the realtime budget."""
-        if isinstance(event, LineReceived):
+        if self._text_counting and isinstance(event, LineReceived):
             self._text_cost += realtime_cost(event.text.encode("utf-8", "surrogatepass"))
 
     def _act_on_realtime(self, batch: list[Realtime]) -> None:

@@ -13,7 +13,8 @@ import sys
 
 from tests.conftest import REPO
 
-NAMES = ("parser", "planner", "offline", "streaming", "grbl", "klipper", "klipper-host", "idle")
+NAMES = ("parser", "planner", "offline", "streaming", "grbl", "klipper", "klipper-host", "lines",
+         "idle")
 
 
 def benchmarks(*args: str) -> subprocess.CompletedProcess[str]:

@@ -323,6 +323,45 @@ def test_the_window_is_full_by_planned_time() -> None:
     assert planner.planned_time_s() == pytest.approx(0.5 - first.duration_s, abs=1e-12)
 
 
+def test_a_full_window_has_room_again_once_a_sixteenth_of_its_blocks_has_drained() -> None:
+    machine = PlannerSettings((500.0,), (1000.0,), max_blocks=64, max_planned_s=60.0)
+    planner = Planner(machine, (0.0,))
+    for k in range(1, 65):
+        planner.append(feed_to(float(k)))
+    assert planner.is_full() and not planner.has_room()
+    planner.plan()
+    for left in range(63, 59, -1):  # 63, 62, 61: neither full nor room for a batch
+        planner.pop()
+        assert not planner.is_full()
+        assert planner.has_room() is (left <= 60), left
+
+
+def test_a_full_window_has_room_again_once_a_sixteenth_of_its_time_has_drained() -> None:
+    machine = PlannerSettings((500.0,), (1000.0,), max_planned_s=1.6)
+    planner = Planner(machine, (0.0,))
+    for k in range(1, 17):  # 10 mm at 100 mm/s: 0.1 s each at the nominal speed
+        planner.append(feed_to(10.0 * k))
+    planner.plan()
+    assert planner.is_full() and not planner.has_room()
+    while planner.planned_time_s() > 1.5 + 1e-9:
+        assert not planner.has_room()
+        planner.pop()
+    assert planner.has_room()
+
+
+def test_a_window_of_two_blocks_has_room_after_one_pop_and_is_never_both() -> None:
+    machine = PlannerSettings((500.0,), (1000.0,), max_blocks=2, max_planned_s=60.0)
+    planner = Planner(machine, (0.0,))
+    assert planner.has_room()
+    planner.append(feed_to(1.0))
+    assert planner.has_room()
+    planner.append(feed_to(2.0))
+    assert planner.is_full() and not planner.has_room()
+    planner.plan()
+    planner.pop()
+    assert planner.has_room() and not planner.is_full()
+
+
 def test_the_window_is_never_full_with_fewer_than_two_blocks() -> None:
     machine = PlannerSettings((500.0,), (1000.0,), max_planned_s=0.5)
     planner = Planner(machine, (0.0,))

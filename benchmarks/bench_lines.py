@@ -1,0 +1,173 @@
+"""The host's cost per G-code line: the Klipper benchmark's raster streamed into motiond.
+
+``python -m server.cli`` on the simulated machine (the laser module on its simulated output;
+the same axes, limits and cornering as the Klipper benchmark's) gets the raster job of
+:mod:`benchmarks.klipper_rig_jobs` (20 mm lines of 0.1 mm segments at F6000, ~1,000 lines a
+second of motion) from the streaming benchmark's client process, character counting over TCP,
+in real time. Reported per run: the server process's CPU (every thread's, from ``/proc``) per
+line and per second of motion, from the first line sent to idle at the job's end. The simulated
+machine's own tick is in the figure (as the Klipper backend's is on the rig); a job this dense
+spends most of it on the lines' path: transport, session, dispatcher, interpreter, planner and
+the step generator's popping of blocks.
+
+Run: ``python -m benchmarks lines [--quick] [--runs N] [--motiond-tree DIR]`` (``--motiond-tree``:
+measure another checkout, e.g. main's, in the same minutes).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import statistics
+import sys
+import tempfile
+import time
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+from benchmarks.bench_grbl_link import free_port
+from benchmarks.common import REPO, BenchResult
+from benchmarks.klipper_rig_hosts import (
+    ACCEL_MM_S2,
+    JUNCTION_DEVIATION_MM,
+    LASER_S_MAX,
+    MAX_RATE_MM_S,
+    POLL_S,
+    RUN_LIMIT_S,
+    STEPS_PER_MM,
+    TRAVEL_MM,
+    cpu_ns,
+    stop,
+)
+from benchmarks.klipper_rig_jobs import Job, raster
+from benchmarks.streaming_support import run_client
+
+
+def sim_toml(data_dir: Path) -> str:
+    axes = "".join(f"[axes.{a}]\nsteps_per_mm = {STEPS_PER_MM}\nmax_rate_mm_s = {MAX_RATE_MM_S}\n"
+                   f"accel_mm_s2 = {ACCEL_MM_S2}\nmax_mm = {TRAVEL_MM}\n" for a in "xy")
+    return (f"[machine]\nlaser_mode = true\n{axes}[planner]\n"
+            f"junction_deviation_mm = {JUNCTION_DEVIATION_MM}\n[jobs]\ndata_dir = '{data_dir}'\n"
+            f"[http]\nenabled = false\n[laser]\nmaximum_s_value = {LASER_S_MAX}\n")
+
+
+class Server:
+    """motiond on the simulated machine, and one connection kept open for ``?``."""
+
+    def __init__(self, process: asyncio.subprocess.Process, port: int, workdir: Path) -> None:
+        self.process, self.port, self.workdir = process, port, workdir
+        self._poll: tuple[asyncio.StreamReader, asyncio.StreamWriter] | None = None
+
+    @classmethod
+    @contextlib.asynccontextmanager
+    async def start(cls, workdir: Path, tree: Path) -> AsyncIterator[Server]:
+        (workdir / "data").mkdir(exist_ok=True)
+        config = workdir / "motiond.toml"
+        config.write_text(sim_toml(workdir / "data"))
+        port = free_port()
+        with (workdir / "motiond.err").open("wb") as err:
+            process = await asyncio.create_subprocess_exec(
+                sys.executable, "-m", "server.cli", "--config", str(config), "--host",
+                "127.0.0.1", "--tcp-port", str(port), "--log-level", "warning", cwd=tree,
+                env={**os.environ, "PYTHONPATH": str(tree)},
+                stdout=asyncio.subprocess.DEVNULL, stderr=err)
+        server = cls(process, port, workdir)
+        try:
+            await server.wait_idle(None)
+            yield server
+        finally:
+            if server._poll is not None:
+                server._poll[1].close()
+            await stop(process)
+
+    async def status(self) -> str:
+        if self._poll is None:
+            self._poll = await asyncio.open_connection("127.0.0.1", self.port)
+        reader, writer = self._poll
+        writer.write(b"?")
+        while not (line := await asyncio.wait_for(reader.readline(), 5.0)).startswith(b"<"):
+            pass
+        return line.decode().strip()
+
+    async def wait_idle(self, end_mm: tuple[float, float] | None) -> None:
+        want = "" if end_mm is None else f"MPos:{end_mm[0]:.3f},{end_mm[1]:.3f}|"
+        deadline = time.monotonic() + RUN_LIMIT_S
+        while True:
+            with contextlib.suppress(OSError, TimeoutError):
+                report = await self.status()
+                if report.startswith("<Idle") and want in report:
+                    return
+                if report.startswith("<Alarm"):
+                    raise RuntimeError(report)
+            if time.monotonic() > deadline or self.process.returncode is not None:
+                raise RuntimeError(f"motiond not idle at {want or 'start'} (motiond.err)")
+            await asyncio.sleep(POLL_S)
+
+    async def run(self, lines: list[str], end_mm: tuple[float, float]) -> None:
+        path = self.workdir / "job.nc"
+        path.write_text("\n".join(["G21 G90 G94", *lines]) + "\n")
+        result = await run_client(self.port, path, banner=True)
+        if result["errors"]:
+            raise RuntimeError(f"motiond refused {result['errors']} lines")
+        await self.wait_idle(end_mm)
+
+
+def one_move(job: Job) -> Job:
+    """The raster's seconds of motion in one move with the laser on (the tick's cost, and
+    nearly none of the lines'): as long as the raster takes at the same acceleration."""
+    seconds = job.moves["x"][0].duration_s * len(job.moves["x"]) * 1.02
+    feed_mm_s = 100.0 / (seconds - 100.0 / 2000.0)  # 100 mm: cruise plus one ramp's time
+    x, y = job.start[0] + 100.0, job.start[1]
+    return Job("one move", job.start, (x, y), motiond=[
+        f"M3 S{LASER_S_MAX * 0.8:.0f} G1 X{x:.3f} F{feed_mm_s * 60:.1f}", "M5"])
+
+
+async def measure(jobs: list[Job], runs: int, tree: Path) -> list[list[tuple[float, float]]]:
+    """(CPU seconds, wall seconds) of each run of each job, from the first line to idle; the
+    jobs run in turn, run after run."""
+    figures: list[list[tuple[float, float]]] = [[] for _ in jobs]
+    with tempfile.TemporaryDirectory(prefix="motiond-bench-lines-") as name:
+        async with Server.start(Path(name), tree) as server:
+            for _ in range(runs):
+                for job, out in zip(jobs, figures, strict=True):
+                    await server.run([f"G0 X{job.start[0]} Y{job.start[1]}"], job.start)
+                    cpu0, wall0 = cpu_ns(server.process.pid), time.monotonic()
+                    await server.run(job.lines("motiond"), job.end)
+                    cpu1, wall1 = cpu_ns(server.process.pid), time.monotonic()
+                    out.append(((cpu1 - cpu0) / 1e9, wall1 - wall0))
+    return figures
+
+
+def run(quick: bool, runs: int | None = None, motiond_tree: Path | None = None) -> BenchResult:
+    result = BenchResult("lines", quick)
+    tree = (motiond_tree or REPO).resolve()
+    job = raster(lines=6 if quick else 12)
+    count = len(job.motiond) + 1
+    figures, single = asyncio.run(measure([job, one_move(job)], runs or (2 if quick else 5),
+                                          tree))
+    per_s = [cpu_s / wall_s for cpu_s, wall_s in figures]
+    tick_s = [cpu_s / wall_s for cpu_s, wall_s in single]
+    per_line_us = [cpu_s / count * 1e6 for cpu_s, _ in figures]
+    # each run less the single move's CPU per second of the same run, over the lines
+    net_us = [(cpu_s - tick * wall_s) / count * 1e6
+              for (cpu_s, wall_s), tick in zip(figures, tick_s, strict=True)]
+    print(f"motiond from {tree}, simulated machine; raster: {count:,} lines over TCP "
+          f"(character counting), {len(figures)} runs")
+    rows = [("raster: CPU per s of motion (s/s)", per_s, "7.3f"),
+            ("one move: CPU per s (s/s)", tick_s, "7.3f"),
+            ("raster: wall (s)", [w for _, w in figures], "7.2f"),
+            ("CPU per line (µs)", per_line_us, "7.1f"),
+            ("CPU per line less the tick (µs)", net_us, "7.1f")]
+    for label, values, form in rows:
+        print(f"   {label:36}" + " ".join(f"{v:{form}}" for v in values))
+    median = statistics.median
+    print(f"   median {median(per_line_us):.1f} µs a line, {median(net_us):.1f} µs less the "
+          f"tick; {median(per_s):.3f} s/s")
+    result.add("raster", str(tree), lines=(count, "lines"),
+               cpu_per_line=(median(per_line_us), "µs"),
+               cpu_per_line_net=(median(net_us), "µs"),
+               cpu_per_motion_s=(median(per_s), "s/s"),
+               cpu_one_move=(median(tick_s), "s/s"),
+               wall=(median(w for _, w in figures), "s"))
+    return result
