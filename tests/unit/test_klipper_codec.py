@@ -9,6 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from klippy import msgproto  # type: ignore[import-untyped]
 
+from server.backends.klipper.backend import level
 from server.backends.klipper.codec import (
     BlockReader,
     ProtocolError,
@@ -151,3 +152,12 @@ def test_the_sized_vlq_matches_the_generic_one(value: int) -> None:
     generic = bytearray()
     encode_vlq(generic, value)
     assert vlq(value) == bytes(generic)
+
+
+@given(st.one_of(st.floats(allow_nan=True), st.floats(-0.1, 1.1)),
+       st.sampled_from([0, 1, 255, 256, 1023, 65535]))
+def test_a_level_is_on_exactly_when_value_times_top_passes_one_half(value: float,
+                                                                    top: int) -> None:
+    """The followed output's quick on/off test (``value·top > 0.5``) agrees with the level
+    the MCU is sent."""
+    assert (level(value, top) > 0) == (value * (top or 1) > 0.5)

@@ -552,9 +552,10 @@ class KlipperBackend:
         assert out is not None
         start_s = piece.start_s
         top = self._level_top(out)
-        if first:
-            on = level(out.value, top) > 0
-            if law is None or level(law.at(v0), top) == 0:
+        if first:  # level(v, top) > 0 is v·top > 0.5 (a PWM level rounds to 0 up to 0.5)
+            scale = top or 1
+            on = out.value * scale > 0.5
+            if law is None or not law.at(v0) * scale > 0.5:
                 if on:
                     self._set_followed(0.0, start_s, top)
             elif not on:
