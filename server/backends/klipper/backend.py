@@ -564,11 +564,19 @@ class KlipperBackend:
         if law is None:
             return
         t, a, end_s = max(self._follow_next_s, start_s), piece.accel_mm_s2, start_s + rel_s
-        if t <= end_s:  # the 1 ms grid: a cheap look first, the output only on a new level
-            at, period_s, set_followed = law.at, self._follow_period_s, self._set_followed
-            while t <= end_s:
-                set_followed(at(v0 + a * (t - start_s)), t, top)
-                t += period_s
+        if t <= end_s:  # the grid: the output is looked at only where its duty may change
+            period_s, set_followed = self._follow_period_s, self._set_followed
+            if a == 0.0 or law.per_mm_s == 0.0:  # one duty along the piece: the first look
+                set_followed(law.at(v0), t, top)  # decides (the others would see the same)
+                while t <= end_s:
+                    t += period_s  # the grid's times exactly as the looks would step them
+            else:
+                at = law.at
+                while t <= end_s:
+                    value = at(v0 + a * (t - start_s))
+                    if value != out.value:
+                        set_followed(value, t, top)
+                    t += period_s
         self._follow_next_s = t
 
     def _set_followed(self, value: float, when_s: float, top: int) -> None:
