@@ -5,8 +5,11 @@ from __future__ import annotations
 import random
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from klippy import msgproto  # type: ignore[import-untyped]
 
+from server.backends.klipper.backend import level
 from server.backends.klipper.codec import (
     BlockReader,
     ProtocolError,
@@ -16,7 +19,7 @@ from server.backends.klipper.codec import (
     frame,
     vlq_size,
 )
-from server.backends.klipper.dictionary import Dictionary
+from server.backends.klipper.dictionary import Dictionary, vlq
 from tests.support.klipper_dictionary import compressed, dictionary_data
 
 
@@ -116,3 +119,45 @@ def test_the_block_reader_skips_corruption_and_resyncs() -> None:
         blocks += reader.feed(stream[i:i + 3])
     assert [b.seq for b in blocks] == [0, 2, 3]
     assert reader.bad_blocks >= 1
+
+
+_HOT = ("queue_step", "set_next_step_dir", "reset_step_clock", "queue_digital_out",
+        "queue_pwm_out")
+_RANGES = {"%u": (0, 2**32 - 1), "%i": (-2**31, 2**31 - 1), "%hu": (0, 2**16 - 1),
+           "%hi": (-2**15, 2**15 - 1), "%c": (0, 255)}
+
+
+@given(data=st.data(), name=st.sampled_from(_HOT), id_offset=st.sampled_from([0, 41, 120]))
+@settings(max_examples=300, deadline=None)
+def test_prepared_encoders_give_the_generic_encoders_bytes(
+        data: st.DataObject, name: str, id_offset: int) -> None:
+    """The hot messages' prepared encoders (id and field order resolved once, VLQ by size)
+    send exactly what the generic encoder and klippy's own msgproto send (ids of one byte
+    and, with the offset of 120, of two)."""
+    ours = Dictionary(dictionary_data(id_offset=id_offset))
+    fmt = ours.by_name[name]
+    params = {}
+    for part in fmt.text.split()[1:]:
+        pname, kind = part.split("=")
+        params[pname] = data.draw(st.integers(*_RANGES[kind]), label=pname)
+    prepared = ours.encoder(name)(*params.values())
+    assert prepared == ours.encode(name, **params)
+    if fmt.msgid < 96:  # klippy encodes one-byte message ids only
+        text = " ".join([name, *(f"{k}={v}" for k, v in params.items())])
+        assert prepared == bytes(reference(id_offset).create_command(text))
+
+
+@given(st.integers(-2**31, 2**32 - 1))
+def test_the_sized_vlq_matches_the_generic_one(value: int) -> None:
+    generic = bytearray()
+    encode_vlq(generic, value)
+    assert vlq(value) == bytes(generic)
+
+
+@given(st.one_of(st.floats(allow_nan=True), st.floats(-0.1, 1.1)),
+       st.sampled_from([0, 1, 255, 256, 1023, 65535]))
+def test_a_level_is_on_exactly_when_value_times_top_passes_one_half(value: float,
+                                                                    top: int) -> None:
+    """The followed output's quick on/off test (``value·top > 0.5``) agrees with the level
+    the MCU is sent."""
+    assert (level(value, top) > 0) == (value * (top or 1) > 0.5)

@@ -44,6 +44,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import replace
+from math import floor
 
 from server.backends.base import Piece
 from server.backends.klipper.codec import ProtocolError
@@ -84,6 +85,13 @@ DONE_MARGIN_S = 0.005
 TRAIL_EXTRA_S = 1.0  # the pieces are kept this long beyond the lead (where the tool was)
 STOP_FLUSH_S = 0.1  # a fault's emergency stop gets this long to leave before the link closes
 STOP_READ_S = 0.5  # reading where a shut-down board stopped (a few round trips) takes at most
+
+
+def level(value: float, top: int) -> int:
+    """What the MCU is sent for ``value``: the PWM level out of ``top``, or on/off (top 0)."""
+    if not top:
+        return int(value > 0.5)
+    return round(min(1.0, max(0.0, value)) * top)
 
 
 class KlipperBackend:
@@ -258,10 +266,10 @@ class KlipperBackend:
             self.pwm_log.append((when_s, out.name, value, clock))
         d = self.mcu.dictionary
         if out.config.pwm:
-            top = d.constant_int("PWM_MAX", 255)
+            top = d.pwm_max
             level = round(min(1.0, max(0.0, value)) * top)
-            message = d.encode("queue_pwm_out", oid=out.oid, clock=clock & 0xFFFFFFFF,
-                               value=top - level if out.invert else level)
+            message = d.encoder("queue_pwm_out")(out.oid, clock & 0xFFFFFFFF,
+                                                 top - level if out.invert else level)
             self._queue.add(message, clock, clock)
         else:
             self._digital_out(out.oid, value > 0.5, out.invert, clock)
@@ -311,8 +319,8 @@ class KlipperBackend:
 
     def _digital_out(self, oid: int, on: bool, inverted: bool, clock: int) -> None:
         assert self.mcu is not None
-        message = self.mcu.dictionary.encode("queue_digital_out", oid=oid,
-                                             clock=clock & 0xFFFFFFFF, on_ticks=int(on != inverted))
+        message = self.mcu.dictionary.encoder("queue_digital_out")(
+            oid, clock & 0xFFFFFFFF, int(on != inverted))
         self._queue.add(message, clock, clock)
 
     def declare_tool(self, name: str) -> None:
@@ -530,9 +538,10 @@ class KlipperBackend:
             for direction, count in axis_spans.runs:
                 axis.add(direction, clocks[first:first + count])
                 first += count
-        if self._follow_on and not pieces and until_s > self._generated_s:
+        out = self._follow
+        if self._follow_on and out is not None and not pieces and until_s > self._generated_s:
             self._follow_on = False  # motion ended (not merely a slice of a late tick)
-            self._set_followed(0.0, self._generated_s)
+            self._set_followed(0.0, self._generated_s, self._level_top(out))
 
     def _follow_piece(self, piece: Piece, rel_s: float, first: bool) -> None:
         """The followed output's duty along ``piece`` up to ``rel_s`` into it. Turning on or
@@ -542,47 +551,64 @@ class KlipperBackend:
         out, law, v0 = self._follow, piece.power, piece.start_mm_s
         assert out is not None
         start_s = piece.start_s
-        if first:
-            on = self._level(out, out.value) > 0
-            if law is None or self._level(out, law.at(v0)) == 0:
+        top = self._level_top(out)
+        if first:  # level(v, top) > 0 is v·top > 0.5 (a PWM level rounds to 0 up to 0.5)
+            scale = top or 1
+            on = out.value * scale > 0.5
+            if law is None or not law.at(v0) * scale > 0.5:
                 if on:
-                    self._set_followed(0.0, start_s)
+                    self._set_followed(0.0, start_s, top)
             elif not on:
-                self._set_followed(law.at(v0), start_s)
+                self._set_followed(law.at(v0), start_s, top)
                 self._follow_next_s = start_s + self._follow_period_s
         if law is None:
             return
         t, a, end_s = max(self._follow_next_s, start_s), piece.accel_mm_s2, start_s + rel_s
-        while t <= end_s:
-            self._set_followed(law.at(v0 + a * (t - start_s)), t)
-            t += self._follow_period_s
+        if t <= end_s:  # the grid: the output is looked at only where its duty may change
+            period_s, set_followed = self._follow_period_s, self._set_followed
+            if a == 0.0 or law.per_mm_s == 0.0:  # one duty along the piece: the first look
+                set_followed(law.at(v0), t, top)  # decides (the others would see the same)
+                while t <= end_s:
+                    t += period_s  # the grid's times exactly as the looks would step them
+            else:
+                at = law.at
+                while t <= end_s:
+                    value = at(v0 + a * (t - start_s))
+                    if value != out.value:
+                        set_followed(value, t, top)
+                    t += period_s
         self._follow_next_s = t
 
-    def _set_followed(self, value: float, when_s: float) -> None:
+    def _set_followed(self, value: float, when_s: float, top: int) -> None:
+        """The followed output set to ``value`` at ``when_s`` unless the MCU would be sent the
+        level it has (``top``: :meth:`_level_top`)."""
         out = self._follow
         assert out is not None
-        if value == out.value or self._level(out, value) == self._level(out, out.value):
+        if value == out.value or level(value, top) == level(out.value, top):
             return
         self.values[out.name] = value
         self._follow_on = value > 0.0
         self._queue_output(out, value, when_s)
 
-    def _level(self, out: Output, value: float) -> int:
-        """What the MCU is sent for ``value``: the PWM level, or on/off."""
+    def _level_top(self, out: Output) -> int:
+        """An output's full-on level (the dictionary's ``PWM_MAX``), 0 if it is on/off only:
+        what :func:`level` maps a value with."""
         if not out.config.pwm:
-            return int(value > 0.5)
+            return 0
         assert self.mcu is not None
-        top = self.mcu.dictionary.constant_int("PWM_MAX", 255)
-        return round(min(1.0, max(0.0, value)) * top)
+        return self.mcu.dictionary.pwm_max
 
     def _piece_steps(self, piece: Piece, rel_s: float, spans: list[Spans]) -> None:
         """Each axis' whole steps along ``piece`` up to ``rel_s`` into it join ``spans``."""
         v0, a = piece.start_mm_s, piece.accel_mm_s2
-        first = piece is not self._head
+        before = self._head
+        first = piece is not before
         if first:  # first look at this piece
             self._head = piece
             self._trail.add(piece)
-            if self._rebased(piece):
+            # the pieces of one block share its direction (the same tuple) and follow on from
+            # each other: only the first of a block may start elsewhere
+            if (before is None or piece.unit is not before.unit) and self._rebased(piece):
                 return
             if not self.motors_on and piece.duration_s > 0.0:  # enabled as it starts
                 self._switch_motors(True, int(self._motion_clock(piece.start_s + self.lead_s)))
@@ -596,12 +622,12 @@ class KlipperBackend:
                                                  strict=True):
             if unit == 0.0:
                 continue
-            x0, u = start * axis.steps_per_mm, unit * axis.steps_per_mm
-            target = step_target(x0 + u * distance)
-            if target == axis.position:
-                continue
-            axis_spans.add(x0, u, v0, a, rel_s, axis.position, target, base_s)
-            axis.position = target
+            per_mm = axis.steps_per_mm
+            x0, u = start * per_mm, unit * per_mm
+            target = floor(x0 + u * distance + 0.5)  # step_target, inline
+            if target != axis.position:
+                axis_spans.add(x0, u, v0, a, rel_s, axis.position, target, base_s)
+                axis.position = target
 
     def _rebased(self, piece: Piece) -> bool:
         """A piece that starts away from where the steps are (the position was redefined,
@@ -638,24 +664,24 @@ class KlipperBackend:
         assert self.mcu is not None
         d = self.mcu.dictionary
         compressor = axis.compressor
+        oid, add_message = axis.oid, self._queue.add
         if axis.needs_reset or points[0] - compressor.last_clock > 2**30:
             start = int(points[0] - compressor.max_error) - 1
             compressor.last_clock, compressor.last_exact = start, float(start)
-            self._queue.add(d.encode("reset_step_clock", oid=axis.oid,
-                                     clock=start & 0xFFFFFFFF), None, start)
+            add_message(d.encoder("reset_step_clock")(oid, start & 0xFFFFFFFF), None, start)
             axis.needs_reset = False
         if direction != axis.sent_dir:  # due with the first step it turns
-            self._queue.add(d.encode("set_next_step_dir", oid=axis.oid,
-                                     dir=int((direction > 0) != axis.invert_dir)), None,
-                            int(points[0]))
+            add_message(d.encoder("set_next_step_dir")(
+                oid, int((direction > 0) != axis.invert_dir)), None, int(points[0]))
             axis.sent_dir = direction
         last = compressor.last_clock
         runs, done = compressor.compress(points, final, self.errors)  # errors: how early, ticks
+        queue_step = d.encoder("queue_step")
         for run in runs:
-            first = last + run.interval
-            self._queue.add(d.encode("queue_step", oid=axis.oid, interval=run.interval,
-                                     count=run.count, add=run.add), first, first)
-            last += run.count * run.interval + run.add * (run.count * (run.count - 1) // 2)
+            interval, count, add = run.interval, run.count, run.add
+            first = last + interval
+            add_message(queue_step(oid, interval, count, add), first, first)
+            last += count * interval + add * (count * (count - 1) // 2)
         return done
 
     def _pump(self) -> None:

@@ -46,17 +46,17 @@ class Axis:
         self.pending_dir = direction
 
     def collect(self) -> None:
-        """The pieces' step clocks added since the last call join :attr:`segments` (one
-        concatenation per flush, not one per piece)."""
-        if not self.pending:
+        """The pieces' step clocks added since the last call join :attr:`segments` (at most
+        one concatenation per flush, not one per piece)."""
+        pending, segments, direction = self.pending, self.segments, self.pending_dir
+        if not pending:
             return
-        clocks = self.pending[0] if len(self.pending) == 1 else np.concatenate(self.pending)
         self.pending = []
-        if self.segments and self.segments[-1][0] == self.pending_dir:
-            clocks = np.concatenate((self.segments[-1][1], clocks))
-            self.segments[-1] = (self.pending_dir, clocks)
+        if segments and segments[-1][0] == direction:  # one copy: the held run and the new
+            segments[-1] = (direction, np.concatenate((segments[-1][1], *pending)))
         else:
-            self.segments.append((self.pending_dir, clocks))
+            segments.append((direction, pending[0] if len(pending) == 1
+                             else np.concatenate(pending)))
 
 
 @dataclass(slots=True)
