@@ -85,6 +85,7 @@ DONE_MARGIN_S = 0.005
 TRAIL_EXTRA_S = 1.0  # the pieces are kept this long beyond the lead (where the tool was)
 STOP_FLUSH_S = 0.1  # a fault's emergency stop gets this long to leave before the link closes
 STOP_READ_S = 0.5  # reading where a shut-down board stopped (a few round trips) takes at most
+SLICE_END_S = 1e-6  # a sample this little past the last piece's end is a late tick's slice
 
 
 def level(value: float, top: int) -> int:
@@ -112,6 +113,7 @@ class KlipperBackend:
         self.outputs = {name: Output(name, out) for name, out in cfg.outputs.items()}
         self.values: dict[str, float] = {}
         self.motors_on, self._enable_clock = True, 0
+        self._motors_off_s = 0.0  # the motion time the drivers were last turned off at
         self.pwm_log: list[tuple[float, str, float, int]] | None = [] if record else None
         self.errors: list[FloatArray] | None = [] if record else None
         self.mcu: Mcu | None = None
@@ -283,6 +285,8 @@ class KlipperBackend:
         if self._pieces:  # the motion it waited for has steps still to come: after them
             last = self._pieces[-1]
             when_s = max(when_s, last.start_s + last.duration_s)
+        if not enabled:  # those pieces do not turn them on again: the next move's do
+            self._motors_off_s = when_s
         self._switch_motors(enabled, self._scheduled_clock(when_s))
         self._pump()
         self._wake()  # ticks send it once due (it may wait to share a block)
@@ -539,7 +543,8 @@ class KlipperBackend:
                 axis.add(direction, clocks[first:first + count])
                 first += count
         out = self._follow
-        if self._follow_on and out is not None and not pieces and until_s > self._generated_s:
+        if (self._follow_on and out is not None and not pieces
+                and until_s > self._generated_s + SLICE_END_S):
             self._follow_on = False  # motion ended (not merely a slice of a late tick)
             self._set_followed(0.0, self._generated_s, self._level_top(out))
 
@@ -610,7 +615,8 @@ class KlipperBackend:
             # each other: only the first of a block may start elsewhere
             if (before is None or piece.unit is not before.unit) and self._rebased(piece):
                 return
-            if not self.motors_on and piece.duration_s > 0.0:  # enabled as it starts
+            if (not self.motors_on and piece.duration_s > 0.0
+                    and piece.start_s >= self._motors_off_s):  # enabled as it starts
                 self._switch_motors(True, int(self._motion_clock(piece.start_s + self.lead_s)))
         if self._follow is not None:
             self._follow_piece(piece, rel_s, first)
@@ -646,7 +652,7 @@ class KlipperBackend:
         may still join a longer run wait until their first is due within the lead less the
         hold-back (compressed once then, not at every flush). Motion has ended once the
         samples pass the last piece's end (a late tick's slice ends exactly on one)."""
-        idle = not self._pieces and now_s > self._generated_s
+        idle = not self._pieces and now_s > self._generated_s + SLICE_END_S
         force_clock = self._motion_clock(now_s + self.lead_s - self.hold_back_s)
         for axis in self.axes:
             axis.collect()
