@@ -27,6 +27,9 @@ BUILD = REPO / "build" / "grbl-sim"
 # An answer one character off is taken as the answer and counted in ``GrblClient.garbled``.
 _GARBLED_ANSWER = re.compile(r"^(?:.?k|o.?|.rror:\d+|e.ror:\d+|er.or:\d+|err.r:\d+|"
                              r"erro.:\d+|error.\d+|rror:\d+|eror:\d+|erro:\d+)$")
+# A parser state report is a list of words (G54, T0, F0, S0...): one a letter short or with a
+# letter for a digit (``FG``) is the same residue, and taken as garbled, not compared.
+_GC_REPORT = re.compile(r"\[GC:(?:[A-Z]-?\d+(?:\.\d+)?)(?: [A-Z]-?\d+(?:\.\d+)?)*\]")
 FAST_SETTINGS = ("$110=20000", "$111=20000", "$112=20000", "$120=2000", "$121=2000",
                  "$122=2000")
 
@@ -122,6 +125,9 @@ class GrblClient:
             line = await self.line(timeout_s)
             if line.startswith("<"):
                 continue
+            if line.startswith("[GC:") and not _GC_REPORT.fullmatch(line):
+                self.garbled += 1
+                line = "garbled:" + line
             out.append(line)
             if line == "ok" or re.fullmatch(r"error:\d+", line):
                 return out
