@@ -18,15 +18,12 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import os
 import statistics
-import sys
 import tempfile
 import time
 from collections.abc import AsyncIterator
 from pathlib import Path
 
-from benchmarks.bench_grbl_link import free_port
 from benchmarks.common import REPO, BenchResult
 from benchmarks.klipper_rig_hosts import (
     ACCEL_MM_S2,
@@ -37,11 +34,11 @@ from benchmarks.klipper_rig_hosts import (
     RUN_LIMIT_S,
     STEPS_PER_MM,
     TRAVEL_MM,
+    Motiond,
     cpu_ns,
     stop,
 )
 from benchmarks.klipper_rig_jobs import Job, raster
-from benchmarks.streaming_support import run_client
 
 
 def sim_toml(data_dir: Path) -> str:
@@ -52,65 +49,28 @@ def sim_toml(data_dir: Path) -> str:
             f"[http]\nenabled = false\n[laser]\nmaximum_s_value = {LASER_S_MAX}\n")
 
 
-class Server:
-    """motiond on the simulated machine, and one connection kept open for ``?``."""
-
-    def __init__(self, process: asyncio.subprocess.Process, port: int, workdir: Path) -> None:
-        self.process, self.port, self.workdir = process, port, workdir
-        self._poll: tuple[asyncio.StreamReader, asyncio.StreamWriter] | None = None
+class Server(Motiond):
+    """motiond on the simulated machine (the rig benchmark's host, without a rig)."""
 
     @classmethod
     @contextlib.asynccontextmanager
-    async def start(cls, workdir: Path, tree: Path) -> AsyncIterator[Server]:
+    async def start_sim(cls, workdir: Path, tree: Path) -> AsyncIterator[Server]:
         (workdir / "data").mkdir(exist_ok=True)
-        config = workdir / "motiond.toml"
-        config.write_text(sim_toml(workdir / "data"))
-        port = free_port()
-        with (workdir / "motiond.err").open("wb") as err:
-            process = await asyncio.create_subprocess_exec(
-                sys.executable, "-m", "server.cli", "--config", str(config), "--host",
-                "127.0.0.1", "--tcp-port", str(port), "--log-level", "warning", cwd=tree,
-                env={**os.environ, "PYTHONPATH": str(tree)},
-                stdout=asyncio.subprocess.DEVNULL, stderr=err)
-        server = cls(process, port, workdir)
+        server = await cls.spawn(sim_toml(workdir / "data"), workdir, tree)
         try:
-            await server.wait_idle(None)
+            deadline = time.monotonic() + RUN_LIMIT_S
+            while True:
+                with contextlib.suppress(OSError, TimeoutError):
+                    if (await server.status()).startswith("<Idle"):
+                        break
+                if time.monotonic() > deadline or server.process.returncode is not None:
+                    raise RuntimeError("motiond never became idle (motiond.err)")
+                await asyncio.sleep(POLL_S)
             yield server
         finally:
             if server._poll is not None:
                 server._poll[1].close()
-            await stop(process)
-
-    async def status(self) -> str:
-        if self._poll is None:
-            self._poll = await asyncio.open_connection("127.0.0.1", self.port)
-        reader, writer = self._poll
-        writer.write(b"?")
-        while not (line := await asyncio.wait_for(reader.readline(), 5.0)).startswith(b"<"):
-            pass
-        return line.decode().strip()
-
-    async def wait_idle(self, end_mm: tuple[float, float] | None) -> None:
-        want = "" if end_mm is None else f"MPos:{end_mm[0]:.3f},{end_mm[1]:.3f}|"
-        deadline = time.monotonic() + RUN_LIMIT_S
-        while True:
-            with contextlib.suppress(OSError, TimeoutError):
-                report = await self.status()
-                if report.startswith("<Idle") and want in report:
-                    return
-                if report.startswith("<Alarm"):
-                    raise RuntimeError(report)
-            if time.monotonic() > deadline or self.process.returncode is not None:
-                raise RuntimeError(f"motiond not idle at {want or 'start'} (motiond.err)")
-            await asyncio.sleep(POLL_S)
-
-    async def run(self, lines: list[str], end_mm: tuple[float, float]) -> None:
-        path = self.workdir / "job.nc"
-        path.write_text("\n".join(["G21 G90 G94", *lines]) + "\n")
-        result = await run_client(self.port, path, banner=True)
-        if result["errors"]:
-            raise RuntimeError(f"motiond refused {result['errors']} lines")
-        await self.wait_idle(end_mm)
+            await stop(server.process)
 
 
 def one_move(job: Job) -> Job:
@@ -128,7 +88,7 @@ async def measure(jobs: list[Job], runs: int, tree: Path) -> list[list[tuple[flo
     jobs run in turn, run after run."""
     figures: list[list[tuple[float, float]]] = [[] for _ in jobs]
     with tempfile.TemporaryDirectory(prefix="motiond-bench-lines-") as name:
-        async with Server.start(Path(name), tree) as server:
+        async with Server.start_sim(Path(name), tree) as server:
             for _ in range(runs):
                 for job, out in zip(jobs, figures, strict=True):
                     await server.run([f"G0 X{job.start[0]} Y{job.start[1]}"], job.start)

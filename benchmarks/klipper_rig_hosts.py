@@ -29,6 +29,7 @@ import time
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Self
 
 from benchmarks.common import REPO
 from benchmarks.streaming_support import run_client
@@ -176,26 +177,31 @@ class Motiond:
     async def start(cls, rig: Rig, workdir: Path, source: Path = REPO,
                     lead_time_s: float | None = None) -> AsyncIterator[Motiond]:
         (workdir / "data").mkdir(exist_ok=True)
-        config = workdir / "motiond.toml"
-        config.write_text(motiond_toml(rig.path, workdir / "data", lead_time_s))
-        from benchmarks.bench_grbl_link import free_port  # noqa: PLC0415
-
-        port = free_port()
-        err = (workdir / "motiond.err").open("wb")
-        process = await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "server.cli", "--config", str(config), "--host", "127.0.0.1",
-            "--tcp-port", str(port), "--log-level", "warning", cwd=source,
-            env={**os.environ, "PYTHONPATH": str(source)},
-            stdout=asyncio.subprocess.DEVNULL, stderr=err)
-        err.close()
-        host = cls(process, port, workdir, source)
+        host = await cls.spawn(motiond_toml(rig.path, workdir / "data", lead_time_s), workdir,
+                               source)
         try:
             await host.wait_ready(rig)
             yield host
         finally:
             if host._poll is not None:
                 host._poll[1].close()
-            await stop(process)
+            await stop(host.process)
+
+    @classmethod
+    async def spawn(cls, config_text: str, workdir: Path, source: Path) -> Self:
+        """``python -m server.cli`` of ``source`` on ``config_text``, on a free TCP port."""
+        from benchmarks.bench_grbl_link import free_port  # noqa: PLC0415
+
+        config = workdir / "motiond.toml"
+        config.write_text(config_text)
+        port = free_port()
+        with (workdir / "motiond.err").open("wb") as err:
+            process = await asyncio.create_subprocess_exec(
+                sys.executable, "-m", "server.cli", "--config", str(config), "--host",
+                "127.0.0.1", "--tcp-port", str(port), "--log-level", "warning", cwd=source,
+                env={**os.environ, "PYTHONPATH": str(source)},
+                stdout=asyncio.subprocess.DEVNULL, stderr=err)
+        return cls(process, port, workdir, source)
 
     @property
     def pid(self) -> int:
