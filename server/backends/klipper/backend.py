@@ -650,17 +650,23 @@ class KlipperBackend:
     def _flush(self, now_s: float) -> None:
         """Compress what is due soon (all of it when motion has no more pieces): steps that
         may still join a longer run wait until their first is due within the lead less the
-        hold-back (compressed once then, not at every flush). Motion has ended once the
-        samples pass the last piece's end (a late tick's slice ends exactly on one)."""
+        hold-back (compressed once then, not at every flush). Of those, the runs complete
+        before the last step known go; the last run waits on while its own first step is not
+        yet due, so that it grows (a cruise is not cut where an acceleration's steps were
+        sent). Motion has ended once the samples pass the last piece's end (a late tick's
+        slice ends exactly on one)."""
         idle = not self._pieces and now_s > self._generated_s + SLICE_END_S
         force_clock = self._motion_clock(now_s + self.lead_s - self.hold_back_s)
         for axis in self.axes:
             axis.collect()
             while axis.segments:
                 direction, points = axis.segments[0]
-                if not (idle or len(axis.segments) > 1 or points[0] < force_clock):
+                final = idle or len(axis.segments) > 1  # a direction change ends the run
+                if not (final or points[0] < force_clock):
                     break
-                done = self._emit(axis, direction, points, True)
+                done = self._emit(axis, direction, points, final)
+                if done < len(points) and points[done] < force_clock:  # the last run is due
+                    done += self._emit(axis, direction, points[done:], True)
                 if done < len(points):
                     axis.segments[0] = (direction, points[done:])
                     break

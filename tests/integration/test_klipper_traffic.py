@@ -1,0 +1,65 @@
+"""What a long move costs on the wire to a virtual Klipper MCU (its bytes decoded with Klipper's
+own msgproto): cruise runs as long as the hold-back allows, never cut where an acceleration's
+steps were sent, each still leaving the stall ride-through ahead of its first step."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from collections.abc import Iterator
+
+import pytest
+
+from server.backends.klipper.backend import KlipperBackend
+from tests.integration.test_klipper_backend import check_steps, run_job
+from tests.support.klipper_machine import klipper_machine
+from tests.support.virtual_mcu import VirtualMcu
+
+SPEED_MM_S = 100.0
+STEPS_PER_MM = 80.0  # tests/conftest.py's X
+ACCEL_MM_S2 = 3000.0
+
+
+@pytest.fixture
+def mcu() -> Iterator[VirtualMcu]:
+    virtual = VirtualMcu(id_offset=11, drift_ppm=40.0).start()
+    yield virtual
+    virtual.stop()
+
+
+async def test_a_100_mm_cruise_sends_runs_as_long_as_the_hold_back_and_each_in_time(
+    mcu: VirtualMcu
+) -> None:
+    async with klipper_machine(mcu) as app:
+        backend = app.kernel.machine.backend
+        assert isinstance(backend, KlipperBackend) and backend.mcu is not None
+        await asyncio.sleep(0.2)
+        oid = backend.axes[0].oid
+        first_command, first_block = len(mcu.commands), mcu.blocks_received
+        await run_job(app, [f"G1 X100 F{SPEED_MM_S * 60:g}"])
+        check_steps(app, mcu)
+        runs = [p for _, name, p in mcu.commands[first_command:]
+                if name == "queue_step" and p["oid"] == oid]
+        blocks = mcu.blocks_received - first_block
+        cruise_ticks = mcu.clock_hz / (SPEED_MM_S * STEPS_PER_MM)  # 9,000 at 72 MHz
+        cruise = [p["count"] for p in runs
+                  if p["add"] == 0 and abs(p["interval"] - cruise_ticks) < 0.01 * cruise_ticks]
+        # every run of the cruise spans the hold-back at least (but the last: the deceleration
+        # ends it), the first too (the acceleration's steps going out does not cut it)
+        hold_back_steps = backend.hold_back_s * SPEED_MM_S * STEPS_PER_MM  # 400
+        assert cruise and min(cruise[:-1]) >= 0.95 * hold_back_steps, cruise
+        cruise_s = (100.0 - SPEED_MM_S ** 2 / ACCEL_MM_S2) / SPEED_MM_S  # 0.967 s
+        most_cruise = math.ceil(cruise_s / backend.hold_back_s)  # 20 (~16 at 20 ms flushes)
+        assert len(cruise) <= most_cruise + 1, cruise
+        # the ramps: about eight runs each (as Klipper's stepcompress finds for them)
+        assert len(runs) <= len(cruise) + 2 * 10, [(p["interval"], p["count"], p["add"])
+                                                   for p in runs]
+        # a block for each cruise run, one or two for each ramp, and a poll every 0.4 s
+        assert blocks <= len(cruise) + 2 * 2 + 4, (blocks, len(cruise))
+        # each run left at least the stall ride-through (lead - hold-back - flush, 130 ms)
+        # ahead of its first step, half of it on a loaded machine
+        ride_through_s = backend.lead_s - backend.hold_back_s - backend.flush_s
+        stepper = mcu.steppers[oid]
+        ahead_s = min((int(r.clocks[0]) - r.received_clock) / mcu.clock_hz
+                      for r in stepper.runs if len(r.clocks))
+        assert ahead_s >= 0.5 * ride_through_s, ahead_s
