@@ -17,7 +17,8 @@ the rig's serial log and its GPIO log (cycles at 20 MHz: the MCU's own time), pe
 * LAG records (the simulation fell behind wall-clock time: a loaded machine) in the window.
 
 Run: ``python -m benchmarks klipper [--quick] [--json] [--runs N] [--motiond-tree DIR]
-[--hosts klippy motiond] [--logs DIR] [--lead-time-s S] [--rig-pause-ms MS]``
+[--hosts klippy motiond] [--jobs raster circles long idle] [--logs DIR] [--lead-time-s S]
+[--rig-pause-ms MS]``
 (``--motiond-tree``: measure motiond from another checkout, e.g. a branch's worktree;
 ``--logs``: keep the logs there; ``--lead-time-s``: motiond's ``[backend] lead_time_s``,
 default its own 0.2 s; ``--rig-pause-ms``: stop the simulator that long every 1.5 s, the lag
@@ -39,7 +40,7 @@ import numpy as np
 
 from benchmarks import klipper_rig_analysis as analysis
 from benchmarks.common import REPO, BenchResult, add_run_options, execute
-from benchmarks.klipper_options import HOSTS, add_options, options_of
+from benchmarks.klipper_options import HOSTS, JOBS, add_options, options_of
 from benchmarks.klipper_rig_hosts import (
     KLIPPER_AVR,
     PAUSE_EVERY_S,
@@ -84,6 +85,8 @@ class Figures:
     lag_max_ms: float = 0.0
     by_message: dict[str, float] = field(default_factory=dict)  # messages/s by name
     bytes_per_block: float = float("nan")
+    lone_blocks_per_s: float = float("nan")  # blocks of a single message
+    steps_per_run: float = float("nan")  # the median queue_step's step count
     slips: int = 0
     slips_in_moves: int = 0
     failure: str = ""
@@ -180,6 +183,7 @@ def analyse(rig: Rig, windows: list[Window]) -> list[Figures]:
         fig.retransmits_per_s = wire.retransmitted / seconds
         fig.by_message = {n: c / seconds for n, c in wire.by_name.items()}
         fig.bytes_per_block = wire.bytes / wire.blocks if wire.blocks else float("nan")
+        fig.lone_blocks_per_s, fig.steps_per_run = wire.lone / seconds, wire.steps_per_run
         errors: list[np.ndarray] = []
         timeline: list[tuple[np.ndarray, np.ndarray]] = []  # (edges, ideal s) on the job's
         starts = window.job.move_starts_s()
@@ -229,12 +233,15 @@ def span(values: Sequence[float], fmt: str) -> str:
 
 
 def message_mix(runs: list[Figures]) -> str:
-    """Where the bytes go: bytes a block, and messages per second by name (median of runs)."""
+    """Where the bytes go: bytes a block, blocks of one message per second, the median
+    queue_step's steps, and messages per second by name (medians of the runs)."""
     names = sorted({n for f in runs for n in f.by_message},
                    key=lambda n: -median_of([f.by_message.get(n, 0.0) for f in runs]))
     mix = ", ".join(f"{n} {median_of([f.by_message.get(n, 0.0) for f in runs]):.1f}"
                     for n in names)
-    return f"{median(runs, 'bytes_per_block'):.1f} bytes/block; messages/s: {mix or '-'}"
+    return (f"{median(runs, 'bytes_per_block'):.1f} bytes/block, "
+            f"{median(runs, 'lone_blocks_per_s'):.1f} blocks/s of one message, "
+            f"{median(runs, 'steps_per_run'):.0f} steps/queue_step; messages/s: {mix or '-'}")
 
 
 def median_of(values: list[float]) -> float:
@@ -292,8 +299,9 @@ def report(result: BenchResult, figures: dict[str, dict[str, list[Figures]]]) ->
 
 async def measure(quick: bool, runs: int, tree: Path, hosts: Sequence[str],
                   logs: Path | None = None, lead_time_s: float | None = None,
-                  rig_pause_ms: float = 0.0) -> dict[str, dict[str, list[Figures]]]:
-    job_list = jobs(quick)
+                  rig_pause_ms: float = 0.0, job_names: Sequence[str] = JOBS
+                  ) -> dict[str, dict[str, list[Figures]]]:
+    job_list = [job for job in jobs(quick) if job.name.split()[0] in job_names]
     figures: dict[str, dict[str, list[Figures]]] = {}
     with tempfile.TemporaryDirectory(prefix="motiond-bench-klipper-") as name:
         for host in hosts:
@@ -310,7 +318,8 @@ async def measure(quick: bool, runs: int, tree: Path, hosts: Sequence[str],
 
 def run(quick: bool, runs: int | None = None, motiond_tree: Path | None = None,
         hosts: Sequence[str] = HOSTS, logs: Path | None = None,
-        lead_time_s: float | None = None, rig_pause_ms: float = 0.0) -> BenchResult:
+        lead_time_s: float | None = None, rig_pause_ms: float = 0.0,
+        job_names: Sequence[str] = JOBS) -> BenchResult:
     result = BenchResult("klipper", quick)
     runs = runs or (1 if quick else 3)
     tree = (motiond_tree or REPO).resolve()
@@ -320,7 +329,7 @@ def run(quick: bool, runs: int | None = None, motiond_tree: Path | None = None,
           + (f"; the rig paused {rig_pause_ms:g} ms every {PAUSE_EVERY_S:g} s"
              if rig_pause_ms else ""))
     report(result, asyncio.run(measure(quick, runs, tree, hosts, logs, lead_time_s,
-                                       rig_pause_ms)))
+                                       rig_pause_ms, job_names)))
     return result
 
 

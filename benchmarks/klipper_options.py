@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 HOSTS = ("klippy", "motiond")
+JOBS = ("raster", "circles", "long", "idle")  # each job's name's first word
 
 
 def add_options(parser: argparse.ArgumentParser) -> None:
@@ -21,6 +22,8 @@ def add_options(parser: argparse.ArgumentParser) -> None:
                         "logs and the hosts' logs in this folder (default: a temporary one)")
     parser.add_argument("--lead-time-s", type=float, help="klipper: motiond's [backend] "
                         "lead_time_s (default: motiond's own, 0.2 s)")
+    parser.add_argument("--jobs", nargs="+", choices=JOBS, default=list(JOBS),
+                        help="klipper: which jobs to run (long: the long moves)")
     parser.add_argument("--rig-pause-ms", type=float, default=0.0, help="klipper: stop the "
                         "rig's simulator this long every 1.5 s (a loaded host's lag)")
 
@@ -28,4 +31,4 @@ def add_options(parser: argparse.ArgumentParser) -> None:
 def options_of(options: Any) -> dict[str, Any]:
     return {"runs": options.runs, "motiond_tree": options.motiond_tree, "hosts": options.hosts,
             "logs": options.logs, "lead_time_s": options.lead_time_s,
-            "rig_pause_ms": options.rig_pause_ms}
+            "rig_pause_ms": options.rig_pause_ms, "job_names": options.jobs}

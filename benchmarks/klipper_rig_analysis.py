@@ -36,12 +36,14 @@ CLOCK_RESPONSES = ("clock", "uptime", "stats")
 @dataclass(slots=True)
 class Block:
     """One block on the wire: the cycle its last byte passed, its bytes, sequence number and
-    the names of its messages (an empty block is an ack or nak)."""
+    the names of its messages (an empty block is an ack or nak), and the step count of each
+    ``queue_step`` in it."""
 
     cycle: int
     size: int
     seq: int
     messages: list[str]
+    runs: list[int] = field(default_factory=list)
 
 
 @dataclass(slots=True)
@@ -66,9 +68,12 @@ class SerialLog:
         for block in blocks:
             for name in block.messages or ["(ack)"]:
                 by_name[name] = by_name.get(name, 0) + 1
+        runs = [count for block in blocks for count in block.runs]
         return SerialFigures(bytes=sum(b.size for b in blocks), blocks=len(blocks),
                              messages=sum(len(b.messages) for b in blocks),
-                             retransmitted=retransmitted, by_name=by_name)
+                             retransmitted=retransmitted, by_name=by_name,
+                             lone=sum(len(b.messages) == 1 for b in blocks),
+                             steps_per_run=float(np.median(runs)) if runs else math.nan)
 
 
 @dataclass(frozen=True, slots=True)
@@ -78,6 +83,8 @@ class SerialFigures:
     messages: int
     retransmitted: int
     by_name: dict[str, int] = field(default_factory=dict)  # messages by name ("(ack)": empty)
+    lone: int = 0  # blocks carrying a single message (5 bytes of framing for it alone)
+    steps_per_run: float = math.nan  # the median queue_step's count
 
 
 def crc16(data: bytes) -> bytes:
@@ -146,7 +153,9 @@ def read_serial_log(path: Path, msgproto: ModuleType, dictionary: bytes) -> Seri
             except Exception:  # noqa: BLE001 - damaged on the wire: counted, not decoded
                 decoded = [("?", {})]
             cycle = cycles[end - 1]
-            target.append(Block(cycle, len(block), block[1] & 0x0F, [n for n, _ in decoded]))
+            target.append(Block(cycle, len(block), block[1] & 0x0F, [n for n, _ in decoded],
+                                [int(p["count"]) for n, p in decoded  # type: ignore
+                                 if n == "queue_step"]))
             if direction == "W":
                 log.clocks += [(cycle, int(p["clock"])) for n, p in decoded  # type: ignore
                                if n in CLOCK_RESPONSES and "clock" in p]

@@ -82,11 +82,13 @@ def test_blocks_are_split_on_the_wire_and_a_resent_sequence_is_a_retransmission(
     assert first == bytes([6, 0x11, 0x05]) + first[3:5] + b"\x7e"
     log = SerialLog(sent=[Block(100, 20, 1, ["a"]), Block(200, 20, 2, ["b"]),
                           Block(300, 20, 1, ["a"]), Block(310, 20, 2, ["b"]),
-                          Block(400, 20, 3, ["c", "d"]), Block(500, 5, 3, [])])
+                          Block(400, 20, 3, ["queue_step"] * 3, [10, 400, 500]),
+                          Block(500, 5, 3, [])])
     figures = log.window(150, 450)
-    assert (figures.bytes, figures.blocks, figures.messages) == (80, 4, 5)
+    assert (figures.bytes, figures.blocks, figures.messages) == (80, 4, 6)
+    assert figures.lone == 3 and figures.steps_per_run == 400
     assert figures.retransmitted == 2
-    assert figures.by_name == {"a": 1, "b": 2, "c": 1, "d": 1}
+    assert figures.by_name == {"a": 1, "b": 2, "queue_step": 3}
     assert log.window(450, 550).by_name == {"(ack)": 1}
 
 
