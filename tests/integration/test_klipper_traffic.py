@@ -1,6 +1,7 @@
 """What a long move costs on the wire to a virtual Klipper MCU (its bytes decoded with Klipper's
 own msgproto): cruise runs as long as the hold-back allows, never cut where an acceleration's
-steps were sent, each still leaving the stall ride-through ahead of its first step."""
+steps were sent, each still leaving the stall ride-through ahead of its first step, and the
+clock polls riding in the steps' blocks."""
 
 from __future__ import annotations
 
@@ -35,12 +36,13 @@ async def test_a_100_mm_cruise_sends_runs_as_long_as_the_hold_back_and_each_in_t
         assert isinstance(backend, KlipperBackend) and backend.mcu is not None
         await asyncio.sleep(0.2)
         oid = backend.axes[0].oid
-        first_command, first_block = len(mcu.commands), mcu.blocks_received
+        first_command, first_block = len(mcu.commands), len(mcu.block_messages)
         await run_job(app, [f"G1 X100 F{SPEED_MM_S * 60:g}"])
         check_steps(app, mcu)
         runs = [p for _, name, p in mcu.commands[first_command:]
                 if name == "queue_step" and p["oid"] == oid]
-        blocks = mcu.blocks_received - first_block
+        move_blocks = mcu.block_messages[first_block:]
+        blocks = len(move_blocks)
         cruise_ticks = mcu.clock_hz / (SPEED_MM_S * STEPS_PER_MM)  # 9,000 at 72 MHz
         cruise = [p["count"] for p in runs
                   if p["add"] == 0 and abs(p["interval"] - cruise_ticks) < 0.01 * cruise_ticks]
@@ -54,8 +56,14 @@ async def test_a_100_mm_cruise_sends_runs_as_long_as_the_hold_back_and_each_in_t
         # the ramps: about eight runs each (as Klipper's stepcompress finds for them)
         assert len(runs) <= len(cruise) + 2 * 10, [(p["interval"], p["count"], p["add"])
                                                    for p in runs]
-        # a block for each cruise run, one or two for each ramp, and a poll every 0.4 s
-        assert blocks <= len(cruise) + 2 * 2 + 4, (blocks, len(cruise))
+        # a block for each cruise run, one or two for each ramp (and for the polls before and
+        # after the move, alone)
+        assert blocks <= len(cruise) + 2 * 2 + 3, (blocks, len(cruise))
+        # the clock is polled every 0.4 s in motion, and the polls ride in the steps' blocks
+        polls = [names for names in move_blocks if "get_clock" in names]
+        assert len(polls) >= 2, move_blocks
+        alone = [names for names in polls if names == ["get_clock"]]
+        assert len(alone) <= 2, polls  # the first and last may come while nothing moves
         # each run left at least the stall ride-through (lead - hold-back - flush, 130 ms)
         # ahead of its first step, half of it on a loaded machine
         ride_through_s = backend.lead_s - backend.hold_back_s - backend.flush_s

@@ -99,6 +99,7 @@ class VirtualMcu:
         self.resets = 0  # ``reset`` commands obeyed
         self.naks_sent = 0
         self.blocks_received = 0
+        self.block_messages: list[list[str]] = []  # each block's message names, in order
         self.commands: list[tuple[int, str, dict[str, Any]]] = []  # (clock, name, params)
         self.shutdowns: list[str] = []
         self.refused: list[str] = []  # commands the MCU could not carry out
@@ -234,9 +235,12 @@ class VirtualMcu:
         self.expected_seq += 1
         self.blocks_received += 1
         pos, resets = msgproto.MESSAGE_HEADER_SIZE, self.resets
+        names: list[str] = []
+        self.block_messages.append(names)
         while pos < len(block) - msgproto.MESSAGE_TRAILER_SIZE:
             fmt = self.parser.messages_by_id[block[pos]]
             params, pos = fmt.parse(block, pos)
+            names.append(fmt.name)
             self._command(fmt.name, params)
         if self.resets == resets:  # acked after its responses, as src/command.c does (a
             self._send_block(b"")  # reset reboots first)

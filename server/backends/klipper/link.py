@@ -4,7 +4,10 @@ Outgoing messages are packed in order into message blocks (as many as fit in 59 
 the :class:`~.window.SendWindow` has room; incoming blocks acknowledge them and carry the MCU's
 responses, which are decoded with the current :class:`~.dictionary.Dictionary` and handed to
 ``on_message`` with their arrival time (``time.monotonic``, the clock the event loop and the
-kernel use). :meth:`Link.request` sends one command and waits for a matching response.
+kernel use). :meth:`Link.request` sends one command and waits for a matching response; a
+request that may ride (``ride_s``: a poll while steps flow) waits that long at most for other
+messages to share their block instead of taking one of its own (5 bytes of framing for 1 or 2),
+and its response says when it left (``#sent_s``), as every request's does.
 A closed device is reported once to ``on_error`` and the link closed; an unreadable block
 stream, a restarted MCU (a sequence number never sent) or, once ``ack_timeout_s`` is set, a
 block left unacknowledged that long (a board that is silent, sends garbage, or floods messages
@@ -31,6 +34,16 @@ MessageHandler = Callable[[str, Params, float], None]
 READ_BYTES = 1024  # per turn of the event loop: a board that floods delays a status report
 # by one such turn (~2 ms of decoding), never more
 Match = Callable[[Params], bool]
+
+
+class _Rider:
+    """A request waiting to share a block with other messages: when it left, once it has."""
+
+    def __init__(self, message: bytes) -> None:
+        self.message = message
+        self.sent_s: float | None = None
+        self.timer: asyncio.TimerHandle | None = None
+
 
 def open_serial(path: str, baud: int) -> int:
     """Open a device or pty raw and non-blocking at ``baud`` (any rate, 250000 included:
@@ -63,6 +76,7 @@ class Link:
         self._keep: deque[bool] = deque()  # per queued message: a request's (never dropped)
         self._out = bytearray()
         self._waiters: list[tuple[str, Match, asyncio.Future[Params]]] = []
+        self._rider: _Rider | None = None  # a request waiting for company (one at a time)
         self._timer: asyncio.TimerHandle | None = None
         self._fd: int | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -107,21 +121,52 @@ class Link:
         return dropped
 
     async def request(self, message: bytes, response: str, timeout_s: float,
-                      match: Match = lambda _: True) -> Params:
-        """Send ``message`` and wait for the first ``response`` that ``match``es."""
+                      match: Match = lambda _: True, ride_s: float = 0.0) -> Params:
+        """Send ``message`` and wait for the first ``response`` that ``match``es; its
+        ``#sent_s`` is when ``message`` left. With ``ride_s``, ``message`` waits that long at
+        most for other messages to leave and joins their first block."""
         assert self._loop is not None
         future: asyncio.Future[Params] = self._loop.create_future()
         waiter = (response, match, future)
         self._waiters.append(waiter)
-        self.send(message, keep=True)
+        rider = None
+        sent_s = time.monotonic()
+        if ride_s > 0.0 and self._rider is None and not self.closed:
+            rider = self._rider = _Rider(message)
+            rider.timer = self._loop.call_later(ride_s, self._release_rider)
+        else:
+            self.send(message, keep=True)
         try:
-            return await asyncio.wait_for(future, timeout_s)
+            params = await asyncio.wait_for(future, timeout_s)
         finally:
             if waiter in self._waiters:
                 self._waiters.remove(waiter)
+            if rider is not None and rider is self._rider:  # never left (a timeout, a close)
+                self._drop_rider()
+        params["#sent_s"] = sent_s if rider is None or rider.sent_s is None else rider.sent_s
+        return params
+
+    def _release_rider(self) -> None:
+        """No company came in time: the rider leaves on its own."""
+        rider = self._rider
+        if rider is not None:
+            self._rider, rider.timer, rider.sent_s = None, None, time.monotonic()
+            self.send(rider.message, keep=True)
+
+    def _drop_rider(self) -> None:
+        if self._rider is not None and self._rider.timer is not None:
+            self._rider.timer.cancel()
+        self._rider = None
 
     def _pump(self) -> None:
         now_s = time.monotonic()
+        rider = self._rider
+        if (rider is not None and self._queue and not self.closed
+                and self.window.can_send(len(rider.message) + len(self._queue[0]) + 5)):
+            self._drop_rider()  # it leaves now, in the first block
+            rider.sent_s = now_s
+            self._queue.appendleft(rider.message)
+            self._keep.appendleft(True)
         while self._queue and not self.closed:
             payload = bytearray()
             while self._queue and len(payload) + len(self._queue[0]) <= PAYLOAD_MAX:
@@ -269,6 +314,7 @@ class Link:
         self.closed = True
         if self._timer is not None:
             self._timer.cancel()
+        self._drop_rider()
         self._fail_waiters(f"link to {self.path} closed")
         if self._fd is not None and self._loop is not None:
             self._loop.remove_reader(self._fd)

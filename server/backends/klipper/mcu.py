@@ -11,7 +11,8 @@ configured by someone else is refused (:class:`KlipperFault`); one still configu
 :meth:`Mcu.watch` samples the clock every ``poll_s`` (``BUSY_POLL_S`` while :attr:`Mcu.busy`:
 steps queued or an output on) and, one request at a time (never back to back), checks
 ``get_config`` every ``CONFIG_EVERY`` polls: about 14 bytes a second to an idle MCU (klippy
-sends 6), 17 to a busy one; silence for ``timeout_s`` (no block acknowledged), a restart, a
+sends 6); to a busy one each poll waits up to ``RIDE_S`` to join a block of steps (as klippy's
+do), about 3 bytes a second then; silence for ``timeout_s`` (no block acknowledged), a restart, a
 clock that jumps ahead, a foreign configuration or a link fault raise :class:`KlipperFault`, a
 shutdown (ours from :meth:`emergency_stop`, or the firmware's own) :class:`McuShutdown`. A
 restart is told from the firmware's evidence, never from the host's timing: ``starting`` (sent
@@ -55,6 +56,7 @@ POLL_S = 0.5  # a 6-byte get_clock block: 12 bytes/s; a clock set back by more t
 # caught at the next reading (behind the last one)
 BUSY_POLL_S = 0.4  # while steps are queued or an output is on (15 bytes/s)
 CONFIG_EVERY = 8  # get_config once every 8 polls (4 s idle, 3.2 s busy)
+RIDE_S = 0.15  # while busy, a poll waits this long at most to join a block of steps (5 bytes)
 JUMP_S = 0.05  # a clock reading this far outside its round trip's window is looked into
 BEHIND_LIMIT_S = 1.0  # a clock that stays behind the fit this long: the fit starts over
 
@@ -166,10 +168,10 @@ class Mcu:
         await self._configure()
 
     async def _ask(self, name: str, response: str, match: Callable[[Params], bool] = lambda _: True,
-                   timeout_s: float | None = None, **params: Any) -> Params:
+                   timeout_s: float | None = None, ride_s: float = 0.0, **params: Any) -> Params:
         try:
             return await self.link.request(self.dictionary.encode(name, **params), response,
-                                           timeout_s or self.timeout_s, match)
+                                           timeout_s or self.timeout_s, match, ride_s)
         except TimeoutError as exc:
             raise KlipperFault(f"the MCU on {self.path} does not answer {name}") from exc
 
@@ -217,9 +219,8 @@ class Mcu:
 
     async def sample_clock(self) -> None:
         assert self.clock is not None
-        sent = time.monotonic()
-        reply = await self._ask("get_clock", "clock")
-        received = reply["#received_s"]
+        reply = await self._ask("get_clock", "clock", ride_s=self._ride_s())
+        sent, received = reply["#sent_s"], reply["#received_s"]
         clock = self.clock.extend(reply["clock"])
         if self.clock.synced:
             off_s = self.clock.predict_error_s(sent, received, reply["clock"])
@@ -305,12 +306,16 @@ class Mcu:
                     raise self._fault.result() from None
                 raise
 
+    def _ride_s(self) -> float:
+        """How long a poll waits to share a block: ``RIDE_S`` while steps flow, else 0."""
+        return RIDE_S if self.busy else 0.0
+
     async def _poll(self) -> None:
         await self.sample_clock()
         self._polls += 1
         if self._polls % CONFIG_EVERY:
             return
-        config = await self._ask("get_config", "config")
+        config = await self._ask("get_config", "config", ride_s=self._ride_s())
         if config["is_shutdown"]:
             raise self.shutdown or McuShutdown("the MCU shut down: reason unknown", None,
                                                self.stopping)
