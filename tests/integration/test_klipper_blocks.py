@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import asyncio
 import math
+import time
 from collections.abc import Iterator
+from typing import Any
 
 import pytest
 
@@ -77,3 +79,32 @@ async def test_a_laser_job_sends_several_messages_a_block_and_every_step_lands(
         # one message a block before (each sent as it was made); the polls' get_clock and
         # get_config stay one a block, as the firmware wants them (never back to back)
         assert messages >= 2.0 * blocks, (messages, blocks)
+
+
+async def test_a_riding_request_joins_the_next_block_or_leaves_alone_when_none_comes(
+    mcu: VirtualMcu
+) -> None:
+    link = Link(mcu.path, 250000, lambda name, params, _: None, lambda reason: None)
+    link.open()
+    try:
+        def ask(offset: int, ride_s: float) -> Any:
+            return link.request(link.dictionary.encode("identify", offset=offset, count=1),
+                                "identify_response", 2.0, lambda p: p["offset"] == offset,
+                                ride_s=ride_s)
+
+        started = time.monotonic()
+        reply = await ask(0, 0.1)
+        assert reply["#sent_s"] >= started + 0.1, "it waited for company, then left alone"
+        assert mcu.block_messages == [["identify"]]
+        riding = asyncio.ensure_future(ask(1, 1.0))
+        await asyncio.sleep(0.05)
+        assert len(mcu.block_messages) == 1, "not sent before company came"
+        company = time.monotonic()
+        link.send(link.dictionary.encode("identify", offset=2, count=1))
+        reply = await riding
+        assert company <= reply["#sent_s"] < company + 0.05  # when its block left
+        assert mcu.block_messages[-1] == ["identify", "identify"]
+        assert [p["offset"] for _, name, p in mcu.commands if name == "identify"] == [0, 1, 2]
+        assert link.window.retransmits == 0
+    finally:
+        link.close()
