@@ -21,7 +21,7 @@ def add_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--logs", type=Path, help="klipper: keep the rigs' serial and GPIO "
                         "logs and the hosts' logs in this folder (default: a temporary one)")
     parser.add_argument("--lead-time-s", type=float, help="klipper: motiond's [backend] "
-                        "lead_time_s (default: motiond's own, 0.2 s)")
+                        "lead_time_s (default: motiond's own, 0.3 s)")
     parser.add_argument("--jobs", nargs="+", choices=JOBS, default=list(JOBS),
                         help="klipper: which jobs to run (long: the long moves)")
     parser.add_argument("--rig-pause-ms", type=float, default=0.0, help="klipper: stop the "

@@ -130,7 +130,7 @@ class BackendConfig(Strict):
         "'?' nor a line this long is not answering: ALARM:42, Ctrl-X (tools off), reconnect")
     # -- klipper
     lead_time_s: float = Field(
-        0.2, ge=0.02, le=2.0,
+        0.3, ge=0.02, le=2.0,
         description="klipper: trajectory time t executes at MCU time t + lead (also the most "
         "a feed hold takes to start decelerating, and the host stall it survives)")
     max_error_s: float = Field(

@@ -13,7 +13,7 @@ import pytest
 
 from server.backends.klipper.backend import KlipperBackend
 from tests.integration.test_klipper_backend import check_steps, run_job
-from tests.support.klipper_machine import klipper_machine
+from tests.support.klipper_machine import klipper_config, klipper_machine
 from tests.support.virtual_mcu import VirtualMcu
 
 SPEED_MM_S = 100.0
@@ -28,10 +28,21 @@ def mcu() -> Iterator[VirtualMcu]:
     virtual.stop()
 
 
+def test_the_hold_back_is_the_lead_but_the_ride_through_and_a_quarter_of_a_short_lead() -> None:
+    def hold_back_s(lead_s: float) -> float:
+        return KlipperBackend(klipper_config("/dev/null", lead_s).core).hold_back_s
+
+    assert hold_back_s(0.3) == pytest.approx(0.15)  # the default: 130 ms ride-through
+    assert hold_back_s(0.5) == pytest.approx(0.35)
+    assert hold_back_s(0.2) == pytest.approx(0.05)  # a quarter, 130 ms ride-through still
+    assert hold_back_s(0.1) == pytest.approx(0.025)  # a quarter: 55 ms ride-through
+
+
+@pytest.mark.parametrize("lead_s", [0.2, 0.3])
 async def test_a_100_mm_cruise_sends_runs_as_long_as_the_hold_back_and_each_in_time(
-    mcu: VirtualMcu
+    mcu: VirtualMcu, lead_s: float
 ) -> None:
-    async with klipper_machine(mcu) as app:
+    async with klipper_machine(mcu, lead_time_s=lead_s) as app:
         backend = app.kernel.machine.backend
         assert isinstance(backend, KlipperBackend) and backend.mcu is not None
         await asyncio.sleep(0.2)
@@ -67,6 +78,7 @@ async def test_a_100_mm_cruise_sends_runs_as_long_as_the_hold_back_and_each_in_t
         # each run left at least the stall ride-through (lead - hold-back - flush, 130 ms)
         # ahead of its first step, half of it on a loaded machine
         ride_through_s = backend.lead_s - backend.hold_back_s - backend.flush_s
+        assert ride_through_s == pytest.approx(0.13)
         stepper = mcu.steppers[oid]
         ahead_s = min((int(r.clocks[0]) - r.received_clock) / mcu.clock_hz
                       for r in stepper.runs if len(r.clocks))

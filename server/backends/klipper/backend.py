@@ -10,13 +10,14 @@ the fitted clock of :mod:`.clocksync` anchors the schedule's start and sets the 
 deadlines), and compressed into
 ``queue_step`` runs within ``max_error_s`` (:mod:`.stepcompress`) every ``flush_s``, with
 ``set_next_step_dir`` on direction changes and ``reset_step_clock`` after a long idle or a
-reconfiguration. A run that may still grow is held back at most a quarter of the lead
-(``HOLD_BACK_SHARE``), so a host stall of up to 3/4 ``lead_time_s`` - ``flush_s`` (130 ms at
-the default 0.2 s) never starves the MCU. Messages leave in
-order while the MCU's move queue (``move_count`` from its config) has room (:mod:`.movequeue`),
-in bursts that the link packs into as few message blocks as fit; messages that would only
-part-fill a burst's last block wait for more while none of them is due within ``lead_time_s`` -
-``hold_back_s`` (as a held-back run does), so blocks leave fuller.
+reconfiguration. A run that may still grow is held back at most all of the lead but
+``RIDE_THROUGH_S`` (at least a quarter of it, ``HOLD_BACK_SHARE``), so a host stall of up to
+``lead_time_s`` - hold-back - ``flush_s`` (130 ms with a lead of 0.2 s or more) never starves
+the MCU. Messages leave in order while the MCU's move queue (``move_count`` from its config)
+has room (:mod:`.movequeue`), in bursts that the link packs into as few message blocks as
+fit; messages that would only part-fill a burst's last block wait for more while none of
+them is due within ``lead_time_s`` - ``hold_back_s`` (as a held-back run does), so blocks
+leave fuller.
 
 Outputs named in ``[backend.outputs]`` become ``queue_pwm_out``/``queue_digital_out`` at the
 MCU time of the motion time they are set for (a line's actions: its block's start; otherwise
@@ -69,9 +70,14 @@ log = logging.getLogger("motiond.klipper")
 EXIT_GRACE_S = 0.3
 REST_S = 0.05
 """A pause in sampling longer than this is a rest (the schedule may start afresh)."""
+RIDE_THROUGH_S = 0.15
+"""A run that may still grow is sent at the latest this long before its first step is due
+(less a flush: the host stall every step survives, 130 ms); the rest of the lead is how long
+it may wait to grow (the hold-back: 150 ms at the default 0.3 s lead). A longer lead buys
+longer runs, fewer bytes, and a slower feed hold."""
 HOLD_BACK_SHARE = 0.25
-"""The longest a run that may still grow waits before it is sent anyway, as a share of the
-lead (50 ms at the default 0.2 s): a longer lead buys longer runs, fewer bytes."""
+"""With a short lead the hold-back is at least this share of it (50 ms at 0.2 s: 130 ms of
+ride-through still)."""
 AHEAD_MAX_S = 0.01
 """The most the board's clock may run ahead of the schedule as fitted (or a tenth of the
 lead; the lead, and the stall the MCU rides through, shrink by as much) before the schedule
@@ -106,7 +112,7 @@ class KlipperBackend:
         assert cfg.serial is not None
         self.cfg, self.retry_s, self.flush_s = cfg, retry_s, flush_s
         self.lead_s = cfg.lead_time_s
-        self.hold_back_s = HOLD_BACK_SHARE * self.lead_s
+        self.hold_back_s = max(HOLD_BACK_SHARE * self.lead_s, self.lead_s - RIDE_THROUGH_S)
         self.axis_names = core.axis_names
         self.axes = [Axis(n, a.steps_per_mm, exact=[] if record else None)
                      for n, a in zip(core.axis_names, core.axes.values(), strict=True)]
