@@ -37,6 +37,15 @@ class TickClock(Protocol):
     async def sleep_until(self, time_s: float) -> None: ...
 
 
+class TickWatch(Protocol):
+    """What watches the ticks on real time (the kernel's loop monitor): told how late each
+    tick woke (seconds after its deadline) and when the ticks stop."""
+
+    def tick(self, late_s: float) -> None: ...
+
+    def rest(self) -> None: ...
+
+
 class HoldState(enum.Enum):
     NONE = "none"
     DECELERATING = "decelerating"  # Grbl's Hold:1
@@ -451,34 +460,44 @@ class StepGenerator:
         on_fault: Callable[[Exception], None] | None = None,
         give_turn: Callable[[], Awaitable[None]] | None = None,
         wait_for_work: Callable[[], Awaitable[None]] | None = None,
+        watch: TickWatch | None = None,
     ) -> None:
         """Tick at ``tick_hz`` on ``clock`` forever; late ticks catch up on the next call.
         ``give_turn`` lets the loop run other callbacks in the middle of a late tick (the
         runtime passes ``asyncio.sleep(0)``; default: a zero sleep on ``clock``).
         ``wait_for_work`` returns once :attr:`wake` has been called: while :attr:`can_sleep`,
         the task waits on it instead of ticking (an idle server costs no CPU), and the timeline
-        resumes at the wake-up (default: tick always).
+        resumes at the wake-up (default: tick always). ``watch`` is told each tick's lateness
+        and when the ticks stop (before sleeping, and when the task ends).
 
         A tick that raises (a failing backend) is reported to ``on_fault``, which must stop
         motion; the task keeps ticking, so the server stays up and answers.
         """
         next_s = clock.now_s()
         self._last_tick_s = next_s
-        while True:
-            if wait_for_work is not None and self.can_sleep:
-                await wait_for_work()
-                next_s = clock.now_s()
-                self._last_tick_s = next_s  # no catching up on the time slept
-            next_s += self.tick_s
-            await clock.sleep_until(next_s)
-            now_s = clock.now_s()
-            if now_s - next_s > self.tick_s:  # late: this tick goes to now, so the deadlines
-                next_s = now_s  # it passed are not replayed one after another, unslept
-            while not self._guarded(self.advance, now_s, on_fault):
+        try:
+            while True:
+                if wait_for_work is not None and self.can_sleep:
+                    if watch is not None:
+                        watch.rest()
+                    await wait_for_work()
+                    next_s = clock.now_s()
+                    self._last_tick_s = next_s  # no catching up on the time slept
+                next_s += self.tick_s
+                await clock.sleep_until(next_s)
+                now_s = clock.now_s()
+                if watch is not None:
+                    watch.tick(now_s - next_s)
+                if now_s - next_s > self.tick_s:  # late: this tick goes to now, so the
+                    next_s = now_s  # deadlines it passed are not replayed one after another
+                while not self._guarded(self.advance, now_s, on_fault):
+                    after_tick()
+                    # the rest of a late tick after other callbacks
+                    await (give_turn() if give_turn is not None else clock.sleep_until(now_s))
                 after_tick()
-                # the rest of a late tick after other callbacks
-                await (give_turn() if give_turn is not None else clock.sleep_until(now_s))
-            after_tick()
+        finally:
+            if watch is not None:
+                watch.rest()
 
     @staticmethod
     def _guarded(

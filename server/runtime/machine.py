@@ -28,7 +28,7 @@ from server.gcode.interpreter import Interpreter
 from server.gcode.parser import Line
 from server.motion.moves import Action, ActionName, SyncKind, ToolMode
 from server.motion.planner import Planner
-from server.motion.stepgen import HoldState, StepGenerator
+from server.motion.stepgen import HoldState, StepGenerator, TickWatch
 from server.paths import settings_path
 from server.protocol.reports import StatusSnapshot
 from server.runtime.clock import Clock, VirtualClock
@@ -87,6 +87,7 @@ class Machine(GcodeFeed, RealtimeCommands):
         self.room = asyncio.Event()
         self._work = asyncio.Event()  # motion may start: the step generator stops sleeping
         self.stepgen.wake = self._work.set
+        self.tick_watch: TickWatch | None = None  # told of the ticks on real time (the kernel's)
         self.backend.wake_with(self._work.set)  # a fault or an output on: ticks again
         self.idle_event = asyncio.Event()
         self.idle_event.set()
@@ -256,6 +257,7 @@ class Machine(GcodeFeed, RealtimeCommands):
             await self.stepgen.run(
                 self.clock, self._after_tick, self._backend_fault, give_turn=_give_turn,
                 wait_for_work=self._wait_for_work if sleeps else None,
+                watch=self.tick_watch if sleeps else None,
             )
         finally:
             backend_task.cancel()
