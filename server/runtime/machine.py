@@ -267,6 +267,9 @@ class Machine(GcodeFeed, RealtimeCommands):
     async def _wait_for_work(self) -> None:
         """Until the step generator is woken (checked and cleared in one turn: no race)."""
         self._work.clear()
+        rest = getattr(self.backend, "rest", None)  # a backend whose I/O the ticks sample
+        if rest is not None:
+            rest()
         await self._work.wait()
 
     def _backend_fault(self, exc: Exception) -> None:
