@@ -17,16 +17,21 @@ steps (a Klipper MCU) also gets the trajectory as pieces (:mod:`server.motion.pi
 
 from __future__ import annotations
 
+import asyncio
 import enum
 import math
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Any, Protocol
 
 from server.backends.base import Backend
 from server.motion.moves import Action, MoveKind, Position, ToolMode
 from server.motion.pieces import PieceReporter, PowerOf
 from server.motion.planner import Block, Planner
+
+
+class Cancellable(Protocol):
+    def cancel(self) -> Any: ...
 
 
 class TickClock(Protocol):
@@ -35,6 +40,8 @@ class TickClock(Protocol):
     def now_s(self) -> float: ...
 
     async def sleep_until(self, time_s: float) -> None: ...
+
+    def call_at(self, time_s: float, callback: Callable[[], None]) -> Cancellable: ...
 
 
 class TickWatch(Protocol):
@@ -483,17 +490,20 @@ class StepGenerator:
                     await wait_for_work()
                     next_s = clock.now_s()
                     self._last_tick_s = next_s  # no catching up on the time slept
-                next_s += self.tick_s
-                await clock.sleep_until(next_s)
-                now_s = clock.now_s()
-                if watch is not None:
-                    watch.tick(now_s - next_s)
-                if now_s - next_s > self.tick_s:  # late: this tick goes to now, so the
-                    next_s = now_s  # deadlines it passed are not replayed one after another
-                while not self._guarded(self.advance, now_s, on_fault):
+                ticks = _Ticks(self, clock, next_s, after_tick, on_fault, watch,
+                               sleeps=wait_for_work is not None)
+                try:
+                    late_s = await ticks.done
+                finally:
+                    ticks.stop()
+                next_s = ticks.next_s
+                if late_s is None:
+                    continue
+                while True:  # the rest of a late tick, other callbacks run in between
                     after_tick()
-                    # the rest of a late tick after other callbacks
-                    await (give_turn() if give_turn is not None else clock.sleep_until(now_s))
+                    await (give_turn() if give_turn is not None else clock.sleep_until(late_s))
+                    if self._guarded(self.advance, late_s, on_fault):
+                        break
                 after_tick()
         finally:
             if watch is not None:
@@ -512,3 +522,43 @@ class StepGenerator:
             on_fault(exc)
             return True
 
+
+
+class _Ticks:
+    """A step generator's ticks as timer callbacks on ``clock``: one event-loop iteration each
+    (an awaited sleep costs two: the timer's, then the task's step), until the generator may
+    sleep (``done`` gets None; only if ``sleeps``) or a tick runs late by more blocks than one
+    call goes through (``done`` gets its time: the task slices the rest)."""
+
+    def __init__(self, generator: StepGenerator, clock: TickClock, last_s: float,
+                 after_tick: Callable[[], None], on_fault: Callable[[Exception], None] | None,
+                 watch: TickWatch | None, *, sleeps: bool) -> None:
+        self.generator, self.clock, self.after_tick = generator, clock, after_tick
+        self.on_fault, self.watch, self.sleeps = on_fault, watch, sleeps
+        self.done: asyncio.Future[float | None] = asyncio.get_running_loop().create_future()
+        self.next_s = last_s + generator.tick_s
+        self._handle = clock.call_at(self.next_s, self._fire)
+
+    def stop(self) -> None:
+        self._handle.cancel()
+
+    def _fire(self) -> None:
+        generator = self.generator
+        try:
+            now_s = self.clock.now_s()
+            if self.watch is not None:
+                self.watch.tick(now_s - self.next_s)
+            if now_s - self.next_s > generator.tick_s:  # late: this tick goes to now, so the
+                self.next_s = now_s  # deadlines it passed are not replayed one after another
+            if not generator._guarded(generator.advance, now_s, self.on_fault):
+                self.done.set_result(now_s)
+                return
+            self.after_tick()
+            if self.sleeps and generator.can_sleep:
+                self.done.set_result(None)
+                return
+            self.next_s += generator.tick_s
+            self._handle = self.clock.call_at(self.next_s, self._fire)
+        except Exception as exc:  # noqa: BLE001 - the task raises it (no on_fault given)
+            if not self.done.done():
+                self.done.set_exception(exc)
