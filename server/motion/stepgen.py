@@ -8,8 +8,8 @@ position is the block's exact end, so emitted steps always sum to the commanded 
 
 Feed hold decelerates along the path (across block boundaries when needed) within the
 acceleration limit; resume re-plans the rest of the interrupted block from standstill.
-:meth:`run` is the thin asyncio task that calls :meth:`advance` at ``tick_hz``. One call goes
-through at most ``max_blocks_per_call`` blocks: a tick late by many blocks (after a stall, at
+:mod:`server.runtime.ticks` is the thin asyncio task that calls :meth:`advance` at ``tick_hz``.
+One call goes through at most ``max_blocks_per_call`` blocks: a tick late by many blocks (at
 20,000 segments/s a 50 ms stall is 1,000 blocks) is caught up in slices, with the event loop
 running other callbacks in between, instead of in one long call. A backend that times its own
 steps (a Klipper MCU) also gets the trajectory as pieces (:mod:`server.motion.pieces`).
@@ -17,40 +17,16 @@ steps (a Klipper MCU) also gets the trajectory as pieces (:mod:`server.motion.pi
 
 from __future__ import annotations
 
-import asyncio
 import enum
 import math
-from collections.abc import Awaitable, Callable
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Protocol
 
 from server.backends.base import Backend
 from server.motion.moves import Action, MoveKind, Position, ToolMode
 from server.motion.pieces import PieceReporter, PowerOf
 from server.motion.planner import Block, Planner
-
-
-class Cancellable(Protocol):
-    def cancel(self) -> Any: ...
-
-
-class TickClock(Protocol):
-    """The time a step generator runs on (the runtime's RealClock or VirtualClock), seconds."""
-
-    def now_s(self) -> float: ...
-
-    async def sleep_until(self, time_s: float) -> None: ...
-
-    def call_at(self, time_s: float, callback: Callable[[], None]) -> Cancellable: ...
-
-
-class TickWatch(Protocol):
-    """What watches the ticks on real time (the kernel's loop monitor): told how late each
-    tick woke (seconds after its deadline) and when the ticks stop."""
-
-    def tick(self, late_s: float) -> None: ...
-
-    def rest(self) -> None: ...
 
 
 class HoldState(enum.Enum):
@@ -144,7 +120,7 @@ class StepGenerator:
         self._resume_when_stopped = False
         # the start of the block whose ordered actions run now (outputs they set are timed there)
         self.action_s: float | None = None
-        # Called when motion may start (input, a start request): :meth:`run` sleeps while idle.
+        # Called when motion may start (input, a start request): the task sleeps while idle.
         self.wake: Callable[[], None] = lambda: None
 
     # -- control (called by the machine) ----------------------------------------------------
@@ -459,106 +435,8 @@ class StepGenerator:
         """Steps emitted so far per axis (absolute)."""
         return tuple(self._cursor.steps)
 
-    # -- the task ---------------------------------------------------------------------------
-    async def run(
-        self,
-        clock: TickClock,
-        after_tick: Callable[[], None] = lambda: None,
-        on_fault: Callable[[Exception], None] | None = None,
-        give_turn: Callable[[], Awaitable[None]] | None = None,
-        wait_for_work: Callable[[], Awaitable[None]] | None = None,
-        watch: TickWatch | None = None,
-    ) -> None:
-        """Tick at ``tick_hz`` on ``clock`` forever; late ticks catch up on the next call.
-        ``give_turn`` lets the loop run other callbacks in the middle of a late tick (the
-        runtime passes ``asyncio.sleep(0)``; default: a zero sleep on ``clock``).
-        ``wait_for_work`` returns once :attr:`wake` has been called: while :attr:`can_sleep`,
-        the task waits on it instead of ticking (an idle server costs no CPU), and the timeline
-        resumes at the wake-up (default: tick always). ``watch`` is told each tick's lateness
-        and when the ticks stop (before sleeping, and when the task ends).
-
-        A tick that raises (a failing backend) is reported to ``on_fault``, which must stop
-        motion; the task keeps ticking, so the server stays up and answers.
-        """
-        next_s = clock.now_s()
-        self._last_tick_s = next_s
-        try:
-            while True:
-                if wait_for_work is not None and self.can_sleep:
-                    if watch is not None:
-                        watch.rest()
-                    await wait_for_work()
-                    next_s = clock.now_s()
-                    self._last_tick_s = next_s  # no catching up on the time slept
-                ticks = _Ticks(self, clock, next_s, after_tick, on_fault, watch,
-                               sleeps=wait_for_work is not None)
-                try:
-                    late_s = await ticks.done
-                finally:
-                    ticks.stop()
-                next_s = ticks.next_s
-                if late_s is None:
-                    continue
-                while True:  # the rest of a late tick, other callbacks run in between
-                    after_tick()
-                    await (give_turn() if give_turn is not None else clock.sleep_until(late_s))
-                    if self._guarded(self.advance, late_s, on_fault):
-                        break
-                after_tick()
-        finally:
-            if watch is not None:
-                watch.rest()
-
-    @staticmethod
-    def _guarded(
-        advance: Callable[[float], bool], now_s: float, on_fault: Callable[[Exception], None] | None
-    ) -> bool:
-        """``advance(now_s)``, a failure reported to ``on_fault`` (which stops motion)."""
-        try:
-            return advance(now_s)
-        except Exception as exc:
-            if on_fault is None:
-                raise
-            on_fault(exc)
-            return True
-
-
-
-class _Ticks:
-    """A step generator's ticks as timer callbacks on ``clock``: one event-loop iteration each
-    (an awaited sleep costs two: the timer's, then the task's step), until the generator may
-    sleep (``done`` gets None; only if ``sleeps``) or a tick runs late by more blocks than one
-    call goes through (``done`` gets its time: the task slices the rest)."""
-
-    def __init__(self, generator: StepGenerator, clock: TickClock, last_s: float,
-                 after_tick: Callable[[], None], on_fault: Callable[[Exception], None] | None,
-                 watch: TickWatch | None, *, sleeps: bool) -> None:
-        self.generator, self.clock, self.after_tick = generator, clock, after_tick
-        self.on_fault, self.watch, self.sleeps = on_fault, watch, sleeps
-        self.done: asyncio.Future[float | None] = asyncio.get_running_loop().create_future()
-        self.next_s = last_s + generator.tick_s
-        self._handle = clock.call_at(self.next_s, self._fire)
-
-    def stop(self) -> None:
-        self._handle.cancel()
-
-    def _fire(self) -> None:
-        generator = self.generator
-        try:
-            now_s = self.clock.now_s()
-            if self.watch is not None:
-                self.watch.tick(now_s - self.next_s)
-            if now_s - self.next_s > generator.tick_s:  # late: this tick goes to now, so the
-                self.next_s = now_s  # deadlines it passed are not replayed one after another
-            if not generator._guarded(generator.advance, now_s, self.on_fault):
-                self.done.set_result(now_s)
-                return
-            self.after_tick()
-            if self.sleeps and generator.can_sleep:
-                self.done.set_result(None)
-                return
-            self.next_s += generator.tick_s
-            self._handle = self.clock.call_at(self.next_s, self._fire)
-        except Exception as exc:  # noqa: BLE001 - the task raises it (no on_fault given)
-            if not self.done.done():
-                self.done.set_exception(exc)
+    # -- the task's hooks (server.runtime.ticks runs the ticks) -----------------------------
+    def resume_at(self, time_s: float) -> None:
+        """The timeline (re)starts at ``time_s``: no catching up on time not ticked (the
+        task's start, a sleep while idle)."""
+        self._last_tick_s = time_s

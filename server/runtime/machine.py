@@ -28,7 +28,7 @@ from server.gcode.interpreter import Interpreter
 from server.gcode.parser import Line
 from server.motion.moves import Action, ActionName, SyncKind, ToolMode
 from server.motion.planner import Planner
-from server.motion.stepgen import HoldState, StepGenerator, TickWatch
+from server.motion.stepgen import HoldState, StepGenerator
 from server.paths import settings_path
 from server.protocol.reports import StatusSnapshot
 from server.runtime.clock import Clock, VirtualClock
@@ -39,6 +39,7 @@ from server.runtime.machine_realtime import RealtimeCommands
 from server.runtime.parts import build_backend, interpreter_settings, planner_settings
 from server.runtime.settings import Settings
 from server.runtime.state import MachineStatus
+from server.runtime.ticks import TickWatch, run_ticks
 
 log = logging.getLogger("motiond.machine")
 
@@ -254,8 +255,9 @@ class Machine(GcodeFeed, RealtimeCommands):
         backend_task = asyncio.create_task(self.backend.run(), name="backend")
         sleeps = not isinstance(self.clock, VirtualClock)
         try:
-            await self.stepgen.run(
-                self.clock, self._after_tick, self._backend_fault, give_turn=_give_turn,
+            await run_ticks(
+                self.stepgen, self.clock, self._after_tick, self._backend_fault,
+                give_turn=_give_turn,
                 wait_for_work=self._wait_for_work if sleeps else None,
                 watch=self.tick_watch if sleeps else None,
             )
