@@ -79,6 +79,7 @@ async def test_the_link_reads_at_the_samples_while_ticking_and_as_data_arrives_w
         link = backend.mcu.link
         assert link.watched and registered(link), "idle: read as data arrives"
         monkeypatch.setattr(mcu_module, "BUSY_POLL_S", 10.0)  # no clock poll meanwhile
+        backend.mcu.poll_s = 10.0
         await submit_all(app, ["M3 S800", "G1 X100 F3000"])  # 2 s of cutting
         await asyncio.sleep(0.6)  # past the poll that was due (its answer is awaited)
         drains = link.drains
@@ -97,7 +98,7 @@ async def test_the_link_reads_at_the_samples_while_ticking_and_as_data_arrives_w
         took_s = await wait_for_alarm(app)
         in_sample, read_s = deliveries.first("shutdown")
         assert in_sample, "read at the next sample, not by a reader"
-        assert read_s - sent_s < 0.1  # a tick (20 ms) on an unloaded machine
+        assert read_s - sent_s < 0.2  # a tick (20 ms) on an unloaded machine
         assert took_s < 1.0
         assert "the MCU shut down: Rescheduled timer in the past" in app.kernel.alarm_message
         assert mcu.output_events("PA8")[-1][1] == 0
@@ -123,5 +124,5 @@ async def test_an_idle_board_s_shutdown_is_read_at_once_without_a_tick(
         sent_s = time.monotonic()
         await wait_for_alarm(app)
         in_sample, read_s = deliveries.first("shutdown")
-        assert not in_sample and read_s - sent_s < 0.1
+        assert not in_sample and read_s - sent_s < 0.2  # a few ms here
         assert "Rescheduled timer in the past" in app.kernel.alarm_message
