@@ -52,7 +52,9 @@ class Backend(Protocol):
     ``ticks_when_idle = False`` (as :class:`NoHardware` does; Klipper's says so whenever it has
     nothing queued, on or to report): the step generator then sleeps, until the machine has work
     or the backend calls the function given to :meth:`wake_with`. Without the attribute, it is
-    ticked at ``tick_hz`` always.
+    ticked at ``tick_hz`` always. Before it sleeps, the machine calls the backend's ``rest()``
+    if it has one (Klipper's reads its MCU at the samples while they come, and as data arrives
+    once they stop).
 
     A backend that times its own steps from the pieces may set ``tick_s``: the step generator
     then ticks that often instead of at ``tick_hz`` (Klipper's: every flush; steps, actions and

@@ -8,8 +8,8 @@ position is the block's exact end, so emitted steps always sum to the commanded 
 
 Feed hold decelerates along the path (across block boundaries when needed) within the
 acceleration limit; resume re-plans the rest of the interrupted block from standstill.
-:meth:`run` is the thin asyncio task that calls :meth:`advance` at ``tick_hz``. One call goes
-through at most ``max_blocks_per_call`` blocks: a tick late by many blocks (after a stall, at
+:mod:`server.runtime.ticks` is the thin asyncio task that calls :meth:`advance` at ``tick_hz``.
+One call goes through at most ``max_blocks_per_call`` blocks: a tick late by many blocks (at
 20,000 segments/s a 50 ms stall is 1,000 blocks) is caught up in slices, with the event loop
 running other callbacks in between, instead of in one long call. A backend that times its own
 steps (a Klipper MCU) also gets the trajectory as pieces (:mod:`server.motion.pieces`).
@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import enum
 import math
-from collections.abc import Awaitable, Callable
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -27,14 +27,6 @@ from server.backends.base import Backend
 from server.motion.moves import Action, MoveKind, Position, ToolMode
 from server.motion.pieces import PieceReporter, PowerOf
 from server.motion.planner import Block, Planner
-
-
-class TickClock(Protocol):
-    """The time a step generator runs on (the runtime's RealClock or VirtualClock), seconds."""
-
-    def now_s(self) -> float: ...
-
-    async def sleep_until(self, time_s: float) -> None: ...
 
 
 class HoldState(enum.Enum):
@@ -128,7 +120,7 @@ class StepGenerator:
         self._resume_when_stopped = False
         # the start of the block whose ordered actions run now (outputs they set are timed there)
         self.action_s: float | None = None
-        # Called when motion may start (input, a start request): :meth:`run` sleeps while idle.
+        # Called when motion may start (input, a start request): the task sleeps while idle.
         self.wake: Callable[[], None] = lambda: None
 
     # -- control (called by the machine) ----------------------------------------------------
@@ -443,53 +435,8 @@ class StepGenerator:
         """Steps emitted so far per axis (absolute)."""
         return tuple(self._cursor.steps)
 
-    # -- the task ---------------------------------------------------------------------------
-    async def run(
-        self,
-        clock: TickClock,
-        after_tick: Callable[[], None] = lambda: None,
-        on_fault: Callable[[Exception], None] | None = None,
-        give_turn: Callable[[], Awaitable[None]] | None = None,
-        wait_for_work: Callable[[], Awaitable[None]] | None = None,
-    ) -> None:
-        """Tick at ``tick_hz`` on ``clock`` forever; late ticks catch up on the next call.
-        ``give_turn`` lets the loop run other callbacks in the middle of a late tick (the
-        runtime passes ``asyncio.sleep(0)``; default: a zero sleep on ``clock``).
-        ``wait_for_work`` returns once :attr:`wake` has been called: while :attr:`can_sleep`,
-        the task waits on it instead of ticking (an idle server costs no CPU), and the timeline
-        resumes at the wake-up (default: tick always).
-
-        A tick that raises (a failing backend) is reported to ``on_fault``, which must stop
-        motion; the task keeps ticking, so the server stays up and answers.
-        """
-        next_s = clock.now_s()
-        self._last_tick_s = next_s
-        while True:
-            if wait_for_work is not None and self.can_sleep:
-                await wait_for_work()
-                next_s = clock.now_s()
-                self._last_tick_s = next_s  # no catching up on the time slept
-            next_s += self.tick_s
-            await clock.sleep_until(next_s)
-            now_s = clock.now_s()
-            if now_s - next_s > self.tick_s:  # late: this tick goes to now, so the deadlines
-                next_s = now_s  # it passed are not replayed one after another, unslept
-            while not self._guarded(self.advance, now_s, on_fault):
-                after_tick()
-                # the rest of a late tick after other callbacks
-                await (give_turn() if give_turn is not None else clock.sleep_until(now_s))
-            after_tick()
-
-    @staticmethod
-    def _guarded(
-        advance: Callable[[float], bool], now_s: float, on_fault: Callable[[Exception], None] | None
-    ) -> bool:
-        """``advance(now_s)``, a failure reported to ``on_fault`` (which stops motion)."""
-        try:
-            return advance(now_s)
-        except Exception as exc:
-            if on_fault is None:
-                raise
-            on_fault(exc)
-            return True
-
+    # -- the task's hooks (server.runtime.ticks runs the ticks) -----------------------------
+    def resume_at(self, time_s: float) -> None:
+        """The timeline (re)starts at ``time_s``: no catching up on time not ticked (the
+        task's start, a sleep while idle)."""
+        self._last_tick_s = time_s

@@ -12,7 +12,8 @@ import asyncio
 import heapq
 import itertools
 import time
-from typing import Protocol
+from collections.abc import Callable
+from typing import Any, Protocol
 
 
 class Clock(Protocol):
@@ -26,6 +27,11 @@ class Clock(Protocol):
         """Return once ``now_s() >= deadline_s`` (at once if it already is)."""
         ...
 
+    def call_at(self, deadline_s: float, callback: Callable[[], None]) -> Any:
+        """Call ``callback()`` once ``now_s() >= deadline_s``; the result's ``cancel()``
+        calls it off."""
+        ...
+
 
 class RealClock:
     """Monotonic time, the same the event loop uses. Sleeps may overshoot; callers catch up."""
@@ -37,6 +43,12 @@ class RealClock:
         delay_s = deadline_s - self.now_s()
         if delay_s > 0:
             await asyncio.sleep(delay_s)
+
+    def call_at(self, deadline_s: float, callback: Callable[[], None]) -> asyncio.TimerHandle:
+        """``callback()`` from the event loop once ``deadline_s`` has come (a timer: one turn
+        of the loop, where an awaited sleep takes two)."""
+        loop = asyncio.get_running_loop()
+        return loop.call_later(max(0.0, deadline_s - self.now_s()), callback)
 
     async def sleep(self, duration_s: float) -> None:
         await self.sleep_until(self.now_s() + duration_s)
@@ -70,6 +82,15 @@ class VirtualClock:
 
     async def sleep(self, duration_s: float) -> None:
         await self.sleep_until(self._now_s + duration_s)
+
+    def call_at(self, deadline_s: float, callback: Callable[[], None]) -> asyncio.Future[None]:
+        """``callback()`` once time reaches ``deadline_s`` (cancel the returned future to
+        call it off)."""
+        future: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        heapq.heappush(self._sleepers, (deadline_s, next(self._counter), future))
+        self._wakeup.set()
+        future.add_done_callback(lambda done: None if done.cancelled() else callback())
+        return future
 
     def advance_to(self, time_s: float) -> None:
         """Jump to ``time_s`` and wake every sleeper whose deadline has come."""

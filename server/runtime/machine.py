@@ -39,6 +39,7 @@ from server.runtime.machine_realtime import RealtimeCommands
 from server.runtime.parts import build_backend, interpreter_settings, planner_settings
 from server.runtime.settings import Settings
 from server.runtime.state import MachineStatus
+from server.runtime.ticks import TickWatch, run_ticks
 
 log = logging.getLogger("motiond.machine")
 
@@ -87,6 +88,7 @@ class Machine(GcodeFeed, RealtimeCommands):
         self.room = asyncio.Event()
         self._work = asyncio.Event()  # motion may start: the step generator stops sleeping
         self.stepgen.wake = self._work.set
+        self.tick_watch: TickWatch | None = None  # told of the ticks on real time (the kernel's)
         self.backend.wake_with(self._work.set)  # a fault or an output on: ticks again
         self.idle_event = asyncio.Event()
         self.idle_event.set()
@@ -253,9 +255,11 @@ class Machine(GcodeFeed, RealtimeCommands):
         backend_task = asyncio.create_task(self.backend.run(), name="backend")
         sleeps = not isinstance(self.clock, VirtualClock)
         try:
-            await self.stepgen.run(
-                self.clock, self._after_tick, self._backend_fault, give_turn=_give_turn,
+            await run_ticks(
+                self.stepgen, self.clock, self._after_tick, self._backend_fault,
+                give_turn=_give_turn,
                 wait_for_work=self._wait_for_work if sleeps else None,
+                watch=self.tick_watch if sleeps else None,
             )
         finally:
             backend_task.cancel()
@@ -265,6 +269,9 @@ class Machine(GcodeFeed, RealtimeCommands):
     async def _wait_for_work(self) -> None:
         """Until the step generator is woken (checked and cleared in one turn: no race)."""
         self._work.clear()
+        rest = getattr(self.backend, "rest", None)  # a backend whose I/O the ticks sample
+        if rest is not None:
+            rest()
         await self._work.wait()
 
     def _backend_fault(self, exc: Exception) -> None:

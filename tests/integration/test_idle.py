@@ -4,6 +4,7 @@ real time), and the first line wakes everything exactly as before."""
 from __future__ import annotations
 
 import asyncio
+import time
 from pathlib import Path
 from typing import Any
 
@@ -117,3 +118,38 @@ async def test_the_klipper_backend_rests_while_idle_and_wakes_for_motion_outputs
                 await asyncio.sleep(0.01)
     finally:
         mcu.stop()
+
+
+async def test_the_loop_monitor_rides_the_ticks_and_keeps_its_own_timer_only_while_idle(
+        tmp_path: Path) -> None:
+    """While the step generator ticks, the monitor takes its samples from the ticks (no timer
+    of its own: one wake-up less per tick); it still sees a stall; idle, its own timer runs."""
+    async with running(default_machine(tmp_path), RealClock()) as app:
+        monitor = app.kernel.loop_monitor
+        await asyncio.sleep(0.2)  # start-up settles: nothing ticks
+        assert not monitor.riding
+        own_idle = monitor.own_samples
+        await asyncio.sleep(0.1)
+        assert monitor.own_samples > own_idle, "idle, the monitor keeps its own timer"
+
+        await submit_all(app, ["G1 X40 F3000"])  # 0.8 s of motion at 1 kHz ticks
+        await asyncio.sleep(0.15)
+        assert monitor.riding
+        own, samples = monitor.own_samples, monitor.samples
+        monitor.reset()
+        await asyncio.sleep(0.2)
+        end_s = time.thread_time() + 0.03
+        while time.thread_time() < end_s:  # a callback that holds the loop: 30 ms of work
+            pass
+        await asyncio.sleep(0.2)
+        assert monitor.own_samples - own <= 1, "no timer of its own while the ticks run"
+        assert monitor.samples - samples > 50  # about 400 ticks (late ones merge)
+        assert monitor.worst_stall_s >= 0.025  # the stall is seen through the ticks
+        assert monitor.worst_cpu_stall_s >= 0.025  # ...and it was this thread's own work
+
+        await asyncio.wait_for(app.kernel.machine.wait_idle(), 10)
+        await asyncio.sleep(0.05)
+        assert not monitor.riding
+        own = monitor.own_samples
+        await asyncio.sleep(0.1)
+        assert monitor.own_samples > own, "its own timer runs again once the ticks stop"

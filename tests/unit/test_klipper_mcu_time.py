@@ -41,6 +41,9 @@ class Sink:
             self.messages.extend(decoded)
             self.sent_s += [self.now_s] * len(decoded)
 
+    def sample(self) -> None:
+        """The backend's tick reads the device here: there is none."""
+
 
 class FittedMcu:
     """What the backend reads of an MCU: its dictionary, the clock fit, its move queue."""

@@ -71,3 +71,14 @@ def test_a_flood_of_empty_blocks_before_the_first_ack_draws_one_resend_per_round
     resent = [window.on_block(5, True, 0.0001 * i) for i in range(100)]  # 10 ms of naks
     assert sum(1 for blocks in resent if blocks) == 1
     assert window.on_block(5, True, 0.2)  # a round trip later: once more
+
+
+def test_an_ack_read_late_releases_its_blocks_but_measures_no_round_trip() -> None:
+    """Acknowledgements read at a sample (up to a tick after they arrived) are no
+    measurement: the retransmission timeout stays what the timely ones made it."""
+    window = SendWindow()
+    sent(window, 2)
+    rto_s = window.rto_s
+    assert window.on_block(1, False, 0.030, timed=False) == []
+    assert window.on_block(2, True, 0.031, timed=False) == []
+    assert not window.inflight and window.srtt_s is None and window.rto_s == rto_s

@@ -171,6 +171,12 @@ class KlipperBackend:
         return (self._fault_to_raise is not None or bool(self._pieces)
                 or bool(self._queue.waiting) or self._busy())
 
+    def rest(self) -> None:
+        """The machine's hook: the ticks stop (nothing to sample): the board's messages are
+        read as they arrive again, so an idle board's shutdown or restart is seen at once."""
+        if self.mcu is not None:
+            self.mcu.link.rest()
+
     def wake_with(self, wake: Callable[[], None]) -> None:
         """The machine's hook: ``wake`` resumes ticks (a fault, an output switched on)."""
         self._wake = wake
@@ -229,6 +235,8 @@ class KlipperBackend:
             pieces.append(piece)
 
     def sample(self, time_s: float, position_mm: object, speed_mm_s: float) -> None:
+        if self.mcu is not None:
+            self.mcu.link.sample()  # what the board sent since the last tick (see .link)
         if self._fault_to_raise is not None:
             message, self._fault_to_raise = self._fault_to_raise, None
             raise KlipperFault(message)
@@ -459,6 +467,7 @@ class KlipperBackend:
     async def _stop_before_exit(self, mcu: Mcu) -> None:
         """Shutting down with steps queued or a tool on: the emergency stop gets out first
         (bounded: at most ``EXIT_GRACE_S``)."""
+        mcu.link.rest()  # no more ticks: acknowledgements are read as they arrive
         if not (self.ready and self._busy()):
             return
         mcu.emergency_stop()

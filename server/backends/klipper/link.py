@@ -13,12 +13,23 @@ stream, a restarted MCU (a sequence number never sent) or, once ``ack_timeout_s`
 block left unacknowledged that long (a board that is silent, sends garbage, or floods messages
 without acknowledging ours) is reported once and nothing more is read, but an emergency stop
 can still be written before :meth:`Link.close`. Either way the link is dead and must be replaced.
+
+Reading: while its owner samples (:meth:`Link.sample`, the step generator's tick), the device
+is read there, in one non-blocking drain, and not on every block that arrives: each wake-up of
+the process costs CPU, and an MCU's faults are acted on at the next sample anyway. The event
+loop watches the device only while something must be read at once: a request's answer awaited
+once the request has left (a clock reading's arrival time is its measurement; a poll waiting
+to ride along is not watched for), messages waiting for room in the window, or no samples
+(:meth:`Link.rest`: an idle board's shutdown or restart is read at once). Every timer that
+judges the link (retransmission, the acknowledgement timeout) drains it first.
+Acknowledgements read at a sample are late by up to a tick: they measure no round trip.
 """
 
 from __future__ import annotations
 
 import asyncio
 import os
+import select
 import termios
 import time
 from collections import deque
@@ -86,11 +97,54 @@ class Link:
         self._progress_s = 0.0  # when the window last moved (a block acknowledged or sent)
         self._blocks_in = 0  # valid blocks received since then
         self._bad_at_progress = 0  # the reader's count of damaged blocks then
+        self.sampling = False  # the owner samples: the device is read at its samples
+        self.watched = False  # the event loop reads the device as data arrives
+        self.drains = 0  # samples that read the device (for tests and the benchmark)
+        self._backlog = False  # a sample's read filled READ_BYTES: more waits to be read
 
     def open(self) -> None:
         self._loop = asyncio.get_running_loop()
         self._fd = open_serial(self.path, self.baud)
-        self._loop.add_reader(self._fd, self._on_readable)
+        self._watch()
+
+    def sample(self) -> None:
+        """The owner's tick: read what the device holds, then watch it only while something
+        must be read at once (see the module docstring)."""
+        self.sampling = True
+        self._drain()
+        self._watch()
+
+    def rest(self) -> None:
+        """The owner stops sampling: the event loop reads the device as data arrives."""
+        self.sampling = False
+        self._watch()
+
+    def _watch(self) -> None:
+        """Register or remove the reader for what must be read now."""
+        if self._fd is None or self._loop is None or self.closed or self.failed:
+            return
+        answer_due = bool(self._waiters) and self._rider is None  # a rider has not left yet
+        want = not self.sampling or self._backlog or answer_due or bool(self._queue)
+        if want and not self.watched:
+            self._loop.add_reader(self._fd, self._on_readable)
+        elif not want and self.watched:
+            self._loop.remove_reader(self._fd)
+        self.watched = want
+
+    def _poll_events(self) -> int:
+        """The device's poll events now (no wait)."""
+        assert self._fd is not None
+        poll = select.poll()
+        poll.register(self._fd, select.POLLIN)
+        ready = poll.poll(0)
+        return ready[0][1] if ready else 0
+
+    def _drain(self) -> None:
+        """Read what the device holds now, non-blocking: one read of ``READ_BYTES``; if that
+        filled it, the rest is read a turn of the event loop at a time, as it would be while
+        watched (a flooding board delays others by one read, never more)."""
+        if self._fd is not None and not self.closed and not self.failed:
+            self._backlog = self._read(timed=False) >= READ_BYTES
 
     @property
     def queued_bytes(self) -> int:
@@ -136,6 +190,7 @@ class Link:
             rider.timer = self._loop.call_later(ride_s, self._release_rider)
         else:
             self.send(message, keep=True)
+        self._watch()  # the answer is read as it arrives (once the message has left)
         try:
             params = await asyncio.wait_for(future, timeout_s)
         finally:
@@ -143,6 +198,7 @@ class Link:
                 self._waiters.remove(waiter)
             if rider is not None and rider is self._rider:  # never left (a timeout, a close)
                 self._drop_rider()
+            self._watch()
         params["#sent_s"] = sent_s if rider is None or rider.sent_s is None else rider.sent_s
         return params
 
@@ -152,6 +208,7 @@ class Link:
         if rider is not None:
             self._rider, rider.timer, rider.sent_s = None, None, time.monotonic()
             self.send(rider.message, keep=True)
+            self._watch()
 
     def _drop_rider(self) -> None:
         if self._rider is not None and self._rider.timer is not None:
@@ -180,6 +237,7 @@ class Link:
                 break
             self._new_block(bytes(payload), now_s)
         self._arm_timer()
+        self._watch()  # messages left waiting for room: acknowledgements read as they come
 
     def _arm_timer(self) -> None:
         deadline = self.window.deadline_s()
@@ -194,6 +252,10 @@ class Link:
 
     def _on_timer(self) -> None:
         self._timer = None
+        if not self.watched:  # what arrived since the last sample first
+            self._drain()
+            if self.closed or self.failed or self._timer is not None:
+                return  # judged (or re-armed by what was read) already
         if self._unacknowledged(time.monotonic()):
             return
         for block in self.window.on_timer(time.monotonic()):
@@ -244,35 +306,54 @@ class Link:
             self._loop.remove_writer(self._fd)
 
     def _on_readable(self) -> None:
+        if self._read(timed=not self._backlog) < READ_BYTES:
+            self._backlog = False
+        self._watch()
+
+    def _read(self, timed: bool) -> int:
+        """One read of the device, its blocks handled; the bytes read. ``timed``: read as
+        they arrived (acknowledgements then measure the round trip)."""
         assert self._fd is not None
         try:
             data = os.read(self._fd, READ_BYTES)
+            # a raw tty with nothing to read reads empty too (VMIN = VTIME = 0), and a sample
+            # may have read what woke the reader: closed only if it hangs up, or is ready
+            # and still reads empty
+            if not data:
+                events = self._poll_events()
+                if not events:
+                    return 0
+                if not events & (select.POLLHUP | select.POLLERR | select.POLLNVAL):
+                    data = os.read(self._fd, READ_BYTES)
         except BlockingIOError:
-            return
+            return 0
         except OSError as exc:
             self._fail(f"cannot read from {self.path}: {exc.strerror}")
-            return
+            return 0
         if not data:
             self._fail(f"{self.path} was closed")
-            return
+            return 0
         self.bytes_received += len(data)
+        if not timed:
+            self.drains += 1
         now_s = time.monotonic()
         acked = self.window.acked
         try:
             for block in self._reader.feed(data):
                 self._blocks_in += 1
-                for again in self.window.on_block(block.seq, not block.payload, now_s):
+                for again in self.window.on_block(block.seq, not block.payload, now_s, timed):
                     self._write(again)
                 if block.payload:
                     self._deliver(self.dictionary.decode(block.payload), now_s)
         except (SequenceError, ProtocolError) as exc:
             self._broken(str(exc))
-            return
+            return 0
         if self.window.acked != acked:
             self._moved(now_s)
         elif self._unacknowledged(now_s):  # a board that talks but never acknowledges
-            return
+            return 0
         self._pump()
+        return len(data)
 
     def _deliver(self, messages: list[tuple[str, Params]], now_s: float) -> None:
         for name, params in messages:
@@ -293,6 +374,7 @@ class Link:
         self.failed = True
         assert self._loop is not None and self._fd is not None
         self._loop.remove_reader(self._fd)
+        self.watched = False
         self._on_error(reason)
         self._fail_waiters(reason)  # no answer can come: a request waits no longer
 

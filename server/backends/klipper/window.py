@@ -77,8 +77,9 @@ class SendWindow:
         """When the oldest unacknowledged block times out (None if nothing is in flight)."""
         return self.inflight[0].sent_s + self.rto_s if self.inflight else None
 
-    def on_block(self, seq4: int, empty: bool, now_s: float) -> list[bytes]:
-        """A block from the MCU acknowledging up to ``seq4``; blocks to send again (a nak)."""
+    def on_block(self, seq4: int, empty: bool, now_s: float, timed: bool = True) -> list[bytes]:
+        """A block from the MCU acknowledging up to ``seq4``; blocks to send again (a nak).
+        ``timed``: read as it arrived (else it may have waited: it measures no round trip)."""
         ahead = (seq4 - self.acked) & SEQ_MASK
         rseq = self.acked + ahead
         if not self.synced:
@@ -91,7 +92,7 @@ class SendWindow:
         if rseq > self.next_seq:
             raise SequenceError(f"the MCU expects block {seq4} of 16, never sent: it restarted")
         if rseq > self.acked:
-            self._acknowledge(rseq, now_s)
+            self._acknowledge(rseq, now_s, timed)
         if not empty:
             return []
         if rseq > self._last_empty:  # an ack (perhaps after the response that acked first)
@@ -117,10 +118,10 @@ class SendWindow:
         self.rto_s = min(MAX_RTO_S, self.rto_s * 2)
         return self._resend(now_s)
 
-    def _acknowledge(self, rseq: int, now_s: float) -> None:
+    def _acknowledge(self, rseq: int, now_s: float, timed: bool) -> None:
         while self.inflight and self.inflight[0].seq < rseq:
             sent = self.inflight.popleft()
-            if not sent.retransmitted:
+            if timed and not sent.retransmitted:
                 self._measure(now_s - sent.sent_s)
         self.acked = rseq
 

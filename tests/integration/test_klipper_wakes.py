@@ -1,0 +1,128 @@
+"""Fewer wake-ups (issue #26, part W): while the step generator ticks, the Klipper link reads
+the MCU at the ticks' samples, with no reader in the event loop (every wake-up of the process
+costs CPU); idle, or while an answer is awaited, it reads as data arrives. A board's shutdown
+mid-motion is read, and acted on, at the next sample; an idle board's at once."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+
+from server.backends.klipper import mcu as mcu_module
+from server.backends.klipper.backend import KlipperBackend
+from server.backends.klipper.link import Link
+from tests.integration.test_klipper_faults import wait_for_alarm
+from tests.support.helpers import submit_all
+from tests.support.klipper_machine import klipper_machine
+from tests.support.virtual_mcu import VirtualMcu
+
+LASER = {"pin": "PA8"}
+
+
+@pytest.fixture
+def mcu() -> Iterator[VirtualMcu]:
+    virtual = VirtualMcu().start()
+    yield virtual
+    virtual.stop()
+
+
+def registered(link: Link) -> bool:
+    """Whether the event loop watches the link's device (asks the loop's selector itself)."""
+    selector = asyncio.get_running_loop()._selector  # type: ignore[attr-defined]
+    fd = link._fd
+    assert fd is not None
+    try:
+        key = selector.get_key(fd)
+    except KeyError:
+        return False
+    return key.data[0] is not None  # (reader, writer) handles
+
+
+class Deliveries:
+    """Which messages the link delivered, and whether from inside a sample."""
+
+    def __init__(self, link: Link) -> None:
+        self.seen: list[tuple[str, bool, float]] = []
+        self.in_sample = False
+        sample, deliver = link.sample, link._on_message
+
+        def sampled() -> None:
+            self.in_sample = True
+            try:
+                sample()
+            finally:
+                self.in_sample = False
+
+        def delivered(name: str, params: Any, now_s: float) -> None:
+            self.seen.append((name, self.in_sample, now_s))
+            deliver(name, params, now_s)
+
+        link.sample = sampled  # type: ignore[method-assign]
+        link._on_message = delivered
+
+    def first(self, name: str) -> tuple[bool, float]:
+        for seen, in_sample, now_s in self.seen:
+            if seen == name:
+                return in_sample, now_s
+        raise AssertionError(f"no {name} delivered: {[s[0] for s in self.seen]}")
+
+
+async def test_the_link_reads_at_the_samples_while_ticking_and_as_data_arrives_when_idle(
+        mcu: VirtualMcu, monkeypatch: pytest.MonkeyPatch) -> None:
+    async with klipper_machine(mcu, laser=LASER) as app:
+        backend = app.kernel.machine.backend
+        assert isinstance(backend, KlipperBackend) and backend.mcu is not None
+        link = backend.mcu.link
+        assert link.watched and registered(link), "idle: read as data arrives"
+        monkeypatch.setattr(mcu_module, "BUSY_POLL_S", 10.0)  # no clock poll meanwhile
+        backend.mcu.poll_s = 10.0
+        await submit_all(app, ["M3 S800", "G1 X100 F3000"])  # 2 s of cutting
+        await asyncio.sleep(0.6)  # past the poll that was due (its answer is awaited)
+        drains = link.drains
+        unwatched = 0
+        for _ in range(20):
+            await asyncio.sleep(0.01)
+            unwatched += not link.watched and not registered(link)
+        assert unwatched >= 18, "moving: no reader in the event loop"
+        assert link.drains - drains >= 2, "the samples read the acknowledgements"
+        assert link.window.retransmits == 0
+
+        deliveries = Deliveries(link)
+        with mcu.lock:
+            mcu.shutdown("Rescheduled timer in the past")
+        sent_s = time.monotonic()
+        took_s = await wait_for_alarm(app)
+        in_sample, read_s = deliveries.first("shutdown")
+        assert in_sample, "read at the next sample, not by a reader"
+        assert read_s - sent_s < 0.2  # a tick (20 ms) on an unloaded machine
+        assert took_s < 1.0
+        assert "the MCU shut down: Rescheduled timer in the past" in app.kernel.alarm_message
+        assert mcu.output_events("PA8")[-1][1] == 0
+
+
+async def test_an_idle_board_s_shutdown_is_read_at_once_without_a_tick(
+        mcu: VirtualMcu) -> None:
+    async with klipper_machine(mcu, laser=LASER) as app:
+        machine = app.kernel.machine
+        backend = machine.backend
+        assert isinstance(backend, KlipperBackend) and backend.mcu is not None
+        await submit_all(app, ["G1 X10 F6000"])
+        await machine.wait_idle()
+        for _ in range(200):  # the steps run out a lead later, then the ticks stop
+            if machine.stepgen.can_sleep and not backend.mcu.link.sampling:
+                break
+            await asyncio.sleep(0.01)
+        link = backend.mcu.link
+        assert not link.sampling and link.watched and registered(link)
+        deliveries = Deliveries(link)
+        with mcu.lock:
+            mcu.shutdown("Rescheduled timer in the past")
+        sent_s = time.monotonic()
+        await wait_for_alarm(app)
+        in_sample, read_s = deliveries.first("shutdown")
+        assert not in_sample and read_s - sent_s < 0.2  # a few ms here
+        assert "Rescheduled timer in the past" in app.kernel.alarm_message
