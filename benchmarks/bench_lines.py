@@ -30,13 +30,10 @@ from benchmarks.klipper_rig_hosts import (
     JUNCTION_DEVIATION_MM,
     LASER_S_MAX,
     MAX_RATE_MM_S,
-    POLL_S,
-    RUN_LIMIT_S,
     STEPS_PER_MM,
     TRAVEL_MM,
     Motiond,
     cpu_ns,
-    stop,
 )
 from benchmarks.klipper_rig_jobs import Job, raster
 
@@ -55,22 +52,8 @@ class Server(Motiond):
     @classmethod
     @contextlib.asynccontextmanager
     async def start_sim(cls, workdir: Path, tree: Path) -> AsyncIterator[Server]:
-        (workdir / "data").mkdir(exist_ok=True)
-        server = await cls.spawn(sim_toml(workdir / "data"), workdir, tree)
-        try:
-            deadline = time.monotonic() + RUN_LIMIT_S
-            while True:
-                with contextlib.suppress(OSError, TimeoutError):
-                    if (await server.status()).startswith("<Idle"):
-                        break
-                if time.monotonic() > deadline or server.process.returncode is not None:
-                    raise RuntimeError("motiond never became idle (motiond.err)")
-                await asyncio.sleep(POLL_S)
+        async with cls.serving(sim_toml(workdir / "data"), workdir, tree) as server:
             yield server
-        finally:
-            if server._poll is not None:
-                server._poll[1].close()
-            await stop(server.process)
 
 
 def one_move(job: Job) -> Job:

@@ -175,10 +175,18 @@ class Motiond:
     @classmethod
     @contextlib.asynccontextmanager
     async def start(cls, rig: Rig, workdir: Path, source: Path = REPO,
-                    lead_time_s: float | None = None) -> AsyncIterator[Motiond]:
+                    lead_time_s: float | None = None) -> AsyncIterator[Self]:
+        toml = motiond_toml(rig.path, workdir / "data", lead_time_s)
+        async with cls.serving(toml, workdir, source, rig) as host:
+            yield host
+
+    @classmethod
+    @contextlib.asynccontextmanager
+    async def serving(cls, config_text: str, workdir: Path, source: Path,
+                      rig: Rig | None = None) -> AsyncIterator[Self]:
+        """:meth:`spawn`, ready (on ``rig``, if given), stopped at the end."""
         (workdir / "data").mkdir(exist_ok=True)
-        host = await cls.spawn(motiond_toml(rig.path, workdir / "data", lead_time_s), workdir,
-                               source)
+        host = await cls.spawn(config_text, workdir, source)
         try:
             await host.wait_ready(rig)
             yield host
@@ -223,15 +231,16 @@ class Motiond:
             self._poll = None
             raise
 
-    async def wait_ready(self, rig: Rig, limit_s: float = 30.0) -> None:
-        """Until the board is configured (its PWM timer set up) and motiond is idle."""
+    async def wait_ready(self, rig: Rig | None, limit_s: float = 30.0) -> None:
+        """Until the board, if any, is configured (its PWM timer set up) and motiond is idle."""
         deadline = time.monotonic() + limit_s
         while True:
             with contextlib.suppress(OSError, TimeoutError):
-                if pwm_configured(rig.gpio_log) and (await self.status()).startswith("<Idle"):
+                if ((rig is None or pwm_configured(rig.gpio_log))
+                        and (await self.status()).startswith("<Idle")):
                     return
             if time.monotonic() > deadline or self.process.returncode is not None:
-                raise RuntimeError("motiond never became ready on the rig (motiond.err)")
+                raise RuntimeError("motiond never became ready (motiond.err)")
             await asyncio.sleep(0.2)
 
     async def recover(self, rig: Rig) -> None:

@@ -1,5 +1,5 @@
-"""Shared fixtures: configs built from dicts, the corpus folder, the firmware rigs, and a
-stand-in home folder, so no test reads or writes the user's."""
+"""Shared fixtures: configs built from dicts, the corpus folder, the firmware rigs, a virtual
+Klipper MCU, and a stand-in home folder, so no test reads or writes the user's."""
 
 from __future__ import annotations
 
@@ -7,13 +7,17 @@ import copy
 import os
 import shutil
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import pytest
 
 from server.config import Config
 from server.config_loader import build_config
+
+if TYPE_CHECKING:
+    from tests.support.virtual_mcu import VirtualMcu
 
 REPO = Path(__file__).resolve().parent.parent
 CORPUS = REPO / "tests" / "data" / "corpus"  # real G-code files, sources in SOURCES.md
@@ -77,3 +81,13 @@ def make_config(extra: dict[str, Any] | None = None, **sections: Any) -> Config:
 @pytest.fixture
 def config() -> Config:
     return make_config()
+
+
+@pytest.fixture
+def mcu() -> Iterator[VirtualMcu]:
+    """A virtual Klipper MCU on a pty (a test file may define its own, with other options)."""
+    from tests.support.virtual_mcu import VirtualMcu
+
+    virtual = VirtualMcu().start()
+    yield virtual
+    virtual.stop()

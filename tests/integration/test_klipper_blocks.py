@@ -6,10 +6,7 @@ from __future__ import annotations
 import asyncio
 import math
 import time
-from collections.abc import Iterator
 from typing import Any
-
-import pytest
 
 from server.backends.klipper.backend import KlipperBackend
 from server.backends.klipper.codec import PAYLOAD_MAX
@@ -17,13 +14,6 @@ from server.backends.klipper.link import Link
 from tests.integration.test_klipper_backend import LASER, check_steps, run_job
 from tests.support.klipper_machine import klipper_machine
 from tests.support.virtual_mcu import VirtualMcu
-
-
-@pytest.fixture
-def mcu() -> Iterator[VirtualMcu]:
-    virtual = VirtualMcu().start()
-    yield virtual
-    virtual.stop()
 
 
 async def test_a_burst_of_small_messages_leaves_in_full_blocks_decoded_in_order(

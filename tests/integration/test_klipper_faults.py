@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import Iterator
 
 import pytest
 
@@ -17,13 +16,6 @@ from tests.integration.test_klipper_backend import LASER, check_steps, run_job
 from tests.support.helpers import running, submit_all
 from tests.support.klipper_machine import PINS, klipper_config, klipper_machine
 from tests.support.virtual_mcu import VirtualMcu
-
-
-@pytest.fixture
-def mcu() -> Iterator[VirtualMcu]:
-    virtual = VirtualMcu().start()
-    yield virtual
-    virtual.stop()
 
 
 async def wait_for_alarm(app: App, limit_s: float = 3.0) -> float:

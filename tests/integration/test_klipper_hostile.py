@@ -7,7 +7,6 @@ import asyncio
 import logging
 import time
 import zlib
-from collections.abc import Iterator
 
 import pytest
 
@@ -21,13 +20,6 @@ from tests.support.klipper_machine import klipper_config, klipper_machine
 from tests.support.virtual_mcu import VirtualMcu
 
 LASER = {"pin": "PA8"}
-
-
-@pytest.fixture
-def mcu() -> Iterator[VirtualMcu]:
-    virtual = VirtualMcu().start()
-    yield virtual
-    virtual.stop()
 
 
 async def test_an_output_on_is_refreshed_within_its_max_duration_and_a_hung_host_lets_it_go_off(

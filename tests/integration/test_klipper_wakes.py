@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import Iterator
 from typing import Any
 
 import pytest
@@ -21,13 +20,6 @@ from tests.support.klipper_machine import klipper_machine
 from tests.support.virtual_mcu import VirtualMcu
 
 LASER = {"pin": "PA8"}
-
-
-@pytest.fixture
-def mcu() -> Iterator[VirtualMcu]:
-    virtual = VirtualMcu().start()
-    yield virtual
-    virtual.stop()
 
 
 def registered(link: Link) -> bool:

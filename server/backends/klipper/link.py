@@ -189,8 +189,7 @@ class Link:
             rider = self._rider = _Rider(message)
             rider.timer = self._loop.call_later(ride_s, self._release_rider)
         else:
-            self.send(message, keep=True)
-        self._watch()  # the answer is read as it arrives (once the message has left)
+            self.send(message, keep=True)  # watched for its answer once it leaves (_pump)
         try:
             params = await asyncio.wait_for(future, timeout_s)
         finally:
@@ -208,7 +207,6 @@ class Link:
         if rider is not None:
             self._rider, rider.timer, rider.sent_s = None, None, time.monotonic()
             self.send(rider.message, keep=True)
-            self._watch()
 
     def _drop_rider(self) -> None:
         if self._rider is not None and self._rider.timer is not None:
