@@ -255,9 +255,10 @@ class Motiond:
         await self.wait_ready(rig)
 
     async def run(self, lines: list[str], end_mm: tuple[float, float]) -> None:
-        """Stream the lines; back when motiond is idle at ``end_mm``."""
+        """Stream the lines and ``M400`` (answered when the moves are done, as klippy's run is:
+        neither host is polled while it moves); back when motiond is idle at ``end_mm``."""
         path = self.workdir / "job.nc"
-        path.write_text("\n".join(["G21 G90 G94", *lines]) + "\n")
+        path.write_text("\n".join(["G21 G90 G94", *lines, "M400"]) + "\n")
         result = await run_client(self.port, path, banner=True)
         if result["errors"]:
             raise RuntimeError(f"motiond refused {result['errors']} lines")
