@@ -89,6 +89,8 @@ class Link:
         self._waiters: list[tuple[str, Match, asyncio.Future[Params]]] = []
         self._rider: _Rider | None = None  # a request waiting for company (one at a time)
         self._timer: asyncio.TimerHandle | None = None
+        self._timer_deadline_s = 0.0  # when the armed timer fires
+        self._writing = False  # the event loop waits for room to write the rest of _out
         self._fd: int | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self.closed = False
@@ -216,35 +218,45 @@ class Link:
     def _pump(self) -> None:
         now_s = time.monotonic()
         rider = self._rider
-        if (rider is not None and self._queue and not self.closed
-                and self.window.can_send(len(rider.message) + len(self._queue[0]) + 5)):
+        queue, window = self._queue, self.window
+        if (rider is not None and queue and not self.closed
+                and window.can_send(len(rider.message) + len(queue[0]) + 5)):
             self._drop_rider()  # it leaves now, in the first block
             rider.sent_s = now_s
-            self._queue.appendleft(rider.message)
+            queue.appendleft(rider.message)
             self._keep.appendleft(True)
-        while self._queue and not self.closed:
+        made = False
+        while queue and not self.closed:
             payload = bytearray()
-            while self._queue and len(payload) + len(self._queue[0]) <= PAYLOAD_MAX:
-                payload += self._queue[0]
-                if not self.window.can_send(len(payload) + 5):
-                    payload = payload[:len(payload) - len(self._queue[0])]
+            while queue and len(payload) + len(queue[0]) <= PAYLOAD_MAX:
+                if not window.can_send(len(payload) + len(queue[0]) + 5):
                     break
-                self._queue.popleft()
+                payload += queue.popleft()
                 self._keep.popleft()
             if not payload:
                 break
-            self._new_block(bytes(payload), now_s)
+            self._new_block(bytes(payload), now_s, flush=False)
+            made = True
+        if made:
+            self._flush_out()  # the blocks of a burst in one write
         self._arm_timer()
         self._watch()  # messages left waiting for room: acknowledgements read as they come
 
     def _arm_timer(self) -> None:
+        """One timer, at the earliest deadline: kept while that deadline stands (blocks sent
+        behind the oldest one in flight do not move it)."""
         deadline = self.window.deadline_s()
         if deadline is not None and self.ack_timeout_s is not None:
             deadline = min(deadline, self._progress_s + self.ack_timeout_s)
+        if self.closed or self._loop is None:
+            deadline = None
         if self._timer is not None:
+            if deadline == self._timer_deadline_s:
+                return
             self._timer.cancel()
             self._timer = None
-        if deadline is not None and self._loop is not None and not self.closed:
+        if deadline is not None and self._loop is not None:
+            self._timer_deadline_s = deadline
             delay = max(0.0, deadline - time.monotonic())
             self._timer = self._loop.call_later(delay, self._on_timer)
 
@@ -272,19 +284,20 @@ class Link:
                      f"{now_s - self._progress_s:.2f} s (it sent {seen} meanwhile)")
         return True
 
-    def _new_block(self, payload: bytes, now_s: float) -> None:
+    def _new_block(self, payload: bytes, now_s: float, flush: bool = True) -> None:
         if not self.window.inflight:  # the wait for an acknowledgement starts now
             self._moved(now_s)
-        self._write(self.window.make_block(payload, now_s))
+        self._write(self.window.make_block(payload, now_s), flush)
 
     def _moved(self, now_s: float) -> None:
         self._progress_s = now_s
         self._blocks_in, self._bad_at_progress = 0, self._reader.bad_blocks
 
-    def _write(self, data: bytes) -> None:
+    def _write(self, data: bytes, flush: bool = True) -> None:
         self._out += data
         self.bytes_sent += len(data)
-        self._flush_out()
+        if flush:
+            self._flush_out()
 
     def _flush_out(self) -> None:
         if self._fd is None or self.closed:
@@ -298,10 +311,12 @@ class Link:
             return
         del self._out[:written]
         assert self._loop is not None
-        if self._out:
-            self._loop.add_writer(self._fd, self._flush_out)
-        else:
-            self._loop.remove_writer(self._fd)
+        if bool(self._out) != self._writing:  # the loop watches for room only while needed
+            self._writing = bool(self._out)
+            if self._writing:
+                self._loop.add_writer(self._fd, self._flush_out)
+            else:
+                self._loop.remove_writer(self._fd)
 
     def _on_readable(self) -> None:
         if self._read(timed=not self._backlog) < READ_BYTES:

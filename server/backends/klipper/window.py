@@ -50,6 +50,7 @@ class SendWindow:
         self.next_seq = 0  # 64-bit count of blocks made
         self.acked = 0  # the first block not yet acknowledged
         self.inflight: deque[_Sent] = deque()
+        self.bytes_in_flight = 0  # the blocks' bytes in inflight (kept, not summed per call)
         self.rto_s = MIN_RTO_S * 4
         self.srtt_s: float | None = None
         self.retransmits = 0
@@ -57,10 +58,6 @@ class SendWindow:
         # always draws one: an empty block before it is a nak whatever its number)
         self._ignore_naks_until_s = 0.0
         self._last_empty = 0  # the number the last empty block acknowledged (64-bit)
-
-    @property
-    def bytes_in_flight(self) -> int:
-        return sum(len(s.block) for s in self.inflight)
 
     def can_send(self, size_bytes: int) -> bool:
         return (len(self.inflight) < self.max_blocks
@@ -70,6 +67,7 @@ class SendWindow:
         """Frame ``payload`` with the next sequence number and keep it until acknowledged."""
         block = frame(self.next_seq, payload)
         self.inflight.append(_Sent(self.next_seq, payload, block, now_s))
+        self.bytes_in_flight += len(block)
         self.next_seq += 1
         return block
 
@@ -107,6 +105,7 @@ class SendWindow:
         to a host before); what was in flight is framed again with the new numbers."""
         payloads = [sent.payload for sent in self.inflight]
         self.inflight.clear()
+        self.bytes_in_flight = 0
         self.acked = self.next_seq = self._last_empty = rseq
         return [self.make_block(payload, now_s) for payload in payloads]
 
@@ -121,6 +120,7 @@ class SendWindow:
     def _acknowledge(self, rseq: int, now_s: float, timed: bool) -> None:
         while self.inflight and self.inflight[0].seq < rseq:
             sent = self.inflight.popleft()
+            self.bytes_in_flight -= len(sent.block)
             if timed and not sent.retransmitted:
                 self._measure(now_s - sent.sent_s)
         self.acked = rseq
