@@ -11,6 +11,7 @@ from klippy import msgproto  # type: ignore[import-untyped]
 
 from server.backends.klipper.backend import level
 from server.backends.klipper.codec import (
+    PAYLOAD_MAX,
     BlockReader,
     ProtocolError,
     crc16_ccitt,
@@ -48,6 +49,21 @@ def test_crc16_matches_klipper_on_random_blocks() -> None:
     for _ in range(200):
         data = bytes(rng.randrange(256) for _ in range(rng.randrange(1, 62)))
         assert list(crc16_ccitt(data).to_bytes(2)) == msgproto.crc16_ccitt(data)
+
+
+@given(st.binary(max_size=PAYLOAD_MAX), st.integers(0, 2**20))
+def test_a_compiled_block_is_the_block_klippy_checks(payload: bytes, seq: int) -> None:
+    """Framing and checksum are compiled: every payload size, every sequence number, the
+    block klippy's own parser accepts, its crc klippy's (from the bytes, not the table)."""
+    block = frame(seq, payload)
+    head = bytes((len(payload) + 5, 0x10 | (seq & 0x0F))) + payload
+    assert block == head + bytes(msgproto.crc16_ccitt(head)) + b"\x7e"
+    assert reference().check_packet(bytearray(block)) == len(block)
+
+
+def test_a_block_too_long_is_refused_before_the_compiled_framing() -> None:
+    with pytest.raises(ProtocolError, match="exceeds"):
+        frame(0, bytes(PAYLOAD_MAX + 1))
 
 
 @pytest.mark.parametrize("id_offset", [0, 41])
@@ -152,6 +168,29 @@ def test_the_sized_vlq_matches_the_generic_one(value: int) -> None:
     generic = bytearray()
     encode_vlq(generic, value)
     assert vlq(value) == bytes(generic)
+
+
+@given(st.lists(st.tuples(st.integers(0, 2**32 - 1), st.integers(1, 65535),
+                          st.integers(-32768, 32767)), max_size=40),
+       st.integers(0, 255), st.sampled_from([0, 41, 120]))
+@settings(max_examples=200, deadline=None)
+def test_compiled_queue_steps_are_the_generic_encoders_bytes(
+        runs: list[tuple[int, int, int]], oid: int, id_offset: int) -> None:
+    """A flush's runs as the compiled encoder sends them, byte for byte the generic
+    (Python, by parameter name) encoder's, and decoded back to the same runs."""
+    ours = Dictionary(dictionary_data(id_offset=id_offset))
+    queue_step = ours.encoder("queue_step")
+    compiled = b"".join(queue_step(oid, *run) for run in runs)
+    generic = b"".join(ours.encode("queue_step", oid=oid, interval=interval, count=count,
+                                   add=add) for interval, count, add in runs)
+    assert compiled == generic
+    assert ours.decode(compiled) == [
+        ("queue_step", {"oid": oid, "interval": i, "count": c, "add": a}) for i, c, a in runs]
+
+
+def test_a_prepared_encoder_refuses_another_count_of_parameters() -> None:
+    with pytest.raises(TypeError, match="4 parameters, not 3"):
+        Dictionary(dictionary_data()).encoder("queue_step")(0, 1, 2)
 
 
 @given(st.one_of(st.floats(allow_nan=True), st.floats(-0.1, 1.1)),

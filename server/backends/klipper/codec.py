@@ -15,6 +15,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from server.backends.klipper.stepcore import crc16
+from server.backends.klipper.stepcore import frame as frame_block
+
 MESSAGE_MIN = 5
 MESSAGE_MAX = 64
 PAYLOAD_MAX = MESSAGE_MAX - MESSAGE_MIN
@@ -32,26 +35,10 @@ class ProtocolError(Exception):
     """Bytes or a dictionary that do not follow the protocol."""
 
 
-def _crc_table() -> tuple[int, ...]:
-    table = []
-    for byte in range(256):
-        crc = byte
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0x8408 if crc & 1 else crc >> 1
-        table.append(crc)
-    return tuple(table)
-
-
-_CRC_TABLE = _crc_table()
-
-
 def crc16_ccitt(data: bytes) -> int:
     """The block checksum: CRC-16/MCRF4XX (CCITT polynomial, reflected, initial 0xFFFF),
-    a byte at a time from a table (every block in and out is checked: a flooding board)."""
-    crc, table = 0xFFFF, _CRC_TABLE
-    for byte in data:
-        crc = (crc >> 8) ^ table[(crc ^ byte) & 0xFF]
-    return crc
+    compiled (every block in and out is checked: a flooding board)."""
+    return crc16(data)
 
 
 def vlq_size(value: int) -> int:
@@ -93,9 +80,7 @@ def frame(seq: int, payload: bytes) -> bytes:
     """One message block with sequence number ``seq`` (mod 16) around ``payload``."""
     if len(payload) > PAYLOAD_MAX:
         raise ProtocolError(f"payload of {len(payload)} bytes exceeds {PAYLOAD_MAX}")
-    head = bytes((len(payload) + MESSAGE_MIN, DEST | (seq & SEQ_MASK))) + payload
-    crc = crc16_ccitt(head)
-    return head + bytes((crc >> 8, crc & 0xFF, SYNC))
+    return frame_block(DEST | (seq & SEQ_MASK), payload)  # compiled: length, crc, sync
 
 
 @dataclass(frozen=True, slots=True)
@@ -128,7 +113,7 @@ class BlockReader:
             if len(buffer) < length:
                 break
             raw = bytes(buffer[:length])
-            crc = crc16_ccitt(raw[:-3])
+            crc = crc16(raw[:-3])
             if raw[1] & ~SEQ_MASK != DEST or raw[-1] != SYNC or raw[-3:-1] != crc.to_bytes(2):
                 self._resync()
                 continue

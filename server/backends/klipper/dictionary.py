@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import zlib
 from collections.abc import Callable, Mapping
+from functools import partial
 from typing import Any
 
 from server.backends.klipper.codec import (
@@ -21,6 +22,7 @@ from server.backends.klipper.codec import (
     encode_vlq,
     expand_enumerations,
 )
+from server.backends.klipper.stepcore import message
 
 
 class Dictionary:
@@ -98,9 +100,10 @@ class Dictionary:
         return bytes(out)
 
     def encoder(self, name: str) -> Callable[..., bytes]:
-        """A prepared :meth:`encode` for a hot command: its id and field order resolved once;
-        called with the (integer, enum values as numbers) parameters in declared order. Gives
-        the same bytes as :meth:`encode`."""
+        """A prepared :meth:`encode` for a hot command: its id and field order resolved once,
+        the VLQs compiled (``_stepcore.message``); called with the (integer, enum values as
+        numbers) parameters in declared order (TypeError for another count). Gives the same
+        bytes as :meth:`encode`."""
         prepared = self._prepared.get(name)
         if prepared is None:
             prepared = self._prepared[name] = self._prepare(name)
@@ -112,19 +115,7 @@ class Dictionary:
             raise ProtocolError(f"the MCU has no command {name!r}")
         if any(kind == "s" for _, kind, _ in fmt.params):
             raise ProtocolError(f"{name}: a prepared encoder takes numbers only")
-        prefix, count = vlq(fmt.msgid), len(fmt.params)
-        if count == 2:
-            return lambda a, b: prefix + vlq(a) + vlq(b)
-        if count == 3:
-            return lambda a, b, c: prefix + vlq(a) + vlq(b) + vlq(c)
-        if count == 4:
-            return lambda a, b, c, e: prefix + vlq(a) + vlq(b) + vlq(c) + vlq(e)
-
-        def encode(*values: int) -> bytes:
-            if len(values) != count:
-                raise ProtocolError(f"{name}: {count} parameters, not {len(values)}")
-            return prefix + b"".join(map(vlq, values))
-        return encode
+        return partial(message, vlq(fmt.msgid), len(fmt.params))  # compiled: VLQs by size
 
     def decode(self, payload: bytes) -> list[tuple[str, Params]]:
         """Every message in a block payload, as ``(name, params)`` (enum values as names)."""
@@ -157,16 +148,6 @@ class Dictionary:
 
 
 def vlq(value: int) -> bytes:
-    """``value`` (-2**31 .. 2**32-1) as a VLQ (as :func:`~.codec.encode_vlq`), by size."""
-    if -0x20 <= value < 0x60:
-        return bytes((value & 0x7F,))
-    if -0x1000 <= value < 0x3000:
-        return bytes((((value >> 7) & 0x7F) | 0x80, value & 0x7F))
-    if -0x80000 <= value < 0x180000:
-        return bytes((((value >> 14) & 0x7F) | 0x80, ((value >> 7) & 0x7F) | 0x80,
-                      value & 0x7F))
-    if -0x4000000 <= value < 0xC000000:
-        return bytes((((value >> 21) & 0x7F) | 0x80, ((value >> 14) & 0x7F) | 0x80,
-                      ((value >> 7) & 0x7F) | 0x80, value & 0x7F))
-    return bytes((((value >> 28) & 0x7F) | 0x80, ((value >> 21) & 0x7F) | 0x80,
-                  ((value >> 14) & 0x7F) | 0x80, ((value >> 7) & 0x7F) | 0x80, value & 0x7F))
+    """``value`` (-2**31 .. 2**32-1) as a VLQ (as :func:`~.codec.encode_vlq`), by size
+    (compiled, as a prepared encoder's)."""
+    return message(b"", 1, value)

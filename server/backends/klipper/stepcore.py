@@ -1,4 +1,5 @@
-"""The compiled step core (``_stepcore.c``): step times and their compression.
+"""The compiled step core (``_stepcore.c``): step times and their compression, and the wire's
+hot end (a prepared message's VLQs, a block's framing and checksum).
 
 ``pip install`` builds it when a C compiler and Python's headers are there; it is optional so
 that motiond installs without them (the simulated machine needs no core). Without it the Klipper
@@ -21,10 +22,13 @@ try:
         QUADRATIC_DEV,
         WINDOW,
         compress,
+        crc16,
+        frame,
+        message,
         solve,
     )
 except ImportError:
     raise ConfigError([MISSING]) from None
 
 __all__ = ["ADD_MAX", "ADD_MIN", "MAX_COUNT", "MAX_TRIES", "QUADRATIC_DEV", "WINDOW", "compress",
-           "solve"]
+           "crc16", "frame", "message", "solve"]
