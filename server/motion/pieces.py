@@ -82,7 +82,8 @@ class PieceReporter:
 
     def _piece(self, start_s: float, duration_s: float, block: Block, from_mm: float,
                speed_mm_s: float, accel_mm_s2: float, power: PowerLaw | None = None) -> None:
-        start = tuple(p + u * from_mm for p, u in zip(block.start_mm, block.unit, strict=True))
+        start = block.start_mm if from_mm == 0.0 else tuple(
+            p + u * from_mm for p, u in zip(block.start_mm, block.unit, strict=True))
         self.backend.trajectory(
             Piece(start_s, duration_s, start, block.unit, speed_mm_s, accel_mm_s2, power))
 

@@ -671,8 +671,10 @@ class KlipperBackend:
         sent). Motion has ended once the samples pass the last piece's end (a late tick's
         slice ends exactly on one)."""
         idle = not self._pieces and now_s > self._generated_s + SLICE_END_S
-        force_clock = self._motion_clock(now_s + self.lead_s - self.hold_back_s)
+        force_clock = float(self._motion_clock(now_s + self.lead_s - self.hold_back_s))
         for axis in self.axes:
+            if not idle and axis.holds(force_clock):
+                continue  # nothing due: its run may still grow
             axis.collect()
             while axis.segments:
                 direction, points = axis.segments[0]

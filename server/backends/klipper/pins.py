@@ -45,6 +45,18 @@ class Axis:
         self.pending.append(clocks)
         self.pending_dir = direction
 
+    def holds(self, before_clock: float) -> bool:
+        """Whether :meth:`collect` may wait: what was added runs one way, and its first step
+        is not due before ``before_clock`` (a run still growing is not copied every flush)."""
+        segments, pending = self.segments, self.pending
+        if len(segments) > 1:
+            return False
+        if segments:
+            if pending and self.pending_dir != segments[0][0]:
+                return False
+            return bool(segments[0][1][0] >= before_clock)
+        return not pending or bool(pending[0][0] >= before_clock)
+
     def collect(self) -> None:
         """The pieces' step clocks added since the last call join :attr:`segments` (at most
         one concatenation per flush, not one per piece)."""

@@ -38,6 +38,7 @@ class Spans:
         default_factory=list)  # x0, u, v0, a, duration, first boundary, direction, base
     counts: list[int] = field(default_factory=list)
     runs: list[tuple[int, int]] = field(default_factory=list)  # (direction, steps) in order
+    total: int = 0  # steps of all the spans
 
     def add(self, x0: float, u: float, v0: float, a: float, duration_s: float, current: int,
             target: int, base_s: float) -> None:
@@ -46,6 +47,7 @@ class Spans:
         self.rows.append((x0, u, v0, a, duration_s, current + 0.5 * direction, direction,
                           base_s))
         self.counts.append(count)
+        self.total += count
         runs = self.runs
         if runs and runs[-1][0] == direction:
             runs[-1] = (direction, runs[-1][1] + count)
@@ -61,7 +63,7 @@ class Spans:
         near standstill), clamped to the span; beyond a decelerating piece's stop (rounding)
         the square root is 0 and the clamp puts the step at the piece's end. Compiled
         (``_stepcore.c``): one pass, no numpy temporaries."""
-        out = np.empty(sum(self.counts))
+        out = np.empty(self.total)
         solve(self.rows, self.counts, out, *to_clock)
         return out
 
