@@ -21,6 +21,7 @@ from server.backends.klipper.codec import (
     vlq_size,
 )
 from server.backends.klipper.dictionary import Dictionary, vlq
+from server.backends.klipper.stepcompress import StepRun, run_clocks
 from tests.support.klipper_dictionary import compressed, dictionary_data
 
 
@@ -186,6 +187,26 @@ def test_compiled_queue_steps_are_the_generic_encoders_bytes(
     assert compiled == generic
     assert ours.decode(compiled) == [
         ("queue_step", {"oid": oid, "interval": i, "count": c, "add": a}) for i, c, a in runs]
+
+
+@given(st.lists(st.tuples(st.integers(1, 2**20), st.integers(1, 65535),
+                          st.integers(-32768, 32767)), max_size=40),
+       st.integers(0, 255), st.integers(0, 2**40), st.sampled_from([0, 41, 120]))
+@settings(max_examples=200, deadline=None)
+def test_a_flushs_runs_encoded_at_once_are_the_prepared_encoders_messages(
+        runs: list[tuple[int, int, int]], oid: int, last_clock: int, id_offset: int) -> None:
+    """The compiled batch (one call a flush and stepper) sends each run's bytes as the
+    prepared encoder does, due at its first step's clock as the MCU counts it from the last
+    step (src/stepper.c: interval, then interval + add, ...), and ends at the last step."""
+    ours = Dictionary(dictionary_data(id_offset=id_offset))
+    messages, last = ours.step_encoder()(oid, runs, last_clock)
+    queue_step = ours.encoder("queue_step")
+    expected, clock = [], last_clock
+    for interval, count, add in runs:
+        steps = run_clocks(clock, StepRun(interval, count, add))
+        expected.append((queue_step(oid, interval, count, add), int(steps[0]), int(steps[0])))
+        clock = int(steps[-1])
+    assert messages == expected and last == clock
 
 
 def test_a_prepared_encoder_refuses_another_count_of_parameters() -> None:

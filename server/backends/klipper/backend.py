@@ -704,13 +704,9 @@ class KlipperBackend:
                 oid, int((direction > 0) != axis.invert_dir)), None, int(points[0]))
             axis.sent_dir = direction
         last = compressor.last_clock
-        runs, done = compressor.compress(points, final, self.errors)  # errors: how early, ticks
-        queue_step = d.encoder("queue_step")
-        for run in runs:
-            interval, count, add = run.interval, run.count, run.add
-            first = last + interval
-            add_message(queue_step(oid, interval, count, add), first, first)
-            last += count * interval + add * (count * (count - 1) // 2)
+        runs, done = compressor.compress_runs(points, final, self.errors)  # errors: how early
+        if runs:  # encoded at once, each due (and its slot taken until) its first step
+            self._queue.extend(d.step_encoder()(oid, runs, last)[0])
         return done
 
     def _pump(self) -> None:

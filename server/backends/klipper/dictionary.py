@@ -22,7 +22,10 @@ from server.backends.klipper.codec import (
     encode_vlq,
     expand_enumerations,
 )
-from server.backends.klipper.stepcore import message
+from server.backends.klipper.stepcore import message, step_messages
+
+StepEncoder = Callable[[int, list[tuple[int, int, int]], int],
+                       tuple[list[tuple[bytes, int, int]], int]]
 
 
 class Dictionary:
@@ -43,6 +46,7 @@ class Dictionary:
                 self._add(MessageFormat.parse(int(msgid), text, self.enumerations))
         self.pwm_max = int(self.constants.get("PWM_MAX", 255))  # a PWM output's full on
         self._prepared: dict[str, Callable[..., bytes]] = {}
+        self._steps: StepEncoder | None = None
 
     @classmethod
     def bootstrap(cls) -> Dictionary:
@@ -108,6 +112,21 @@ class Dictionary:
         if prepared is None:
             prepared = self._prepared[name] = self._prepare(name)
         return prepared
+
+    def step_encoder(self) -> StepEncoder:
+        """``queue_step`` for a flush's runs of one stepper at once (compiled:
+        ``_stepcore.step_messages``): ``(oid, [(interval, count, add)...], last_clock)`` ->
+        ``([(message, first_clock, first_clock)...], last_clock)``, each message the bytes
+        :meth:`encoder` gives for it."""
+        if self._steps is None:
+            fmt = self.by_name.get("queue_step")
+            if fmt is None:
+                raise ProtocolError("the MCU has no command 'queue_step'")
+            if [(p, k) for p, k, _ in fmt.params] != [("oid", "u"), ("interval", "u"),
+                                                      ("count", "u"), ("add", "i")]:
+                raise ProtocolError(f"queue_step has unexpected parameters: {fmt.text!r}")
+            self._steps = partial(step_messages, vlq(fmt.msgid))
+        return self._steps
 
     def _prepare(self, name: str) -> Callable[..., bytes]:
         fmt = self.by_name.get(name)

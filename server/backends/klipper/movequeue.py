@@ -33,6 +33,10 @@ class MoveQueue:
         """Queue ``message``; ``until`` is the MCU clock its slot frees at (None: no slot)."""
         self.waiting.append((message, until, due))
 
+    def extend(self, messages: list[tuple[bytes, int, int]]) -> None:
+        """Queue ``(message, slot until, due)`` triples (each as :meth:`add`)."""
+        self.waiting.extend(messages)
+
     def pump(self, mcu: Mcu, now: float, hold_after: float | None = None) -> float | None:
         """Send what the queue has room for at MCU clock ``now``, all in one burst (the link
         packs it into as few blocks as fit); returns how many ms late the next message would

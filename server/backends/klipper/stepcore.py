@@ -26,9 +26,10 @@ try:
         frame,
         message,
         solve,
+        step_messages,
     )
 except ImportError:
     raise ConfigError([MISSING]) from None
 
 __all__ = ["ADD_MAX", "ADD_MIN", "MAX_COUNT", "MAX_TRIES", "QUADRATIC_DEV", "WINDOW", "compress",
-           "crc16", "frame", "message", "solve"]
+           "crc16", "frame", "message", "solve", "step_messages"]
