@@ -92,6 +92,11 @@ TRAIL_EXTRA_S = 1.0  # the pieces are kept this long beyond the lead (where the 
 STOP_FLUSH_S = 0.1  # a fault's emergency stop gets this long to leave before the link closes
 STOP_READ_S = 0.5  # reading where a shut-down board stopped (a few round trips) takes at most
 SLICE_END_S = 1e-6  # a sample this little past the last piece's end is a late tick's slice
+SAMPLE_GAP_MAX_S = 0.15
+"""The longest the samples may pause while steps or outputs are under way (or the hold-back,
+if shorter): what is not yet generated still leaves at least ``lead_s`` - this ahead, and a
+board's shutdown or fault mid-motion is read (and alarmed) within it."""
+TURN_AFTER_S = 0.0005  # a sample asked for to send a run comes this much after its turn
 
 
 def level(value: float, top: int) -> int:
@@ -252,6 +257,31 @@ class KlipperBackend:
         if self.mcu is not None:
             self.mcu.busy = self._busy()
         self._pump()
+
+    def next_sample_s(self, time_s: float) -> float:
+        """When the sample after the one at ``time_s`` is needed (the step generator ticks
+        then, if that is later than its own next tick: every wake-up of the process costs
+        CPU). A run that may still grow leaves at the first sample after its turn (see
+        :meth:`_flush`): a sample is asked for just after it; the steps not yet generated
+        must leave at least ``lead_s`` - ``hold_back_s`` ahead, and an output that is on is
+        refreshed in time; at most ``SAMPLE_GAP_MAX_S`` apart. At once (the next tick) while
+        messages wait to leave, a fault waits to be raised, or the board is not ready."""
+        if (not self.ready or self._fault_to_raise is not None or self._queue.waiting
+                or not self._print.anchored):
+            return time_s
+        soonest_s = time_s + min(SAMPLE_GAP_MAX_S, self.hold_back_s)
+        to_print = self._print.time_at
+        for axis in self.axes:
+            if axis.pending or len(axis.segments) > 1:
+                return time_s
+            if axis.segments:
+                turn_s = to_print(float(axis.segments[0][1][0])) - self.lead_s + self.hold_back_s
+                soonest_s = min(soonest_s, turn_s + TURN_AFTER_S)
+        for out in self.outputs.values():
+            if out.value > 0.0 and out.max_ticks:
+                refresh_s = to_print(out.last_clock + out.max_ticks // 2) - self.lead_s
+                soonest_s = min(soonest_s, refresh_s)
+        return max(time_s, soonest_s)
 
     def set_output(self, name: str, value: float, time_s: float) -> None:
         self.values[name] = value
