@@ -457,7 +457,7 @@ class StepGenerator:
         (:meth:`hold`, :meth:`resume`, :meth:`stop_now`, input, a start) calls :attr:`hurry`."""
         tick_s = due_s + self.tick_s
         next_sample_s = self._next_sample_s
-        if next_sample_s is None or self.flush_requested or not self._sparse_ok():
+        if next_sample_s is None or not self._sparse_ok():
             return tick_s
         return max(tick_s, next_sample_s(now_s))
 

@@ -264,12 +264,19 @@ class KlipperBackend:
         CPU). A run that may still grow leaves at the first sample after its turn (see
         :meth:`_flush`): a sample is asked for just after it; the steps not yet generated
         must leave at least ``lead_s`` - ``hold_back_s`` ahead, and an output that is on is
-        refreshed in time; at most ``SAMPLE_GAP_MAX_S`` apart. At once (the next tick) while
-        messages wait to leave, a fault waits to be raised, or the board is not ready."""
-        if (not self.ready or self._fault_to_raise is not None or self._queue.waiting
-                or not self._print.anchored):
+        refreshed in time, and messages held to share a block (or for room in the MCU's
+        move queue) leave at their turn; at most ``SAMPLE_GAP_MAX_S`` apart. At once (the
+        next tick) while a fault waits to be raised or the board is not ready."""
+        mcu = self.mcu
+        if (not self.ready or self._fault_to_raise is not None or not self._print.anchored
+                or mcu is None or mcu.clock is None):
             return time_s
         soonest_s = time_s + min(SAMPLE_GAP_MAX_S, self.hold_back_s)
+        freq_hz = mcu.clock.freq_hz
+        turn = self._queue.turn(mcu.move_count, (self.lead_s - self.hold_back_s) * freq_hz,
+                                freq_hz)
+        if turn is not None:
+            soonest_s = min(soonest_s, mcu.clock.host_at(turn) + TURN_AFTER_S)
         to_print = self._print.time_at
         for axis in self.axes:
             if axis.pending or len(axis.segments) > 1:
