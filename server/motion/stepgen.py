@@ -8,7 +8,8 @@ position is the block's exact end, so emitted steps always sum to the commanded 
 
 Feed hold decelerates along the path (across block boundaries when needed) within the
 acceleration limit; resume re-plans the rest of the interrupted block from standstill.
-:mod:`server.runtime.ticks` is the thin asyncio task that calls :meth:`advance` at ``tick_hz``.
+:mod:`server.runtime.ticks` is the thin asyncio task that calls :meth:`advance` at ``tick_hz``
+(or when :meth:`next_tick_s` says: a backend that times its own steps is sampled when it needs).
 One call goes through at most ``max_blocks_per_call`` blocks: a tick late by many blocks (at
 20,000 segments/s a 50 ms stall is 1,000 blocks) is caught up in slices, with the event loop
 running other callbacks in between, instead of in one long call. A backend that times its own

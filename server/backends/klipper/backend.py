@@ -1,8 +1,9 @@
 """``[backend] kind = "klipper"``: stock Klipper MCU firmware executes the step generator's steps.
 
 The step generator tells this backend every constant-acceleration piece of the trajectory
-(:meth:`trajectory`) and how far its clock has reached (:meth:`sample`, every tick: once a
-``flush_s``, :attr:`tick_s`, since nothing here is timed by the ticks). Up to that time each
+(:meth:`trajectory`) and how far its clock has reached (:meth:`sample`, at the ticks: while
+motion runs, when :meth:`next_sample_s` says, at least a ``flush_s`` (:attr:`tick_s`) and at
+most ``SAMPLE_GAP_MAX_S`` apart, since nothing here is timed by the ticks). Up to that time each
 axis' exact step times are computed for all the pieces at once (:mod:`.steptimes`), mapped to
 MCU ticks at
 ``t + lead_time_s`` in the MCU's own time base (:mod:`.printclock`: the nominal ``CLOCK_FREQ``;
@@ -155,8 +156,9 @@ class KlipperBackend:
 
     @property
     def tick_s(self) -> float:
-        """The step generator ticks once a flush: steps, outputs and the followed output's
-        power are timed from the pieces, not from the ticks."""
+        """The step generator ticks at most once a flush (less often while motion runs: see
+        :meth:`next_sample_s`): steps, outputs and the followed output's power are timed from
+        the pieces, not from the ticks."""
         return self.flush_s
 
     def follow_power(self, name: str, period_s: float) -> bool:
