@@ -76,6 +76,36 @@ async def test_a_cruise_is_sampled_only_when_the_backend_needs_it(mcu: VirtualMc
         assert len(clocks) == 150 * 80 and backend.fault is None
 
 
+async def test_a_raster_sampled_in_late_tick_slices_keeps_the_laser_on_along_its_line(
+        mcu: VirtualMcu) -> None:
+    """0.1 mm segments at 100 mm/s: a sample 150 ms after the last spans more blocks than a
+    step generator call takes (64), so it comes in slices, each ending on a block's end. Such
+    a slice is not motion's end: the laser (M3, following the pieces) goes on once and off
+    once, never off and on again in between; every step is exact."""
+    async with klipper_machine(mcu, lead_time_s=LEAD_S,
+                               laser={"pin": "PA8", "maximum_power": 0.8}) as app:
+        backend, stepgen = klipper(app), app.kernel.machine.stepgen
+        advance, sliced = stepgen.advance, [0]
+
+        def counted(now_s: float) -> bool:
+            done = advance(now_s)
+            sliced[0] += not done
+            return done
+
+        stepgen.advance = counted  # type: ignore[method-assign]
+        segments = [f"G1 X{0.1 * k:.1f}" for k in range(1, 301)]
+        await submit_all(app, ["G0 X0 Y5", "M3 S500", "G1 F6000", *segments, "M5"])
+        await app.kernel.machine.wait_idle()
+        await asyncio.sleep(LEAD_S + 0.1)
+        assert sliced[0] >= 2, "the samples came in slices"
+        assert backend.pwm_log is not None
+        values = [value for _, name, value, _ in backend.pwm_log if name == "PA8"]
+        assert values == [0.4, 0.0], values
+        assert [value for _, value in mcu.output_events("PA8")[1:]] == [102, 0]
+        clocks, _ = mcu.step_clocks(backend.axes[0].oid)
+        assert len(clocks) == 300 * 8 and backend.fault is None
+
+
 async def test_a_hold_between_sparse_samples_decelerates_and_turns_the_laser_off_at_once(
         mcu: VirtualMcu) -> None:
     """A feed hold 10 ms after a sample (the next sparse one 140 ms away): the step generator
@@ -182,3 +212,22 @@ async def until(condition: Callable[[], bool], limit_s: float) -> float:
         assert time.monotonic() - start < limit_s, "never"
         await asyncio.sleep(0.001)
     return time.monotonic() - start
+
+
+async def test_a_host_hung_past_the_silence_limit_reads_the_board_s_shutdown_first(
+        mcu: VirtualMcu) -> None:
+    """motiond hangs 1.2 s mid-cut (past the MCU's silence limit, 0.5 s + a poll): the board's
+    watchdog turns the laser off and it shuts down. Once the host runs again, what the board
+    said is read before its silence is judged: the alarm is the board's shutdown (or the late
+    steps), never "stopped answering"."""
+    async with klipper_machine(mcu, lead_time_s=LEAD_S, max_duration_s=0.3,
+                               laser=LASER) as app:
+        await submit_all(app, ["M3 S800", "G1 X100 F1200"])
+        await asyncio.sleep(0.6)
+        time.sleep(1.2)  # noqa: ASYNC251 - motiond hangs, on purpose
+        await wait_for_alarm(app)
+        assert mcu.shutdowns[:1] == ["Missed scheduling of next hard pwm event"]
+        assert mcu.output_events("PA8")[-1][1] == 0, "the board turned the laser off"
+        message = app.kernel.alarm_message
+        assert "stopped answering" not in message, message
+        assert any(why in message for why in ("Missed", "not sent in time")), message

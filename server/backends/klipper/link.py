@@ -160,6 +160,11 @@ class Link:
         ready = poll.poll(0)
         return ready[0][1] if ready else 0
 
+    def read_waiting(self) -> None:
+        """Read what the device holds now (a judge of the link's silence reads it first)."""
+        self._drain()
+        self._watch()
+
     def _drain(self) -> None:
         """Read what the device holds now, non-blocking: one read of ``READ_BYTES``; if that
         filled it, the rest is read a turn of the event loop at a time, as it would be while

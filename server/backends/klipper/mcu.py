@@ -300,6 +300,10 @@ class Mcu:
             if done:
                 raise self._fault.result()
             if time.monotonic() - self._last_heard_s > self.timeout_s + period_s:
+                self.link.read_waiting()  # what came while the host hung (the board's
+                if self._fault.done():  # own shutdown) is read before silence is judged
+                    raise self._fault.result()
+            if time.monotonic() - self._last_heard_s > self.timeout_s + period_s:
                 raise KlipperFault(
                     f"the MCU stopped answering for {self.timeout_s + period_s:g} s")
             try:
