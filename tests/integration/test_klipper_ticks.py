@@ -1,6 +1,6 @@
 """#26, part T: ticks only when needed. On the Klipper backend the step generator samples the
 backend when it next needs a sample (a run's turn to leave, steps due for generation, an
-output's refresh; at most ``SAMPLE_GAP_MAX_S`` or the hold-back apart), not every flush; what
+output's refresh; at most the hold-back and a flush apart), not every flush; what
 must act at once (a hold, a halt) brings the next tick forward; an idle server wakes only for
 its periodic jobs, all on one grid. Against the virtual MCU over a real pty, lead 0.3 s (the
 default: a hold-back of 0.15 s)."""
@@ -55,9 +55,10 @@ async def just_after_a_sample(samples: list[float]) -> None:
 
 
 async def test_a_cruise_is_sampled_only_when_the_backend_needs_it(mcu: VirtualMcu) -> None:
-    """100 mm/s along X for 1.5 s: in the cruise the backend is sampled about every 150 ms
-    (each run's turn to leave), not every 20 ms flush (50 a second); every run still reaches
-    the MCU at least the lead less the hold-back less a flush ahead, and every step is exact."""
+    """100 mm/s along X for 1.5 s: in the cruise the backend is sampled about every 165 ms
+    (each run's turn to leave, as late as a flush would send it), not every 20 ms flush (50 a
+    second); every run still reaches the MCU at least the lead less the hold-back less a flush
+    ahead (the ride-through the flushes kept), and every step is exact."""
     async with klipper_machine(mcu, lead_time_s=LEAD_S) as app:
         backend = klipper(app)
         samples = record_samples(backend)
@@ -78,7 +79,7 @@ async def test_a_cruise_is_sampled_only_when_the_backend_needs_it(mcu: VirtualMc
 
 async def test_a_raster_sampled_in_late_tick_slices_keeps_the_laser_on_along_its_line(
         mcu: VirtualMcu) -> None:
-    """0.1 mm segments at 100 mm/s: a sample 150 ms after the last spans more blocks than a
+    """0.1 mm segments at 100 mm/s: a sample ~165 ms after the last spans more blocks than a
     step generator call takes (64), so it comes in slices, each ending on a block's end. Such
     a slice is not motion's end: the laser (M3, following the pieces) goes on once and off
     once, never off and on again in between; every step is exact."""
@@ -108,7 +109,7 @@ async def test_a_raster_sampled_in_late_tick_slices_keeps_the_laser_on_along_its
 
 async def test_a_hold_between_sparse_samples_decelerates_and_turns_the_laser_off_at_once(
         mcu: VirtualMcu) -> None:
-    """A feed hold 10 ms after a sample (the next sparse one 140 ms away): the step generator
+    """A feed hold 10 ms after a sample (the next sparse one ~155 ms away): the step generator
     is ticked at once, the deceleration starts where the steps reached (no later than the
     command on the motion's timeline) and the laser's off is queued then; the machine stops
     within the deceleration distance, every step sent executed."""

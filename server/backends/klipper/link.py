@@ -204,7 +204,8 @@ class Link:
                       match: Match = lambda _: True, ride_s: float = 0.0) -> Params:
         """Send ``message`` and wait for the first ``response`` that ``match``es; its
         ``#sent_s`` is when ``message`` left. With ``ride_s``, ``message`` waits that long at
-        most for other messages to leave and joins their first block."""
+        most for other messages to leave and joins their first block (``timeout_s`` counts
+        from when it may have left at the latest)."""
         assert self._loop is not None
         future: asyncio.Future[Params] = self._loop.create_future()
         waiter = (response, match, future)
@@ -217,7 +218,8 @@ class Link:
         else:
             self.send(message, keep=True)  # watched for its answer once it leaves (_pump)
         try:
-            params = await asyncio.wait_for(future, timeout_s)
+            # its patience starts when it leaves: a rider waits up to ride_s for company
+            params = await asyncio.wait_for(future, timeout_s + (ride_s if rider else 0.0))
         finally:
             if waiter in self._waiters:
                 self._waiters.remove(waiter)

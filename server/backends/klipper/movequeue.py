@@ -82,9 +82,13 @@ class MoveQueue:
         first waiting message comes within ``hold_ticks`` of its time; None if nothing waits."""
         if not self.waiting:
             return None
-        if len(self.in_use) >= move_count:
+        if self.full(move_count):
             return self.in_use[0] + QUEUE_MARGIN_S * freq_hz
         return min(due for _, _, due in self.waiting) - hold_ticks
+
+    def full(self, move_count: int) -> bool:
+        """Whether every slot of the MCU's move queue is taken (as last counted)."""
+        return len(self.in_use) >= move_count
 
     def busy(self, now: float) -> bool:
         """Whether a message waits or a slot is still taken at MCU clock ``now``."""
