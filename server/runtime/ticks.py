@@ -124,9 +124,11 @@ class _Ticks:
         self.generator.hurry = _no_hurry
 
     def hurry(self, within_s: float) -> None:
-        """The next tick within ``within_s`` from now (not sooner than it was due)."""
-        due_s = self.clock.now_s() + within_s
-        if due_s < self.next_s and not self.done.done():
+        """The next tick within ``within_s`` from now, if it was due more than a ``tick_s``
+        from now (sparse ticks; ticks a ``tick_s`` apart keep their grid)."""
+        now_s = self.clock.now_s()
+        due_s = now_s + within_s
+        if self.next_s > now_s + self.generator.tick_s and not self.done.done():
             self._handle.cancel()
             self.next_s = due_s
             self._handle = self.clock.call_at(due_s, self._fire)
