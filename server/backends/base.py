@@ -58,9 +58,12 @@ class Backend(Protocol):
 
     A backend that times its own steps from the pieces may set ``tick_s``: the step generator
     then ticks that often instead of at ``tick_hz`` (Klipper's: every flush; steps, actions and
-    the laser's power are timed from the pieces, not from the ticks). One that has
-    ``follow_power(name, period_s)`` returning True drives the output ``name`` from each piece's
-    ``power`` itself, at most every ``period_s`` (the laser module then stops sampling).
+    the laser's power are timed from the pieces, not from the ticks), and may say with
+    ``next_sample_s(time_s)`` when it needs the sample after the one at ``time_s``: while
+    motion needs nothing of the ticks themselves, the step generator ticks then if later.
+    One that has ``follow_power(name, period_s)`` returning True drives the output ``name``
+    from each piece's ``power`` itself, at most every ``period_s`` (the laser module then
+    stops sampling).
     """
 
     wants_trajectory: bool

@@ -8,7 +8,8 @@ position is the block's exact end, so emitted steps always sum to the commanded 
 
 Feed hold decelerates along the path (across block boundaries when needed) within the
 acceleration limit; resume re-plans the rest of the interrupted block from standstill.
-:mod:`server.runtime.ticks` is the thin asyncio task that calls :meth:`advance` at ``tick_hz``.
+:mod:`server.runtime.ticks` is the thin asyncio task that calls :meth:`advance` at ``tick_hz``
+(or when :meth:`next_tick_s` says: a backend that times its own steps is sampled when it needs).
 One call goes through at most ``max_blocks_per_call`` blocks: a tick late by many blocks (at
 20,000 segments/s a 50 ms stall is 1,000 blocks) is caught up in slices, with the event loop
 running other callbacks in between, instead of in one long call. A backend that times its own
@@ -122,6 +123,12 @@ class StepGenerator:
         self.action_s: float | None = None
         # Called when motion may start (input, a start request): the task sleeps while idle.
         self.wake: Callable[[], None] = lambda: None
+        # Set by the ticking task: the next tick comes within the given seconds (the tick
+        # schedule did not foresee this: a hold, a halt, input while nothing runs).
+        self.hurry: Callable[[float], None] = lambda within_s: None
+        # The backend's next need of a sample, if it says (see next_tick_s)
+        self._next_sample_s: Callable[[float], float] | None = getattr(
+            backend, "next_sample_s", None)
 
     # -- control (called by the machine) ----------------------------------------------------
     @property
@@ -140,11 +147,14 @@ class StepGenerator:
         """A block was appended at ``now_s``: motion starts after a short settling delay."""
         self.last_input_s = now_s
         self.wake()
+        if self._cursor.block is None:  # nothing under way: ticks at tick_s until it starts
+            self.hurry(self.tick_s)
 
     def request_start(self) -> None:
         """Start executing queued blocks at the next tick, without waiting for more input."""
         self.flush_requested = True
         self.wake()
+        self.hurry(0.0)
 
     def hold(self) -> None:
         """Feed hold: decelerate to a stop along the path."""
@@ -158,6 +168,7 @@ class StepGenerator:
         cursor.hold_speed_mm_s = cursor.block.speed_at(cursor.time_s)
         cursor.hold_accel_mm_s2 = cursor.block.accel_mm_s2 or math.inf
         self._set_hold(HoldState.DECELERATING)
+        self.hurry(0.0)  # the deceleration's steps at once, not at a sparse tick
 
     def resume(self) -> None:
         """Cycle start: continue from exactly where the hold stopped."""
@@ -176,6 +187,7 @@ class StepGenerator:
         self.planner.set_start_speed(0.0)
         self._running = True
         self._set_hold(HoldState.NONE)
+        self.hurry(0.0)
 
     def stop_now(self) -> list[Action]:
         """Halt: stop at once where the steps are, drop everything queued."""
@@ -192,6 +204,7 @@ class StepGenerator:
         self._publish_still()
         if self._last_tick_s is not None and self._pieces is not None:  # the rest is dropped
             self._pieces.stop(self._last_tick_s, self.state.position_mm)
+        self.hurry(0.0)  # the ticks see the stop (and may rest) at once
         return dropped
 
     # -- the tick ---------------------------------------------------------------------------
@@ -436,6 +449,28 @@ class StepGenerator:
         return tuple(self._cursor.steps)
 
     # -- the task's hooks (server.runtime.ticks runs the ticks) -----------------------------
+    def next_tick_s(self, due_s: float, now_s: float) -> float:
+        """When the tick after the one due at ``due_s`` (run at ``now_s``) is due: a
+        ``tick_s`` on, or later when the backend says when it next needs a sample
+        (``next_sample_s``: a backend that times its own steps from the pieces) while motion
+        needs nothing of the ticks themselves: no hold decelerating, no start pending, no
+        probing or homing move (checked at each tick). Whatever changes that between ticks
+        (:meth:`hold`, :meth:`resume`, :meth:`stop_now`, input, a start) calls :attr:`hurry`."""
+        tick_s = due_s + self.tick_s
+        next_sample_s = self._next_sample_s
+        if next_sample_s is None or not self._sparse_ok():
+            return tick_s
+        return max(tick_s, next_sample_s(now_s))
+
+    def _sparse_ok(self) -> bool:
+        """Whether motion needs no tick of its own until the backend's next sample."""
+        state, block = self.state, self._cursor.block
+        if state.hold is HoldState.DECELERATING:
+            return False
+        if block is None:
+            return len(self.planner) == 0  # else a start is pending
+        return state.kind not in (MoveKind.PROBE, MoveKind.HOMING)
+
     def resume_at(self, time_s: float) -> None:
         """The timeline (re)starts at ``time_s``: no catching up on time not ticked (the
         task's start, a sleep while idle)."""

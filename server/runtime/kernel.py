@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import time
 from collections.abc import Callable
 from typing import Any
@@ -200,6 +201,12 @@ LOCKED_STATES = frozenset({MachineState.ALARM, MachineState.SLEEP})  # $X / Ctrl
 QUIET_AFTER_S = 1.0  # no command for this long (and nothing moving): the loop monitor slows
 
 
+def on_grid_s(now_s: float, period_s: float) -> float:
+    """The first whole multiple of ``period_s`` after ``now_s`` (monotonic seconds): periodic
+    wake-ups on this grid coincide (one wake-up of the process serves them all)."""
+    return (math.floor(now_s / period_s) + 1) * period_s
+
+
 class LoopMonitor:
     """Measures how late the event loop wakes a sleeper of ``period_s`` (1 ms; a step
     generator that ticks less often, less often too): the worst stall, in seconds.
@@ -219,11 +226,14 @@ class LoopMonitor:
     only while nothing ticks (:meth:`rest`), and while ``is_quiet()`` (nothing moves, no
     command for a while) it sleeps ``quiet_period_s`` instead, so an idle server does not wake
     a thousand times a second; a stall then still shows as a late wake-up, if a coarser one.
+    Its own wake-ups fall on whole multiples of the period (:func:`on_grid_s`), as the other
+    periodic ones of an idle server do (the kernel's second, a Klipper MCU's clock polls): one
+    wake-up of the process serves them all.
     """
 
     def __init__(self, period_s: float = 0.001, gc_pacer: GcPacer | None = None,
                  is_quiet: Callable[[], bool] = lambda: False,
-                 quiet_period_s: float = 0.25) -> None:
+                 quiet_period_s: float = 0.5) -> None:
         self.period_s = period_s
         self.quiet_period_s = quiet_period_s
         self.is_quiet = is_quiet
@@ -265,22 +275,21 @@ class LoopMonitor:
             self.gc_pacer.step(woke_s)
 
     async def run(self) -> None:
-        before_s = time.monotonic()
         try:
             while True:
                 if self.riding:
                     self._resting.clear()
                     await self._resting.wait()
-                    before_s, self._cpu_before_s = time.monotonic(), time.thread_time()
+                    self._cpu_before_s = time.thread_time()
                     continue
                 period_s = self.quiet_period_s if self.is_quiet() else self.period_s
-                await asyncio.sleep(period_s)
+                due_s = on_grid_s(time.monotonic(), period_s)
+                await asyncio.sleep(due_s - time.monotonic())
                 if self.riding:  # the ticks took over while it slept
                     continue
                 woke_s = time.monotonic()
                 self.own_samples += 1
-                self._observe(woke_s - before_s - period_s, woke_s)
-                before_s = woke_s  # the pacer's work counts in the next
+                self._observe(woke_s - due_s, woke_s)
         finally:
             if self.gc_pacer is not None:
                 self.gc_pacer.close()
@@ -411,7 +420,7 @@ class Kernel:
             self.alarm(Alarm.MODULE_FAILED, f"module [{section}] failed: {exc!r}")
 
     async def _second_ticker(self) -> None:
-        next_s = self.clock.now_s() + 1.0
+        next_s = on_grid_s(self.clock.now_s(), 1.0)  # whole seconds: with other wake-ups
         while True:
             await self.clock.sleep_until(next_s)
             self.events.emit(Event.SECOND, next_s)

@@ -89,7 +89,7 @@ class Machine(GcodeFeed, RealtimeCommands):
         self._work = asyncio.Event()  # motion may start: the step generator stops sleeping
         self.stepgen.wake = self._work.set
         self.tick_watch: TickWatch | None = None  # told of the ticks on real time (the kernel's)
-        self.backend.wake_with(self._work.set)  # a fault or an output on: ticks again
+        self.backend.wake_with(self._backend_wake)  # a fault or an output on: ticks again
         self.idle_event = asyncio.Event()
         self.idle_event.set()
         self.check_mode = False
@@ -265,6 +265,12 @@ class Machine(GcodeFeed, RealtimeCommands):
             backend_task.cancel()
             await asyncio.gather(backend_task, return_exceptions=True)
             self.backend.close()
+
+    def _backend_wake(self) -> None:
+        """The backend needs a sample soon (a fault to report, an output to send): the ticks
+        resume if they slept, and the next comes at once if they are sparse."""
+        self._work.set()
+        self.stepgen.hurry(0.0)
 
     async def _wait_for_work(self) -> None:
         """Until the step generator is woken (checked and cleared in one turn: no race)."""

@@ -1,4 +1,4 @@
-"""The step generator's task: ticks at ``tick_s`` on the kernel's clock, as timer callbacks.
+"""The step generator's task: ticks on the kernel's clock, as timer callbacks.
 
 Each tick is a timer callback on the clock (:meth:`~server.runtime.clock.RealClock.call_at`):
 one turn of the event loop, where an awaited sleep takes two (the timer's, then the task's
@@ -9,6 +9,12 @@ waits for work instead of ticking (an idle server costs no CPU), and the timelin
 the wake-up. A :class:`TickWatch` (the kernel's loop monitor) is told each tick's lateness and
 when the ticks stop. A tick that raises (a failing backend) is reported to ``on_fault``, which
 must stop motion; the ticks go on, so the server stays up and answers.
+
+The ticks come every ``tick_s``, or as :meth:`~StepGenerator.next_tick_s` says after each one
+(a backend that times its own steps is sampled only when it needs to be: each wake-up of the
+process costs CPU). Between ticks, :attr:`~StepGenerator.hurry` brings the next one forward
+(a hold, a halt, input while nothing runs); during a tick it is not needed (the next deadline
+is decided after the tick, from the state it left).
 """
 
 from __future__ import annotations
@@ -109,14 +115,27 @@ class _Ticks:
         self.generator, self.clock, self.after_tick = generator, clock, after_tick
         self.on_fault, self.watch, self.sleeps = on_fault, watch, sleeps
         self.done: asyncio.Future[float | None] = asyncio.get_running_loop().create_future()
-        self.next_s = last_s + generator.tick_s
+        self.next_s = generator.next_tick_s(last_s, last_s)
         self._handle = clock.call_at(self.next_s, self._fire)
+        generator.hurry = self.hurry
 
     def stop(self) -> None:
         self._handle.cancel()
+        self.generator.hurry = _no_hurry
+
+    def hurry(self, within_s: float) -> None:
+        """The next tick within ``within_s`` from now, if it was due more than a ``tick_s``
+        from now (sparse ticks; ticks a ``tick_s`` apart keep their grid)."""
+        now_s = self.clock.now_s()
+        due_s = now_s + within_s
+        if self.next_s > now_s + self.generator.tick_s and not self.done.done():
+            self._handle.cancel()
+            self.next_s = due_s
+            self._handle = self.clock.call_at(due_s, self._fire)
 
     def _fire(self) -> None:
         generator = self.generator
+        generator.hurry = _no_hurry  # the next deadline is decided after this tick
         try:
             now_s = self.clock.now_s()
             if self.watch is not None:
@@ -130,8 +149,13 @@ class _Ticks:
             if self.sleeps and generator.can_sleep:
                 self.done.set_result(None)
                 return
-            self.next_s += generator.tick_s
+            self.next_s = generator.next_tick_s(self.next_s, now_s)
             self._handle = self.clock.call_at(self.next_s, self._fire)
+            generator.hurry = self.hurry
         except Exception as exc:  # noqa: BLE001 - the task raises it (no on_fault given)
             if not self.done.done():
                 self.done.set_exception(exc)
+
+
+def _no_hurry(within_s: float) -> None:
+    """No tick is scheduled (none to bring forward) or one runs now."""

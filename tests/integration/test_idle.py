@@ -129,7 +129,7 @@ async def test_the_loop_monitor_rides_the_ticks_and_keeps_its_own_timer_only_whi
         await asyncio.sleep(0.2)  # start-up settles: nothing ticks
         assert not monitor.riding
         own_idle = monitor.own_samples
-        await asyncio.sleep(0.1)
+        await asyncio.sleep(monitor.quiet_period_s + 0.05)  # quiet: its slow period
         assert monitor.own_samples > own_idle, "idle, the monitor keeps its own timer"
 
         await submit_all(app, ["G1 X40 F3000"])  # 0.8 s of motion at 1 kHz ticks

@@ -1,8 +1,9 @@
 """``[backend] kind = "klipper"``: stock Klipper MCU firmware executes the step generator's steps.
 
 The step generator tells this backend every constant-acceleration piece of the trajectory
-(:meth:`trajectory`) and how far its clock has reached (:meth:`sample`, every tick: once a
-``flush_s``, :attr:`tick_s`, since nothing here is timed by the ticks). Up to that time each
+(:meth:`trajectory`) and how far its clock has reached (:meth:`sample`, at the ticks: while
+motion runs, when :meth:`next_sample_s` says, at least a ``flush_s`` (:attr:`tick_s`) and at
+most ``SAMPLE_GAP_MAX_S`` apart, since nothing here is timed by the ticks). Up to that time each
 axis' exact step times are computed for all the pieces at once (:mod:`.steptimes`), mapped to
 MCU ticks at
 ``t + lead_time_s`` in the MCU's own time base (:mod:`.printclock`: the nominal ``CLOCK_FREQ``;
@@ -92,6 +93,15 @@ TRAIL_EXTRA_S = 1.0  # the pieces are kept this long beyond the lead (where the 
 STOP_FLUSH_S = 0.1  # a fault's emergency stop gets this long to leave before the link closes
 STOP_READ_S = 0.5  # reading where a shut-down board stopped (a few round trips) takes at most
 SLICE_END_S = 1e-6  # a sample this little past the last piece's end is a late tick's slice
+SAMPLE_MARGIN_S = 0.005  # a sample asked for at the last moment comes this much before it
+# (a woken loop is late by a millisecond or so, and the sample works a few before it sends)
+SAMPLE_GAP_MAX_S = 0.17
+"""The longest the samples may pause while steps or outputs are under way; within it, at
+most the hold-back plus a flush (less ``SAMPLE_MARGIN_S``): what a sample does not yet
+generate still leaves the ride-through the flushes kept (``lead_s`` - ``hold_back_s`` -
+``flush_s``: 130 ms at the default lead), a run held back to grow leaves as late as the
+flushes let it (runs as long: the same bytes), and a board's shutdown or fault mid-motion is
+read (and alarmed) within it (165 ms at the default lead)."""
 
 
 def level(value: float, top: int) -> int:
@@ -150,8 +160,9 @@ class KlipperBackend:
 
     @property
     def tick_s(self) -> float:
-        """The step generator ticks once a flush: steps, outputs and the followed output's
-        power are timed from the pieces, not from the ticks."""
+        """The step generator ticks at most once a flush (less often while motion runs: see
+        :meth:`next_sample_s`): steps, outputs and the followed output's power are timed from
+        the pieces, not from the ticks."""
         return self.flush_s
 
     def follow_power(self, name: str, period_s: float) -> bool:
@@ -252,6 +263,41 @@ class KlipperBackend:
         if self.mcu is not None:
             self.mcu.busy = self._busy()
         self._pump()
+
+    def next_sample_s(self, time_s: float) -> float:
+        """When the sample after the one at ``time_s`` is needed (the step generator ticks
+        then, if that is later than its own next tick: every wake-up of the process costs
+        CPU). A run that may still grow leaves at the first sample after its turn (see
+        :meth:`_flush`): a sample is asked for just after it; the steps not yet generated
+        must leave at least ``lead_s`` - ``hold_back_s`` ahead, and an output that is on is
+        refreshed in time, and messages held to share a block leave at their turn (as late
+        as a flush would send them), or as soon as the MCU's move queue has room for those
+        waiting for it; at most ``SAMPLE_GAP_MAX_S`` apart. At once (the next tick) while a
+        fault waits to be raised or the board is not ready."""
+        mcu = self.mcu
+        if (not self.ready or self._fault_to_raise is not None or not self._print.anchored
+                or mcu is None or mcu.clock is None):
+            return time_s
+        late_s = self.flush_s - SAMPLE_MARGIN_S  # past a turn: as a flush would come
+        soonest_s = time_s + min(SAMPLE_GAP_MAX_S, self.hold_back_s + late_s)
+        freq_hz = mcu.clock.freq_hz
+        turn = self._queue.turn(mcu.move_count, (self.lead_s - self.hold_back_s) * freq_hz,
+                                freq_hz)
+        if turn is not None:
+            full = self._queue.full(mcu.move_count)
+            soonest_s = min(soonest_s, mcu.clock.host_at(turn) + (0.0 if full else late_s))
+        to_print = self._print.time_at
+        for axis in self.axes:
+            if axis.pending or len(axis.segments) > 1:
+                return time_s
+            if axis.segments:
+                turn_s = to_print(float(axis.segments[0][1][0])) - self.lead_s + self.hold_back_s
+                soonest_s = min(soonest_s, turn_s + late_s)
+        for out in self.outputs.values():
+            if out.value > 0.0 and out.max_ticks:
+                refresh_s = to_print(out.last_clock + out.max_ticks // 2) - self.lead_s
+                soonest_s = min(soonest_s, refresh_s)
+        return max(time_s, soonest_s)
 
     def set_output(self, name: str, value: float, time_s: float) -> None:
         self.values[name] = value

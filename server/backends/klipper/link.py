@@ -23,6 +23,10 @@ to ride along is not watched for), messages waiting for room in the window, or n
 (:meth:`Link.rest`: an idle board's shutdown or restart is read at once). Every timer that
 judges the link (retransmission, the acknowledgement timeout) drains it first.
 Acknowledgements read at a sample are late by up to a tick: they measure no round trip.
+Read as data arrives, a block comes a few bytes at a time on a serial line (40 µs a byte at
+250,000 baud), and an answer is followed by the empty block that acknowledges the command's:
+a read that ends inside a block, or just after an answer, waits the wire time of the rest
+(:meth:`Link._settle_bytes`) before reading again, instead of waking for every byte or two.
 """
 
 from __future__ import annotations
@@ -37,7 +41,14 @@ from collections.abc import Callable
 
 import serial
 
-from server.backends.klipper.codec import PAYLOAD_MAX, BlockReader, Params, ProtocolError
+from server.backends.klipper.codec import (
+    MESSAGE_MAX,
+    MESSAGE_MIN,
+    PAYLOAD_MAX,
+    BlockReader,
+    Params,
+    ProtocolError,
+)
 from server.backends.klipper.dictionary import Dictionary
 from server.backends.klipper.window import SendWindow, SequenceError
 
@@ -45,6 +56,8 @@ MessageHandler = Callable[[str, Params, float], None]
 READ_BYTES = 1024  # per turn of the event loop: a board that floods delays a status report
 # by one such turn (~2 ms of decoding), never more
 Match = Callable[[Params], bool]
+BITS_PER_BYTE = 10  # a start bit, 8 data bits, a stop bit
+SETTLE_SLACK = 1.25  # the wire time waited for the rest of a block, and then some
 
 
 class _Rider:
@@ -103,6 +116,8 @@ class Link:
         self.watched = False  # the event loop reads the device as data arrives
         self.drains = 0  # samples that read the device (for tests and the benchmark)
         self._backlog = False  # a sample's read filled READ_BYTES: more waits to be read
+        self._settle: asyncio.TimerHandle | None = None  # the read after the rest's wire time
+        self._answered = False  # the last block read was an answer (its acknowledgement follows)
 
     def open(self) -> None:
         self._loop = asyncio.get_running_loop()
@@ -122,16 +137,22 @@ class Link:
         self._watch()
 
     def _watch(self) -> None:
-        """Register or remove the reader for what must be read now."""
-        if self._fd is None or self._loop is None or self.closed or self.failed:
+        """Register or remove the reader for what must be read now (not while a read waits
+        for the rest of a block: the settling read decides then)."""
+        if (self._fd is None or self._loop is None or self.closed or self.failed
+                or self._settle is not None):
             return
-        answer_due = bool(self._waiters) and self._rider is None  # a rider has not left yet
-        want = not self.sampling or self._backlog or answer_due or bool(self._queue)
+        want = self._wants_reader()
         if want and not self.watched:
             self._loop.add_reader(self._fd, self._on_readable)
         elif not want and self.watched:
             self._loop.remove_reader(self._fd)
         self.watched = want
+
+    def _wants_reader(self) -> bool:
+        """Whether something must be read as it arrives (see the module docstring)."""
+        answer_due = bool(self._waiters) and self._rider is None  # a rider has not left yet
+        return not self.sampling or self._backlog or answer_due or bool(self._queue)
 
     def _poll_events(self) -> int:
         """The device's poll events now (no wait)."""
@@ -140,6 +161,11 @@ class Link:
         poll.register(self._fd, select.POLLIN)
         ready = poll.poll(0)
         return ready[0][1] if ready else 0
+
+    def read_waiting(self) -> None:
+        """Read what the device holds now (a judge of the link's silence reads it first)."""
+        self._drain()
+        self._watch()
 
     def _drain(self) -> None:
         """Read what the device holds now, non-blocking: one read of ``READ_BYTES``; if that
@@ -180,7 +206,8 @@ class Link:
                       match: Match = lambda _: True, ride_s: float = 0.0) -> Params:
         """Send ``message`` and wait for the first ``response`` that ``match``es; its
         ``#sent_s`` is when ``message`` left. With ``ride_s``, ``message`` waits that long at
-        most for other messages to leave and joins their first block."""
+        most for other messages to leave and joins their first block (``timeout_s`` counts
+        from when it may have left at the latest)."""
         assert self._loop is not None
         future: asyncio.Future[Params] = self._loop.create_future()
         waiter = (response, match, future)
@@ -193,7 +220,8 @@ class Link:
         else:
             self.send(message, keep=True)  # watched for its answer once it leaves (_pump)
         try:
-            params = await asyncio.wait_for(future, timeout_s)
+            # its patience starts when it leaves: a rider waits up to ride_s for company
+            params = await asyncio.wait_for(future, timeout_s + (ride_s if rider else 0.0))
         finally:
             if waiter in self._waiters:
                 self._waiters.remove(waiter)
@@ -319,9 +347,34 @@ class Link:
                 self._loop.remove_writer(self._fd)
 
     def _on_readable(self) -> None:
-        if self._read(timed=not self._backlog) < READ_BYTES:
+        self._settle = None
+        if self.closed or self.failed:
+            return
+        got = self._read(timed=not self._backlog)
+        if got < READ_BYTES:
             self._backlog = False
-        self._watch()
+        missing = self._settle_bytes() if got else 0  # nothing came: the reader waits
+        if (not missing or self.closed or self.failed or self._loop is None
+                or not self._wants_reader()):
+            self._watch()
+            return
+        if self.watched:  # the rest is read after its wire time, not byte by byte
+            assert self._fd is not None
+            self._loop.remove_reader(self._fd)
+            self.watched = False
+        self._settle = self._loop.call_later(
+            missing * BITS_PER_BYTE * SETTLE_SLACK / self.baud, self._on_readable)
+
+    def _settle_bytes(self) -> int:
+        """The bytes still on their way: the rest of a block begun, and the acknowledgement
+        that follows an answer (an empty block); 0 after an acknowledgement or garbage."""
+        buffer = self._reader.buffer
+        if buffer:
+            length = buffer[0]
+            if not MESSAGE_MIN <= length <= MESSAGE_MAX:
+                return 0
+            return length - len(buffer) + (MESSAGE_MIN if length > MESSAGE_MIN else 0)
+        return MESSAGE_MIN if self._answered else 0
 
     def _read(self, timed: bool) -> int:
         """One read of the device, its blocks handled; the bytes read. ``timed``: read as
@@ -356,6 +409,7 @@ class Link:
                 self._blocks_in += 1
                 for again in self.window.on_block(block.seq, not block.payload, now_s, timed):
                     self._write(again)
+                self._answered = bool(block.payload)
                 if block.payload:
                     self._deliver(self.dictionary.decode(block.payload), now_s)
         except (SequenceError, ProtocolError) as exc:
@@ -409,6 +463,8 @@ class Link:
         self.closed = True
         if self._timer is not None:
             self._timer.cancel()
+        if self._settle is not None:
+            self._settle.cancel()
         self._drop_rider()
         self._fail_waiters(f"link to {self.path} closed")
         if self._fd is not None and self._loop is not None:

@@ -293,9 +293,17 @@ class Mcu:
         assert self._fault is not None
         while True:
             period_s = min(self.poll_s, BUSY_POLL_S) if self.busy else self.poll_s
-            done, _ = await asyncio.wait([self._fault], timeout=period_s)
+            # idle, on whole multiples of the period (monotonic), as the other periodic
+            # wake-ups of an idle server (the loop monitor's, the kernel's second): one
+            # wake-up; busy, a period after the last poll (which rode a while: fewer bytes)
+            wait_s = period_s - time.monotonic() % period_s if not self.busy else period_s
+            done, _ = await asyncio.wait([self._fault], timeout=wait_s)
             if done:
                 raise self._fault.result()
+            if time.monotonic() - self._last_heard_s > self.timeout_s + period_s:
+                self.link.read_waiting()  # what came while the host hung (the board's
+                if self._fault.done():  # own shutdown) is read before silence is judged
+                    raise self._fault.result()
             if time.monotonic() - self._last_heard_s > self.timeout_s + period_s:
                 raise KlipperFault(
                     f"the MCU stopped answering for {self.timeout_s + period_s:g} s")

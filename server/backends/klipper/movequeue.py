@@ -80,6 +80,20 @@ class MoveQueue:
             due_soon = due_soon or due <= hold_after
         return len(self.waiting) if due_soon else ready
 
+    def turn(self, move_count: int, hold_ticks: float, freq_hz: float) -> float | None:
+        """The MCU clock at which :meth:`pump` (with ``hold_after`` ``hold_ticks`` ahead) may
+        send more of what waits: when a slot frees if the move queue is full, else when the
+        first waiting message comes within ``hold_ticks`` of its time; None if nothing waits."""
+        if not self.waiting:
+            return None
+        if self.full(move_count):
+            return self.in_use[0] + QUEUE_MARGIN_S * freq_hz
+        return min(due for _, _, due in self.waiting) - hold_ticks
+
+    def full(self, move_count: int) -> bool:
+        """Whether every slot of the MCU's move queue is taken (as last counted)."""
+        return len(self.in_use) >= move_count
+
     def busy(self, now: float) -> bool:
         """Whether a message waits or a slot is still taken at MCU clock ``now``."""
         return bool(self.waiting) or any(until > now for until in self.in_use)
