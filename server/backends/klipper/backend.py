@@ -288,10 +288,11 @@ class KlipperBackend:
             soonest_s = min(soonest_s, mcu.clock.host_at(turn) + (0.0 if full else late_s))
         to_print = self._print.time_at
         for axis in self.axes:
-            if axis.pending or len(axis.segments) > 1:
+            first = axis.first_clock()  # what it holds waits for its turn, as in _flush
+            if first == 0.0:
                 return time_s
-            if axis.segments:
-                turn_s = to_print(float(axis.segments[0][1][0])) - self.lead_s + self.hold_back_s
+            if first is not None:
+                turn_s = to_print(first) - self.lead_s + self.hold_back_s
                 soonest_s = min(soonest_s, turn_s + late_s)
         for out in self.outputs.values():
             if out.value > 0.0 and out.max_ticks:

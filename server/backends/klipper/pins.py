@@ -48,14 +48,18 @@ class Axis:
     def holds(self, before_clock: float) -> bool:
         """Whether :meth:`collect` may wait: what was added runs one way, and its first step
         is not due before ``before_clock`` (a run still growing is not copied every flush)."""
+        first = self.first_clock()
+        return first is None or first >= before_clock
+
+    def first_clock(self) -> float | None:
+        """The clock from which what this axis holds must be looked at: its first step's, 0
+        when at once (runs both ways wait), None when it holds nothing."""
         segments, pending = self.segments, self.pending
-        if len(segments) > 1:
-            return False
+        if len(segments) > 1 or (segments and pending and self.pending_dir != segments[0][0]):
+            return 0.0
         if segments:
-            if pending and self.pending_dir != segments[0][0]:
-                return False
-            return bool(segments[0][1][0] >= before_clock)
-        return not pending or bool(pending[0][0] >= before_clock)
+            return float(segments[0][1][0])
+        return float(pending[0][0]) if pending else None
 
     def collect(self) -> None:
         """The pieces' step clocks added since the last call join :attr:`segments` (at most
