@@ -8,7 +8,8 @@ import pytest
 
 from server.errors import CommandError
 from server.gcode.interpreter import Interpreter, InterpreterSettings
-from server.runtime.dispatcher import Command, Dispatcher, SystemSource, Turn
+from server.runtime.dispatcher import Command, Dispatcher, SystemSource
+from server.runtime.turn import Turn
 
 SMALL = InterpreterSettings(("X", "Y", "Z"), (0.0, 0.0, -50.0), (400.0, 300.0, 50.0))
 
