@@ -26,6 +26,11 @@ sent while this one is in the controller's buffer; the caller replies once the f
 in the order it submitted the lines. Without ``defer`` the handler waits for the answer itself.
 Several handlers may share a name; all run, in registration order. An unknown command is an
 error for its sender, never a silent no-op.
+
+A line that needs no wait runs to its end inside :meth:`Dispatcher.begin`, with no task switch,
+future or lock object on its way (a raster streams hundreds of such lines a second): a handler
+may return its messages, or an awaitable of them when it must wait (the planner is full, a
+sync request); only then does the line hold its turn across awaits.
 """
 
 from __future__ import annotations
@@ -44,8 +49,10 @@ from typing import Protocol
 from server.errors import CommandError, Error
 from server.gcode.interpreter import LineKind
 from server.gcode.parser import Line, parse_line
+from server.runtime.turn import Turn
 
 HandlerResult = list[str] | None
+Outcome = list[str] | Awaitable[list[str]]  # a line's messages, or the wait for them
 Deferred = Callable[["asyncio.Future[list[str]]"], None]  # takes a line's answer-to-come
 Handler = Callable[["Command"], Awaitable[HandlerResult] | HandlerResult]
 Classifier = Callable[[Line], LineKind]
@@ -124,7 +131,7 @@ class Dispatcher:
         self._entries: defaultdict[str, _Entry] = defaultdict(_Entry)
         self._gcode: Handler | None = None
         self._classify: Classifier = lambda line: LineKind.EFFECT
-        self._lock = asyncio.Lock()
+        self._turn = Turn()
         self._is_locked = is_locked
         self._is_busy = is_busy
         self._owner: Source | None = None
@@ -181,43 +188,86 @@ class Dispatcher:
         ``still_valid`` is checked once the line's turn comes: a line overtaken by a reset of
         its connection while it waited is dropped (CommandError Error.BUSY), never run late.
         """
+        outcome = self.begin(text, source, still_valid, defer)
+        return outcome if isinstance(outcome, list) else await outcome
+
+    def begin(
+        self,
+        text: str,
+        source: Source,
+        still_valid: Callable[[], bool] | None = None,
+        defer: Deferred | None = None,
+    ) -> Outcome:
+        """:meth:`submit`, run as far as it goes without waiting: the line's messages when it
+        is done, else an awaitable of them, which the caller must await at once (the line
+        holds its turn until then). Raises CommandError as :meth:`submit` does."""
         if self._closed:
             raise CommandError(Error.BUSY, "shutting down")
         self.last_command_s = time.monotonic()
         stripped = text.strip()
         named = _named(stripped)
         if named and _key(named.group(1)) in self._immediate:
-            return await self._route(text, stripped, named, source, None)
-        async with self._lock:
+            return self._route(text, stripped, named, source, None)
+        if not self._turn.free:
+            return self._in_turn(text, stripped, named, source, still_valid, defer)
+        if still_valid is not None and not still_valid():
+            raise CommandError(Error.BUSY, "overtaken by a reset")
+        self._turn.taken = True
+        try:
+            outcome = self._route(text, stripped, named, source, defer)
+        except BaseException:
+            self._turn.release()
+            raise
+        if isinstance(outcome, list):
+            self._turn.release()
+            return outcome
+        return self._then_release(outcome)
+
+    async def _in_turn(self, text: str, stripped: str, named: re.Match[str] | None,
+                       source: Source, still_valid: Callable[[], bool] | None,
+                       defer: Deferred | None) -> list[str]:
+        """A line that waits for its turn behind another source's."""
+        await self._turn.take()
+        try:
             if self._closed:
                 raise CommandError(Error.BUSY, "shutting down")
             if still_valid is not None and not still_valid():
                 raise CommandError(Error.BUSY, "overtaken by a reset")
-            return await self._route(text, stripped, named, source, defer)
+            outcome = self._route(text, stripped, named, source, defer)
+            return outcome if isinstance(outcome, list) else await outcome
+        finally:
+            self._turn.release()
+
+    async def _then_release(self, outcome: Awaitable[list[str]]) -> list[str]:
+        try:
+            return await outcome
+        finally:
+            self._turn.release()
 
     async def execute(self, text: str, source: Source, defer: Deferred | None = None) -> list[str]:
         """Execute one line now (the caller holds the order); raise CommandError to refuse it."""
         stripped = text.strip()
-        return await self._route(text, stripped, _named(stripped), source, defer)
+        outcome = self._route(text, stripped, _named(stripped), source, defer)
+        return outcome if isinstance(outcome, list) else await outcome
 
-    async def _route(self, text: str, stripped: str, named: re.Match[str] | None,
-                     source: Source, defer: Deferred | None) -> list[str]:
+    def _route(self, text: str, stripped: str, named: re.Match[str] | None,
+               source: Source, defer: Deferred | None) -> Outcome:
         """:meth:`execute`, with the line stripped and matched as a named command already."""
         if not stripped:
             return []
         if stripped[0] == "$":
             name, args = _dollar_name(stripped)
-            return await self._run(name, Command(name, text, args, source, defer=defer))
+            return self._run(name, Command(name, text, args, source, defer=defer))
         if named and _key(named.group(1)) in self._entries:
             name = _key(named.group(1))
-            return await self._run(name, Command(name, text, named.group(2) or "", source))
+            return self._run(name, Command(name, text, named.group(2) or "", source))
         text_code = _TEXT_CODE.match(stripped) if stripped[0] in "Mm" else None
         if text_code and f"M{text_code.group(1)}" in self._entries:
             name = f"M{text_code.group(1)}"
-            return await self._run(name, Command(name, text, text_code.group(2), source))
-        return await self._gcode_line(text, source, defer)
+            return self._run(name, Command(name, text, text_code.group(2), source))
+        return self._gcode_line(text, source, defer)
 
-    async def _gcode_line(self, text: str, source: Source, defer: Deferred | None) -> list[str]:
+    def _gcode_line(self, text: str, source: Source, defer: Deferred | None) -> Outcome:
         line = parse_line(text)
         if line.error is not None:
             raise line.error
@@ -231,7 +281,10 @@ class Dispatcher:
             )
         if self._gcode is None:
             raise CommandError(Error.UNSUPPORTED, "no G-code interpreter")
-        return await _call(self._gcode, Command("G", text, "", source, line, defer))
+        result = self._gcode(Command("G", text, "", source, line, defer))
+        if inspect.isawaitable(result):
+            return _listed(result)
+        return list(result or ())
 
     async def _run(self, name: str, command: Command) -> list[str]:
         entry = self._entries.get(name)
@@ -300,6 +353,10 @@ async def _call(handler: Handler, command: Command) -> list[str]:
     if inspect.isawaitable(result):
         result = await result
     return list(result or ())
+
+
+async def _listed(result: Awaitable[HandlerResult]) -> list[str]:
+    return list(await result or ())
 
 
 def _key(name: str) -> str:

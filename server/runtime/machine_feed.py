@@ -11,6 +11,7 @@ machine's, created by ``Machine.__init__``.
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Awaitable
 from typing import TYPE_CHECKING
 
 from server.errors import Alarm, CommandError, Error, SoftLimitError
@@ -51,10 +52,17 @@ class GcodeFeed:
         def quickstop(self, reason: str = ...) -> None: ...
 
     # -- the G-code handler -----------------------------------------------------------------
-    async def handle_gcode(self, command: Command) -> list[str]:
+    def handle_gcode(self, command: Command) -> list[str] | Awaitable[list[str]]:
+        """The line's messages once its outputs are all in the planner: at once when the
+        planner has room and the line asks for no sync, else an awaitable of them (see
+        :meth:`~server.runtime.dispatcher.Dispatcher.begin`)."""
         outputs = self.interpret(command)
         self._arm_probe(outputs)
-        return await self._feed(outputs)
+        epoch = self.epoch
+        index = self._offer(outputs, 0)
+        if index == len(outputs):
+            return []
+        return self._feed(outputs, index, epoch)
 
     def interpret(self, command: Command) -> list[Output]:
         """The line's outputs from the interpreter; a target outside the travel alarms,
@@ -67,29 +75,33 @@ class GcodeFeed:
                 self.status.alarm(Alarm.SOFT_LIMIT, f"soft limit: {exc.message}")
             raise
 
-    async def _feed(self, outputs: list[Output]) -> list[str]:
-        """Offer the line's outputs to the planner (:func:`~server.motion.feed.offer`, as
-        ``estimate`` does), waiting for room and carrying out sync requests in order."""
+    async def _feed(self, outputs: list[Output], index: int, epoch: int) -> list[str]:
+        """The rest of a line's outputs from ``index`` on (:meth:`_offer`), waiting for room
+        and carrying out sync requests in order (``epoch``: the machine's when the line
+        began)."""
         messages: list[str] = []
-        index, epoch = 0, self.epoch
         while index < len(outputs):
-            if self.check_mode:  # interpreted, never planned
-                while index < len(outputs) and type(outputs[index]) is not Sync:
-                    index += 1
-            else:
-                taken = offer(self.planner, outputs, index)
-                if taken > index:
-                    self._note_input(MachineState.RUN)
-                index = taken
-            if index == len(outputs):
-                break
             output = outputs[index]
             if type(output) is Sync:
                 messages += await self.sync(output)
                 index += 1
             else:
                 await self._wait_for_room(epoch)
+            index = self._offer(outputs, index)
         return messages
+
+    def _offer(self, outputs: list[Output], index: int) -> int:
+        """Offer ``outputs[index:]`` to the planner (:func:`~server.motion.feed.offer`, as
+        ``estimate`` does) up to the next sync request or a full planner; in check mode they
+        are interpreted, never planned. Returns the index of the first output not taken."""
+        if self.check_mode:
+            while index < len(outputs) and type(outputs[index]) is not Sync:
+                index += 1
+            return index
+        taken = offer(self.planner, outputs, index)
+        if taken > index:
+            self._note_input(MachineState.RUN)
+        return taken
 
     def _arm_probe(self, outputs: list[Output]) -> None:
         for output in outputs:

@@ -64,7 +64,13 @@ from server.runtime.session_input import (
 from server.runtime.session_output import STATUS_BURST, Outbox, SessionOutput
 
 if TYPE_CHECKING:
+    from collections.abc import Awaitable
+    from typing import TypeAlias
+
     from server.runtime.kernel import Kernel
+
+    # a line's reply (a future: answered downstream later), or the wait for it
+    Reply: TypeAlias = bytes | asyncio.Future[bytes] | Awaitable[bytes | asyncio.Future[bytes]]
 
 log = logging.getLogger("motiond.session")
 _AUTH = re.compile(r"^\s*\$AUTH=(.*)$", re.I)
@@ -228,6 +234,9 @@ class Session(LineAdmission, SessionOutput):
 
     # -- executing lines --------------------------------------------------------------------
     async def _executor(self) -> None:
+        """The queued lines in order, each to its end before the next. A line that needs no
+        wait (most of a raster) runs without a task switch or a future of its own; the lines
+        of a read run in one pass and their replies leave in one write."""
         loop = asyncio.get_running_loop()
         turn_s = loop.time()
         while not self._closing:
@@ -239,11 +248,13 @@ class Session(LineAdmission, SessionOutput):
             epoch, event = self._lines.popleft()
             if self._backlog and len(self._lines) < INBOUND_LINES // 2:
                 self._refill()
-            self._arm_busy()
-            try:
-                reply = await self._execute(event, epoch)
-            finally:
-                self._disarm_busy()
+            reply = self._execute(event, epoch)
+            if not isinstance(reply, bytes | asyncio.Future):
+                self._arm_busy()  # the line waits (room in the planner, a sync request)
+                try:
+                    reply = await reply
+                finally:
+                    self._disarm_busy()
             if epoch == self._epoch:
                 self._queued_bytes = max(0, self._queued_bytes - line_size(event))
                 self._answer(reply, epoch)
@@ -274,16 +285,16 @@ class Session(LineAdmission, SessionOutput):
             self._busy_timer.cancel()
             self._busy_timer = None
 
-    async def _execute(
-        self, event: LineReceived | LineRejected, epoch: int
-    ) -> bytes | asyncio.Future[bytes]:
+    def _execute(self, event: LineReceived | LineRejected, epoch: int) -> Reply:
+        """A line's reply, or the wait for it (to be awaited at once: the line holds the
+        dispatcher's turn until then)."""
         if isinstance(event, LineRejected):
             return self.protocol.reply_error(event.error)
         if event.handled:  # M110: the protocol already set the line number
             return self.protocol.reply_ok()
         login = _AUTH.match(event.text) if "$" in event.text else None
         if login is not None:
-            return await self._login(login.group(1))
+            return self._login(login.group(1))
         if self.on_probation:
             self._ending = PROBATION_REFUSED
             return self._refuse("log in first")
@@ -291,18 +302,36 @@ class Session(LineAdmission, SessionOutput):
             return self._refuse("log in with $AUTH=")
         deferred: list[asyncio.Future[list[str]]] = []
         try:
-            messages = await self.kernel.dispatcher.submit(
+            outcome = self.kernel.dispatcher.begin(
                 event.text, self, still_valid=lambda: epoch == self._epoch,
                 defer=deferred.append)
-        except CommandError as exc:
-            return self.protocol.reply_error(exc)
-        except Exception as exc:  # noqa: BLE001 - unexpected: alarm, answer, keep serving
-            log.exception("line %r failed", event.text)
-            self.kernel.alarm(Alarm.MODULE_FAILED, f"internal error on {event.text!r}: {exc!r}")
-            return self.protocol.reply_error(CommandError(Error.UNSUPPORTED, "internal error"))
+        except Exception as exc:  # noqa: BLE001 - answered (CommandError) or alarmed
+            return self._failed(event, exc)
+        if isinstance(outcome, list):
+            return self._replied(outcome, deferred)
+        return self._awaited(event, outcome, deferred)
+
+    async def _awaited(self, event: LineReceived, outcome: Awaitable[list[str]],
+                       deferred: list[asyncio.Future[list[str]]]) -> bytes | asyncio.Future[bytes]:
+        try:
+            messages = await outcome
+        except Exception as exc:  # noqa: BLE001 - answered (CommandError) or alarmed
+            return self._failed(event, exc)
+        return self._replied(messages, deferred)
+
+    def _replied(self, messages: list[str],
+                 deferred: list[asyncio.Future[list[str]]]) -> bytes | asyncio.Future[bytes]:
         if deferred:
             return self._later(messages, deferred)
         return self._reply_ok(messages)
+
+    def _failed(self, event: LineReceived, exc: Exception) -> bytes:
+        """A refused line's ``error:N``; anything unexpected alarms (and is answered)."""
+        if isinstance(exc, CommandError):
+            return self.protocol.reply_error(exc)
+        log.error("line %r failed", event.text, exc_info=exc)
+        self.kernel.alarm(Alarm.MODULE_FAILED, f"internal error on {event.text!r}: {exc!r}")
+        return self.protocol.reply_error(CommandError(Error.UNSUPPORTED, "internal error"))
 
 
 def line_token(kernel: Kernel) -> str | None:

@@ -156,8 +156,10 @@ class LineAdmission:
             size = affordable(data, SLICE_COST)
             piece, data = data[:size], data[size:]
             cost = realtime_cost(piece)
-            await self.pace_input(len(piece))
-            await self._pace_realtime()
+            if not self.can_control:
+                await self.pace_input(len(piece))
+            if self._realtime_wait_s() > 0.0:
+                await self._pace_realtime()
             if self.outbox.closed:
                 return
             self._text_cost = 0
@@ -167,24 +169,32 @@ class LineAdmission:
             finally:
                 self._text_counting = True
             self._spend_realtime(max(0, cost - self._text_cost))
-            await self.wait_input_room()
+            if not self._input_room.is_set():
+                await self.wait_input_room()
             if not data:
                 return
             await asyncio.sleep(0)  # a large read must not hold the loop: one slice a turn
 
     async def _pace_realtime(self) -> None:
-        """Wait while this connection has spent its realtime budget, or, flooding, while all
-        flooding connections have spent theirs together. A connection within half its own
-        budget never waits for the others: the operator's ``!`` acts at once."""
-        total = self.kernel.realtime_input
-        while not self.outbox.closed:
-            now_s = time.monotonic()
-            wait_s = self._realtime_budget.wait_s(now_s)
-            if self._realtime_budget.level(now_s) < self._realtime_budget.burst / 2:
-                wait_s = max(wait_s, total.wait_s(now_s))
-            if wait_s == 0.0:
+        """Wait as long as :meth:`_realtime_wait_s` says."""
+        while True:
+            wait_s = self._realtime_wait_s()
+            if wait_s <= 0.0:
                 return
             await asyncio.sleep(wait_s)
+
+    def _realtime_wait_s(self) -> float:
+        """How long to wait before examining more: while this connection has spent its
+        realtime budget, or, flooding, while all flooding connections have spent theirs
+        together. A connection within half its own budget never waits for the others: the
+        operator's ``!`` acts at once. 0 once the session has ended."""
+        if self.outbox.closed:
+            return 0.0
+        now_s = time.monotonic()
+        wait_s = self._realtime_budget.wait_s(now_s)
+        if self._realtime_budget.level(now_s) < self._realtime_budget.burst / 2:
+            wait_s = max(wait_s, self.kernel.realtime_input.wait_s(now_s))
+        return wait_s
 
     def _spend_realtime(self, cost: int) -> None:
         if cost:

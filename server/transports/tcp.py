@@ -154,9 +154,13 @@ async def serve_stream(
     try:
         while not session.closed:
             limit = None if deadline is None else deadline(received_bytes)
+            read_size = session.read_size
             try:
-                async with asyncio.timeout(None if limit is None else max(0.0, limit[0])):
-                    data = await reader.read(session.read_size)
+                if limit is None:
+                    data = await reader.read(read_size)
+                else:
+                    async with asyncio.timeout(max(0.0, limit[0])):
+                        data = await reader.read(read_size)
             except TimeoutError:
                 assert limit is not None
                 session.end(f"closing: {limit[1]}")
@@ -165,7 +169,10 @@ async def serve_stream(
                 break
             received_bytes += len(data)
             await session.feed(data, gone=gone)  # paced, sliced, waits while the backlog is full
-            await asyncio.sleep(0)  # buffered input must not hold the loop: one slice a turn
+            # More may be buffered (a full read): it must not hold the loop, one slice a turn.
+            # A connection under a deadline also lets its lines run ($AUTH) before the next.
+            if len(data) == read_size or limit is not None:
+                await asyncio.sleep(0)
     except (ConnectionError, OSError):
         pass
     finally:

@@ -9,6 +9,7 @@ import pytest
 from server.errors import CommandError
 from server.gcode.interpreter import Interpreter, InterpreterSettings
 from server.runtime.dispatcher import Command, Dispatcher, SystemSource
+from server.runtime.turn import Turn
 
 SMALL = InterpreterSettings(("X", "Y", "Z"), (0.0, 0.0, -50.0), (400.0, 300.0, 50.0))
 
@@ -106,6 +107,93 @@ async def test_one_ordered_stream_across_sources() -> None:
     gate.set()
     await asyncio.gather(first, second)
     assert order == ["start G1 X1", "end G1 X1", "start G1 X2", "end G1 X2"]
+
+
+async def test_a_line_that_needs_no_wait_is_done_within_begin_and_leaves_the_turn_free() -> None:
+    dispatcher = Dispatcher()
+    dispatcher.set_gcode_handler(lambda c: ["done"], Interpreter(SMALL).classify)
+    assert dispatcher.begin("G1 X1", SOURCE) == ["done"]  # no awaitable: nothing to wait for
+    with pytest.raises(CommandError):
+        dispatcher.begin("G5 X1 $", SOURCE)  # refused at once, the turn given back
+    assert dispatcher.begin("G1 X2", SOURCE) == ["done"]
+
+
+async def test_a_line_arriving_while_another_waits_for_its_turn_never_overtakes_it() -> None:
+    order: list[str] = []
+    gate = asyncio.Event()
+
+    async def handler(command: Command) -> list[str]:
+        if command.text == "G1 X1":
+            await gate.wait()
+        order.append(command.text)
+        return []
+
+    dispatcher = Dispatcher()
+    dispatcher.set_gcode_handler(handler, Interpreter(SMALL).classify)
+    first = asyncio.create_task(dispatcher.submit("G1 X1", SystemSource("a")))
+    second = asyncio.create_task(dispatcher.submit("G1 X2", SystemSource("a")))
+    await asyncio.sleep(0.01)
+    gate.set()  # the turn goes to the second line, which has not run yet when the third comes
+    await asyncio.sleep(0)
+    third = asyncio.create_task(dispatcher.submit("G1 X3", SystemSource("a")))
+    await asyncio.gather(first, second, third)
+    assert order == ["G1 X1", "G1 X2", "G1 X3"]
+
+
+async def test_a_line_cancelled_while_it_waits_for_its_turn_never_runs_nor_blocks_others() -> None:
+    gate = asyncio.Event()
+    ran: list[str] = []
+
+    async def handler(command: Command) -> list[str]:
+        if command.text == "G1 X1":
+            await gate.wait()
+        ran.append(command.text)
+        return []
+
+    dispatcher = Dispatcher()
+    dispatcher.set_gcode_handler(handler, Interpreter(SMALL).classify)
+    first = asyncio.create_task(dispatcher.submit("G1 X1", SystemSource("a")))
+    waiting = asyncio.create_task(dispatcher.submit("G1 X2", SystemSource("a")))
+    last = asyncio.create_task(dispatcher.submit("G1 X3", SystemSource("a")))
+    await asyncio.sleep(0.01)
+    waiting.cancel()
+    gate.set()
+    await asyncio.gather(first, waiting, return_exceptions=True)
+    await asyncio.wait_for(last, 1.0)
+    assert ran == ["G1 X1", "G1 X3"]
+    assert await asyncio.wait_for(dispatcher.submit("G1 X4", SOURCE), 1.0) == []
+
+
+async def test_a_released_turn_goes_to_the_first_waiter_and_nobody_overtakes_it() -> None:
+    turn = Turn()
+    await turn.take()
+    first = asyncio.create_task(turn.take())
+    await asyncio.sleep(0)
+    turn.release()
+    assert not turn.free  # handed over before the waiter runs: a newcomer must wait
+    newcomer = asyncio.create_task(turn.take())
+    await first
+    await asyncio.sleep(0)
+    assert not newcomer.done()
+    turn.release()
+    await asyncio.wait_for(newcomer, 1.0)
+    turn.release()
+    assert turn.free
+
+
+async def test_a_turn_handed_to_a_waiter_cancelled_before_it_ran_goes_to_the_next() -> None:
+    turn = Turn()
+    await turn.take()
+    handed = asyncio.create_task(turn.take())
+    after = asyncio.create_task(turn.take())
+    await asyncio.sleep(0)
+    turn.release()  # handed over: nobody may take it meanwhile
+    assert not turn.free
+    handed.cancel()  # before it ran
+    await asyncio.gather(handed, return_exceptions=True)
+    await asyncio.wait_for(after, 1.0)
+    turn.release()
+    assert turn.free
 
 
 async def test_read_only_sources_may_query_but_not_move() -> None:

@@ -176,6 +176,39 @@ def test_any_chunking_of_any_byte_stream_gives_the_same_events(data: bytes, cuts
     assert chunked.dialect is whole.dialect
 
 
+class ByteByByte(LineProtocol):
+    """The protocol without its whole-lines shortcut: every read scanned run by run."""
+
+    def _take_lines(self, data: bytes, events: list) -> bool:
+        return False
+
+
+_MOSTLY_PLAIN = list(b"G1X0 .\r\n\n\n\nS8") + [0x30] * 4 + list(b"?\xc2\xa9\x18\x00(")
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    data=st.lists(st.sampled_from(_MOSTLY_PLAIN), max_size=160).map(bytes),
+    cuts=st.lists(st.integers(min_value=0, max_value=160), max_size=12),
+)
+def test_whole_lines_taken_at_once_read_exactly_as_byte_by_byte(data: bytes, cuts: list) -> None:
+    """A read of plain whole lines is split in C (the raster's usual read); any chunking of
+    any stream gives the same events as scanning it run by run (line ends split between
+    reads, partial and overlong lines carried, a CR alone, realtime bytes)."""
+    bounds = [0, *sorted(min(cut, len(data)) for cut in cuts), len(data)]
+    fast, slow = LineProtocol(line_limit=10), ByteByByte(line_limit=10)
+    for a, b in zip(bounds, bounds[1:], strict=False):
+        assert comparable(fast.receive_data(data[a:b])) == comparable(
+            slow.receive_data(data[a:b]))
+    assert fast.dialect is slow.dialect
+
+
+def test_a_read_of_plain_lines_ending_in_crlf_gives_one_line_each() -> None:
+    protocol = LineProtocol()
+    assert protocol.receive_data(b"G1 X1\r\nG1 X2\r") == lines("G1 X1", "G1 X2")
+    assert protocol.receive_data(b"\nG1 X3\r\n\n") == lines("G1 X3", "")
+
+
 def merged_status(events: list) -> list:
     """Grbl's ``?`` is a flag: requests in a row before the report goes out are one request."""
     merged: list = []

@@ -1,0 +1,98 @@
+"""A read that carries several lines (character counting releases a few at once): each line
+runs to its end in turn, most without a wait of their own, yet the stream keeps Grbl's rules:
+one reply per line, in order, an error for the refused line only, and a realtime byte in the
+middle of the read acting before the lines after it run.
+
+A real App on the real clock (a hold lasts); sessions fed as a transport feeds them
+(``Session.feed``)."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator
+
+import pytest
+
+from server.app import App
+from server.runtime.clock import RealClock
+from server.runtime.events import Event, MachineState
+from server.runtime.session import Session
+from tests.conftest import make_config
+from tests.support.helpers import running
+from tests.support.senders import wait_for
+
+
+@pytest.fixture
+async def app() -> AsyncIterator[App]:
+    async with running(make_config(), clock=RealClock()) as served:
+        yield served
+
+
+async def replies(session: Session, count: int) -> list[str]:
+    """The next ``count`` reply lines (``ok``/``error:N``), pushes left out."""
+    got: list[str] = []
+    async with asyncio.timeout(10):
+        while len(got) < count:
+            chunk = await session.outbox.get()
+            assert chunk is not None
+            got += [line for line in chunk.decode().split("\r\n")
+                    if line == "ok" or line.startswith("error:")]
+    return got
+
+
+async def started(app: App) -> Session:
+    session = Session(app.kernel, "sender")
+    session.start()
+    assert await session.outbox.get()  # the banner
+    return session
+
+
+async def test_a_burst_of_lines_gets_one_reply_each_in_order_the_error_on_its_own_line(
+        app: App) -> None:
+    session = await started(app)
+    try:
+        await session.feed(b"G1 X1 F6000\nG1 X2\nG1 X3 Q\nG1 X4\nG5\nG1 Y5\n")
+        got = await replies(session, 6)
+        assert got == ["ok", "ok", "error:2", "ok", "error:20", "ok"], got
+        await app.kernel.machine.wait_idle()
+        assert app.kernel.machine.stepgen.state.position_mm[:2] == pytest.approx((4.0, 5.0))
+    finally:
+        await session.close()
+
+
+async def test_a_hold_in_the_middle_of_a_burst_acts_before_the_lines_after_it_run(
+        app: App) -> None:
+    session = await started(app)
+    planned_at_hold: list[int] = []
+    planner = app.kernel.machine.planner
+    app.kernel.events.subscribe(Event.HOLD,
+                                lambda *args: planned_at_hold.append(planner.moves_appended))
+    try:
+        await session.feed(b"G1 X5 F600\n")
+        assert await replies(session, 1) == ["ok"]
+        await wait_for(lambda: app.kernel.state is MachineState.RUN, 5, "the move")
+        before = planner.moves_appended
+        await session.feed(b"G1 X5.1\nG1 X5.2\n!G1 X5.3\nG1 X5.4\n")
+        assert planned_at_hold == [before]  # none of the read's lines had run yet
+        assert app.kernel.state is MachineState.HOLD
+        await session.feed(b"~")
+        assert await replies(session, 4) == ["ok"] * 4
+        assert planner.moves_appended == before + 4
+        await app.kernel.machine.wait_idle()
+        assert app.kernel.machine.stepgen.state.position_mm[0] == pytest.approx(5.4)
+    finally:
+        await session.close()
+
+
+async def test_a_reset_in_the_middle_of_a_burst_drops_the_lines_before_it_unanswered(
+        app: App) -> None:
+    session = await started(app)
+    try:
+        await session.feed(b"G1 X1 F6000\nG1 X2\n\x18G1 Y3 F6000\nG1 Y4\n")
+        got = await replies(session, 2)
+        await app.kernel.machine.wait_idle()
+        position = app.kernel.machine.stepgen.state.position_mm
+    finally:
+        await session.close()
+    assert got == ["ok", "ok"]  # the lines after the reset; those before it never ran
+    assert position[:2] == pytest.approx((0.0, 4.0))
