@@ -184,14 +184,15 @@ class ByteScanner:
         byte, without Python work per byte run. False (nothing taken) for any other read."""
         if data.translate(None, _PLAIN_GRBL if self.dialect is Dialect.GRBL else _PLAIN_REPRAP):
             return False
-        if b"\r" in data:
+        skip = self._skip_lf and data[:1] == b"\n"  # the LF of a CR LF whose CR ended the
+        if b"\r" in data:                             # last read (a CR LF here is a line)
             if data.count(b"\r") != data.count(b"\r\n"):
                 return False  # a CR alone ends a line too: byte by byte
             data = data.replace(b"\r\n", b"\n")
         self._end_utf8_character()
         *lines, rest = data.split(b"\n")
-        if self._skip_lf and not lines[0]:
-            del lines[0]  # the LF of a CR LF whose CR ended the last read
+        if skip:
+            del lines[0]
         limit = self._line_limit
         for index, line in enumerate(lines):
             if index == 0 and (self._buffer or self._overflow):

@@ -69,3 +69,18 @@ def test_without_a_horizon_everything_with_room_leaves() -> None:
     queue = queue_of([90_000, 95_000])
     queue.pump(mcu, 0.0)  # type: ignore[arg-type]
     assert [len(burst) for burst in mcu.link.bursts] == [2]
+
+
+def test_slots_freed_count_free_even_when_nothing_is_ready_to_go() -> None:
+    """A sample whose held messages are not due yet still frees the slots whose moves ran: a
+    stale full queue would ask for a sample at a turn long past (ticks back at flush rate)."""
+    mcu = Mcu()
+    mcu.move_count = 2
+    queue = queue_of([10_000, 20_000])
+    queue.pump(mcu, 0.0)  # type: ignore[arg-type]
+    assert queue.full(mcu.move_count)
+    queue.add(bytes(7), 500_000, 500_000)  # held: not due by the horizon
+    assert queue.pump(mcu, 100_000.0, hold_after=200_000.0) is None  # type: ignore[arg-type]
+    assert len(queue.waiting) == 1 and not queue.full(mcu.move_count)
+    turn = queue.turn(mcu.move_count, 100_000.0, HZ)
+    assert turn == 400_000.0, "its own turn, not the freed slot's"

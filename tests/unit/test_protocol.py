@@ -207,6 +207,9 @@ def test_a_read_of_plain_lines_ending_in_crlf_gives_one_line_each() -> None:
     protocol = LineProtocol()
     assert protocol.receive_data(b"G1 X1\r\nG1 X2\r") == lines("G1 X1", "G1 X2")
     assert protocol.receive_data(b"\nG1 X3\r\n\n") == lines("G1 X3", "")
+    # a CR ended the last read; a CR LF opening this one is an empty line of its own
+    assert protocol.receive_data(b"G1 X4\r") == lines("G1 X4")
+    assert protocol.receive_data(b"\r\nG1 X5\n") == lines("", "G1 X5")
 
 
 def merged_status(events: list) -> list:

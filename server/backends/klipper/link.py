@@ -58,6 +58,7 @@ READ_BYTES = 1024  # per turn of the event loop: a board that floods delays a st
 Match = Callable[[Params], bool]
 BITS_PER_BYTE = 10  # a start bit, 8 data bits, a stop bit
 SETTLE_SLACK = 1.25  # the wire time waited for the rest of a block, and then some
+SETTLE_MAX_S = 0.005  # at most (a slow link's block is read in parts)
 
 
 class _Rider:
@@ -363,7 +364,8 @@ class Link:
             self._loop.remove_reader(self._fd)
             self.watched = False
         self._settle = self._loop.call_later(
-            missing * BITS_PER_BYTE * SETTLE_SLACK / self.baud, self._on_readable)
+            min(SETTLE_MAX_S, missing * BITS_PER_BYTE * SETTLE_SLACK / self.baud),
+            self._on_readable)
 
     def _settle_bytes(self) -> int:
         """The bytes still on their way: the rest of a block begun, and the acknowledgement

@@ -45,12 +45,12 @@ class MoveQueue:
         their block), the blocks before it go."""
         freq = mcu.clock.freq_hz if mcu.clock else 0.0
         in_use, waiting = self.in_use, self.waiting
+        freed = now - QUEUE_MARGIN_S * freq  # slots freed are counted free (see turn)
+        while in_use and in_use[0] <= freed:
+            heapq.heappop(in_use)
         ready = len(waiting) if hold_after is None else self._ready(hold_after)
         if not ready:
             return None
-        freed = now - QUEUE_MARGIN_S * freq
-        while in_use and in_use[0] <= freed:
-            heapq.heappop(in_use)
         late = now + LATE_MARGIN_S * freq
         burst: list[bytes] = []
         late_ms: float | None = None
