@@ -12,6 +12,10 @@ counts the bytes. Reported:
 * bytes per second on the wire against a 250,000-baud link (25,000 bytes/s of 8N1);
 * how early the compressed steps land against their exact times (the bound is 25 µs).
 
+First, the rig benchmark's raster and circles (:mod:`.klipper_rig_jobs`, F6000, the laser on at
+a constant S) through the same parts without the line path: the CPU per block of the per-block
+work (the planner's pops, the step generator, the pieces, the backend's samples).
+
 Run: ``python -m benchmarks klipper-host [--quick] [--json]`` (``klipper`` measures the real
 firmware against Klipper's own host: :mod:`benchmarks.bench_klipper`).
 """
@@ -25,6 +29,17 @@ from typing import Any
 import numpy as np
 
 from benchmarks.common import BenchResult, standalone
+from benchmarks.klipper_rig_hosts import (
+    ACCEL_MM_S2,
+    JUNCTION_DEVIATION_MM,
+    LASER_S_MAX,
+    MAX_RATE_MM_S,
+    STEPS_PER_MM,
+    TRAVEL_MM,
+)
+from benchmarks.klipper_rig_jobs import LASER, SPEED_MM_S, Job
+from benchmarks.klipper_rig_jobs import circles as rig_circles
+from benchmarks.klipper_rig_jobs import raster as rig_raster
 from server.backends.base import PowerLaw
 from server.backends.klipper.backend import KlipperBackend
 from server.backends.klipper.clocksync import ClockSync
@@ -39,7 +54,7 @@ from server.runtime.parts import planner_settings
 
 CLOCK_HZ = 72_000_000
 BAUD_BYTES_S = 250_000 / 10
-SEGMENT_MM, SPEED_MM_S, LINE_MM = 0.025, 500.0, 300.0
+SEGMENT_MM, RASTER_MM_S, LINE_MM = 0.025, 500.0, 300.0
 
 
 def dictionary(clock_hz: float = CLOCK_HZ) -> Dictionary:
@@ -109,29 +124,64 @@ def raster(motion_s: float) -> list[Move]:
     """Zig-zag lines of short segments, S changing every segment."""
     moves, x, y, direction = [], 0.0, 0.0, 1
     per_line = int(LINE_MM / SEGMENT_MM)
-    for _ in range(int(motion_s * SPEED_MM_S / LINE_MM) + 1):
+    for _ in range(int(motion_s * RASTER_MM_S / LINE_MM) + 1):
         for k in range(per_line):
             x += direction * SEGMENT_MM
-            moves.append(Move((x, y), SPEED_MM_S, MoveKind.FEED, ToolMode.CCW, 200 + k % 800))
+            moves.append(Move((x, y), RASTER_MM_S, MoveKind.FEED, ToolMode.CCW, 200 + k % 800))
         y += 0.1
-        moves.append(Move((x, y), SPEED_MM_S, MoveKind.FEED, ToolMode.CCW, 0.0))
+        moves.append(Move((x, y), RASTER_MM_S, MoveKind.FEED, ToolMode.CCW, 0.0))
         direction = -direction
     return moves
 
 
-def execute(motion_s: float) -> tuple[float, float, OfflineBackend]:
-    """CPU seconds and seconds of motion for a raster of ``motion_s`` seconds."""
-    core = machine()
+def rig_machine() -> Any:
+    """The rig benchmark's machine (``python -m benchmarks klipper``): 80 steps/mm,
+    2,000 mm/s², 200 mm/s, junction deviation 0.01 mm."""
+    axes = {a: {"steps_per_mm": STEPS_PER_MM, "max_rate_mm_s": MAX_RATE_MM_S,
+                "accel_mm_s2": ACCEL_MM_S2, "max_mm": TRAVEL_MM} for a in "xy"}
+    pins = {"x": {"step_pin": "PA0", "dir_pin": "PA1"}, "y": {"step_pin": "PA3",
+                                                              "dir_pin": "PA4"}}
+    return build_config({"axes": axes, "planner": {"junction_deviation_mm":
+                                                   JUNCTION_DEVIATION_MM},
+                         "backend": {"kind": "klipper", "serial": "/dev/null", "axes": pins,
+                                     "outputs": {"PA8": {}}}}).core
+
+
+def rig_moves(job: Job) -> list[Move]:
+    """A rig job's path as moves at F6000, the laser on (M3) along the raster's lines and the
+    circles, off on the raster's step-overs."""
+    moves, x_line = [], job.start[1]
+    on = round(LASER * LASER_S_MAX)
+    for x, y in job.path:
+        stepover = y != x_line and job.name == "raster"
+        x_line = y
+        moves.append(Move((x, y), SPEED_MM_S, MoveKind.FEED, ToolMode.CW,
+                          0.0 if stepover else on))
+    return moves
+
+
+def execute(motion_s: float, job: Job | None = None) -> tuple[float, float, OfflineBackend]:
+    """CPU seconds and seconds of motion for a raster of ``motion_s`` seconds (or a rig job,
+    ``job``, repeated for about ``motion_s`` seconds)."""
+    core = machine() if job is None else rig_machine()
     backend = OfflineBackend(core, record=True)
     backend.mcu, backend.ready = BenchMcu(), True  # type: ignore[assignment]
     for axis in backend.axes:  # what configuring the MCU sets
         axis.compressor = StepCompressor(backend.cfg.max_error_s * CLOCK_HZ)
-    planner = Planner(planner_settings(core), (0.0, 0.0))
-    stepgen = StepGenerator(planner, backend, (80.0, 80.0), Listener())
-    backend.follow_power("PA8", 0.001)  # the laser module's law: S/1000 of 80 %, M4
-    stepgen.follow_power(lambda move, nominal_mm_s: PowerLaw(0.0, move.s_value / 1000 * 0.8
-                                                             / nominal_mm_s, 0.8))
-    all_moves = raster(motion_s)
+    start = (0.0, 0.0) if job is None else job.start
+    planner = Planner(planner_settings(core), start)
+    for axis, mm in zip(backend.axes, start, strict=True):
+        axis.position = round(mm * axis.steps_per_mm)
+    stepgen = StepGenerator(planner, backend, backend.steps_per_mm, Listener())
+    backend.follow_power("PA8", 0.001)
+    if job is None:  # the laser module's law: S/1000 of 80 %, M4
+        stepgen.follow_power(lambda move, nominal_mm_s: PowerLaw(
+            0.0, move.s_value / 1000 * 0.8 / nominal_mm_s, 0.8))
+        all_moves = raster(motion_s)
+    else:  # M3: a constant S/1000 while on
+        stepgen.follow_power(lambda move, nominal_mm_s: PowerLaw(move.s_value / LASER_S_MAX)
+                             if move.s_value > 0.0 else None)
+        all_moves = rig_moves(job)
     moves = iter(all_moves)
     pending: Move | None = next(moves)
     now_s, started = 0.0, time.process_time()
@@ -148,8 +198,24 @@ def execute(motion_s: float) -> tuple[float, float, OfflineBackend]:
     return time.process_time() - started, stepgen.state.motion_time_s, backend
 
 
+def rig_jobs(result: BenchResult, quick: bool) -> None:
+    """The rig's raster and circles in process, about 4 s of motion each (1 s quick): CPU per
+    block of the planner's pop side, the step generator and the backend (no line path), and
+    per second of motion; the best of a few runs."""
+    scale = 1 if quick else 4
+    for job in (rig_raster(lines=4 * scale), rig_circles(turns=2 * scale)):
+        blocks = len(job.path)
+        runs = [execute(0.0, job) for _ in range(2 if quick else 3)]
+        cpu_s, motion_s, _ = min(runs, key=lambda run: run[0])
+        print(f"rig {job.name:8} {blocks / motion_s:6,.0f} blocks/s  "
+              f"{cpu_s / blocks * 1e6:6.1f} µs per block  {cpu_s / motion_s:.4f} s/s")
+        result.add("klipper", f"rig {job.name}", us_per_block=(cpu_s / blocks * 1e6, "µs"),
+                   cpu_per_motion_s=(cpu_s / motion_s, "s/s"))
+
+
 def run(quick: bool) -> BenchResult:
     result = BenchResult("klipper-host", quick)
+    rig_jobs(result, quick)
     cpu_s, motion_s, backend = execute(1.0 if quick else 4.0)
     wire = backend.mcu.link  # type: ignore[union-attr]
     assert isinstance(wire, WireCount)
