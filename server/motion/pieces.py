@@ -9,7 +9,14 @@ at block boundaries) and when motion stops at once (a zero-length piece that cut
 Where an output follows motion (a laser whose power the backend times), ``power_of`` gives each
 block's :class:`~server.backends.base.PowerLaw`, evaluated as the block is taken (after its
 ordered actions, M221 among them); a feed hold's pieces carry none (the tool is off).
-Units: seconds on the kernel's clock, mm, mm/s, mm/s².
+
+A cruise continued by blocks that are all cruise, along the same direction from where it ends,
+at the same speed and power, at the time it ends (a raster's line of short segments) is one
+piece, not one a block: it stays open, and those blocks only lengthen it. The backend is told
+the open piece as it stands (:meth:`PieceReporter.flush`: a piece from the same start, longer,
+which replaces the shorter one) before anything may read it: the step generator flushes before
+each sample, before a block's ordered actions and before it goes idle; a hold or a stop
+flushes first and closes it. Units: seconds on the kernel's clock, mm, mm/s, mm/s².
 """
 
 from __future__ import annotations
@@ -23,6 +30,9 @@ from server.motion.planner import Block
 
 PowerOf = Callable[[Move, float], PowerLaw | None]
 """A block's tool power from its move and nominal speed (mm/s); None: off."""
+JOIN_S = 1e-9
+"""A block that starts this close to the open cruise's end continues it (float rounding of the
+step generator's timeline; any real gap opens a new piece)."""
 
 
 class PieceReporter:
@@ -31,27 +41,57 @@ class PieceReporter:
     def __init__(self, backend: Backend) -> None:
         self.backend = backend
         self.power_of: PowerOf | None = None
+        self._run: Piece | None = None  # the open cruise, as the backend was last told it
+        self._run_s = 0.0  # its duration with the blocks that continued it since
+        self._run_end_mm: Position = ()  # where the last block it covers ends
 
     def block(self, start_s: float, block: Block) -> None:
-        """A block's three phases, starting at ``start_s``."""
+        """A block's three phases, starting at ``start_s`` (or the open cruise lengthened)."""
         if block.move is None or block.length_mm <= 0.0:
             return
         entry, cruise, t1, t2 = block.entry_mm_s, block.cruise_mm_s, block.accel_s, block.cruise_s
-        d1 = 0.5 * t1 * (entry + cruise)
         power = None if self.power_of is None else self.power_of(block.move, block.nominal_mm_s)
+        run = self._run
+        if run is not None:
+            if (t1 == 0.0 and block.decel_s == 0.0 and cruise == run.start_mm_s
+                    and block.start_mm == self._run_end_mm and block.unit == run.unit
+                    and power == run.power
+                    and abs(start_s - run.start_s - self._run_s) <= JOIN_S):
+                self._run_s += t2
+                self._run_end_mm = block.end_mm
+                return
+            self.flush()
+            self._run = None
+        d1 = 0.5 * t1 * (entry + cruise)
         if t1 > 0.0:
             self._piece(start_s, t1, block, 0.0, entry, (cruise - entry) / t1, power)
         if t2 > 0.0:
-            self._piece(start_s + t1, t2, block, d1, cruise, 0.0, power)
+            piece = self._piece(start_s + t1, t2, block, d1, cruise, 0.0, power)
+            if block.decel_s == 0.0:  # blocks that continue this cruise lengthen it
+                self._run, self._run_s, self._run_end_mm = piece, t2, block.end_mm
         if block.decel_s > 0.0:
             self._piece(start_s + t1 + t2, block.decel_s, block, d1 + cruise * t2, cruise,
                         (block.exit_mm_s - cruise) / block.decel_s, power)
+
+    def flush(self) -> None:
+        """Tell the backend the open cruise as it stands, if blocks lengthened it since."""
+        run = self._run
+        if run is not None and self._run_s != run.duration_s:
+            run = self._run = Piece(run.start_s, self._run_s, run.start_mm, run.unit,
+                                    run.start_mm_s, 0.0, run.power)
+            self.backend.trajectory(run)
+
+    def _close(self) -> None:
+        """The open cruise as it stands, and no more blocks lengthen it."""
+        self.flush()
+        self._run = None
 
     def hold(self, block: Block | None, distance_mm: float, tick_s: float, v: float, a: float,
              used_s: float) -> None:
         """A hold's deceleration this tick (from ``tick_s``, ``distance_mm`` into ``block``, at
         ``v`` slowing by ``a`` for ``used_s``) within the current block; it replaces the rest of
         the block's pieces from the tick on."""
+        self._close()
         if block is None or block.move is None:
             return
         d0 = min(distance_mm, block.length_mm)
@@ -66,6 +106,7 @@ class PieceReporter:
     def hold_into(self, block: Block, tick_s: float, overflow: float, v: float, a: float,
                   used_s: float) -> None:
         """The part of this tick's deceleration that ran ``overflow`` mm into ``block``."""
+        self._close()
         if block.move is None or not used_s:
             return
         end_s = tick_s + used_s
@@ -77,15 +118,17 @@ class PieceReporter:
 
     def stop(self, tick_s: float, position_mm: Position) -> None:
         """Motion stopped at once at ``position_mm``: what was reported after it is dropped."""
+        self._close()
         zeros = tuple(0.0 for _ in position_mm)
         self.backend.trajectory(Piece(tick_s, 0.0, position_mm, zeros, 0.0, 0.0))
 
     def _piece(self, start_s: float, duration_s: float, block: Block, from_mm: float,
-               speed_mm_s: float, accel_mm_s2: float, power: PowerLaw | None = None) -> None:
+               speed_mm_s: float, accel_mm_s2: float, power: PowerLaw | None = None) -> Piece:
         start = block.start_mm if from_mm == 0.0 else tuple(
             p + u * from_mm for p, u in zip(block.start_mm, block.unit, strict=True))
-        self.backend.trajectory(
-            Piece(start_s, duration_s, start, block.unit, speed_mm_s, accel_mm_s2, power))
+        piece = Piece(start_s, duration_s, start, block.unit, speed_mm_s, accel_mm_s2, power)
+        self.backend.trajectory(piece)
+        return piece
 
 
 def back_s(v_end: float, a: float, distance_mm: float) -> float:

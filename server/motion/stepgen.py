@@ -281,13 +281,18 @@ class StepGenerator:
                 return None
             self._running = True
         block = self.pop_block()
+        pieces = self._pieces
         if block is None:
             self._running = False
             self.flush_requested = False
+            if pieces is not None:
+                pieces.flush()
             self.listener.on_idle()
             return None
         self.state.kind = block.move.kind if block.move else None
         if block.actions:
+            if pieces is not None:  # an action may read the trajectory (M18 waits for it)
+                pieces.flush()
             self.action_s = start_s
             try:
                 for action in block.actions:
@@ -398,6 +403,8 @@ class StepGenerator:
         state.time_s = now_s
         state.queue_depth = len(self.planner)
         self._step_to(now_s, position)
+        if self._pieces is not None:
+            self._pieces.flush()
         self.backend.sample(now_s, position, state.speed_mm_s)
         if block is not None and state.kind is MoveKind.PROBE:
             self._check_probe(position)
