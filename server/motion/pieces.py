@@ -11,12 +11,13 @@ block's :class:`~server.backends.base.PowerLaw`, evaluated as the block is taken
 ordered actions, M221 among them); a feed hold's pieces carry none (the tool is off).
 
 A cruise continued by blocks that are all cruise, along the same direction from where it ends,
-at the same speed and power, at the time it ends (a raster's line of short segments) is one
-piece, not one a block: it stays open, and those blocks only lengthen it. The backend is told
-the open piece as it stands (:meth:`PieceReporter.flush`: a piece from the same start, longer,
-which replaces the shorter one) before anything may read it: the step generator flushes before
-each sample, before a block's ordered actions and before it goes idle; a hold or a stop
-flushes first and closes it. Units: seconds on the kernel's clock, mm, mm/s, mm/s².
+at the same speed and power, at the time it ends, without ordered actions (a raster's line of
+short segments) is one piece, not one a block: it stays open, and those blocks only lengthen
+it. The backend is told the open piece as it stands (:meth:`PieceReporter.flush`: a piece from
+the same start, longer, which replaces the shorter one) before anything may read it: the step
+generator flushes before each sample, before a block's ordered actions and before it goes
+idle; a hold or a stop flushes first and closes it.
+Units: seconds on the kernel's clock, mm, mm/s, mm/s².
 """
 
 from __future__ import annotations
@@ -32,7 +33,9 @@ PowerOf = Callable[[Move, float], PowerLaw | None]
 """A block's tool power from its move and nominal speed (mm/s); None: off."""
 JOIN_S = 1e-9
 """A block that starts this close to the open cruise's end continues it (float rounding of the
-step generator's timeline; any real gap opens a new piece)."""
+step generator's timeline; any real gap opens a new piece), and a ramp this short at either
+end of a cruise block (the planner's rounding of a junction speed to within 1e-14 of the
+cruise) is cruise: it moves the tool less than 1e-15 mm differently."""
 
 
 class PieceReporter:
@@ -50,14 +53,15 @@ class PieceReporter:
         if block.move is None or block.length_mm <= 0.0:
             return
         entry, cruise, t1, t2 = block.entry_mm_s, block.cruise_mm_s, block.accel_s, block.cruise_s
+        t3 = block.decel_s
         power = None if self.power_of is None else self.power_of(block.move, block.nominal_mm_s)
         run = self._run
         if run is not None:
-            if (t1 == 0.0 and block.decel_s == 0.0 and cruise == run.start_mm_s
+            if (t1 <= JOIN_S and t3 <= JOIN_S and cruise == run.start_mm_s and not block.actions
                     and block.start_mm == self._run_end_mm and block.unit == run.unit
                     and power == run.power
                     and abs(start_s - run.start_s - self._run_s) <= JOIN_S):
-                self._run_s += t2
+                self._run_s += t1 + t2 + t3
                 self._run_end_mm = block.end_mm
                 return
             self.flush()
@@ -65,13 +69,15 @@ class PieceReporter:
         d1 = 0.5 * t1 * (entry + cruise)
         if t1 > 0.0:
             self._piece(start_s, t1, block, 0.0, entry, (cruise - entry) / t1, power)
+        if t2 > 0.0 and t3 <= JOIN_S:  # a cruise to the end: blocks continuing it lengthen it
+            piece = self._piece(start_s + t1, t2 + t3, block, d1, cruise, 0.0, power)
+            self._run, self._run_s, self._run_end_mm = piece, t2 + t3, block.end_mm
+            return
         if t2 > 0.0:
-            piece = self._piece(start_s + t1, t2, block, d1, cruise, 0.0, power)
-            if block.decel_s == 0.0:  # blocks that continue this cruise lengthen it
-                self._run, self._run_s, self._run_end_mm = piece, t2, block.end_mm
-        if block.decel_s > 0.0:
-            self._piece(start_s + t1 + t2, block.decel_s, block, d1 + cruise * t2, cruise,
-                        (block.exit_mm_s - cruise) / block.decel_s, power)
+            self._piece(start_s + t1, t2, block, d1, cruise, 0.0, power)
+        if t3 > 0.0:
+            self._piece(start_s + t1 + t2, t3, block, d1 + cruise * t2, cruise,
+                        (block.exit_mm_s - cruise) / t3, power)
 
     def flush(self) -> None:
         """Tell the backend the open cruise as it stands, if blocks lengthened it since."""

@@ -1,0 +1,168 @@
+"""A cruise continued block after block (a raster's line of short segments) is one piece that
+the blocks lengthen (:mod:`server.motion.pieces`): the board must get exactly what it gets with
+one piece a block, to the tick, through power changes, holds and halts. Each case runs twice
+through the real planner, step generator and Klipper backend, merged and block by block
+(``JOIN_S`` below zero: no block ever continues a cruise), and compares every message."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import pytest
+
+from benchmarks.bench_klipper_host import Listener, OfflineBackend
+from server.backends.base import Piece, PowerLaw
+from server.backends.klipper.stepcompress import StepCompressor
+from server.config_loader import build_config
+from server.motion import pieces as pieces_module
+from server.motion.moves import Action, ActionName, Move, MoveKind, ToolMode
+from server.motion.planner import Planner
+from server.motion.stepgen import HoldState, StepGenerator
+from server.runtime.parts import planner_settings
+from tests.unit.test_klipper_mcu_time import CLOCK_HZ, FittedMcu
+
+TICK_S = 0.007  # not a multiple of a block's 1 ms: ticks fall inside blocks and runs
+Script = dict[int, Callable[[StepGenerator], object]]
+
+
+def raster(lines: int, s_at: Callable[[int, int], float] = lambda line, k: 800.0) -> list[Move]:
+    """Lines of 200 segments of 0.1 mm along X at F6000 (laser on at ``s_at(line, k)``),
+    stepping over 0.1 mm in Y with the laser off (as the rig benchmark's raster)."""
+    moves, x, y = [], 10.0, 10.0
+    for line in range(lines):
+        direction = 1 if line % 2 == 0 else -1
+        for k in range(200):
+            x = round(x + 0.1 * direction, 3)
+            moves.append(Move((x, y), 100.0, MoveKind.FEED, ToolMode.CW, s_at(line, k)))
+        y = round(y + 0.1, 3)
+        moves.append(Move((x, y), 100.0, MoveKind.FEED, ToolMode.CW, 0.0))
+    return moves
+
+
+def drive(moves: list[Move], merge: bool, monkeypatch: pytest.MonkeyPatch,
+          script: Script | None = None) -> tuple[list[tuple[str, Any]], list[Piece]]:
+    """Every message the backend sends for ``moves`` (``script``: what to do to the step
+    generator at which tick), and every piece the step generator gave it."""
+    monkeypatch.setattr(pieces_module, "JOIN_S", 1e-9 if merge else -1.0)
+    axes = {a: {"steps_per_mm": 80, "max_rate_mm_s": 200, "accel_mm_s2": 2000, "max_mm": 300}
+            for a in "xy"}
+    pins = {"x": {"step_pin": "PB13", "dir_pin": "PB12"},
+            "y": {"step_pin": "PB10", "dir_pin": "PB2"}}
+    core = build_config({"axes": axes, "planner": {"junction_deviation_mm": 0.01},
+                         "backend": {"kind": "klipper", "serial": "/dev/null", "axes": pins,
+                                     "outputs": {"PA8": {}}}}).core
+    backend, mcu = OfflineBackend(core, record=True), FittedMcu(CLOCK_HZ)
+    backend.mcu, backend.ready = mcu, True  # type: ignore[assignment]
+    for oid, axis in enumerate(backend.axes):  # what configuring the MCU sets
+        axis.oid, axis.compressor = oid, StepCompressor(backend.cfg.max_error_s * CLOCK_HZ)
+        axis.position = 800
+    backend.outputs["PA8"].oid = 2
+    given: list[Piece] = []
+    trajectory = backend.trajectory
+    backend.trajectory = lambda piece: (given.append(piece), trajectory(piece))[1]  # type: ignore[method-assign]
+    planner = Planner(planner_settings(core), (10.0, 10.0))
+    stepgen = StepGenerator(planner, backend, (80.0, 80.0), Listener())
+    backend.follow_power("PA8", 0.001)
+    stepgen.follow_power(lambda move, nominal_mm_s: PowerLaw(move.s_value / 1000.0)
+                         if move.s_value > 0.0 else None)
+    for move in moves:
+        planner.append(move)
+    now_s = 0.0
+    stepgen.tick(now_s)
+    stepgen.request_start()
+    for tick in range(5000):
+        if script and tick in script:
+            script[tick](stepgen)
+        now_s += TICK_S
+        backend.now_s = mcu.link.now_s = now_s
+        stepgen.tick(now_s)
+        if stepgen.idle and stepgen.state.hold is HoldState.NONE and not backend.ticks_when_idle:
+            break
+    return mcu.link.messages, given
+
+
+def stepped(messages: list[tuple[str, Any]]) -> dict[int, int]:
+    """Net steps per stepper oid (direction from the last set_next_step_dir)."""
+    direction: dict[int, int] = {}
+    net = {0: 0, 1: 0}
+    for name, p in messages:
+        if name == "set_next_step_dir":
+            direction[p["oid"]] = 1 if p["dir"] else -1
+        elif name == "queue_step":
+            net[p["oid"]] += direction[p["oid"]] * p["count"]
+    return net
+
+
+def pwm(messages: list[tuple[str, Any]]) -> list[tuple[int, int]]:
+    return [(p["clock"], p["value"]) for name, p in messages if name == "queue_pwm_out"]
+
+
+def test_a_raster_line_is_one_piece_and_the_board_gets_what_block_by_block_sends(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    moves = raster(4)
+    merged, merged_pieces = drive(moves, True, monkeypatch)
+    single, single_pieces = drive(moves, False, monkeypatch)
+    assert merged == single
+    assert stepped(merged) == {0: 0, 1: 4 * 8}  # 4 lines there and back, 4 step-overs up
+    assert len(pwm(merged)) >= 8  # on and off each line
+    starts = len({p.start_s for p in merged_pieces})
+    # a line: ramps of 25 blocks each way (2,000 mm/s² to 100 mm/s), 150 blocks of cruise
+    assert len({p.start_s for p in single_pieces}) - starts >= 4 * 120
+    assert max(p.duration_s for p in merged_pieces) > 0.14  # a line's cruise, or most of it
+
+
+def test_a_power_change_mid_line_lands_where_its_block_starts(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    moves = raster(2, lambda line, k: 400.0 if 40 <= k < 60 else 800.0)
+    merged, _ = drive(moves, True, monkeypatch)
+    single, _ = drive(moves, False, monkeypatch)
+    assert merged == single
+    levels = [value for _, value in pwm(merged)]
+    assert levels[:4] == [204, 102, 204, 0]  # 80 %, 40 % over segments 40-59, 80 %, off
+    clocks = [clock for clock, _ in pwm(merged)]
+    # 20 segments of cruise at 100 mm/s: 20 ms at 16 MHz between the power's two changes
+    assert clocks[2] - clocks[1] == pytest.approx(0.020 * CLOCK_HZ, abs=2)
+
+
+@pytest.mark.parametrize("at_tick", [10, 15, 23])  # cruise: 0.05-0.2 s
+def test_a_hold_inside_a_run_decelerates_at_once_and_resumes_as_block_by_block(
+        monkeypatch: pytest.MonkeyPatch, at_tick: int) -> None:
+    script: Script = {at_tick: StepGenerator.hold, at_tick + 40: StepGenerator.resume}
+    merged, given = drive(raster(2), True, monkeypatch, script)
+    single, _ = drive(raster(2), False, monkeypatch, dict(script))
+    assert merged == single
+    assert stepped(merged) == {0: 0, 1: 16}
+    held_s = at_tick * TICK_S  # the tick before the hold: its deceleration starts there
+    decel = [p for p in given if p.accel_mm_s2 < 0.0 and p.power is None]
+    assert decel and abs(decel[0].start_s - held_s) < 1e-9
+    assert decel[0].start_mm_s == pytest.approx(100.0)  # at cruise: inside the run
+
+
+@pytest.mark.parametrize("at_tick", [9, 20])
+def test_a_halt_inside_a_run_stops_the_steps_at_once_as_block_by_block(
+        monkeypatch: pytest.MonkeyPatch, at_tick: int) -> None:
+    script: Script = {at_tick: StepGenerator.stop_now}
+    merged, given = drive(raster(2), True, monkeypatch, script)
+    single, _ = drive(raster(2), False, monkeypatch, dict(script))
+    assert merged == single
+    stop = [p for p in given if p.duration_s == 0.0]
+    assert stop and abs(stop[0].start_s - at_tick * TICK_S) < 1e-9
+    net_x = stepped(merged)[0]
+    assert 0 < net_x < 0.1 * 80 * (at_tick * TICK_S * 1000) + 8  # stopped where it was
+
+
+def test_a_block_with_ordered_actions_starts_a_piece_of_its_own(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """An action may time something by the trajectory (M18 waits for the pieces given, and
+    the next piece to start turns the drivers on again): the run ends where it runs."""
+    moves = raster(1)
+    moves[100].actions = [Action(ActionName.COOLANT, {"mist": True, "flood": False})]
+    merged, given = drive(moves, True, monkeypatch)
+    single, _ = drive(moves, False, monkeypatch)
+    assert merged == single
+    cruise = {p.start_s: p.start_mm for p in given  # a flush re-tells one: same start
+              if p.accel_mm_s2 == 0.0 and p.duration_s > 0.01}
+    starts = list(cruise.values())  # after the ramp to 100 mm/s (2.5 mm), from the action
+    assert len(starts) == 2 and starts[1] == moves[99].target_mm
+    assert starts[0] == pytest.approx((12.5, 10.0))
