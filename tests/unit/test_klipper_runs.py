@@ -41,9 +41,11 @@ def raster(lines: int, s_at: Callable[[int, int], float] = lambda line, k: 800.0
 
 
 def drive(moves: list[Move], merge: bool, monkeypatch: pytest.MonkeyPatch,
-          script: Script | None = None) -> tuple[list[tuple[str, Any]], list[Piece]]:
+          script: Script | None = None, board: list[Any] | None = None,
+          ) -> tuple[list[tuple[str, Any]], list[Piece]]:
     """Every message the backend sends for ``moves`` (``script``: what to do to the step
-    generator at which tick), and every piece the step generator gave it."""
+    generator at which tick), and every piece the step generator gave it (``board``: gets
+    where the backend says the board is, and how fast, after every tick)."""
     monkeypatch.setattr(pieces_module, "JOIN_S", 1e-9 if merge else -1.0)
     axes = {a: {"steps_per_mm": 80, "max_rate_mm_s": 200, "accel_mm_s2": 2000, "max_mm": 300}
             for a in "xy"}
@@ -60,7 +62,12 @@ def drive(moves: list[Move], merge: bool, monkeypatch: pytest.MonkeyPatch,
     backend.outputs["PA8"].oid = 2
     given: list[Piece] = []
     trajectory = backend.trajectory
-    backend.trajectory = lambda piece: (given.append(piece), trajectory(piece))[1]  # type: ignore[method-assign]
+
+    def record(piece: Piece) -> None:
+        given.append(piece)
+        trajectory(piece)
+
+    backend.trajectory = record  # type: ignore[method-assign]
     planner = Planner(planner_settings(core), (10.0, 10.0))
     stepgen = StepGenerator(planner, backend, (80.0, 80.0), Listener())
     backend.follow_power("PA8", 0.001)
@@ -77,6 +84,8 @@ def drive(moves: list[Move], merge: bool, monkeypatch: pytest.MonkeyPatch,
         now_s += TICK_S
         backend.now_s = mcu.link.now_s = now_s
         stepgen.tick(now_s)
+        if board is not None:
+            board.append((backend.position_at_mm(now_s), backend.speed_at_mm_s(now_s)))
         if stepgen.idle and stepgen.state.hold is HoldState.NONE and not backend.ticks_when_idle:
             break
     return mcu.link.messages, given
@@ -166,3 +175,20 @@ def test_a_block_with_ordered_actions_starts_a_piece_of_its_own(
     starts = list(cruise.values())  # after the ramp to 100 mm/s (2.5 mm), from the action
     assert len(starts) == 2 and starts[1] == moves[99].target_mm
     assert starts[0] == pytest.approx((12.5, 10.0))
+
+
+def test_status_reads_the_board_where_block_by_block_puts_it_inside_a_run(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """``?`` reports what the board executed (the pieces a lead behind), never the plan: a
+    run lengthened between samples changes none of it."""
+    script: Script = {15: StepGenerator.hold, 40: StepGenerator.resume}
+    merged: list[Any] = []
+    single: list[Any] = []
+    drive(raster(2), True, monkeypatch, script, merged)
+    drive(raster(2), False, monkeypatch, dict(script), single)
+    assert len(merged) == len(single) > 60
+    for (position, speed), (expected, expected_speed) in zip(merged, single, strict=True):
+        assert position == pytest.approx(expected, abs=1e-9)
+        assert speed == pytest.approx(expected_speed, abs=1e-9)
+    cruising = [speed for _, speed in merged if speed == pytest.approx(100.0)]
+    assert len(cruising) > 20  # the board was read inside the runs, at cruise
