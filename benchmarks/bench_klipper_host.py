@@ -13,8 +13,9 @@ counts the bytes. Reported:
 * how early the compressed steps land against their exact times (the bound is 25 µs).
 
 First, the rig benchmark's raster and circles (:mod:`.klipper_rig_jobs`, F6000, the laser on at
-a constant S) through the same parts without the line path: the CPU per block of the per-block
-work (the planner's pops, the step generator, the pieces, the backend's samples).
+a constant S) through the same parts without the line path, ticking when the backend asks (as
+the server does): the CPU per block of the per-block work (the planner's pops, the step
+generator, the pieces, the backend's samples).
 
 Run: ``python -m benchmarks klipper-host [--quick] [--json]`` (``klipper`` measures the real
 firmware against Klipper's own host: :mod:`benchmarks.bench_klipper`).
@@ -191,7 +192,8 @@ def execute(motion_s: float, job: Job | None = None) -> tuple[float, float, Offl
             planner.append(pending)
             pending = next(moves, None)
         stepgen.request_start()
-        now_s += stepgen.tick_s
+        # the rig's jobs tick as the server's ticks do: when the backend needs a sample
+        now_s = now_s + stepgen.tick_s if job is None else stepgen.next_tick_s(now_s, now_s)
         backend.now_s = now_s
         stepgen.tick(now_s)
     backend.segments = len(all_moves)  # type: ignore[attr-defined]
