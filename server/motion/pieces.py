@@ -10,13 +10,15 @@ Where an output follows motion (a laser whose power the backend times), ``power_
 block's :class:`~server.backends.base.PowerLaw`, evaluated as the block is taken (after its
 ordered actions, M221 among them); a feed hold's pieces carry none (the tool is off).
 
-A cruise continued by blocks that are all cruise, along the same direction from where it ends,
-at the same speed and power, at the time it ends, without ordered actions (a raster's line of
-short segments) is one piece, not one a block: it stays open, and those blocks only lengthen
-it. The backend is told the open piece as it stands (:meth:`PieceReporter.flush`: a piece from
-the same start, longer, which replaces the shorter one) before anything may read it: the step
-generator flushes before each sample, before a block's ordered actions and before it goes
-idle; a hold or a stop flushes first and closes it.
+A cruise continued by blocks that are all cruise, or a ramp continued by blocks that are all
+one ramp at the same acceleration from the speed it reached, along the same direction from
+where it ends, at the same power, at the time it ends, without ordered actions (a raster's
+line of short segments: its ramp up, its cruise, its ramp down), is one piece, not one a
+block: it stays open, and those blocks only lengthen it. The backend is told the open piece
+as it stands (:meth:`PieceReporter.flush`: a piece from the same start, longer, which replaces
+the shorter one) before anything may read it: the step generator flushes before each sample,
+before a block's ordered actions and before it goes idle; a hold or a stop flushes first and
+closes it.
 Units: seconds on the kernel's clock, mm, mm/s, mm/s².
 """
 
@@ -32,10 +34,16 @@ from server.motion.planner import Block
 PowerOf = Callable[[Move, float], PowerLaw | None]
 """A block's tool power from its move and nominal speed (mm/s); None: off."""
 JOIN_S = 1e-9
-"""A block that starts this close to the open cruise's end continues it (float rounding of the
-step generator's timeline; any real gap opens a new piece), and a ramp this short at either
-end of a cruise block (the planner's rounding of a junction speed to within 1e-14 of the
-cruise) is cruise: it moves the tool less than 1e-15 mm differently."""
+"""A block that starts this close to the open piece's end continues it (float rounding of the
+step generator's timeline; any real gap opens a new piece), and a phase this short at the end
+of a block (or at either end of a cruise block) is part of the phase beside it (the planner's
+rounding of a junction speed to within 1e-14 of the cruise): it moves the tool less than
+1e-15 mm differently."""
+SAME_ACCEL = 1e-9
+"""Ramps whose accelerations differ by this share at most are one ramp (the planner computes
+each block's from its speeds and duration: they differ in the last bits)."""
+SAME_SPEED_MM_S = 1e-9
+"""A ramp continues one that reaches its entry speed within this (float rounding)."""
 
 
 class PieceReporter:
@@ -44,12 +52,12 @@ class PieceReporter:
     def __init__(self, backend: Backend) -> None:
         self.backend = backend
         self.power_of: PowerOf | None = None
-        self._run: Piece | None = None  # the open cruise, as the backend was last told it
+        self._run: Piece | None = None  # the open piece, as the backend was last told it
         self._run_s = 0.0  # its duration with the blocks that continued it since
         self._run_end_mm: Position = ()  # where the last block it covers ends
 
     def block(self, start_s: float, block: Block) -> None:
-        """A block's three phases, starting at ``start_s`` (or the open cruise lengthened)."""
+        """A block's three phases, starting at ``start_s`` (or the open piece lengthened)."""
         if block.move is None or block.length_mm <= 0.0:
             return
         entry, cruise, t1, t2 = block.entry_mm_s, block.cruise_mm_s, block.accel_s, block.cruise_s
@@ -57,34 +65,60 @@ class PieceReporter:
         power = None if self.power_of is None else self.power_of(block.move, block.nominal_mm_s)
         run = self._run
         if run is not None:
-            if (t1 <= JOIN_S and t3 <= JOIN_S and cruise == run.start_mm_s and not block.actions
-                    and block.start_mm == self._run_end_mm and block.unit == run.unit
-                    and power == run.power
-                    and abs(start_s - run.start_s - self._run_s) <= JOIN_S):
+            if (not block.actions and block.start_mm == self._run_end_mm
+                    and block.unit == run.unit and power == run.power
+                    and abs(start_s - run.start_s - self._run_s) <= JOIN_S
+                    and self._continues(run, block)):
                 self._run_s += t1 + t2 + t3
                 self._run_end_mm = block.end_mm
                 return
-            self.flush()
-            self._run = None
+            self._close()
         d1 = 0.5 * t1 * (entry + cruise)
         if t1 > 0.0:
+            if t2 <= JOIN_S and t3 <= JOIN_S:  # a ramp to the end: blocks continuing it
+                self._open(self._piece(start_s, t1 + t2 + t3, block, 0.0, entry,
+                                       (cruise - entry) / t1, power), block)
+                return
             self._piece(start_s, t1, block, 0.0, entry, (cruise - entry) / t1, power)
         if t2 > 0.0 and t3 <= JOIN_S:  # a cruise to the end: blocks continuing it lengthen it
-            piece = self._piece(start_s + t1, t2 + t3, block, d1, cruise, 0.0, power)
-            self._run, self._run_s, self._run_end_mm = piece, t2 + t3, block.end_mm
+            self._open(self._piece(start_s + t1, t2 + t3, block, d1, cruise, 0.0, power), block)
             return
         if t2 > 0.0:
             self._piece(start_s + t1, t2, block, d1, cruise, 0.0, power)
         if t3 > 0.0:
-            self._piece(start_s + t1 + t2, t3, block, d1 + cruise * t2, cruise,
-                        (block.exit_mm_s - cruise) / t3, power)
+            self._open(self._piece(start_s + t1 + t2, t3, block, d1 + cruise * t2, cruise,
+                                   (block.exit_mm_s - cruise) / t3, power), block)
+
+    def _open(self, piece: Piece, block: Block) -> None:
+        """``piece`` runs to the end of ``block``: blocks that continue it lengthen it."""
+        self._run, self._run_s, self._run_end_mm = piece, piece.duration_s, block.end_mm
+
+    def _continues(self, run: Piece, block: Block) -> bool:
+        """Whether ``block``'s motion is ``run``'s carried on: a cruise at its speed, or one
+        ramp at its acceleration from the speed it reaches (the other phases under
+        ``JOIN_S``)."""
+        t1, t2, t3 = block.accel_s, block.cruise_s, block.decel_s
+        a = run.accel_mm_s2
+        if a == 0.0:
+            return t1 <= JOIN_S and t3 <= JOIN_S and block.cruise_mm_s == run.start_mm_s
+        if t2 > JOIN_S:
+            return False
+        if t3 <= JOIN_S < t1:
+            ramp_a, from_mm_s = (block.cruise_mm_s - block.entry_mm_s) / t1, block.entry_mm_s
+        elif t1 <= JOIN_S < t3:
+            ramp_a, from_mm_s = (block.exit_mm_s - block.cruise_mm_s) / t3, block.cruise_mm_s
+        else:
+            return False
+        reached_mm_s = run.start_mm_s + a * self._run_s
+        return (abs(ramp_a - a) <= SAME_ACCEL * abs(a)
+                and abs(from_mm_s - reached_mm_s) <= SAME_SPEED_MM_S)
 
     def flush(self) -> None:
-        """Tell the backend the open cruise as it stands, if blocks lengthened it since."""
+        """Tell the backend the open piece as it stands, if blocks lengthened it since."""
         run = self._run
         if run is not None and self._run_s != run.duration_s:
             run = self._run = Piece(run.start_s, self._run_s, run.start_mm, run.unit,
-                                    run.start_mm_s, 0.0, run.power)
+                                    run.start_mm_s, run.accel_mm_s2, run.power)
             self.backend.trajectory(run)
 
     def _close(self) -> None:

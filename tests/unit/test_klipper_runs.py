@@ -1,8 +1,8 @@
-"""A cruise continued block after block (a raster's line of short segments) is one piece that
-the blocks lengthen (:mod:`server.motion.pieces`): the board must get exactly what it gets with
-one piece a block, to the tick, through power changes, holds and halts. Each case runs twice
-through the real planner, step generator and Klipper backend, merged and block by block
-(``JOIN_S`` below zero: no block ever continues a cruise), and compares every message."""
+"""A cruise or a ramp continued block after block (a raster's line of short segments) is one
+piece that the blocks lengthen (:mod:`server.motion.pieces`): the board must get exactly what
+it gets with one piece a block, to the tick, through power changes, holds and halts. Each case
+runs twice through the real planner, step generator and Klipper backend, merged and block by
+block (``JOIN_S`` below zero: no block ever continues a piece), and compares every message."""
 
 from __future__ import annotations
 
@@ -26,13 +26,14 @@ TICK_S = 0.007  # not a multiple of a block's 1 ms: ticks fall inside blocks and
 Script = dict[int, Callable[[StepGenerator], object]]
 
 
-def raster(lines: int, s_at: Callable[[int, int], float] = lambda line, k: 800.0) -> list[Move]:
+def raster(lines: int, s_at: Callable[[int, int], float] = lambda line, k: 800.0,
+           segments: int = 200) -> list[Move]:
     """Lines of 200 segments of 0.1 mm along X at F6000 (laser on at ``s_at(line, k)``),
     stepping over 0.1 mm in Y with the laser off (as the rig benchmark's raster)."""
     moves, x, y = [], 10.0, 10.0
     for line in range(lines):
         direction = 1 if line % 2 == 0 else -1
-        for k in range(200):
+        for k in range(segments):
             x = round(x + 0.1 * direction, 3)
             moves.append(Move((x, y), 100.0, MoveKind.FEED, ToolMode.CW, s_at(line, k)))
         y = round(y + 0.1, 3)
@@ -115,10 +116,13 @@ def test_a_raster_line_is_one_piece_and_the_board_gets_what_block_by_block_sends
     assert merged == single
     assert stepped(merged) == {0: 0, 1: 4 * 8}  # 4 lines there and back, 4 step-overs up
     assert len(pwm(merged)) >= 8  # on and off each line
-    starts = len({p.start_s for p in merged_pieces})
-    # a line: ramps of 25 blocks each way (2,000 mm/s² to 100 mm/s), 150 blocks of cruise
-    assert len({p.start_s for p in single_pieces}) - starts >= 4 * 120
-    assert max(p.duration_s for p in merged_pieces) > 0.14  # a line's cruise, or most of it
+    # a line: ramps of 25 blocks each way (2,000 mm/s² to 100 mm/s), 150 blocks of cruise;
+    # one piece each (and a few for the rounding of a junction speed and the step-over)
+    assert len({p.start_s for p in single_pieces}) > 4 * 200
+    assert len({p.start_s for p in merged_pieces}) <= 4 * 10
+    assert max(p.duration_s for p in merged_pieces) > 0.14  # a line's cruise
+    ramps = [p.duration_s for p in merged_pieces if p.accel_mm_s2 and p.power is not None]
+    assert max(ramps) > 0.045  # a line's ramp to 100 mm/s: 50 ms
 
 
 def test_a_power_change_mid_line_lands_where_its_block_starts(
@@ -134,7 +138,7 @@ def test_a_power_change_mid_line_lands_where_its_block_starts(
     assert clocks[2] - clocks[1] == pytest.approx(0.020 * CLOCK_HZ, abs=2)
 
 
-@pytest.mark.parametrize("at_tick", [10, 15, 23])  # cruise: 0.05-0.2 s
+@pytest.mark.parametrize("at_tick", [3, 10, 15, 23, 29])  # ramps to 0.05 s and from 0.2 s
 def test_a_hold_inside_a_run_decelerates_at_once_and_resumes_as_block_by_block(
         monkeypatch: pytest.MonkeyPatch, at_tick: int) -> None:
     script: Script = {at_tick: StepGenerator.hold, at_tick + 40: StepGenerator.resume}
@@ -145,10 +149,11 @@ def test_a_hold_inside_a_run_decelerates_at_once_and_resumes_as_block_by_block(
     held_s = at_tick * TICK_S  # the tick before the hold: its deceleration starts there
     decel = [p for p in given if p.accel_mm_s2 < 0.0 and p.power is None]
     assert decel and abs(decel[0].start_s - held_s) < 1e-9
-    assert decel[0].start_mm_s == pytest.approx(100.0)  # at cruise: inside the run
+    if 8 <= at_tick <= 28:
+        assert decel[0].start_mm_s == pytest.approx(100.0)  # at cruise: inside the run
 
 
-@pytest.mark.parametrize("at_tick", [9, 20])
+@pytest.mark.parametrize("at_tick", [4, 9, 20, 30])
 def test_a_halt_inside_a_run_stops_the_steps_at_once_as_block_by_block(
         monkeypatch: pytest.MonkeyPatch, at_tick: int) -> None:
     script: Script = {at_tick: StepGenerator.stop_now}
@@ -192,3 +197,18 @@ def test_status_reads_the_board_where_block_by_block_puts_it_inside_a_run(
         assert speed == pytest.approx(expected_speed, abs=1e-9)
     cruising = [speed for _, speed in merged if speed == pytest.approx(100.0)]
     assert len(cruising) > 20  # the board was read inside the runs, at cruise
+
+
+def test_a_line_too_short_to_cruise_ramps_up_and_down_in_two_pieces(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A 2 mm line from rest to rest: the speed peaks where a block ends (1 mm in); the ramp
+    down does not continue the ramp up (another acceleration), each is one piece."""
+    moves = raster(1, segments=20)[:-1]
+    merged, given = drive(moves, True, monkeypatch)
+    single, _ = drive(moves, False, monkeypatch)
+    assert merged == single
+    line = [p for p in {p.start_s: p for p in given}.values()
+            if p.power is not None and p.duration_s > 1e-6][:2]
+    assert [p.accel_mm_s2 > 0.0 for p in line] == [True, False]
+    assert line[0].duration_s == pytest.approx(line[1].duration_s)  # 1 mm each way
+    assert line[1].start_mm == pytest.approx((11.0, 10.0))
