@@ -12,6 +12,7 @@ G codes are identified by ten times their number, an ``int``: ``G1`` is 10, ``G3
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from operator import le
 from typing import TYPE_CHECKING
 
 from server.errors import CommandError, Error
@@ -330,6 +331,11 @@ class Geometry:
             tuple(v - SOFT_LIMIT_SLACK_MM for v in settings.min_mm),
             tuple(v + SOFT_LIMIT_SLACK_MM for v in settings.max_mm),
         )
+
+    def inside(self, target: Position) -> bool:
+        """Whether ``target`` lies within the travel (whatever the soft limits setting): the
+        hot path's test, in C; :meth:`outside` says why not."""
+        return all(map(le, self.low, target)) and all(map(le, target, self.high))
 
     def outside(self, target: Position) -> str | None:
         """Why ``target`` is outside the travel (when soft limits are on), or None."""

@@ -30,6 +30,9 @@ if TYPE_CHECKING:
     from server.runtime.state import MachineStatus
 
 
+_RUN, _IDLE = MachineState.RUN, MachineState.IDLE  # (an enum member's look-up costs a call)
+
+
 class GcodeFeed:
     """Lines into the planner; see the module docstring."""
 
@@ -100,7 +103,7 @@ class GcodeFeed:
             return index
         taken = offer(self.planner, outputs, index)
         if taken > index:
-            self._note_input(MachineState.RUN)
+            self._note_input(_RUN)
         return taken
 
     def _arm_probe(self, outputs: list[Output]) -> None:
@@ -140,7 +143,7 @@ class GcodeFeed:
     def _note_input(self, state: MachineState) -> None:
         self.idle_event.clear()
         self.stepgen.note_input(self.clock.now_s())
-        if self.status.state is MachineState.IDLE:
+        if self.status.state is _IDLE:
             self.status.set_state(state)
 
     async def wait_idle(self) -> None:
