@@ -60,7 +60,8 @@ class GcodeFeed:
         planner has room and the line asks for no sync, else an awaitable of them (see
         :meth:`~server.runtime.dispatcher.Dispatcher.begin`)."""
         outputs = self.interpret(command)
-        self._arm_probe(outputs)
+        if len(outputs) != 1 or type(outputs[0]) is not Move:  # (a probe is a Sync)
+            self._arm_probe(outputs)
         epoch = self.epoch
         index = self._offer(outputs, 0)
         if index == len(outputs):
