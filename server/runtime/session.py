@@ -237,7 +237,7 @@ class Session(LineAdmission, SessionOutput):
         """The queued lines in order, each to its end before the next. A line that needs no
         wait (most of a raster) runs without a task switch or a future of its own; the lines
         of a read run in one pass and their replies leave in one write."""
-        now_s = asyncio.get_running_loop().time  # (the loop's clock, looked up once)
+        now_s = time.monotonic  # the loop's clock (asyncio's loop.time(), without its frame)
         lines, replies, backlog = self._lines, self._replies, self._backlog
         turn_s = now_s()
         while not self._closing:
