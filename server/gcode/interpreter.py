@@ -94,6 +94,9 @@ class LineKind(enum.Enum):
     EFFECT = "effect"
 
 
+_EFFECT = LineKind.EFFECT
+
+
 class Interpreter:
     """Modal G-code state and the conversion of lines to machine moves; see the module doc.
 
@@ -149,7 +152,7 @@ class Interpreter:
         Cheap for the common line: without an M word and a ``G28.2`` it is an effect."""
         letters, values = line.letters, line.values
         if "M" not in letters and not ("G" in letters and 28.2 in values):
-            return LineKind.EFFECT
+            return _EFFECT
         words = [(letter, value) for letter, value in zip(letters, values, strict=True)
                  if letter != "N"]
         m_codes = [value for letter, value in words if letter == "M"]
@@ -213,7 +216,7 @@ class Interpreter:
         if motion == G1 and (target or explicit) and feed_mm_min <= 0.0:
             return None
         end = None if target is None else tuple(target)
-        if end is not None and geo.settings.soft_limits and geo.outside(end) is not None:
+        if end is not None and geo.settings.soft_limits and not geo.inside(end):
             return None
         mode = modal.tool_mode
         actions: list[Action] = []

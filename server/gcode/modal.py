@@ -331,6 +331,14 @@ class Geometry:
             tuple(v + SOFT_LIMIT_SLACK_MM for v in settings.max_mm),
         )
 
+    def inside(self, target: Position) -> bool:
+        """Whether ``target`` lies within the travel (whatever the soft limits setting): the
+        hot path's test; :meth:`outside` says why not."""
+        for low, value, high in zip(self.low, target, self.high):  # noqa: B905, SIM110 - (faster)
+            if not low <= value <= high:  # (also false for NaN)
+                return False
+        return True
+
     def outside(self, target: Position) -> str | None:
         """Why ``target`` is outside the travel (when soft limits are on), or None."""
         if not self.settings.soft_limits:

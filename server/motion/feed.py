@@ -14,12 +14,14 @@ def offer(planner: Planner, outputs: Sequence[Output], start: int = 0) -> int:
     not taken. The live machine waits for room (or carries the Sync out) and offers the rest;
     ``estimate`` and ``render`` pop planned blocks and offer the rest, so both plan the same
     block sequence."""
+    full = planner.is_full()
     for index in range(start, len(outputs)):
         output = outputs[index]
-        if type(output) is Sync or planner.is_full():
+        if full or type(output) is Sync:
             return index
         if type(output) is Move:
-            planner.append(output)
+            full = planner.append(output)  # (which says whether the planner is full now)
         else:
             planner.append_action(output)  # type: ignore[arg-type]
+            full = planner.is_full()
     return len(outputs)

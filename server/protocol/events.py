@@ -64,11 +64,13 @@ class FramedLine:
         return M110.match(self.text_without_framing) is not None
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class LineReceived:
     """A complete line to execute (framing stripped; may be empty or only a comment).
 
     ``handled`` means the protocol already acted on the line (``M110``): answer ``ok`` only.
+    Never changed once made (not declared frozen: a frozen dataclass is made with a Python
+    call per field, and one is made per line).
     """
 
     text: str

@@ -137,11 +137,12 @@ class LineProtocol(ByteScanner):
             return self._garbage(raw, "invalid UTF-8")
         if _CONTROL.search(text):
             return self._garbage(raw, "control character in line")
-        frame = _split_frame(text)
-        self._detect_dialect(text, framed=frame is not None)
+        frame = _split_frame(text) if "*" in text else None  # (a frame has a checksum)
+        if self._detecting:
+            self._detect_dialect(text, framed=frame is not None)
         if frame is not None:
             return self._framed_event(*frame)
-        if M110.match(text):
+        if "110" in text and M110.match(text):  # (the code's digits, looked for in C first)
             self._set_last_line(text, None)
             return LineReceived(text, None, handled=True)
         return LineReceived(text)

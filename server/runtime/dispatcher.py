@@ -65,6 +65,7 @@ _DOLLAR = re.compile(r"\$([$#]|[A-Za-z]*)\s*(.*)$", re.S)
 _SETTING = re.compile(r"\$(\d+)\s*=\s*(.*)$")
 _STARTUP = re.compile(r"\$[Nn](\d)\s*=(.*)$", re.S)
 _TEXT_CODE = re.compile(r"[Mm]0*(113|117|118)(?![\d.])\s?(.*)$", re.S)
+_QUERY, _EFFECT = LineKind.QUERY, LineKind.EFFECT  # (an enum member's look-up costs a call)
 TEXT_CODES = frozenset({"M113", "M117", "M118"})  # M-codes whose rest of line is text, not words
 
 
@@ -274,14 +275,16 @@ class Dispatcher:
         if not line.letters:
             return []
         kind = self._classify(line)
-        self._check_source(source, query=kind is LineKind.QUERY)
-        if kind is LineKind.EFFECT and self._is_locked():
+        self._check_source(source, query=kind is _QUERY)
+        if kind is _EFFECT and self._is_locked():
             raise CommandError(
                 Error.LOCKED_OUT, "G-code locked out during alarm: $X or M999 to unlock"
             )
         if self._gcode is None:
             raise CommandError(Error.UNSUPPORTED, "no G-code interpreter")
         result = self._gcode(Command("G", text, "", source, line, defer))
+        if type(result) is list:  # the common line: its messages, at once
+            return result
         if inspect.isawaitable(result):
             return _listed(result)
         return list(result or ())

@@ -197,7 +197,8 @@ class _Context:
         self._kernel.clear_alarm()
 
 
-LOCKED_STATES = frozenset({MachineState.ALARM, MachineState.SLEEP})  # $X / Ctrl-X to leave
+# $X / Ctrl-X to leave (a tuple: membership by identity, without the enum's Python-level hash)
+LOCKED_STATES = (MachineState.ALARM, MachineState.SLEEP)
 QUIET_AFTER_S = 1.0  # no command for this long (and nothing moving): the loop monitor slows
 
 

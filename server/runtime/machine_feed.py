@@ -30,6 +30,9 @@ if TYPE_CHECKING:
     from server.runtime.state import MachineStatus
 
 
+_RUN, _IDLE = MachineState.RUN, MachineState.IDLE  # (an enum member's look-up costs a call)
+
+
 class GcodeFeed:
     """Lines into the planner; see the module docstring."""
 
@@ -57,7 +60,8 @@ class GcodeFeed:
         planner has room and the line asks for no sync, else an awaitable of them (see
         :meth:`~server.runtime.dispatcher.Dispatcher.begin`)."""
         outputs = self.interpret(command)
-        self._arm_probe(outputs)
+        if len(outputs) != 1 or type(outputs[0]) is not Move:  # (a probe is a Sync)
+            self._arm_probe(outputs)
         epoch = self.epoch
         index = self._offer(outputs, 0)
         if index == len(outputs):
@@ -100,7 +104,7 @@ class GcodeFeed:
             return index
         taken = offer(self.planner, outputs, index)
         if taken > index:
-            self._note_input(MachineState.RUN)
+            self._note_input(_RUN)
         return taken
 
     def _arm_probe(self, outputs: list[Output]) -> None:
@@ -140,7 +144,7 @@ class GcodeFeed:
     def _note_input(self, state: MachineState) -> None:
         self.idle_event.clear()
         self.stepgen.note_input(self.clock.now_s())
-        if self.status.state is MachineState.IDLE:
+        if self.status.state is _IDLE:
             self.status.set_state(state)
 
     async def wait_idle(self) -> None:

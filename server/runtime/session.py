@@ -237,36 +237,41 @@ class Session(LineAdmission, SessionOutput):
         """The queued lines in order, each to its end before the next. A line that needs no
         wait (most of a raster) runs without a task switch or a future of its own; the lines
         of a read run in one pass and their replies leave in one write."""
-        loop = asyncio.get_running_loop()
-        turn_s = loop.time()
+        now_s = time.monotonic  # the loop's clock (asyncio's loop.time(), without its frame)
+        lines, replies, backlog = self._lines, self._replies, self._backlog
+        turn_s = now_s()
         while not self._closing:
-            if not self._lines:
+            if not lines:
                 self._lines_ready.clear()
                 await self._lines_ready.wait()
-                turn_s = loop.time()
+                turn_s = now_s()
                 continue
-            epoch, event = self._lines.popleft()
-            if self._backlog and len(self._lines) < INBOUND_LINES // 2:
+            epoch, event = lines.popleft()
+            if backlog and len(lines) < INBOUND_LINES // 2:
                 self._refill()
             reply = self._execute(event, epoch)
-            if not isinstance(reply, bytes | asyncio.Future):
+            if not isinstance(reply, (bytes, asyncio.Future)):  # (a tuple: no union built per line)
                 self._arm_busy()  # the line waits (room in the planner, a sync request)
                 try:
                     reply = await reply
                 finally:
                     self._disarm_busy()
             if epoch == self._epoch:
-                self._queued_bytes = max(0, self._queued_bytes - line_size(event))
-                self._answer(reply, epoch)
-            while len(self._replies) >= INBOUND_LINES and not self._closing:
+                queued = self._queued_bytes - line_size(event)
+                self._queued_bytes = queued if queued > 0 else 0
+                if not replies and isinstance(reply, bytes):  # (what _answer does first)
+                    self.outbox.put(reply)
+                else:
+                    self._answer(reply, epoch)
+            while len(replies) >= INBOUND_LINES and not self._closing:
                 self._replies_room.clear()
                 await self._replies_room.wait()
             if self._ending is not None:
                 self.end(self._ending)
                 return
-            if loop.time() - turn_s > YIELD_AFTER_S:  # lines that never wait must not hog
+            if now_s() - turn_s > YIELD_AFTER_S:  # lines that never wait must not hog
                 await asyncio.sleep(0)
-                turn_s = loop.time()
+                turn_s = now_s()
 
     def _arm_busy(self) -> None:
         """RepRap hosts: ``echo:busy: processing`` every 2 s while this line's ok is held."""
@@ -308,7 +313,8 @@ class Session(LineAdmission, SessionOutput):
         except Exception as exc:  # noqa: BLE001 - answered (CommandError) or alarmed
             return self._failed(event, exc)
         if isinstance(outcome, list):
-            return self._replied(outcome, deferred)
+            return self._replied(outcome, deferred) if outcome or deferred else (
+                self.protocol.reply_ok())
         return self._awaited(event, outcome, deferred)
 
     async def _awaited(self, event: LineReceived, outcome: Awaitable[list[str]],

@@ -265,14 +265,17 @@ class LineAdmission:
                     if event.command is Realtime.RESET:
                         self._act_on_realtime(batch)
                 continue
-            if not replayed:
+            if not replayed and self._text_counting:
                 self._count_text(event)
-            if not replayed and self._is_emergency_stop(event):
-                self._act_on_realtime(batch)
-                self.kernel.control.emergency_stop()
-            if not replayed and self._is_quickstop(event):
-                self._act_on_realtime(batch)
-                self._quickstop()
+            # (an M112 or M410 holds its number's digits: most lines are not looked at)
+            if not replayed and type(event) is LineReceived and (
+                    "112" in event.text or "410" in event.text):
+                if self._is_emergency_stop(event):
+                    self._act_on_realtime(batch)
+                    self.kernel.control.emergency_stop()
+                if self._is_quickstop(event):
+                    self._act_on_realtime(batch)
+                    self._quickstop()
             self._lines.append((self._epoch, event))
             self._queued_bytes += line_size(event)
         self._act_on_realtime(batch)

@@ -96,3 +96,37 @@ async def test_a_reset_in_the_middle_of_a_burst_drops_the_lines_before_it_unansw
         await session.close()
     assert got == ["ok", "ok"]  # the lines after the reset; those before it never ran
     assert position[:2] == pytest.approx((0.0, 4.0))
+
+
+@pytest.mark.parametrize("stop", [b"M112", b"N7 m 0112", b" M 112 (halt)"])
+async def test_an_m112_in_the_middle_of_a_burst_halts_before_the_lines_around_it_run(
+        app: App, stop: bytes) -> None:
+    """However it is spelled (the session looks for the code's digits before its pattern)."""
+    session = await started(app)
+    planner = app.kernel.machine.planner
+    try:
+        before = planner.moves_appended
+        await session.feed(b"G1 X5 F600\nG1 X6\n" + stop + b"\nG1 X7\n")
+        assert app.kernel.state is MachineState.ALARM
+        assert planner.moves_appended == before  # none of the read's lines had run yet
+    finally:
+        await session.close()
+
+
+@pytest.mark.parametrize("stop", [b"M410", b"m0410", b"N3 M 410"])
+async def test_an_m410_in_the_middle_of_a_burst_stops_before_the_lines_after_it_run(
+        app: App, stop: bytes) -> None:
+    session = await started(app)
+    planner = app.kernel.machine.planner
+    try:
+        await session.feed(b"G1 X5 F600\n")
+        assert await replies(session, 1) == ["ok"]
+        await wait_for(lambda: app.kernel.state is MachineState.RUN, 5, "the move")
+        before = planner.moves_appended
+        await session.feed(b"G1 X6\n" + stop + b"\nG1 Y7\n")
+        assert planner.moves_appended == before
+        assert app.kernel.machine.stepgen.idle  # the queued motion was dropped at once
+        got = await replies(session, 3)
+        assert got[0] == "error:45" and got[1:] == ["ok", "ok"], got
+    finally:
+        await session.close()

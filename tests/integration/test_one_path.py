@@ -47,9 +47,9 @@ def record_planner(planner: Planner) -> list[tuple[Any, ...]]:
     seen: list[tuple[Any, ...]] = []
     append, append_action = planner.append, planner.append_action
 
-    def on_move(move: Move) -> None:
-        seen.append(_move_row(move))
-        append(move)
+    def on_move(move: Move) -> bool:  # as transparent as a recorder must be: the planner
+        seen.append(_move_row(move))  # says whether it is full now (offer() acts on that)
+        return append(move)
 
     def on_action(action: Action) -> None:
         seen.append(_action_row(action))
@@ -160,9 +160,9 @@ def offline_sequence(
     seen: list[tuple[Any, ...]] = []
     append, append_action = Planner.append, Planner.append_action
 
-    def on_move(planner: Planner, move: Move) -> None:
+    def on_move(planner: Planner, move: Move) -> bool:
         seen.append(_move_row(move))
-        append(planner, move)
+        return append(planner, move)
 
     def on_action(planner: Planner, action: Action) -> None:
         seen.append(_action_row(action))

@@ -99,9 +99,9 @@ class MoveSpy:
         planner = machine.planner
         original = planner.append
 
-        def append(move: Move) -> None:
+        def append(move: Move) -> bool:  # (the planner's answer: whether it is full now)
             self.targets.append(tuple(move.target_mm))
-            original(move)
+            return original(move)
 
         planner.append = append  # type: ignore[method-assign]
 
