@@ -8,8 +8,9 @@ default: a hold-back of 0.15 s)."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import time
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable
 from typing import Any
 
 from server.app import App
@@ -52,6 +53,19 @@ async def just_after_a_sample(samples: list[float]) -> None:
         await asyncio.sleep(0.001)
     assert len(samples) > seen, "no sample within 0.5 s"
     await asyncio.sleep(0.01)
+
+
+@contextlib.asynccontextmanager
+async def cruising(mcu: VirtualMcu) -> AsyncIterator[tuple[App, KlipperBackend, list[float]]]:
+    """A 150 mm laser cut at 100 mm/s, 0.5 s in, 10 ms after a sample: the app, its backend
+    and the times it is sampled at from then on."""
+    async with klipper_machine(mcu, lead_time_s=LEAD_S, laser=LASER) as app:
+        backend = klipper(app)
+        await submit_all(app, ["M3 S800", "G1 X150 F6000"])
+        await asyncio.sleep(0.5)
+        samples = record_samples(backend)
+        await just_after_a_sample(samples)
+        yield app, backend, samples
 
 
 async def test_a_cruise_is_sampled_only_when_the_backend_needs_it(mcu: VirtualMcu) -> None:
@@ -113,12 +127,8 @@ async def test_a_hold_between_sparse_samples_decelerates_and_turns_the_laser_off
     is ticked at once, the deceleration starts where the steps reached (no later than the
     command on the motion's timeline) and the laser's off is queued then; the machine stops
     within the deceleration distance, every step sent executed."""
-    async with klipper_machine(mcu, lead_time_s=LEAD_S, laser=LASER) as app:
-        backend, machine = klipper(app), app.kernel.machine
-        await submit_all(app, ["M3 S800", "G1 X150 F6000"])
-        await asyncio.sleep(0.5)
-        samples = record_samples(backend)
-        await just_after_a_sample(samples)
+    async with cruising(mcu) as (app, backend, samples):
+        machine = app.kernel.machine
         assert backend.pwm_log is not None
         logged = len(backend.pwm_log)
         hold_s, before = time.monotonic(), len(samples)
@@ -143,12 +153,7 @@ async def test_a_hold_between_sparse_samples_decelerates_and_turns_the_laser_off
 async def test_a_halt_between_sparse_samples_stops_the_board_at_once(mcu: VirtualMcu) -> None:
     """Ctrl-X 10 ms after a sample: the emergency stop reaches the MCU within a few ms (not
     at the next sample), and the ticks stop at once (the link is read as data arrives)."""
-    async with klipper_machine(mcu, lead_time_s=LEAD_S, laser=LASER) as app:
-        backend = klipper(app)
-        await submit_all(app, ["M3 S800", "G1 X150 F6000"])
-        await asyncio.sleep(0.5)
-        samples = record_samples(backend)
-        await just_after_a_sample(samples)
+    async with cruising(mcu) as (app, backend, _):
         halt_s = time.monotonic()
         app.kernel.control.reset()
         took_s = await until(lambda: bool(mcu.shutdowns), 1.0)
@@ -162,12 +167,7 @@ async def test_a_halt_between_sparse_samples_stops_the_board_at_once(mcu: Virtua
 
 async def test_a_board_shutdown_mid_cruise_is_read_within_the_longest_sample_gap(
         mcu: VirtualMcu) -> None:
-    async with klipper_machine(mcu, lead_time_s=LEAD_S, laser=LASER) as app:
-        backend = klipper(app)
-        await submit_all(app, ["M3 S800", "G1 X150 F6000"])
-        await asyncio.sleep(0.5)
-        samples = record_samples(backend)
-        await just_after_a_sample(samples)
+    async with cruising(mcu) as (app, backend, _):
         with mcu.lock:
             mcu.shutdown("Rescheduled timer in the past")
         took_s = await wait_for_alarm(app)
