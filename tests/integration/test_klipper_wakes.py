@@ -6,6 +6,7 @@ mid-motion is read, and acted on, at the next sample; an idle board's at once.""
 from __future__ import annotations
 
 import asyncio
+import math
 import time
 from typing import Any
 
@@ -13,6 +14,7 @@ import pytest
 
 from server.backends.klipper import mcu as mcu_module
 from server.backends.klipper.backend import KlipperBackend
+from server.backends.klipper.dictionary import Dictionary
 from server.backends.klipper.link import Link
 from tests.integration.test_klipper_faults import wait_for_alarm
 from tests.support.helpers import submit_all
@@ -36,8 +38,8 @@ def registered(link: Link) -> bool:
 
 class Deliveries:
     """Which messages the link delivered, and whether from a drain of the device (a sample's,
-    or the retransmission timer's: between sparse samples it judges what a sample sent), not
-    by the event loop's reader."""
+    the retransmission timer's: between sparse samples it judges what a sample sent, or a
+    window's refill), not by the event loop's reader."""
 
     def __init__(self, link: Link) -> None:
         self.seen: list[tuple[str, bool, float]] = []
@@ -120,3 +122,52 @@ async def test_an_idle_board_s_shutdown_is_read_at_once_without_a_tick(
         in_sample, read_s = deliveries.first("shutdown")
         assert not in_sample and read_s - sent_s < 0.2  # a few ms here
         assert "Rescheduled timer in the past" in app.kernel.alarm_message
+
+
+async def test_messages_waiting_for_room_leave_at_one_read_a_window_not_one_an_ack(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """While the owner samples, a burst many windows long leaves as the window's
+    acknowledgements have had time to come: the event loop calls the link about once a window
+    (192 bytes: three blocks), not once for each block's acknowledgement (and again for the
+    rest of it), and every message arrives once, in order."""
+    calls = [0]
+    for name in ("_on_readable", "_on_timer", "_on_refill"):  # every way the loop calls in
+        original = getattr(Link, name)
+
+        def counted(link: Link, original: Any = original) -> None:
+            calls[0] += 1
+            original(link)
+
+        monkeypatch.setattr(Link, name, counted)
+    mcu = VirtualMcu(baud=250000).start()  # a UART's pace: each acknowledgement in its turn
+    link = Link(mcu.path, 250000, lambda name, params, _: None, lambda reason: None)
+    link.open()
+    try:
+        link.dictionary = encode = Dictionary.from_compressed(mcu.blob)
+        link.send(encode.encode("allocate_oids", count=1),
+                  encode.encode("config_digital_out", oid=0, pin="PA8", value=0,
+                                default_value=0, max_duration=0),
+                  encode.encode("finalize_config", crc=1))
+        for _ in range(200):
+            if mcu.configured and not link.window.inflight:
+                break
+            await asyncio.sleep(0.01)
+        link.sample()  # the owner samples from now on (and no sample comes: only the loop)
+        first_block, before = link.window.next_seq, calls[0]
+        link.send(*[encode.encode("update_digital_out", oid=0, value=k % 2)
+                    for k in range(600)])
+        for _ in range(500):
+            if not link.queued_bytes and not link.window.inflight:
+                break
+            await asyncio.sleep(0.01)
+        assert not link.queued_bytes and not link.window.inflight
+        loop_calls = calls[0] - before
+        windows = math.ceil((link.window.next_seq - first_block) / 3)
+        assert windows >= 10
+        updates = [p["value"] for _, name, p in mcu.commands if name == "update_digital_out"]
+        assert updates == [k % 2 for k in range(600)], "every message once, in order"
+        assert link.window.retransmits == 0 and mcu.naks_sent == 0
+        assert loop_calls <= 2 * windows, f"{loop_calls} calls for {windows} windows"
+    finally:
+        link.close()
+        mcu.stop()
