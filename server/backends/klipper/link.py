@@ -165,10 +165,15 @@ class Link:
                 self._refill.cancel()
                 self._refill = None
         elif self._refill is None:  # room for what waits: when the window has been acked
-            now_s = time.monotonic()
-            wire_s = max(0.0, self._wire_free_s - now_s) + MESSAGE_MIN * BITS_PER_BYTE / self.baud
-            self._refill = self._loop.call_later(wire_s * SETTLE_SLACK + REFILL_MARGIN_S,
-                                                 self._on_refill)
+            self._arm_refill()
+
+    def _arm_refill(self) -> None:
+        """The drain for what waits, once the wire has carried what was written and the last
+        block's acknowledgement has come back."""
+        assert self._loop is not None
+        wire_s = max(0.0, self._wire_free_s - time.monotonic())
+        ack_s = MESSAGE_MIN * BITS_PER_BYTE * SETTLE_SLACK / self.baud
+        self._refill = self._loop.call_later(wire_s + ack_s + REFILL_MARGIN_S, self._on_refill)
 
     def _wants_reader(self) -> bool:
         """Whether something must be read as it arrives (see the module docstring)."""
@@ -378,6 +383,9 @@ class Link:
             now_s = time.monotonic()
             self._wire_free_s = (max(now_s, self._wire_free_s)
                                  + written * BITS_PER_BYTE / self.baud)
+            if self._refill is not None:  # later: what was just written is acked then too
+                self._refill.cancel()
+                self._arm_refill()
         assert self._loop is not None
         if bool(self._out) != self._writing:  # the loop watches for room only while needed
             self._writing = bool(self._out)
