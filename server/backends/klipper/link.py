@@ -122,14 +122,14 @@ class Link:
         self._bad_at_progress = 0  # the reader's count of damaged blocks then
         self.sampling = False  # the owner samples: the device is read at its samples
         self.watched = False  # the event loop reads the device as data arrives
-        self.drains = 0  # samples that read the device (for tests and the benchmark)
+        self.drains = 0  # reads of what waited: samples, timers, refills (for tests)
         self._backlog = False  # a sample's read filled READ_BYTES: more waits to be read
         self._settle: asyncio.TimerHandle | None = None  # the read after the rest's wire time
         self._answered = False  # the last block read was an answer (its acknowledgement follows)
         self._wire_free_s = 0.0  # when the wire will have carried every byte written
         self._refill: asyncio.TimerHandle | None = None  # the drain when the window is acked
         self._slow = False  # a refill found nothing acknowledged: read acks as they arrive
-        self.refills = 0  # refill drains (for tests and the benchmark)
+        self.refills = 0  # of those, the window's refills (for tests)
 
     def open(self) -> None:
         self._loop = asyncio.get_running_loop()
