@@ -45,13 +45,20 @@ def unmute(board: HostileMcu) -> None:
         board.muted = False
 
 
+def clock_back(board: HostileMcu) -> None:
+    """Its clock set back a second, once it has run more than that (a clock set below zero
+    is no board's: its uptime would read as the far future, 0xFFFFFFFF in the high word)."""
+    time.sleep(max(0.0, 1.2 - board.clock() / board.rate))
+    board.jump_clock(-1.0)
+
+
 # case: (start the fault, end it, words one of which the alarm names)
 CASES: dict[str, tuple[Callable[[HostileMcu], None], Callable[[HostileMcu], None], str]] = {
     "garbage": (lambda b: b.noise("garbage"), lambda b: b.noise(None), "damaged meanwhile"),
     "flood": (lambda b: b.noise("flood"), lambda b: b.noise(None), " blocks and "),
     "silent": (HostileMcu.mute, unmute, "nothing meanwhile|stopped answering|does not answer"),
     "clock-ahead": (lambda b: b.jump_clock(1.0), lambda b: None, "ms ahead of the host's"),
-    "clock-back": (lambda b: b.jump_clock(-1.0), lambda b: None, "clock went back"),
+    "clock-back": (clock_back, lambda b: None, "clock went back"),
     "unplugged": (HostileMcu.unplug, HostileMcu.replug, "Input/output error|was closed"),
 }
 UNREACHABLE = ("silent", "unplugged")  # only the board's own watchdog can turn the laser off

@@ -6,6 +6,7 @@ mid-motion is read, and acted on, at the next sample; an idle board's at once.""
 from __future__ import annotations
 
 import asyncio
+import math
 import time
 from typing import Any
 
@@ -13,6 +14,7 @@ import pytest
 
 from server.backends.klipper import mcu as mcu_module
 from server.backends.klipper.backend import KlipperBackend
+from server.backends.klipper.dictionary import Dictionary
 from server.backends.klipper.link import Link
 from tests.integration.test_klipper_faults import wait_for_alarm
 from tests.support.helpers import submit_all
@@ -36,8 +38,8 @@ def registered(link: Link) -> bool:
 
 class Deliveries:
     """Which messages the link delivered, and whether from a drain of the device (a sample's,
-    or the retransmission timer's: between sparse samples it judges what a sample sent), not
-    by the event loop's reader."""
+    the retransmission timer's: between sparse samples it judges what a sample sent, or a
+    window's refill), not by the event loop's reader."""
 
     def __init__(self, link: Link) -> None:
         self.seen: list[tuple[str, bool, float]] = []
@@ -120,3 +122,81 @@ async def test_an_idle_board_s_shutdown_is_read_at_once_without_a_tick(
         in_sample, read_s = deliveries.first("shutdown")
         assert not in_sample and read_s - sent_s < 0.2  # a few ms here
         assert "Rescheduled timer in the past" in app.kernel.alarm_message
+
+
+async def burst(mcu: VirtualMcu, monkeypatch: pytest.MonkeyPatch,
+                count: int = 600) -> tuple[Link, dict[str, int], int]:
+    """``count`` small messages sent at once to ``mcu`` by a link whose owner samples (and no
+    sample comes: only the event loop reads); checks they all arrive once, in order. Returns
+    the link, how many times the event loop called each of its callbacks meanwhile and how
+    many blocks it made."""
+    calls: dict[str, int] = {}
+    for name in ("_on_readable", "_on_timer", "_on_refill"):  # every way the loop calls in
+        original = getattr(Link, name)
+
+        def counted(link: Link, original: Any = original, name: str = name) -> None:
+            calls[name] = calls.get(name, 0) + 1
+            original(link)
+
+        monkeypatch.setattr(Link, name, counted)
+    link = Link(mcu.path, 250000, lambda name, params, _: None, lambda reason: None)
+    link.open()
+    try:
+        link.dictionary = encode = Dictionary.from_compressed(mcu.blob)
+        link.send(encode.encode("allocate_oids", count=1),
+                  encode.encode("config_digital_out", oid=0, pin="PA8", value=0,
+                                default_value=0, max_duration=0),
+                  encode.encode("finalize_config", crc=1))
+        for _ in range(200):
+            if mcu.configured and not link.window.inflight:
+                break
+            await asyncio.sleep(0.01)
+        link.sample()
+        first_block = link.window.next_seq
+        calls.clear()
+        link.send(*[encode.encode("update_digital_out", oid=0, value=k % 2)
+                    for k in range(count)])
+        for _ in range(1000):
+            if not link.queued_bytes and not link.window.inflight:
+                break
+            await asyncio.sleep(0.01)
+        assert not link.queued_bytes and not link.window.inflight
+        updates = [p["value"] for _, name, p in mcu.commands if name == "update_digital_out"]
+        assert updates == [k % 2 for k in range(count)], "every message once, in order"
+        return link, calls, link.window.next_seq - first_block
+    finally:
+        link.close()
+
+
+async def test_messages_waiting_for_room_leave_at_one_read_a_window_not_one_an_ack(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """While the owner samples, a burst many windows long leaves as the window's
+    acknowledgements have had time to come: the event loop calls the link about once a window
+    (192 bytes: three blocks), not once for each block's acknowledgement (and again for the
+    rest of it; main: 29-30 calls for 11 windows)."""
+    mcu = VirtualMcu(baud=250000).start()  # a UART's pace: each acknowledgement in its turn
+    try:
+        link, calls, blocks = await burst(mcu, monkeypatch)
+    finally:
+        mcu.stop()
+    windows, loop_calls = math.ceil(blocks / 3), sum(calls.values())
+    assert windows >= 10
+    assert link.window.retransmits == 0 and mcu.naks_sent == 0
+    assert loop_calls <= 2 * windows, f"{loop_calls} calls for {windows} windows"
+
+
+async def test_a_board_slower_than_its_wire_has_its_acknowledgements_read_as_they_come(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A board that takes eight times the wire's time (here: its UART at 31,250 baud, the link
+    told 250,000) has acknowledged nothing when the window's read comes: its acknowledgements
+    are then read as they arrive (the reader, not only the retransmission timer), and the
+    burst still gets through, once and in order (with resends, as on main: a window's round
+    trip there is longer than the 25 ms floor of the retransmission timeout)."""
+    mcu = VirtualMcu(baud=31250).start()
+    try:
+        link, calls, blocks = await burst(mcu, monkeypatch, count=150)
+    finally:
+        mcu.stop()
+    assert calls.get("_on_refill", 0) >= 1, calls
+    assert calls.get("_on_readable", 0) >= 1, f"read as they came: {calls}"
+    assert blocks >= 8 and not link._slow, "the window moved: back to one read a window"

@@ -19,6 +19,10 @@ test process, so while it runs it asks for the CPU first: real-time priority for
 (when allowed, as in CI) and a 0.5 ms GIL switch interval, or a loaded machine would make it
 read the host's messages late and shut down ("Stepper too far in past") where no MCU would.
 
+With ``baud``, the host's bytes take their wire time: a block is acted on (and acknowledged) when
+its last byte would have arrived at that rate after the bytes before it, as on a UART; without,
+at once, as over USB.
+
 Faults for tests: :meth:`mute` (stops answering), :meth:`restart` (clock, sequence and config
 start over), ``drop_blocks``/``corrupt_blocks`` (the next N host blocks are lost or damaged),
 :meth:`shutdown` (a firmware fault).
@@ -78,8 +82,10 @@ class VirtualMcu:
     """See the module docstring. ``start()`` it, point the host at ``path``, ``stop()`` it."""
 
     def __init__(self, clock_hz: int = 72_000_000, id_offset: int = 0, move_count: int = 512,
-                 drift_ppm: float = 0.0) -> None:
+                 drift_ppm: float = 0.0, baud: int | None = None) -> None:
         self.clock_hz = clock_hz
+        self.baud = baud
+        self._wire_free_s = 0.0  # when the bytes read so far have all come over the wire
         self.move_count = move_count
         self.data = dictionary_data(clock_hz, id_offset, move_count)
         self.blob = compressed(self.data)
@@ -202,6 +208,7 @@ class VirtualMcu:
 
     def _receive(self, data: bytes) -> None:
         self._buffer += data
+        self._wire_free_s = max(self._wire_free_s, time.monotonic())
         while self._buffer:
             if self._buffer[0] == msgproto.MESSAGE_SYNC:
                 del self._buffer[0]
@@ -216,6 +223,9 @@ class VirtualMcu:
                 continue
             block = bytes(self._buffer[:size])
             del self._buffer[:size]
+            if self.baud is not None:  # its last byte comes after the bytes before it
+                self._wire_free_s += size * 10 / self.baud
+                time.sleep(max(0.0, self._wire_free_s - time.monotonic()))
             self._block(block)
 
     def _block(self, block: bytes) -> None:

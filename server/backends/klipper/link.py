@@ -19,10 +19,16 @@ is read there, in one non-blocking drain, and not on every block that arrives: e
 the process costs CPU, and an MCU's faults are acted on at the next sample anyway. The event
 loop watches the device only while something must be read at once: a request's answer awaited
 once the request has left (a clock reading's arrival time is its measurement; a poll waiting
-to ride along is not watched for), messages waiting for room in the window, or no samples
-(:meth:`Link.rest`: an idle board's shutdown or restart is read at once). Every timer that
-judges the link (retransmission, the acknowledgement timeout) drains it first.
-Acknowledgements read at a sample are late by up to a tick: they measure no round trip.
+to ride along is not watched for), or no samples (:meth:`Link.rest`: an idle board's
+shutdown or restart is read at once). Every timer that judges the link (retransmission, the
+acknowledgement timeout) drains it first. Messages waiting for room in the window while the
+owner samples are not a reason to read every acknowledgement as it comes (a wake-up each, and
+another for the rest of its block): the device is drained once, when the wire has carried what
+is in flight and the acknowledgement of its last block (``_wire_free_s``: the blocks written,
+back to back at the baud rate), and what fits then leaves; only a board slower than its wire
+(that drain found nothing acknowledged) has its acknowledgements read as they arrive, until
+the window moves again. Acknowledgements read at a sample or such a drain are late: they
+measure no round trip.
 Read as data arrives, a block comes a few bytes at a time on a serial line (40 µs a byte at
 250,000 baud), and an answer is followed by the empty block that acknowledges the command's:
 a read that ends inside a block, or just after an answer, waits the wire time of the rest
@@ -59,6 +65,7 @@ Match = Callable[[Params], bool]
 BITS_PER_BYTE = 10  # a start bit, 8 data bits, a stop bit
 SETTLE_SLACK = 1.25  # the wire time waited for the rest of a block, and then some
 SETTLE_MAX_S = 0.005  # at most (a slow link's block is read in parts)
+REFILL_MARGIN_S = 0.001  # a window's drain comes this much after its acknowledgements' wire time
 
 
 class _Rider:
@@ -115,10 +122,14 @@ class Link:
         self._bad_at_progress = 0  # the reader's count of damaged blocks then
         self.sampling = False  # the owner samples: the device is read at its samples
         self.watched = False  # the event loop reads the device as data arrives
-        self.drains = 0  # samples that read the device (for tests and the benchmark)
+        self.drains = 0  # reads of what waited: samples, timers, refills (for tests)
         self._backlog = False  # a sample's read filled READ_BYTES: more waits to be read
         self._settle: asyncio.TimerHandle | None = None  # the read after the rest's wire time
         self._answered = False  # the last block read was an answer (its acknowledgement follows)
+        self._wire_free_s = 0.0  # when the wire will have carried every byte written
+        self._refill: asyncio.TimerHandle | None = None  # the drain when the window is acked
+        self._slow = False  # a refill found nothing acknowledged: read acks as they arrive
+        self.refills = 0  # of those, the window's refills (for tests)
 
     def open(self) -> None:
         self._loop = asyncio.get_running_loop()
@@ -149,11 +160,39 @@ class Link:
         elif not want and self.watched:
             self._loop.remove_reader(self._fd)
         self.watched = want
+        if want or not self._queue:
+            if self._refill is not None:
+                self._refill.cancel()
+                self._refill = None
+        elif self._refill is None:  # room for what waits: when the window has been acked
+            self._arm_refill()
+
+    def _arm_refill(self) -> None:
+        """The drain for what waits, once the wire has carried what was written and the last
+        block's acknowledgement has come back."""
+        assert self._loop is not None
+        wire_s = max(0.0, self._wire_free_s - time.monotonic())
+        ack_s = MESSAGE_MIN * BITS_PER_BYTE * SETTLE_SLACK / self.baud
+        self._refill = self._loop.call_later(wire_s + ack_s + REFILL_MARGIN_S, self._on_refill)
 
     def _wants_reader(self) -> bool:
         """Whether something must be read as it arrives (see the module docstring)."""
         answer_due = bool(self._waiters) and self._rider is None  # a rider has not left yet
-        return not self.sampling or self._backlog or answer_due or bool(self._queue)
+        waiting = bool(self._queue) and self._slow  # acks as they come from a slow board
+        return not self.sampling or self._backlog or answer_due or waiting
+
+    def _on_refill(self) -> None:
+        """The window's acknowledgements should have arrived: read them, send what fits."""
+        self._refill = None
+        if self.closed or self.failed:
+            return
+        acked = self.window.acked
+        self.refills += 1
+        self._drain()  # its blocks handled, what fits sent, the next refill armed (_pump)
+        if (self._queue and self.window.acked == acked and self.window.inflight
+                and not self.closed and not self.failed):
+            self._slow = True  # nothing acknowledged in the wire's time: read as they come
+        self._watch()
 
     def _poll_events(self) -> int:
         """The device's poll events now (no wait)."""
@@ -320,6 +359,7 @@ class Link:
 
     def _moved(self, now_s: float) -> None:
         self._progress_s = now_s
+        self._slow = False
         self._blocks_in, self._bad_at_progress = 0, self._reader.bad_blocks
 
     def _write(self, data: bytes, flush: bool = True) -> None:
@@ -339,6 +379,13 @@ class Link:
             self._fail(f"cannot write to {self.path}: {exc.strerror}")
             return
         del self._out[:written]
+        if written:  # back to back on the wire after what is still on it
+            now_s = time.monotonic()
+            self._wire_free_s = (max(now_s, self._wire_free_s)
+                                 + written * BITS_PER_BYTE / self.baud)
+            if self._refill is not None:  # later: what was just written is acked then too
+                self._refill.cancel()
+                self._arm_refill()
         assert self._loop is not None
         if bool(self._out) != self._writing:  # the loop watches for room only while needed
             self._writing = bool(self._out)
@@ -467,6 +514,8 @@ class Link:
             self._timer.cancel()
         if self._settle is not None:
             self._settle.cancel()
+        if self._refill is not None:
+            self._refill.cancel()
         self._drop_rider()
         self._fail_waiters(f"link to {self.path} closed")
         if self._fd is not None and self._loop is not None:
