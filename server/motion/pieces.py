@@ -35,10 +35,11 @@ PowerOf = Callable[[Move, float], PowerLaw | None]
 """A block's tool power from its move and nominal speed (mm/s); None: off."""
 JOIN_S = 1e-9
 """A block that starts this close to the open piece's end continues it (float rounding of the
-step generator's timeline; any real gap opens a new piece), and a phase this short at the end
-of a block (or at either end of a cruise block) is part of the phase beside it (the planner's
-rounding of a junction speed to within 1e-14 of the cruise): it moves the tool less than
-1e-15 mm differently."""
+step generator's timeline, give or take a few units in the last place of the clock's seconds:
+a host up for months counts them in units over 1 ns; any real gap opens a new piece), and a
+phase this short at the end of a block (or at either end of a cruise block) is part of the
+phase beside it (the planner's rounding of a junction speed to within 1e-14 of the cruise):
+it moves the tool less than 1e-15 mm differently."""
 SAME_ACCEL = 1e-9
 """Ramps whose accelerations differ by this share at most are one ramp (the planner computes
 each block's from its speeds and duration: they differ in the last bits)."""
@@ -67,7 +68,7 @@ class PieceReporter:
         if run is not None:
             if (not block.actions and block.start_mm == self._run_end_mm
                     and block.unit == run.unit and power == run.power
-                    and abs(start_s - run.start_s - self._run_s) <= JOIN_S
+                    and abs(start_s - run.start_s - self._run_s) <= JOIN_S + 8 * math.ulp(start_s)
                     and self._continues(run, block)):
                 self._run_s += t1 + t2 + t3
                 self._run_end_mm = block.end_mm

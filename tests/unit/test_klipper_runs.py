@@ -7,6 +7,7 @@ block (``JOIN_S`` below zero: no block ever continues a piece), and compares eve
 from __future__ import annotations
 
 from collections.abc import Callable
+from types import SimpleNamespace
 from typing import Any
 
 import pytest
@@ -41,12 +42,30 @@ def raster(lines: int, s_at: Callable[[int, int], float] = lambda line, k: 800.0
     return moves
 
 
+def line(s_value: float, segment_mm: float, length_mm: float = 6.0) -> list[Move]:
+    """One line along X from rest to rest in segments of ``segment_mm``, laser at S."""
+    moves, x = [], 10.0
+    for _ in range(round(length_mm / segment_mm)):
+        x = round(x + segment_mm, 4)
+        moves.append(Move((x, 10.0), 100.0, MoveKind.FEED, ToolMode.CW, s_value))
+    return moves
+
+
+def follows_speed(move: Move, nominal_mm_s: float) -> PowerLaw | None:
+    """M4: the power in proportion to the speed, S at the block's nominal speed."""
+    if move.s_value <= 0.0:
+        return None
+    return PowerLaw(0.0, move.s_value / 1000.0 / nominal_mm_s, 1.0)
+
+
 def drive(moves: list[Move], merge: bool, monkeypatch: pytest.MonkeyPatch,
           script: Script | None = None, board: list[Any] | None = None,
+          power_of: Callable[[Move, float], PowerLaw | None] | None = None,
           ) -> tuple[list[tuple[str, Any]], list[Piece]]:
     """Every message the backend sends for ``moves`` (``script``: what to do to the step
     generator at which tick), and every piece the step generator gave it (``board``: gets
-    where the backend says the board is, and how fast, after every tick)."""
+    where the backend says the board is, and how fast, after every tick). The laser's power
+    is S (M3), or ``power_of``'s."""
     monkeypatch.setattr(pieces_module, "JOIN_S", 1e-9 if merge else -1.0)
     axes = {a: {"steps_per_mm": 80, "max_rate_mm_s": 200, "accel_mm_s2": 2000, "max_mm": 300}
             for a in "xy"}
@@ -72,8 +91,8 @@ def drive(moves: list[Move], merge: bool, monkeypatch: pytest.MonkeyPatch,
     planner = Planner(planner_settings(core), (10.0, 10.0))
     stepgen = StepGenerator(planner, backend, (80.0, 80.0), Listener())
     backend.follow_power("PA8", 0.001)
-    stepgen.follow_power(lambda move, nominal_mm_s: PowerLaw(move.s_value / 1000.0)
-                         if move.s_value > 0.0 else None)
+    stepgen.follow_power(power_of or (lambda move, nominal_mm_s: PowerLaw(move.s_value / 1000.0)
+                                      if move.s_value > 0.0 else None))
     for move in moves:
         planner.append(move)
     now_s = 0.0
@@ -212,3 +231,56 @@ def test_a_line_too_short_to_cruise_ramps_up_and_down_in_two_pieces(
     assert [p.accel_mm_s2 > 0.0 for p in line] == [True, False]
     assert line[0].duration_s == pytest.approx(line[1].duration_s)  # 1 mm each way
     assert line[1].start_mm == pytest.approx((11.0, 10.0))
+
+
+@pytest.mark.parametrize(("s_value", "segment_mm"), [(800.0, 0.1), (10.0, 0.02), (2.5, 0.02)])
+def test_a_laser_following_the_speed_gets_the_same_power_along_a_merged_run(
+        monkeypatch: pytest.MonkeyPatch, s_value: float, segment_mm: float) -> None:
+    """M4 along a line from rest to rest: the power ramps with the speed on the 1 ms grid,
+    and the board gets the same levels at the same clocks as block by block (telling the
+    backend a run again, longer, is not a new piece: nothing turns off and on again where
+    it started, nor replays its grid)."""
+    moves = line(s_value, segment_mm)
+    merged, given = drive(moves, True, monkeypatch, power_of=follows_speed)
+    single, _ = drive(moves, False, monkeypatch, power_of=follows_speed)
+    assert len({p.start_s for p in given}) <= 6, "the line's ramps and cruise are runs"
+    levels = [value for _, value in pwm(merged)]
+    assert levels == [value for _, value in pwm(single)]
+    assert levels[-1] == 0 and max(levels) == round(255 * s_value / 1000.0)
+    for (clock, _), (clock_single, _) in zip(pwm(merged), pwm(single), strict=True):
+        # block by block, a level that rounds to 0 at a block's entry speed turns on where
+        # the block starts; along a run, at the grid's next look (the laser's 1 ms sample)
+        assert abs(clock - clock_single) <= 0.001 * CLOCK_HZ
+    assert stepped(merged) == stepped(single) == {0: round(6.0 * 80), 1: 0}
+
+
+@pytest.mark.parametrize("at_tick", [3, 6, 29])  # inside the ramp up, at its end, ramping down
+def test_a_hold_inside_a_run_with_the_power_following_the_speed_is_as_block_by_block(
+        monkeypatch: pytest.MonkeyPatch, at_tick: int) -> None:
+    script: Script = {at_tick: StepGenerator.hold, at_tick + 40: StepGenerator.resume}
+    merged, _ = drive(raster(2), True, monkeypatch, dict(script), power_of=follows_speed)
+    single, _ = drive(raster(2), False, monkeypatch, dict(script), power_of=follows_speed)
+    assert pwm(merged) == pwm(single)
+    assert merged == single
+
+
+def test_a_run_is_merged_however_long_the_host_has_been_up(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The clock counts seconds since boot: after a year its float's last place is over 1 ns,
+    and the blocks of a run still continue it."""
+    monkeypatch.setattr(pieces_module, "JOIN_S", 1e-9)
+    axes = {a: {"steps_per_mm": 80, "max_rate_mm_s": 200, "accel_mm_s2": 2000, "max_mm": 300}
+            for a in "xy"}
+    core = build_config({"axes": axes}).core
+    given: list[Piece] = []
+    backend = SimpleNamespace(trajectory=given.append)
+    reporter = pieces_module.PieceReporter(backend)  # type: ignore[arg-type]
+    planner = Planner(planner_settings(core), (10.0, 10.0))
+    for move in line(800.0, 0.1, 20.0):
+        planner.append(move)
+    up_s, elapsed_s = 3.2e7, 0.0  # a year; each block's start as the step generator's
+    while (block := planner.pop()) is not None:  # (a tick's time less what is left of it)
+        reporter.block(up_s + elapsed_s, block)
+        elapsed_s += block.duration_s
+    reporter.flush()
+    assert len({piece.start_s for piece in given}) <= 3  # ramp up, cruise, ramp down

@@ -111,6 +111,16 @@ def level(value: float, top: int) -> int:
     return round(min(1.0, max(0.0, value)) * top)
 
 
+def _lengthens(piece: Piece, before: Piece) -> bool:
+    """Whether ``piece`` is ``before`` told again, longer (blocks that continue a run lengthen
+    it: :meth:`~server.motion.pieces.PieceReporter.flush`): the same motion from the same
+    start, so nothing that happens where a piece starts (the followed output turned on or off,
+    the motors enabled, a rebase) happens again."""
+    return (piece.start_s == before.start_s and piece.duration_s >= before.duration_s
+            and piece.start_mm == before.start_mm and piece.unit == before.unit
+            and piece.start_mm_s == before.start_mm_s
+            and piece.accel_mm_s2 == before.accel_mm_s2 and piece.power == before.power)
+
 class KlipperBackend:
     """See the module docstring."""
 
@@ -670,7 +680,11 @@ class KlipperBackend:
         v0, a = piece.start_mm_s, piece.accel_mm_s2
         before = self._head
         first = piece is not before
-        if first:  # first look at this piece
+        if first and before is not None and _lengthens(piece, before):
+            self._head = piece  # the same motion carried on (a run of blocks: see pieces.py):
+            self._trail.add(piece)  # steps and the followed output go on where they were
+            first = False
+        elif first:  # first look at this piece
             self._head = piece
             self._trail.add(piece)
             # the pieces of one block share its direction (the same tuple) and follow on from
