@@ -70,7 +70,8 @@ class Session:
         self.status_template: dict[str, Any] = {}
         self.output_template: dict[str, Any] | None = None
         self.last_status: dict[str, Any] = {}
-        self._scripts: asyncio.Queue[tuple[Any, list[Step]]] = asyncio.Queue(PENDING_SCRIPTS)
+        self._scripts: asyncio.Queue[tuple[Any, list[Step], int]] = asyncio.Queue(
+            PENDING_SCRIPTS)
 
     # -- requests ---------------------------------------------------------------------------
     def on_request(self, request: wire.Request) -> None:
@@ -141,8 +142,10 @@ class Session:
         return None
 
     def _queue(self, request_id: Any, steps: list[Step]) -> None:
+        """A script waits its turn with the stop generation it was sent in: a stop before
+        it ran (or while it runs) ends it, whatever it waits for (a deferred jog too)."""
         try:
-            self._scripts.put_nowait((request_id, steps))
+            self._scripts.put_nowait((request_id, steps, self.hub.ctx.ticket()))
         except asyncio.QueueFull as exc:
             raise CommandError(Error.BUSY, "too many G-code scripts waiting") from exc
         return None
@@ -151,39 +154,42 @@ class Session:
     async def run_scripts(self) -> None:
         """Run queued scripts in order until cancelled; each is answered when it ends."""
         while True:
-            request_id, steps = await self._scripts.get()
+            request_id, steps, ticket = await self._scripts.get()
             try:
                 for step in steps:
-                    await self._step(step)
+                    await self._step(step, ticket)
             except CommandError as exc:
                 self.hub.output(f"!! {_text(exc)}")
                 self.send(wire.error(request_id, _text(exc)))
                 continue
             self.send(wire.result(request_id, {}))
 
-    async def _step(self, step: Step) -> None:
+    async def _step(self, step: Step, ticket: int) -> None:
         ctx = self.hub.ctx
+        if not ctx.still_valid(ticket):
+            raise CommandError(Error.BUSY, "a stop came after this script was sent: not run")
         if isinstance(step, Line):
-            for message in await ctx.run_gcode(step.text):
+            for message in await ctx.run_gcode(step.text, ticket):
                 self.hub.output(response_text(message))
         elif isinstance(step, StartJob):
-            await ctx.start_job(step.name)
+            await ctx.start_job(step.name, ticket)
         elif isinstance(step, FeedOverride):
             ctx.control.set_feed_override(step.percent)
         elif isinstance(step, Message):
             self.hub.set_message(step.text)
         elif isinstance(step, GcodeOffset):
-            await self._gcode_offset(step)
+            await self._gcode_offset(step, ticket)
         elif step.action == "help":
             self.hub.output("\n".join(["// Available commands:",
                                        *(f"// {k}: {v}" for k, v in gcode.HELP.items())]))
-        elif step.action == "restart":
+        elif step.action == "restart":  # a reset board, as Klipper's restarts leave it
+            ctx.control.reset()
             await ctx.run_gcode("$X")
             self.hub.restart()
         else:
             self._control(step.action)
 
-    async def _gcode_offset(self, step: GcodeOffset) -> None:
+    async def _gcode_offset(self, step: GcodeOffset, ticket: int) -> None:
         """Once the queued moves ran: optionally jog by the change, then ``G92`` so that the
         work offset (``homing_origin``) is the one asked for."""
         ctx = self.hub.ctx
@@ -207,12 +213,13 @@ class Session:
         if step.move:
             speed_mm_min = 60.0 * (step.speed_mm_s or self.hub.jog_feed_mm_min / 60.0)
             words = " ".join(f"{axis}{delta:.4f}" for axis, delta in deltas.items())
-            await ctx.run_gcode(f"$J=G21 G91 {words} F{speed_mm_min:.0f}")
+            await ctx.run_gcode(f"$J=G21 G91 {words} F{speed_mm_min:.0f}", ticket)
             await ctx.moves.wait_idle()
             stay = {axis: wpos[names.index(axis)] for axis in deltas}
         else:
             stay = {axis: wpos[names.index(axis)] - delta for axis, delta in deltas.items()}
-        await ctx.run_gcode("G92 " + " ".join(f"{a}{v / scale:.4f}" for a, v in stay.items()))
+        await ctx.run_gcode("G92 " + " ".join(f"{a}{v / scale:.4f}" for a, v in stay.items()),
+                            ticket)
 
     def _control(self, action: str) -> None:
         controls = self.hub.ctx.control

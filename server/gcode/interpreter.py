@@ -350,10 +350,11 @@ class Interpreter:
         self._wco = offsets.wco(0, self._geo.z_axis)
 
     def tools_off(self) -> None:
-        """Quickstop (M410): spindle or laser off (M5) and coolant off (M9) in the modal state,
-        so the next move does not switch them on again; everything else is kept."""
+        """Every stop (M410, M112, an alarm, a reset): the spindle or laser off with no power
+        (M5 S0) and the coolant off (M9) in the modal state, as a reset board has them, so
+        the next move does not switch them on again; everything else is kept."""
         modal = self._modal.copy()
-        modal.tool_mode, modal.mist, modal.flood = ToolMode.OFF, False, False
+        modal.tool_mode, modal.s, modal.mist, modal.flood = ToolMode.OFF, 0.0, False, False
         self._modal = modal
 
     # -- reports -----------------------------------------------------------------------------

@@ -87,9 +87,13 @@ class RealtimeReceived:
 
 @dataclass(frozen=True, slots=True)
 class LineRejected:
-    """A line refused without executing; answer ``reply_error(error)`` in its turn."""
+    """A line refused without executing; answer ``reply_error(error)`` in its turn.
+
+    ``text``: what the line said, where it could be read (a frame refused for its checksum or
+    number: an M112 in it still acts at once)."""
 
     error: CommandError
+    text: str = ""
 
 
 Event: TypeAlias = LineReceived | RealtimeReceived | LineRejected

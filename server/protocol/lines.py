@@ -175,10 +175,11 @@ class LineProtocol(ByteScanner):
     def _framed_event(self, number_text: str, body: str, checksum_text: str, head: str) -> Event:
         field = _CHECKSUM_FIELD.fullmatch(checksum_text)
         if field is None:
-            return self._resend(Error.CHECKSUM, f"bad checksum field '*{checksum_text}'")
+            return self._resend(Error.CHECKSUM, f"bad checksum field '*{checksum_text}'", body)
         computed = reduce(xor, head.encode("utf-8"), 0)
         if int(field.group(1)) != computed:
-            return self._resend(Error.CHECKSUM, f"checksum {field.group(1)} != computed {computed}")
+            return self._resend(
+                Error.CHECKSUM, f"checksum {field.group(1)} != computed {computed}", body)
         number = int(number_text)
         framed = FramedLine(number, body)
         if M110.match(body):
@@ -186,13 +187,14 @@ class LineProtocol(ByteScanner):
             return LineReceived(body, framed, handled=True)
         if self._sequence_known and number != self._last_line + 1:
             expected = self._last_line + 1
-            return self._resend(Error.LINE_NUMBER_SEQUENCE, f"got N{number}, expected N{expected}")
+            return self._resend(
+                Error.LINE_NUMBER_SEQUENCE, f"got N{number}, expected N{expected}", body)
         self._last_line = number
         self._sequence_known = True
         return LineReceived(body, framed)
 
-    def _resend(self, code: int, message: str) -> LineRejected:
-        return LineRejected(ResendError(code, message, self._last_line))
+    def _resend(self, code: int, message: str, body: str) -> LineRejected:
+        return LineRejected(ResendError(code, message, self._last_line), body)
 
     def _set_last_line(self, m110_text: str, frame_number: int | None) -> None:
         argument = _N_WORD.search(_COMMENT.sub("", m110_text))

@@ -113,11 +113,13 @@ class MachineControl:
         self.machine.set_overrides(feed=percent)
 
     def quickstop(self) -> None:
-        """M410: stop at once, flush the queue, tools off, no alarm; a running job ends."""
+        """M410: stop at once, flush the queue, tools off, no alarm; a running job ends;
+        a stop (what anyone queued before it is dropped)."""
         if self.jobs.active:
             self.jobs.abort()
         else:
             self.machine.quickstop()
+        self.machine.status.stop("quickstop (M410)")
 
     def emergency_stop(self) -> None:
         """M112: ALARM:40, motion stopped and tools off until ``$X`` or M999."""

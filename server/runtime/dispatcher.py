@@ -27,6 +27,12 @@ in the order it submitted the lines. Without ``defer`` the handler waits for the
 Several handlers may share a name; all run, in registration order. An unknown command is an
 error for its sender, never a silent no-op.
 
+Every line carries the stop generation it was sent in (its ``ticket``: a session's line the one
+it arrived in, anything else the one it was submitted in; see :mod:`server.runtime.state`). A
+line whose ticket a stop has made void is refused where it would start, once its turn comes
+(error 45, never run late); a handler that waits inside its line (a job's fit check, a deferred
+jog) finds the ticket on its :class:`Command` and checks it before it acts.
+
 A line that needs no wait runs to its end inside :meth:`Dispatcher.begin`, with no task switch,
 future or lock object on its way (a raster streams hundreds of such lines a second): a handler
 may return its messages, or an awaitable of them when it must wait (the planner is full, a
@@ -100,6 +106,7 @@ class Command:
         line: the parsed G-code line (G/M handlers only).
         source: who sent it.
         defer: set when the caller can take the line's answer later (see the module docstring).
+        ticket: the stop generation the line was sent in (a handler that waits checks it).
     """
 
     name: str
@@ -108,6 +115,7 @@ class Command:
     source: Source
     line: Line | None = None
     defer: Deferred | None = None
+    ticket: int = 0
 
 
 @dataclass(slots=True)
@@ -121,13 +129,15 @@ class Dispatcher:
     """Routes lines to handlers, one at a time, in order.
 
     ``is_locked`` says whether the machine is locked out (ALARM, Sleep); ``is_busy`` whether
-    queued motion is still running (the source that queued it owns the machine until then).
+    queued motion is still running (the source that queued it owns the machine until then);
+    ``stops`` the stop generation now (the tickets lines are checked against).
     """
 
     def __init__(
         self,
         is_locked: Callable[[], bool] = lambda: False,
         is_busy: Callable[[], bool] = lambda: False,
+        stops: Callable[[], int] = lambda: 0,
     ) -> None:
         self._entries: defaultdict[str, _Entry] = defaultdict(_Entry)
         self._gcode: Handler | None = None
@@ -135,6 +145,7 @@ class Dispatcher:
         self._turn = Turn()
         self._is_locked = is_locked
         self._is_busy = is_busy
+        self.stops = stops
         self._owner: Source | None = None
         self._closed = False
         self._immediate: set[str] = set()
@@ -181,22 +192,22 @@ class Dispatcher:
         self,
         text: str,
         source: Source,
-        still_valid: Callable[[], bool] | None = None,
+        ticket: int | None = None,
         defer: Deferred | None = None,
     ) -> list[str]:
         """Execute one line in order with every other source; returns messages for the reply.
 
-        ``still_valid`` is checked once the line's turn comes: a line overtaken by a reset of
-        its connection while it waited is dropped (CommandError Error.BUSY), never run late.
+        ``ticket`` (default: now) is checked once the line's turn comes: a line a stop has
+        overtaken while it waited is dropped (CommandError Error.BUSY), never run late.
         """
-        outcome = self.begin(text, source, still_valid, defer)
+        outcome = self.begin(text, source, ticket, defer)
         return outcome if isinstance(outcome, list) else await outcome
 
     def begin(
         self,
         text: str,
         source: Source,
-        still_valid: Callable[[], bool] | None = None,
+        ticket: int | None = None,
         defer: Deferred | None = None,
     ) -> Outcome:
         """:meth:`submit`, run as far as it goes without waiting: the line's messages when it
@@ -205,17 +216,18 @@ class Dispatcher:
         if self._closed:
             raise CommandError(Error.BUSY, "shutting down")
         self.last_command_s = time.monotonic()
+        if ticket is None:
+            ticket = self.stops()
         stripped = text.strip()
         named = _named(stripped)
         if named and _key(named.group(1)) in self._immediate:
-            return self._route(text, stripped, named, source, None)
+            return self._route(text, stripped, named, source, None, ticket)
         if not self._turn.free:
-            return self._in_turn(text, stripped, named, source, still_valid, defer)
-        if still_valid is not None and not still_valid():
-            raise CommandError(Error.BUSY, "overtaken by a reset")
+            return self._in_turn(text, stripped, named, source, ticket, defer)
+        self._check_ticket(ticket)
         self._turn.taken = True
         try:
-            outcome = self._route(text, stripped, named, source, defer)
+            outcome = self._route(text, stripped, named, source, defer, ticket)
         except BaseException:
             self._turn.release()
             raise
@@ -224,17 +236,19 @@ class Dispatcher:
             return outcome
         return self._then_release(outcome)
 
+    def _check_ticket(self, ticket: int) -> None:
+        if ticket != self.stops():
+            raise CommandError(Error.BUSY, "a stop came after this line was sent: not run")
+
     async def _in_turn(self, text: str, stripped: str, named: re.Match[str] | None,
-                       source: Source, still_valid: Callable[[], bool] | None,
-                       defer: Deferred | None) -> list[str]:
+                       source: Source, ticket: int, defer: Deferred | None) -> list[str]:
         """A line that waits for its turn behind another source's."""
         await self._turn.take()
         try:
             if self._closed:
                 raise CommandError(Error.BUSY, "shutting down")
-            if still_valid is not None and not still_valid():
-                raise CommandError(Error.BUSY, "overtaken by a reset")
-            outcome = self._route(text, stripped, named, source, defer)
+            self._check_ticket(ticket)
+            outcome = self._route(text, stripped, named, source, defer, ticket)
             return outcome if isinstance(outcome, list) else await outcome
         finally:
             self._turn.release()
@@ -248,27 +262,30 @@ class Dispatcher:
     async def execute(self, text: str, source: Source, defer: Deferred | None = None) -> list[str]:
         """Execute one line now (the caller holds the order); raise CommandError to refuse it."""
         stripped = text.strip()
-        outcome = self._route(text, stripped, _named(stripped), source, defer)
+        outcome = self._route(text, stripped, _named(stripped), source, defer, self.stops())
         return outcome if isinstance(outcome, list) else await outcome
 
     def _route(self, text: str, stripped: str, named: re.Match[str] | None,
-               source: Source, defer: Deferred | None) -> Outcome:
+               source: Source, defer: Deferred | None, ticket: int) -> Outcome:
         """:meth:`execute`, with the line stripped and matched as a named command already."""
         if not stripped:
             return []
         if stripped[0] == "$":
             name, args = _dollar_name(stripped)
-            return self._run(name, Command(name, text, args, source, defer=defer))
+            return self._run(name, Command(name, text, args, source, defer=defer, ticket=ticket))
         if named and _key(named.group(1)) in self._entries:
             name = _key(named.group(1))
-            return self._run(name, Command(name, text, named.group(2) or "", source))
+            return self._run(name, Command(name, text, named.group(2) or "", source,
+                                           ticket=ticket))
         text_code = _TEXT_CODE.match(stripped) if stripped[0] in "Mm" else None
         if text_code and f"M{text_code.group(1)}" in self._entries:
             name = f"M{text_code.group(1)}"
-            return self._run(name, Command(name, text, text_code.group(2), source))
-        return self._gcode_line(text, source, defer)
+            return self._run(name, Command(name, text, text_code.group(2), source,
+                                           ticket=ticket))
+        return self._gcode_line(text, source, defer, ticket)
 
-    def _gcode_line(self, text: str, source: Source, defer: Deferred | None) -> Outcome:
+    def _gcode_line(self, text: str, source: Source, defer: Deferred | None,
+                    ticket: int) -> Outcome:
         line = parse_line(text)
         if line.error is not None:
             raise line.error
@@ -282,7 +299,7 @@ class Dispatcher:
             )
         if self._gcode is None:
             raise CommandError(Error.UNSUPPORTED, "no G-code interpreter")
-        result = self._gcode(Command("G", text, "", source, line, defer))
+        result = self._gcode(Command("G", text, "", source, line, defer, ticket))
         if type(result) is list:  # the common line: its messages, at once
             return result
         if inspect.isawaitable(result):

@@ -5,7 +5,7 @@ off before :meth:`EventBus.emit` returns. A subscriber that raises is logged and
 faulty listener must never stop the others from hearing a halt.
 
 Kernel events (arguments in brackets):
-  ``halt`` (reason: str) · ``clear_halt`` · ``reset`` (Ctrl-X) ·
+  ``halt`` (reason: str) · ``clear_halt`` · ``reset`` (Ctrl-X) · ``stop`` (reason: str) ·
   ``hold`` · ``resume`` · ``motors_enable`` ·
   ``motors_disable`` · ``second`` (now_s) · ``state`` (MachineState) · ``action`` (Action) ·
   ``program_end`` · ``push`` (message line for every connection) · ``shutdown`` ·
@@ -47,6 +47,7 @@ class Event(enum.StrEnum):
     HOLD_STOPPED = "hold_stopped"  # () the hold's deceleration ended
     RESUME = "resume"  # () cycle start after a hold
     RESET = "reset"  # () soft reset (Ctrl-X)
+    STOP = "stop"  # (reason: str) a stop: what was requested before it is dropped (state.py)
     SHUTDOWN = "shutdown"  # () the server is stopping: tools off
     ACTION = "action"  # (Action) motion reached an ordered action
     OVERRIDE = "override"  # (feed, rapid, spindle: percent)

@@ -73,6 +73,7 @@ class _Percent:
 @dataclass(slots=True)
 class _JobSource:
     name: str
+    ticket: int  # the stop generation the job started in: its lines carry it
     can_control: bool = True
 
 
@@ -88,6 +89,7 @@ class Jobs(JobStore):
         self._planning: set[threading.Event] = set()  # the plans being made for job.start
         self._plans: dict[str, tuple[tuple[object, ...], JobPlan]] = {}  # see plan()
         kernel.events.subscribe(Event.ACTION, self._on_action)
+        kernel.events.subscribe(Event.STOP, self._on_stop)
         dispatcher = kernel.dispatcher
         dispatcher.register("ls", self._ls, when_locked=True, query=True)
         dispatcher.register("play", self._play)
@@ -114,20 +116,26 @@ class Jobs(JobStore):
         progress = self._progress
         return progress is not None and progress.state in ("running", "paused")
 
-    async def start(self, name: str) -> JobProgress:
+    async def start(self, name: str, ticket: int | None = None) -> JobProgress:
         """Check a stored file against the machine as it is now, then play it (``job.start``,
-        ``play``, MQTT ``cmd/job``).
+        ``play``, MQTT ``cmd/job``). ``ticket``: the stop generation the start was asked in
+        (default now): a stop while the file is checked ends the check, and the job never
+        starts.
 
         Raises:
             CommandError: 47 (the job does not fit the travel from the current work origin:
                 the message names each axis, by how much, and where the origin would have to
-                be), 45 busy, 44 no such file. Nothing moves.
+                be), 45 busy or stopped meanwhile, 44 no such file. Nothing moves.
         """
+        status = self.kernel.status
+        ticket = status.ticket() if ticket is None else ticket
         path = self._playable(name)
         plan = await self.plan(name)
+        if not status.still_valid(ticket):
+            raise CommandError(Error.BUSY, f"{path.name}: a stop came while it was checked")
         if not plan.fit.fits:
             raise CommandError(Error.JOB_DOES_NOT_FIT, f"{path.name}: {plan.fit.describe()}")
-        self.play(name, plan)
+        self.play(name, plan, ticket)
         assert self._progress is not None
         return self._progress
 
@@ -166,7 +174,7 @@ class Jobs(JobStore):
         finally:
             self._planning.discard(stop)
         if plan is None:
-            raise CommandError(Error.BUSY, f"{path.name}: aborted while it was being checked")
+            raise CommandError(Error.BUSY, f"{path.name}: stopped while it was being checked")
         return plan
 
     def _playable(self, name: str) -> Path:
@@ -184,9 +192,14 @@ class Jobs(JobStore):
             raise CommandError(Error.FILE_ERROR, f"no job file {path.name}")
         return path
 
-    def play(self, name: str, plan: JobPlan | None = None) -> None:
+    def play(self, name: str, plan: JobPlan | None = None, ticket: int | None = None) -> None:
         """Start playing a stored file; with ``plan`` (from :meth:`start`) when it was made
-        from the machine as it still is, else the job plans (and checks its fit) first."""
+        from the machine as it still is, else the job plans (and checks its fit) first.
+        Every line of the job carries ``ticket`` (default now): after a stop, none runs."""
+        status = self.kernel.status
+        ticket = status.ticket() if ticket is None else ticket
+        if not status.still_valid(ticket):
+            raise CommandError(Error.BUSY, f"{name}: a stop came before it started")
         path = self._playable(name)
         interpreter = self.kernel.machine.interpreter
         if plan is not None and plan.placement != (interpreter.position, interpreter.wco()):
@@ -195,7 +208,7 @@ class Jobs(JobStore):
         self._clock = None
         if plan is not None:
             self._planned(self._progress, plan)
-        source = _JobSource(f"job:{path.name}")
+        source = _JobSource(f"job:{path.name}", ticket)
         self.kernel.dispatcher.claim(source)  # other connections may query, hold and stop
         self._task = asyncio.get_running_loop().create_task(
             self._run(path, self._progress, source, plan), name=f"job:{path.name}"
@@ -213,6 +226,12 @@ class Jobs(JobStore):
         if self._task is not None:
             self._task.cancel()
         self._announce()
+
+    def _on_stop(self, reason: str) -> None:
+        """A stop ends the checks being made (their thread stops reading at once); a job
+        playing meets the stop at its next line (its ticket is void)."""
+        for stop in self._planning:
+            stop.set()
 
     def suspend(self) -> None:
         if self.running and self._progress is not None:
@@ -258,7 +277,9 @@ class Jobs(JobStore):
         return progress
 
     async def close(self) -> None:
-        """Stop the player task (shutdown)."""
+        """Stop the player task and the checks being made (shutdown)."""
+        for stop in self._planning:
+            stop.set()
         if self._task is not None:
             self._task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -300,7 +321,7 @@ class Jobs(JobStore):
             number += 1
             try:
                 check_length(line, limit)  # error 11, as a stream refuses it
-                await dispatcher.submit(line, source, defer=_deferring(pending, number))
+                await dispatcher.submit(line, source, source.ticket, _deferring(pending, number))
                 await _settle(pending, wait=False)
             except _LineFailed as failed:
                 self._fail(progress, failed.text)
@@ -355,7 +376,7 @@ class Jobs(JobStore):
     async def _play(self, command: Command) -> list[str]:
         name = command.args.split()[0] if command.args.split() else ""
         try:
-            progress = await self.start(name)
+            progress = await self.start(name, command.ticket)
         except CommandError as exc:
             if exc.code == Error.JOB_DOES_NOT_FIT:  # a Grbl sender sees only error:47
                 self.kernel.push(f"[MSG:{exc.message}]")

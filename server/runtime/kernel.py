@@ -145,11 +145,17 @@ class _Context:
     def set_spin_up_delay(self, seconds: float) -> None:
         self._kernel.machine.set_spin_up_delay(seconds)
 
-    async def run_gcode(self, text: str) -> list[str]:
-        return await self._kernel.dispatcher.submit(text, self._source)
+    async def run_gcode(self, text: str, ticket: int | None = None) -> list[str]:
+        return await self._kernel.dispatcher.submit(text, self._source, ticket)
 
-    async def start_job(self, name: str) -> None:
-        await self._kernel.jobs.start(name)
+    async def start_job(self, name: str, ticket: int | None = None) -> None:
+        await self._kernel.jobs.start(name, ticket)
+
+    def ticket(self) -> int:
+        return self._kernel.status.ticket()
+
+    def still_valid(self, ticket: int) -> bool:
+        return self._kernel.status.still_valid(ticket)
 
     def status(self) -> dict[str, Any]:
         return build_status(self._kernel)
@@ -309,6 +315,7 @@ class Kernel:
         self.dispatcher = Dispatcher(
             is_locked=lambda: self.status.state in LOCKED_STATES,
             is_busy=lambda: self.machine.busy or self.jobs.active,
+            stops=self.status.ticket,
         )
         self.dispatcher.set_gcode_handler(
             self.machine.handle_gcode, lambda line: self.machine.interpreter.classify(line)

@@ -107,7 +107,8 @@ class RealtimeCommands:
         so the next move does not switch them on again."""
         self.stop_now()
         self.interpreter.tools_off()
-        self.tool.mode, self.tool.flood, self.tool.mist = ToolMode.OFF, False, False
+        self.tool.mode, self.tool.s, self.tool.flood, self.tool.mist = (
+            ToolMode.OFF, 0.0, False, False)
         self.events.emit(Event.HALT, reason)
         if self.status.state in (MachineState.RUN, MachineState.HOLD, MachineState.JOG):
             self.status.set_state(MachineState.IDLE)
@@ -159,19 +160,22 @@ class RealtimeCommands:
         self.set_overrides(100, 100, 100)
         self.leave_check_mode()
         self.interpreter.reset()
-        self.events.emit(Event.RESET)
         if moving:
             self.status.alarm(
                 Alarm.ABORT_CYCLE, "reset while in motion: position may be lost, re-home"
             )
-        elif self.status.state not in (MachineState.ALARM,):
-            self.status.set_state(MachineState.IDLE)
+        else:
+            self.status.stop("reset (Ctrl-X)")
+            if self.status.state is not MachineState.ALARM:
+                self.status.set_state(MachineState.IDLE)
+        self.events.emit(Event.RESET)
 
     def _halt_motion(self) -> None:
         """Alarm, M112, Ctrl-X: the hardware drops what it has queued, then :meth:`stop_now`;
         the spindle, laser and coolant are off (and reported so)."""
         self.backend.halt()
         self.stop_now()
+        self.interpreter.tools_off()  # M5 S0 M9 in the modal state too, as a reset board
         tool = self.tool
         tool.mode, tool.s, tool.flood, tool.mist = ToolMode.OFF, 0.0, False, False
 

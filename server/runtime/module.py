@@ -204,14 +204,26 @@ class ModuleContext(Protocol):
         """Motion waits ``seconds`` after M3/M4 starts a stopped spindle."""
         ...
 
-    async def run_gcode(self, text: str) -> list[str]:
-        """Run one line in order with every other source, as the module."""
+    async def run_gcode(self, text: str, ticket: int | None = None) -> list[str]:
+        """Run one line in order with every other source, as the module. ``ticket``: the
+        stop generation the request was made in (:meth:`ticket`; default now): a line asked
+        for before a stop is refused (error 45), never run after it."""
         ...
 
-    async def start_job(self, name: str) -> None:
+    async def start_job(self, name: str, ticket: int | None = None) -> None:
         """Check and play the stored job file ``name``, as the JSON API's ``job.start`` does;
         raises :class:`~server.errors.CommandError` (47 does not fit the travel from the
-        current work origin, 45 busy, 44 no such file) and changes nothing."""
+        current work origin, 45 busy or stopped meanwhile, 44 no such file) and changes
+        nothing. ``ticket`` as for :meth:`run_gcode`."""
+        ...
+
+    def ticket(self) -> int:
+        """The stop generation now: what a request made now carries (see
+        :mod:`server.runtime.state`)."""
+        ...
+
+    def still_valid(self, ticket: int) -> bool:
+        """Whether no stop came since ``ticket`` was taken."""
         ...
 
     def status(self) -> dict[str, Any]:

@@ -134,7 +134,10 @@ class Session(LineAdmission, SessionOutput):
         self._input_room = asyncio.Event()
         self._input_room.set()
         self._stopping = asyncio.Event()
-        self._epoch = 0
+        self._stops = kernel.status  # the stop generation: each queued line's ticket
+        self._epoch = 0  # counts the resets that dropped this connection's lines unanswered
+        self._resetting = False  # this connection's own Ctrl-X is being acted on
+        self._discarded = False  # the last stop dropped lines of this connection
         self._queued_bytes = 0
         self._scheduler = StatusScheduler()
         self._status_bucket = TokenBucket(
@@ -145,7 +148,9 @@ class Session(LineAdmission, SessionOutput):
             core.protocol.realtime_bytes_per_s, REALTIME_BURST_BYTES)
         self._text_cost = 0
         self._text_counting = True
-        self._unsubscribe = kernel.events.subscribe(BusEvent.PUSH, self.push)
+        self._unsubscribe = [kernel.events.subscribe(BusEvent.PUSH, self.push),
+                             kernel.events.subscribe(BusEvent.STOP, self._on_stop),
+                             kernel.events.subscribe(BusEvent.RESET, self._on_reset)]
         self._task: asyncio.Task[None] | None = None
         self._replies: deque[tuple[int, asyncio.Future[bytes]]] = deque()  # behind a deferred
         self._replies_room = asyncio.Event()
@@ -186,7 +191,8 @@ class Session(LineAdmission, SessionOutput):
         self.outbox.close()
 
     def _stop_input(self) -> None:
-        self._unsubscribe()
+        for unsubscribe in self._unsubscribe:
+            unsubscribe()
         self._closing = True
         self._stopping.set()
         if self._status_timer is not None:
@@ -246,17 +252,18 @@ class Session(LineAdmission, SessionOutput):
                 await self._lines_ready.wait()
                 turn_s = now_s()
                 continue
-            epoch, event = lines.popleft()
+            ticket, event = lines.popleft()
+            epoch = self._epoch
             if backlog and len(lines) < INBOUND_LINES // 2:
                 self._refill()
-            reply = self._execute(event, epoch)
+            reply = self._execute(event, ticket)
             if not isinstance(reply, (bytes, asyncio.Future)):  # (a tuple: no union built per line)
                 self._arm_busy()  # the line waits (room in the planner, a sync request)
                 try:
                     reply = await reply
                 finally:
                     self._disarm_busy()
-            if epoch == self._epoch:
+            if epoch == self._epoch:  # (else a reset dropped it: no reply, as from Grbl)
                 queued = self._queued_bytes - line_size(event)
                 self._queued_bytes = queued if queued > 0 else 0
                 if not replies and isinstance(reply, bytes):  # (what _answer does first)
@@ -290,7 +297,7 @@ class Session(LineAdmission, SessionOutput):
             self._busy_timer.cancel()
             self._busy_timer = None
 
-    def _execute(self, event: LineReceived | LineRejected, epoch: int) -> Reply:
+    def _execute(self, event: LineReceived | LineRejected, ticket: int) -> Reply:
         """A line's reply, or the wait for it (to be awaited at once: the line holds the
         dispatcher's turn until then)."""
         if isinstance(event, LineRejected):
@@ -308,8 +315,7 @@ class Session(LineAdmission, SessionOutput):
         deferred: list[asyncio.Future[list[str]]] = []
         try:
             outcome = self.kernel.dispatcher.begin(
-                event.text, self, still_valid=lambda: epoch == self._epoch,
-                defer=deferred.append)
+                event.text, self, ticket, defer=deferred.append)
         except Exception as exc:  # noqa: BLE001 - answered (CommandError) or alarmed
             return self._failed(event, exc)
         if isinstance(outcome, list):

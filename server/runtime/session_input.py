@@ -42,6 +42,7 @@ from typing import TYPE_CHECKING
 
 from server.errors import CommandError, Error
 from server.protocol.events import (
+    Dialect,
     Event,
     LineReceived,
     LineRejected,
@@ -60,6 +61,7 @@ if TYPE_CHECKING:
     from server.runtime.backlog import Backlog
     from server.runtime.kernel import Kernel
     from server.runtime.session_output import Outbox
+    from server.runtime.state import MachineStatus
 
 log = logging.getLogger("motiond.session")
 HTTP_REFUSED = "this port speaks the Grbl line protocol, not HTTP: closing"
@@ -93,7 +95,12 @@ class LineAdmission:
     _lines_ready: asyncio.Event
     _backlog: Backlog
     _input_room: asyncio.Event
+    _stops: MachineStatus
     _epoch: int
+    _resetting: bool
+    _closing: bool
+    _discarded: bool  # the last stop dropped something this connection sent
+    _replies: deque[tuple[int, asyncio.Future[bytes]]]
     _queued_bytes: int
     _scheduler: StatusScheduler
     _sniffer: HttpSniffer | None
@@ -136,7 +143,7 @@ class LineAdmission:
                 return
             self._hold_back(data[:reset_at], False)
             self._realtime(Realtime.RESET)  # drops what is held, as Grbl empties its buffer
-            data = data[reset_at + 1 :]
+            return  # and what came right behind the Ctrl-X, as Grbl's reset flushes it
 
     async def feed(self, data: bytes, *, final: bool = True,
                    gone: Callable[[], bool] | None = None) -> None:
@@ -247,7 +254,7 @@ class LineAdmission:
                 if self._is_emergency_stop(event):
                     self.kernel.control.emergency_stop()
                 else:
-                    self._quickstop()
+                    self.kernel.control.quickstop()
         self._act_on_realtime(batch)
         if self._backlog.full:
             self._input_room.clear()
@@ -255,28 +262,32 @@ class LineAdmission:
     def _handle(self, events: list[Event], *, replayed: bool = False) -> None:
         """Protocol events in stream order; ``replayed``: from held-back bytes, whose realtime
         commands and M112 were acted on when they arrived. Realtime commands are acted on as
-        one batch (see ``MachineControl.realtime_batch``), cut where order matters: at a
-        Ctrl-X (lines before it are dropped, lines after it kept), an M112 or an M410."""
+        one batch (see ``MachineControl.realtime_batch``), cut where order matters: at an
+        M112 or an M410, and at a Ctrl-X, which ends the read: what came right behind it in
+        the same read is dropped with what was queued, as Grbl's reset flushes its buffer.
+        Each line is queued with its ticket: the stop generation it arrived in."""
         batch: list[Realtime] = []
+        stops = self._stops
         for event in events:
             if isinstance(event, RealtimeReceived):
                 if not replayed:
                     batch.append(event.command)
-                    if event.command is Realtime.RESET:
+                    if event.command is Realtime.RESET and self.can_control:
                         self._act_on_realtime(batch)
+                        self._lines_ready.set()
+                        return
                 continue
             if not replayed and self._text_counting:
                 self._count_text(event)
             # (an M112 or M410 holds its number's digits: most lines are not looked at)
-            if not replayed and type(event) is LineReceived and (
-                    "112" in event.text or "410" in event.text):
+            if not replayed and ("112" in event.text or "410" in event.text):
                 if self._is_emergency_stop(event):
                     self._act_on_realtime(batch)
                     self.kernel.control.emergency_stop()
                 if self._is_quickstop(event):
                     self._act_on_realtime(batch)
-                    self._quickstop()
-            self._lines.append((self._epoch, event))
+                    self.kernel.control.quickstop()
+            self._lines.append((stops.stops, event))
             self._queued_bytes += line_size(event)
         self._act_on_realtime(batch)
         self._lines_ready.set()
@@ -304,23 +315,46 @@ class LineAdmission:
         batch.clear()
 
     def _is_emergency_stop(self, event: Event) -> bool:
-        """M112 from a connection that may control: acted on the moment its line arrives."""
-        if not isinstance(event, LineReceived) or not self.can_control:
-            return False
-        return halts_at_once(event.text)
+        """M112 from a connection that may control, acted on the moment its line arrives:
+        whatever its checksum or line number (a refused frame keeps its text), as Marlin's
+        emergency parser."""
+        return self.can_control and not isinstance(event, RealtimeReceived) and halts_at_once(
+            event.text)
 
     def _is_quickstop(self, event: Event) -> bool:
         return (isinstance(event, LineReceived) and self.can_control
                 and quickstops_at_once(event.text))
 
-    def _quickstop(self) -> None:
-        """M410 arrived: stop now; the lines queued ahead of it are answered, never run."""
-        flushed = LineRejected(CommandError(Error.BUSY, "flushed by an M410 quickstop; not run"))
-        for index, (epoch, line) in enumerate(self._lines):
-            if isinstance(line, LineReceived):
-                self._lines[index] = (epoch, flushed)
-                self._queued_bytes -= line_size(line) - line_size(flushed)
-        self.kernel.control.quickstop()
+    # -- stops ------------------------------------------------------------------------------
+    def _on_stop(self, reason: str) -> None:
+        """A stop, from this connection or any other path. The lines this connection queued
+        before it carry a void ticket: each is refused where it would start (``error:45``,
+        or Marlin's ``echo:`` + ``ok``), never run. What it sent that is not a line yet (the
+        backlog, a partial line) is dropped now; a reset drops the rest (:meth:`_on_reset`).
+        A read-only connection's queries are not requests: they stay."""
+        if self._closing or not self.can_control:
+            return
+        self._discarded = bool(self._queued_bytes or self._backlog or self._replies)
+        self._backlog.clear()
+        self._input_room.set()
+        self.protocol.reset()
+        self._scheduler.refresh()
+
+    def _on_reset(self) -> None:
+        """A reset (this connection's Ctrl-X, another's, ``machine.reset``, a restart): as
+        Grbl empties its receive buffer, the lines this connection sent are dropped with no
+        reply, and the banner tells the sender to count from nothing again, for its own
+        Ctrl-X always, else when the reset dropped something of a Grbl sender's (a RepRap
+        host, which waits for one reply per line, gets its lines refused instead)."""
+        own, self._resetting = self._resetting, False
+        dropped, self._discarded = self._discarded, False
+        if self._closing or not (own or (dropped and self.protocol.dialect is Dialect.GRBL)):
+            return
+        self._epoch += 1
+        self._lines.clear()
+        self._queued_bytes = 0
+        if not self.outbox.closed:
+            self.outbox.put(self.protocol.banner())
 
     def _refill(self) -> None:
         """Feed held-back bytes to the protocol until the line queue is full again."""
@@ -338,16 +372,11 @@ class LineAdmission:
             return
         if not self.can_control:
             return
-        if command is Realtime.RESET:
-            self._epoch += 1
-            self._lines.clear()
-            self._queued_bytes = 0
-            self._backlog.clear()
-            self._input_room.set()
-            self.protocol.reset()
-            self._scheduler.refresh()
+        if command is Realtime.RESET:  # a stop: _on_stop and _on_reset drop what was sent
+            self._resetting = True
             self.kernel.control.reset()
-            self.outbox.put(self.protocol.banner())
+            if self._resetting:  # (a machine that emitted no reset event)
+                self._on_reset()
             return
         self.kernel.control.realtime(command)
 

@@ -74,19 +74,23 @@ async def test_override_steps_fold_into_one_change_each_clamped_as_alone(app: Ap
     assert len(changes) <= 3, "one change per batch; the batch at the limit changed nothing"
 
 
-async def test_a_reset_in_a_batch_drops_the_lines_before_it_and_keeps_those_after(
+async def test_a_reset_in_a_batch_drops_the_lines_before_it_and_those_right_behind_it(
         app: App) -> None:
+    """As Grbl flushes its receive buffer on a reset: only the next read runs."""
     session = Session(app.kernel, "sender")
     session.start()
     try:
         await session.feed(b"\x91G1 X5 F600\n\x18G1 Y7 F600\n")
+        await asyncio.sleep(0.1)
+        assert app.kernel.machine.stepgen.idle, "nothing of that read moves"
+        await session.feed(b"G1 Y2 F600\n")
         await wait_for(lambda: not app.kernel.machine.stepgen.idle, 5, "a move")
         await app.kernel.machine.wait_idle()
         position = app.kernel.machine.stepgen.state.position_mm
         override = app.kernel.machine.feed_override
     finally:
         await session.close()
-    assert position[:2] == pytest.approx((0.0, 7.0)) and override == 100
+    assert position[:2] == pytest.approx((0.0, 2.0)) and override == 100
 
 
 async def test_the_operators_first_hold_acts_at_once_while_others_flood_the_total_budget(

@@ -88,11 +88,15 @@ async def test_a_feed_hold_stops_a_focusing_fire() -> None:
         assert app.kernel.machine.backend.output("laser") == 0.0
 
 
-async def test_the_dispatcher_refuses_lines_after_shutdown_and_lines_overtaken_by_reset() -> None:
-    dispatcher = Dispatcher()
+async def test_the_dispatcher_refuses_lines_after_shutdown_and_lines_overtaken_by_a_stop(
+        ) -> None:
+    stops = [0]
+    dispatcher = Dispatcher(stops=lambda: stops[0])
     dispatcher.set_gcode_handler(lambda command: ["ran"])
+    ticket = 0
+    stops[0] += 1  # a stop after the line was sent
     with pytest.raises(CommandError):
-        await dispatcher.submit("G0 X1", SystemSource(), still_valid=lambda: False)
+        await dispatcher.submit("G0 X1", SystemSource(), ticket)
     assert await dispatcher.submit("G0 X1", SystemSource()) == ["ran"]
     dispatcher.close()
     with pytest.raises(CommandError) as info:

@@ -370,10 +370,10 @@ def test_unknown_codes_and_waits_are_answered_as_queries(line: str, kind: str) -
     assert Interpreter(XYZ).classify(parse_line(line)).value == kind
 
 
-def test_tools_off_clears_spindle_and_coolant_but_keeps_the_rest() -> None:
+def test_tools_off_leaves_a_reset_boards_m5_s0_m9_but_keeps_the_rest() -> None:
     interpreter, _ = run(["G91", "M3 S300", "M8"])
     interpreter.tools_off()
-    assert interpreter.gc_report() == "[GC:G0 G54 G17 G21 G91 G94 M5 M9 T0 F0 S300]"
+    assert interpreter.gc_report() == "[GC:G0 G54 G17 G21 G91 G94 M5 M9 T0 F0 S0]"
 
 
 @pytest.mark.parametrize(("code", "towards", "error_on_fail"), [
