@@ -1,6 +1,6 @@
 """The benchmarks' one entry point: ``python -m benchmarks NAME [--quick] [--json]``.
 
-Run as the README shows, in a subprocess; only the planner's quick run (about a second) is
+Run as docs/performance.md shows, in a subprocess; only the planner's quick run (about a second) is
 measured here, never the full benchmarks.
 """
 

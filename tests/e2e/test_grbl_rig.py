@@ -27,7 +27,7 @@ from tests.support.rigs import rig
 from tests.support.senders import CharCountingClient, wait_for
 
 pytestmark = pytest.mark.usefixtures("quick_thread_switches")
-# motiond's own answers, documented in the README: M999 unlocks (Smoothie), % marks a program.
+# motiond's own answers (docs/grbl-host.md): M999 unlocks (Smoothie), % marks a program.
 DELIBERATE = {"M999": "ok", "%": "ok"}
 
 

@@ -33,7 +33,7 @@ from tests.support.senders import wait_for
 LASER = {"minimum_power": 0.1, "maximum_power": 0.8, "maximum_s_value": 1000}
 TIMEOUTS_S: dict[str, float] = {}  # OctoPrint's own defaults
 COMMUNICATION_TIMEOUT_S = 30.0  # OctoPrint's default serial.timeout.communication
-CANCEL_SCRIPT = "M410\nM5\n"  # the README's cancel script for a laser
+CANCEL_SCRIPT = "M410\nM5\n"  # docs/octoprint.md's cancel script for a laser
 _PAUSE_EVENT = re.compile(r"event: PrintPaused \(Payload: .*?'position': \{[^}]*'x': ([-\d.]+)")
 
 
@@ -131,7 +131,7 @@ async def test_octoprint_connects_to_a_machine_in_alarm_and_its_unlock_button_un
 ) -> None:
     """No terminal: the user connects, sees the alarm, clicks Reconnect (which must not
     unlock: Grbl clears an alarm only on purpose), then, in OctoPrint's web UI in Chromium,
-    the Control tab's "Unlock" button (the README's custom control, M999)."""
+    the Control tab's "Unlock" button (docs/octoprint.md's custom control, M999)."""
     async with machine(octoprint, connect=False) as run:
         run.app.kernel.machine.emergency_stop()  # ALARM:40, as after an M112
         await run.api.connect()

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 # Real senders from PyPI: a missing one must fail the run, never skip it. grbl-streamer comes
-# with the test extras; Printrun is installed with --no-deps (see the README's test command),
+# with the test extras; Printrun is installed with --no-deps (see scripts/setup-tests),
 # since its GUI dependencies (wxPython, dbus) cannot build here and printcore needs neither.
 import grbl_streamer  # noqa: E402, F401
 import printrun.printcore  # noqa: E402, F401

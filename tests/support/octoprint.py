@@ -33,7 +33,7 @@ EXECUTABLE = VENV / "bin" / "octoprint"
 OFFLINE_PLUGINS = ["announcements", "softwareupdate", "tracking", "errortracking", "discovery",
                    "pluginmanager", "backup", "achievements", "health_check", "virtual_printer",
                    "gcodeviewer", "firmware_check", "file_check", "pi_support"]
-# config.yaml's custom control for a machine in alarm, as the README gives it: a button
+# config.yaml's custom control for a machine in alarm, as docs/octoprint.md gives it: a button
 # "Unlock" on the Control tab that sends M999 (Marlin's "restart after stop", motiond's $X)
 UNLOCK_CONTROL = [{"name": "motiond", "layout": "horizontal",
                    "children": [{"name": "Unlock", "command": "M999"}]}]
@@ -86,7 +86,7 @@ class OctoPrint:
                        "timeout": timeouts_s, "autoconnect": False},
             "plugins": {"_disabled": OFFLINE_PLUGINS},
             "feature": {"sdSupport": True},
-            "controls": UNLOCK_CONTROL,  # the README's "Unlock" button
+            "controls": UNLOCK_CONTROL,  # docs/octoprint.md's "Unlock" button
             # the web UI in a test's browser on this machine is this user, without a login
             "accessControl": {"autologinLocal": True, "autologinAs": "motiond",
                               "autologinHeadsupAcknowledged": True},

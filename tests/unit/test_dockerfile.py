@@ -1,4 +1,4 @@
-"""The Dockerfile lints clean and starts the same entry point the README documents."""
+"""The Dockerfile lints clean and starts the same entry point docs/docker.md documents."""
 
 from __future__ import annotations
 
@@ -26,9 +26,9 @@ def test_dockerfile_cmd_starts_the_documented_entry_point() -> None:
     (cmd,) = re.findall(r"^CMD (.+)$", text, re.M)
     argv = json.loads(cmd)
     assert argv[0] == "motiond"
-    readme = (REPO / "README.md").read_text()
-    assert "docker run" in readme
-    assert f"`{' '.join(argv)}`" in readme, "the README names the image's command"
+    page = (REPO / "docs" / "docker.md").read_text()
+    assert "docker run" in page
+    assert f"`{' '.join(argv)}`" in page, "docs/docker.md names the image's command"
     assert re.search(r'motiond = "server\.cli:main"', (REPO / "pyproject.toml").read_text())
 
 
