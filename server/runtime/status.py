@@ -34,14 +34,16 @@ def state_text(kernel: Kernel) -> str:
 
 
 def snapshot(kernel: Kernel, rx_free_bytes: int) -> StatusSnapshot:
-    """The machine as a status report shows it, now."""
+    """The machine as a status report shows it, now: what the outputs do (in a hold in laser
+    mode the laser is off: ``FS:..,0`` and no ``A:S``/``A:C``, as Grbl reports it)."""
     machine = kernel.machine
     downstream = machine.status_snapshot(rx_free_bytes)
     if downstream is not None:
         return downstream
     motion = machine.stepgen.state
     tool = machine.tool
-    accessories = {ToolMode.CW: "S", ToolMode.CCW: "C"}.get(tool.mode, "")
+    laser_held = kernel.state is MachineState.HOLD and machine.core.machine.laser_mode
+    accessories = "" if laser_held else {ToolMode.CW: "S", ToolMode.CCW: "C"}.get(tool.mode, "")
     accessories += "F" * tool.flood + "M" * tool.mist
     pins = "".join(module.report_pins() for module in kernel.modules.values())
     return StatusSnapshot(
@@ -49,7 +51,8 @@ def snapshot(kernel: Kernel, rx_free_bytes: int) -> StatusSnapshot:
         machine_mm=machine.position_now_mm(),
         wco_mm=machine.interpreter.wco(),
         feed_mm_s=machine.speed_now_mm_s(),
-        spindle_s=_spindle_s(motion.s_value if motion.moving else tool.s, tool.mode, motion),
+        spindle_s=0.0 if laser_held else _spindle_s(
+            motion.s_value if motion.moving else tool.s, tool.mode, motion),
         planner_free_blocks=max(0, machine.core.planner.max_blocks - len(machine.planner)),
         rx_free_bytes=rx_free_bytes,
         line_number=motion.line_number if motion.moving else None,
