@@ -10,12 +10,15 @@ job runs (45), is locked out in ALARM, and a read-only connection cannot call it
 * ``machine.wcs``: select G54-G59;
 * ``job.place``: the job's extent under the current placement and whether it fits;
 * ``job.frame``: trace that extent's rectangle (:func:`server.offline.fit.frame_lines`),
-  laser off unless ``[jobs] frame_power_s`` is set, at ``[jobs] frame_feed_mm_min``. A hold or a
-  reset during the frame stops it like any motion, and the lines not yet sent are dropped.
+  laser off unless ``[jobs] frame_power_s`` is set, at ``[jobs] frame_feed_mm_min``. It answers
+  when the frame has been traced, or when a hold, a reset or a halt ended it: a hold ends the
+  frame once its deceleration is over (the rest is dropped, the laser off, the machine Idle),
+  and the answer says ``stopped`` and why (``reason``: hold, reset, halt or the refusal).
 """
 
 from __future__ import annotations
 
+import asyncio
 from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import Field
@@ -23,10 +26,13 @@ from pydantic import Field
 from server.api.jobs import NameParams
 from server.api.methods import Methods, MethodTable, Params
 from server.errors import CommandError, Error
+from server.motion.stepgen import HoldState
 from server.offline.fit import frame_lines
 from server.runtime.events import Event, MachineState
 
 if TYPE_CHECKING:
+    from collections.abc import Awaitable
+
     from server.api.server import Connection
 
 PLACEMENT_METHODS = MethodTable()
@@ -109,22 +115,77 @@ async def job_frame(m: Methods, connection: Connection, params: NameParams) -> d
     _refuse_if_running(m)  # the plan took a while: check again
     jobs = kernel.config.core.jobs
     lines = frame_lines(plan.fit, jobs.frame_feed_mm_min, jobs.frame_power_s)
-    stopped: list[str] = []
-    events = kernel.events
-    unsubscribe = [events.subscribe(event, lambda *_, e=event: stopped.append(e))
-                   for event in (Event.HOLD, Event.RESET, Event.HALT)]
-    sent = 0
+    sent, reason = await _trace(m, connection, lines)
+    return {"name": params.name, "lines": lines[:sent], "stopped": reason is not None,
+            "reason": reason, **plan.fit.as_dict(kernel.config.core.axis_names)}
+
+
+async def _trace(m: Methods, connection: Connection, lines: list[str]) -> tuple[int, str | None]:
+    """Send the frame's lines and wait for its motion to end: (lines sent, why it stopped).
+    A line may wait for planner room (long sides at a low feed): a hold ends that wait too."""
+    reasons: list[str] = []
+    ended = asyncio.Event()
+
+    def stop(reason: str) -> None:
+        reasons.append(reason)
+        ended.set()
+
+    events = m.kernel.events
+    unsubscribe = [events.subscribe(event, lambda *_, r=reason: stop(r)) for event, reason in
+                   ((Event.HOLD, "hold"), (Event.RESET, "reset"), (Event.HALT, "halt"))]
+    sending = asyncio.ensure_future(_send(m, connection, lines, reasons))
     try:
-        for line in lines:
-            if stopped:
-                break
-            await m.submit(connection, line)
-            sent += 1
+        await _first(asyncio.shield(sending), ended.wait())
+        if not reasons:  # every line is queued: until the motion ends
+            await _first(m.machine.wait_idle(), ended.wait())
+        if reasons and reasons[0] == "hold":
+            await _end_held(m)  # (a line waiting for room is refused now)
+        sent = await sending
     finally:
+        sending.cancel()
         for cancel in unsubscribe:
             cancel()
-    return {"name": params.name, "lines": lines[:sent], "stopped": bool(stopped),
-            **plan.fit.as_dict(kernel.config.core.axis_names)}
+    return sent, reasons[0] if reasons else None
+
+
+async def _send(m: Methods, connection: Connection, lines: list[str],
+                reasons: list[str]) -> int:
+    """The frame's lines through the ordered path until one is refused or a stop came."""
+    sent = 0
+    for line in lines:
+        if reasons:
+            break
+        try:
+            await m.submit(connection, line)
+        except CommandError as exc:  # a stop came, or the machine is locked
+            reasons.append(f"error:{int(exc.code)} {exc.message}")
+            break
+        sent += 1
+    return sent
+
+
+async def _end_held(m: Methods) -> None:
+    """A hold ended the frame: once its deceleration is over, the rest is dropped."""
+    machine = m.machine
+    if machine.stepgen.state.hold is HoldState.DECELERATING:
+        stopped = asyncio.Event()
+        cancel = m.kernel.events.subscribe(Event.HOLD_STOPPED, lambda: stopped.set())
+        try:
+            await _first(stopped.wait(), machine.wait_idle())  # (a reset: idle at once)
+        finally:
+            cancel()
+    if m.kernel.state is MachineState.HOLD:
+        machine.quickstop("frame held")
+
+
+async def _first(*waits: Awaitable[Any]) -> None:
+    """Until the first of ``waits`` is done; the others are cancelled."""
+    tasks = [asyncio.ensure_future(wait) for wait in waits]
+    try:
+        await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        for task in tasks:
+            task.cancel()
 
 
 def _refuse_if_running(m: Methods) -> None:

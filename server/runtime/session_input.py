@@ -40,7 +40,6 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from server.errors import CommandError, Error
 from server.protocol.events import (
     Dialect,
     Event,

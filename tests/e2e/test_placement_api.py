@@ -163,3 +163,22 @@ async def test_frame_is_refused_while_a_job_runs_and_a_hold_stops_it(tmp_path: P
         await asyncio.sleep(0.5)
         assert (await rpc.call("machine.status"))["mpos"] == status["mpos"], "nothing more"
         assert len(result["lines"]) <= 5
+
+
+async def test_a_hold_during_a_powered_frame_ends_it_and_the_call_says_so(tmp_path: Path) -> None:
+    """With ``frame_power_s`` the frame is G1 moves at low power: a hold stops it, the laser
+    goes off, and the call answers at once that it stopped and why (it waited as long as the
+    hold lasted); nothing of the frame runs after it."""
+    async with machine(tmp_path, frame_feed_mm_min=600, frame_power_s=10) as (app, rpc, address):
+        await rpc.call("job.upload", name="box.nc", text="G21 G90\nG0 X5 Y5\nG1 X40 Y30 F3000\n")
+        frame = asyncio.create_task(rpc.call("job.frame", name="box.nc"))
+        async with rpc_client(address) as other:
+            await asyncio.sleep(1.0)
+            await other.call("machine.hold")
+            async with asyncio.timeout(3):
+                result = await frame
+            status = await other.call("machine.status")
+        assert result["stopped"] and result["reason"] == "hold", result
+        assert status["power_pct"] == 0.0 and status["tool"]["mode"] == "M5", status
+        await asyncio.sleep(0.5)
+        assert (await rpc.call("machine.status"))["mpos"] == status["mpos"], "nothing more"
