@@ -36,9 +36,9 @@ from benchmarks.common import CORPUS, BenchResult, standalone  # noqa: E402
 from benchmarks.stream_client import HOST  # noqa: E402
 from benchmarks.streaming_support import run_client  # noqa: E402
 from server.app import App  # noqa: E402
+from server.backends.grbl.machine import GrblMachine  # noqa: E402
 from server.config_loader import build_config  # noqa: E402
 from server.runtime.clock import RealClock  # noqa: E402
-from server.runtime.grbl import GrblMachine  # noqa: E402
 from server.transports.tcp import TcpTransport  # noqa: E402
 
 RASTER_FILE = "laser-raster-tree.nc"

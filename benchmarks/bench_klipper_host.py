@@ -41,17 +41,17 @@ from benchmarks.klipper_rig_hosts import (
 from benchmarks.klipper_rig_jobs import LASER, SPEED_MM_S, Job
 from benchmarks.klipper_rig_jobs import circles as rig_circles
 from benchmarks.klipper_rig_jobs import raster as rig_raster
-from server.backends.base import PowerLaw
 from server.backends.klipper.backend import KlipperBackend
 from server.backends.klipper.clocksync import ClockSync
 from server.backends.klipper.codec import PAYLOAD_MAX
 from server.backends.klipper.dictionary import Dictionary
 from server.backends.klipper.stepcompress import StepCompressor
 from server.config_loader import build_config
+from server.machine.parts import planner_settings
+from server.motion.backend import PowerLaw
 from server.motion.moves import Action, Move, MoveKind, ToolMode
 from server.motion.planner import Planner
 from server.motion.stepgen import StepGenerator
-from server.runtime.parts import planner_settings
 
 CLOCK_HZ = 72_000_000
 BAUD_BYTES_S = 250_000 / 10

@@ -27,10 +27,10 @@ from pygcode import Line as PygcodeLine
 
 from benchmarks.common import BenchResult, corpus_files, side_by_side, standalone
 from server.backends.sim import SimBackend
+from server.cli.offline import collection_paused
 from server.config import CoreConfig
 from server.config_loader import load_config
 from server.gcode.parser import parse_line
-from server.offline.commands import collection_paused
 from server.offline.estimate import estimate, execute
 from server.offline.stats import JobStats
 

@@ -20,7 +20,7 @@ from typing import Any, TypeVar
 
 from benchmarks.common import scratch_data_dir
 from benchmarks.stream_client import HOST
-from server.cli import loop_factory
+from server.cli.main import loop_factory
 from server.config import Config, StepgenConfig
 from server.config_loader import build_config
 from server.runtime import realtime

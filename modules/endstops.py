@@ -35,11 +35,11 @@ from pydantic import Field
 
 from server.errors import Alarm, CommandError, ConfigError, Error
 from server.gcode.codes import CodeCall
+from server.kernel.module import Module, ModuleConfig, ModuleContext
 from server.motion.moves import Move, MoveKind, Output, Position, Sync, SyncKind
 from server.runtime.clock import VirtualClock
 from server.runtime.dispatcher import Command
 from server.runtime.events import Event, MachineState
-from server.runtime.module import Module, ModuleConfig, ModuleContext
 
 LOCKED = 9
 SEEK_SCALE = 1.5  # Grbl: search up to 1.5 x the travel

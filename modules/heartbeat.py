@@ -13,9 +13,9 @@ from typing import Any
 
 from pydantic import Field
 
+from server.kernel.module import Module, ModuleConfig, ModuleContext
 from server.runtime.dispatcher import Command
 from server.runtime.events import Event
-from server.runtime.module import Module, ModuleConfig, ModuleContext
 
 
 class HeartbeatConfig(ModuleConfig):

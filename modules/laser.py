@@ -42,15 +42,15 @@ from typing import Any
 
 from pydantic import Field, model_validator
 
-from server.backends.base import PowerLaw
 from server.errors import CommandError, Error
 from server.gcode.codes import CodeCall
+from server.kernel.module import ApiCaller, ApiParams, Module, ModuleConfig, ModuleContext
+from server.motion.backend import PowerLaw
 from server.motion.moves import Action, Move, MoveKind, Output, Sync, SyncKind, ToolMode
 from server.motion.stepgen import HoldState, MotionState
 from server.runtime.clock import VirtualClock
 from server.runtime.dispatcher import Command
 from server.runtime.events import Event, MachineState
-from server.runtime.module import ApiCaller, ApiParams, Module, ModuleConfig, ModuleContext
 
 PIN_PATTERN = r"^[A-Za-z0-9_.\-]+$"
 CUTTING_KINDS = frozenset({MoveKind.FEED, MoveKind.ARC})

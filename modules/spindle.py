@@ -32,9 +32,9 @@ from typing import Any
 
 from pydantic import Field, model_validator
 
+from server.kernel.module import Module, ModuleConfig, ModuleContext
 from server.motion.moves import Action, ActionName, ToolMode
 from server.runtime.events import Event, MachineState
-from server.runtime.module import Module, ModuleConfig, ModuleContext
 
 PIN_PATTERN = r"^[A-Za-z0-9_.\-]+$"
 

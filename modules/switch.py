@@ -33,9 +33,9 @@ from pydantic import Field, model_validator
 from server.errors import CommandError, Error
 from server.gcode.codes import CodeCall
 from server.gcode.modal import M_GROUPS
+from server.kernel.module import Module, ModuleConfig, ModuleContext
 from server.motion.moves import Action, ActionName, Output
 from server.runtime.events import Event
-from server.runtime.module import Module, ModuleConfig, ModuleContext
 
 PIN_PATTERN = r"^[A-Za-z0-9_.\-]+$"
 COOLANT_CODES = {7: "mist", 8: "flood"}

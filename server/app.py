@@ -17,10 +17,13 @@ import logging
 from collections.abc import Callable
 from typing import Protocol
 
+from server.api.server import http_with_api
 from server.config import Config
+from server.kernel.kernel import Kernel
 from server.runtime.clock import Clock, RealClock, VirtualClock
-from server.runtime.kernel import Kernel
 from server.transports.accept_errors import AcceptErrorLog
+from server.transports.serial import SerialTransport
+from server.transports.tcp import TcpTransport
 
 log = logging.getLogger("motiond.app")
 
@@ -38,6 +41,19 @@ class Transport(Protocol):
 
 
 TransportFactory = Callable[[Kernel], Transport]
+
+
+def default_transports(config: Config) -> list[TransportFactory]:
+    """The transports the config enables, in start order."""
+    core = config.core
+    factories: list[TransportFactory] = []
+    if core.tcp.enabled:
+        factories.append(TcpTransport)
+    if core.http.enabled:
+        factories.append(http_with_api)
+    if core.serial.device or core.serial.pty:
+        factories.append(SerialTransport)
+    return factories
 
 
 class App:

@@ -13,11 +13,9 @@ from __future__ import annotations
 import ipaddress
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, Protocol
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
-
-from server.runtime.module import Module
 
 AXIS_LETTERS = "XYZABC"
 
@@ -353,11 +351,18 @@ class CoreConfig(Strict):
         return tuple(name.upper() for name in self.axes)
 
 
+class ModuleClass(Protocol):
+    """What the configuration knows of a module class (:class:`server.kernel.module.Module`
+    is one): it is built from its context and its validated section."""
+
+    def __call__(self, ctx: Any, config: Any, /) -> Any: ...
+
+
 @dataclass(frozen=True, slots=True)
 class ModuleSpec:
     """One configured module instance: ``[laser]`` or ``[switch.fan]``."""
 
-    cls: type[Module]
+    cls: ModuleClass
     section: str  # "laser" or "switch.fan"
     instance: str | None  # "fan" for named instances
     config: BaseModel

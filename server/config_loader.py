@@ -20,7 +20,7 @@ from pydantic import BaseModel, ValidationError
 
 from server.config import Config, CoreConfig, ModuleSpec
 from server.errors import ConfigError
-from server.runtime.module import Module, available_modules
+from server.kernel.module import Module, available_modules
 
 CORE_SECTIONS = frozenset(CoreConfig.model_fields)
 

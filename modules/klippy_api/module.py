@@ -36,9 +36,9 @@ from modules.klippy_api import wire
 from modules.klippy_api.gcode import HELP
 from modules.klippy_api.session import Session, response_text
 from server import __version__
+from server.kernel.module import Module, ModuleConfig, ModuleContext
 from server.paths import jobs_dir
 from server.runtime.events import Event
-from server.runtime.module import Module, ModuleConfig, ModuleContext
 
 OUTGOING_LIMIT = 1000
 READ_BYTES = 65536

@@ -1,6 +1,6 @@
 """Klipper's printer objects, built from motiond's status snapshot (pure functions).
 
-Every value comes from :func:`server.runtime.status.build_status` (what the machine executed:
+Every value comes from :func:`server.kernel.status.build_status` (what the machine executed:
 ``mpos`` is the step generator's or the board's position) and from the machine's config; no
 extruder, heater or output pin is invented. Positions are Klipper's four-element lists
 ``[x, y, z, e]`` in mm, ``e`` always 0; speeds are mm/s (``gcode_move.speed`` mm/min, as

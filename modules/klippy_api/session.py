@@ -29,8 +29,8 @@ from modules.klippy_api.gcode import (
     Step,
 )
 from server.errors import CommandError, Error
-from server.runtime.control import halts_at_once
-from server.runtime.module import ModuleContext
+from server.kernel.control import halts_at_once
+from server.kernel.module import ModuleContext
 
 PENDING_SCRIPTS = 32
 IMMEDIATE = frozenset({"pause", "resume", "cancel", "estop"})

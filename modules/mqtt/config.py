@@ -9,7 +9,7 @@ from urllib.parse import urlsplit
 
 from pydantic import Field, FilePath, field_validator, model_validator
 
-from server.runtime.module import ModuleConfig
+from server.kernel.module import ModuleConfig
 
 SCHEMES = {"mqtt": (1883, False), "mqtts": (8883, True)}
 _NOT_SLUG = re.compile(r"[^a-z0-9]+")

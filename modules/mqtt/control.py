@@ -38,8 +38,8 @@ from modules.mqtt.payloads import (
 )
 from server.errors import CommandError, Error
 from server.gcode.parser import check_length
-from server.runtime.control import halts_at_once
-from server.runtime.module import ModuleContext
+from server.kernel.control import halts_at_once
+from server.kernel.module import ModuleContext
 
 PENDING_BATCHES = 16
 RETAINED_REMEMBERED = 256  # retained commands already refused, not answered again

@@ -39,8 +39,8 @@ from modules.mqtt.outbox import Outbox, Outgoing
 from modules.mqtt.payloads import encode, status_payload
 from server import __version__
 from server.errors import ConfigError
+from server.kernel.module import Module, ModuleContext
 from server.runtime.events import Event, MachineState
-from server.runtime.module import Module, ModuleContext
 
 if TYPE_CHECKING:
     from modules.mqtt.link import Link, Login

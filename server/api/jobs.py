@@ -18,9 +18,9 @@ from pydantic import Field
 from server.api.methods import INVALID_PARAMS, Handler, Methods, MethodTable, Params, RpcError
 from server.errors import CommandError, Error
 from server.gcode.interpreter import Interpreter
+from server.kernel.status import job_dict
 from server.offline.estimate import file_lines
 from server.offline.toolpath import plan_toolpath
-from server.runtime.status import job_dict
 
 if TYPE_CHECKING:
     from server.api.server import Connection

@@ -24,11 +24,11 @@ from server import __version__
 from server.api.telemetry import TOPICS
 from server.errors import ERROR_MEANINGS, CommandError, Error
 from server.gcode.parser import check_length
+from server.kernel.control import MachineControl, halts_at_once, quickstops_at_once
+from server.kernel.module import ApiMethod
+from server.kernel.status import build_status, snapshot, state_text
 from server.protocol.events import Realtime
 from server.protocol.reports import StatusScheduler
-from server.runtime.control import MachineControl, halts_at_once, quickstops_at_once
-from server.runtime.module import ApiMethod
-from server.runtime.status import build_status, snapshot, state_text
 
 if TYPE_CHECKING:
     from server.api.server import Connection, JsonApi

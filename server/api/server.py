@@ -41,7 +41,7 @@ from server.transports.access import tokens_equal
 from server.transports.websocket import HEARTBEAT_S, HttpTransport, presented_token
 
 if TYPE_CHECKING:
-    from server.runtime.kernel import Kernel
+    from server.kernel.kernel import Kernel
 
 log = logging.getLogger("motiond.api")
 MAX_IN_FLIGHT = 64

@@ -21,12 +21,12 @@ import logging
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
+from server.kernel.status import build_status, job_dict, tool_power_pct
 from server.runtime.events import Event, MachineState
-from server.runtime.outbox import BoundedQueue
-from server.runtime.status import build_status, job_dict, tool_power_pct
+from server.sessions.outbox import BoundedQueue
 
 if TYPE_CHECKING:
-    from server.runtime.kernel import Kernel
+    from server.kernel.kernel import Kernel
 
 log = logging.getLogger("motiond.telemetry")
 QUEUE_FRAMES = 256

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from server.backends.base import NoHardware
+from server.motion.backend import NoHardware
 
 
 class NullBackend(NoHardware):

@@ -14,7 +14,7 @@ from collections import deque
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-from server.backends.base import NoHardware
+from server.motion.backend import NoHardware
 
 
 class SimBackend(NoHardware):

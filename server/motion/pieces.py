@@ -2,12 +2,12 @@
 
 Pure (no asyncio, no I/O). The step generator advances on a fixed-rate tick; a backend such as
 a Klipper MCU needs the exact path between ticks to compute every step's time. The
-:class:`PieceReporter` tells it each :class:`~server.backends.base.Piece` (start time,
+:class:`PieceReporter` tells it each :class:`~server.motion.backend.Piece` (start time,
 duration, start position, unit vector, start speed, acceleration) as the step generator takes a
 block (its three phases), as a feed hold decelerates (each tick's deceleration, split exactly
 at block boundaries) and when motion stops at once (a zero-length piece that cuts the rest).
 Where an output follows motion (a laser whose power the backend times), ``power_of`` gives each
-block's :class:`~server.backends.base.PowerLaw`, evaluated as the block is taken (after its
+block's :class:`~server.motion.backend.PowerLaw`, evaluated as the block is taken (after its
 ordered actions, M221 among them); a feed hold's pieces carry none (the tool is off).
 
 A cruise continued by blocks that are all cruise, or a ramp continued by blocks that are all
@@ -27,7 +27,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
-from server.backends.base import Backend, Piece, PowerLaw
+from server.motion.backend import Backend, Piece, PowerLaw
 from server.motion.moves import Move, Position
 from server.motion.planner import Block
 

@@ -24,7 +24,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
-from server.backends.base import Backend
+from server.motion.backend import Backend
 from server.motion.moves import Action, MoveKind, Position, ToolMode
 from server.motion.pieces import PieceReporter, PowerOf
 from server.motion.planner import Block, Planner

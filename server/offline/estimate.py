@@ -7,7 +7,7 @@ order and sums their durations; :func:`execute` runs the actual step generator t
 virtual time with a backend. The two agree to within a tick: the estimate is the execution.
 
 The figures summed are :class:`~server.offline.stats.JobStats`; the ``motiond estimate`` and
-``motiond render`` commands are :mod:`server.offline.commands`.
+``motiond render`` commands are :mod:`server.cli.offline`.
 """
 
 from __future__ import annotations
@@ -16,18 +16,18 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import replace
 from typing import TextIO
 
-from server.backends.base import Backend
 from server.backends.null import NullBackend
-from server.config import Config, CoreConfig
+from server.config import CoreConfig
 from server.errors import CommandError
 from server.gcode.interpreter import Interpreter
 from server.gcode.parser import check_length, parse_line
+from server.machine.parts import interpreter_settings, planner_settings
+from server.motion.backend import Backend
 from server.motion.feed import offer
 from server.motion.moves import Action, Move, Output, Sync
 from server.motion.planner import Block, Planner
 from server.motion.stepgen import StepGenerator
 from server.offline.stats import JobStats
-from server.runtime.parts import interpreter_settings, planner_settings
 
 OFFLINE_SYNC_BLOCKS = 1024  # no event loop to keep: fewer, larger syncs (the same plan)
 SKIP_CHUNK_CHARS = 1 << 16
@@ -221,29 +221,6 @@ def execute(
     stats.blocks = stepgen.state.blocks_done
     stats.moves = feeder.planner.moves_appended
     return stats
-
-
-def machine_interpreter(config: Config, origin_mm: tuple[float, ...] = ()) -> Interpreter:
-    """The interpreter the configured machine would read a job with: its settings and the
-    M-codes its modules claim (the modules are built, never started), soft limits off (a
-    job's time does not depend on where it is placed: :mod:`server.offline.fit` checks
-    that). ``origin_mm`` (machine mm, missing axes 0) is the G54 work origin, set as
-    ``G10 L2 P1`` would, and where the tool starts.
-
-    Raises:
-        ConfigError: the config is invalid, or two modules claim one code.
-    """
-    from server.runtime.clock import VirtualClock
-    from server.runtime.kernel import Kernel
-
-    interpreter = Kernel(config, VirtualClock()).machine.new_interpreter(soft_limits=False)
-    if any(origin_mm):
-        names = config.core.axis_names
-        origin = tuple(origin_mm[i] if i < len(origin_mm) else 0.0 for i in range(len(names)))
-        words = " ".join(f"{name}{value:.6f}" for name, value in zip(names, origin, strict=True))
-        interpreter.execute(parse_line(f"G10 L2 P1 {words}"))
-        interpreter.set_position(origin)
-    return interpreter
 
 
 def file_lines(handle: TextIO, limit_chars: int) -> Iterator[str]:

@@ -1,7 +1,7 @@
 """What a job does: the figures summed from its planned blocks, and a duration as text.
 
 :class:`JobStats` is filled by the offline pipeline (:mod:`server.offline.estimate`) one block
-or one settled batch at a time; the CLI (:mod:`server.offline.commands`), the server's jobs and
+or one settled batch at a time; the CLI (:mod:`server.cli.offline`), the server's jobs and
 the toolpath read it.
 """
 

@@ -1,3 +1,8 @@
-"""The running machine: the kernel (modules, supervision, events), the machine state's owner,
-the motion pipeline and its controls, the dispatcher's ordered stream, settings, jobs, the
-clocks, and the per-connection session that transports feed."""
+"""The running machine's shared parts, below everything that runs: the clocks (real and
+virtual), the event bus, the machine state with its alarm and the stop generation
+(:mod:`.state`), the step generator's ticks, the dispatcher's one ordered command stream
+(:mod:`.dispatcher`, :mod:`.turn`), rate limits, garbage-collection pacing, and the process's
+real-time priority, timer resolution and systemd readiness.
+
+May import: the pure cores (``gcode``, ``motion``, ``protocol``), ``errors``, ``config``.
+Nothing here knows a machine, a session, a job or the kernel."""

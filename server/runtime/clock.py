@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import heapq
 import itertools
+import math
 import time
 from collections.abc import Callable
 from typing import Any, Protocol
@@ -112,3 +113,9 @@ class VirtualClock:
                 await self._wakeup.wait()
                 continue
             self.advance_to(self._sleepers[0][0])
+
+
+def on_grid_s(now_s: float, period_s: float) -> float:
+    """The first whole multiple of ``period_s`` after ``now_s`` (monotonic seconds): periodic
+    wake-ups on this grid coincide (one wake-up of the process serves them all)."""
+    return (math.floor(now_s / period_s) + 1) * period_s

@@ -39,7 +39,7 @@ class Collector(Protocol):
 
 class GcPacer:
     """See the module docstring. :meth:`step` is called about every millisecond (by the
-    kernel's :class:`~server.runtime.kernel.LoopMonitor`) with monotonic seconds; ``busy()`` says
+    kernel's :class:`~server.kernel.kernel.LoopMonitor`) with monotonic seconds; ``busy()`` says
     whether motion is queued or running."""
 
     def __init__(

@@ -1,6 +1,15 @@
-"""A token bucket: at most ``rate_per_s`` events per second on average, bursts of ``burst``."""
+"""A token bucket: at most ``rate_per_s`` events per second on average, bursts of ``burst``;
+and the input budgets of the line protocol's connections, each one's and all of theirs
+together (the kernel holds the shared ones, each session its own)."""
 
 from __future__ import annotations
+
+import time
+
+BURST_BYTES = 1024  # what a connection that may not control may send at once (then its rate)
+TOTAL_BURST_BYTES = 2048  # what all of them may send at once
+REALTIME_BURST_BYTES = 256  # realtime bytes one connection may send at once (then at its rate)
+REALTIME_TOTAL_BURST_BYTES = 512  # what all flooding connections may send at once
 
 
 class TokenBucket:
@@ -58,3 +67,14 @@ class Allowance:
         """Seconds until something is left again (0.0: now)."""
         level = self.level(now_s)
         return 0.0 if level > 0 else (1.0 - level) / self.rate_per_s
+
+
+def input_budget(rate_bytes_per_s: float, burst_bytes: float = BURST_BYTES) -> TokenBucket:
+    """A budget of input bytes for connections that may not control (see
+    ``LineAdmission.pace_input``)."""
+    return TokenBucket(rate_bytes_per_s, burst_bytes, time.monotonic())
+
+
+def realtime_allowance(rate_bytes_per_s: float, burst_bytes: float) -> Allowance:
+    """A budget of realtime bytes (see ``LineAdmission.feed``)."""
+    return Allowance(rate_bytes_per_s, burst_bytes, time.monotonic())

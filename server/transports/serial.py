@@ -36,10 +36,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from server.errors import ConfigError
-from server.runtime.session import Session, login_guard
+from server.sessions.session import Session, login_guard
 
 if TYPE_CHECKING:
-    from server.runtime.kernel import Kernel
+    from server.kernel.kernel import Kernel
 
 log = logging.getLogger("motiond.serial")
 POLL_S = 0.05

@@ -1,4 +1,4 @@
-"""Raw TCP ("telnet") transport: one :class:`~server.runtime.session.Session` per client.
+"""Raw TCP ("telnet") transport: one :class:`~server.sessions.session.Session` per client.
 
 Reading: bytes are read in slices (``session.read_size``: 4096 bytes, 256 from a connection
 that may not control, whose input is also paced) with a loop turn between slices, so a flood
@@ -33,10 +33,10 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from server.runtime.session import Session, line_token, login_guard
+from server.sessions.session import Session, line_token, login_guard
 
 if TYPE_CHECKING:
-    from server.runtime.kernel import Kernel
+    from server.kernel.kernel import Kernel
 
 log = logging.getLogger("motiond.tcp")
 DRAIN_ON_CLOSE_S = 1.0

@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING
 from aiohttp import WSCloseCode, WSMsgType, web
 
 from server.config import trusted_client
-from server.runtime.session import Session, line_token, login_guard
+from server.sessions.session import Session, line_token, login_guard
 from server.transports.access import (
     ConnectionSlots,
     HostPolicy,
@@ -44,7 +44,7 @@ from server.transports.access import (
 )
 
 if TYPE_CHECKING:
-    from server.runtime.kernel import Kernel
+    from server.kernel.kernel import Kernel
 
 log = logging.getLogger("motiond.http")
 RouteHook = Callable[["HttpTransport", web.Application], None]

@@ -1,5 +1,5 @@
 """Hold, resume, reset and M112 mean exactly the same from a TCP sender and the JSON API: one
-implementation (server.runtime.control.MachineControl) behind every entry point."""
+implementation (server.kernel.control.MachineControl) behind every entry point."""
 
 from __future__ import annotations
 

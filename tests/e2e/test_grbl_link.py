@@ -24,11 +24,11 @@ import pytest
 
 from server.api.telemetry import build_status
 from server.app import App
+from server.backends.grbl.machine import GrblMachine
 from server.backends.grbl.reports import parse_status
 from server.config import Config
 from server.config_loader import build_config
 from server.runtime.clock import RealClock
-from server.runtime.grbl import GrblMachine
 from server.transports.serial import SerialTransport
 from server.transports.tcp import TcpTransport
 from tests.support.helpers import running

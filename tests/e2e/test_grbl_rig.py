@@ -16,10 +16,10 @@ from pathlib import Path
 import pytest
 
 from server.app import App
+from server.backends.grbl.machine import GrblMachine
 from server.config_loader import build_config
 from server.runtime.clock import RealClock
 from server.runtime.events import MachineState
-from server.runtime.grbl import GrblMachine
 from server.transports.tcp import TcpTransport
 from tests.support.grbl_rig import FAST_SETTINGS, GrblClient, grbl_direct, grbl_on_pty
 from tests.support.helpers import running

@@ -39,7 +39,7 @@ WRITER = """
 import sys
 from pathlib import Path
 from server.config_loader import build_config
-from server.runtime.settings import Settings
+from server.machine.settings import Settings
 
 axis = {"steps_per_mm": 80, "max_rate_mm_s": 500, "accel_mm_s2": 3000, "max_mm": 400}
 core = build_config({"axes": {"x": dict(axis), "y": dict(axis)}}).core

@@ -94,7 +94,7 @@ async def test_help_build_info_and_version() -> None:
 
 
 async def test_the_status_shows_s_only_while_the_spindle_or_laser_is_on() -> None:
-    from server.runtime.status import snapshot
+    from server.kernel.status import snapshot
 
     async with running(make_config()) as app:
         await submit_all(app, ["M4 S500", "G1 X5 F3000"])

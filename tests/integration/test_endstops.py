@@ -10,9 +10,9 @@ import pytest
 from server.app import App
 from server.backends.sim import SimBackend
 from server.errors import CommandError, ConfigError
+from server.kernel.status import snapshot
 from server.runtime.clock import VirtualClock
 from server.runtime.events import MachineState
-from server.runtime.status import snapshot
 from tests.conftest import make_config
 from tests.support.helpers import running, submit_all
 

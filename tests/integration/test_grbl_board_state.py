@@ -6,8 +6,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from server.backends.grbl.machine import GrblMachine
 from server.runtime.events import MachineState
-from server.runtime.grbl import GrblMachine
 from tests.integration.test_grbl_fake_controller import client_of, linked
 from tests.support.senders import CharCountingClient, wait_for
 

@@ -11,12 +11,12 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 
 from server.app import App
+from server.backends.grbl.machine import GrblMachine
 from server.config_loader import build_config
 from server.runtime.clock import RealClock
 from server.runtime.events import MachineState
-from server.runtime.grbl import GrblMachine
-from server.runtime.session import Session
-from server.runtime.session_input import INBOUND_LINES
+from server.sessions.input import INBOUND_LINES
+from server.sessions.session import Session
 from server.transports.tcp import TcpTransport
 from tests.support.helpers import running
 from tests.support.senders import BANNER as MOTIOND_BANNER

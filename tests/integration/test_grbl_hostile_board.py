@@ -16,8 +16,8 @@ import pytest
 
 from server.app import App
 from server.backends.grbl.link import MAX_MESSAGES_PER_LINE
+from server.backends.grbl.machine import GrblMachine
 from server.runtime.events import MachineState
-from server.runtime.grbl import GrblMachine
 from tests.integration.test_grbl_fake_controller import client_of, linked
 from tests.support.senders import CharCountingClient, wait_for
 

@@ -5,10 +5,10 @@ the same against real Grbl through the Grbl backend)."""
 from __future__ import annotations
 
 from server.errors import CommandError, SoftLimitError
+from server.kernel.status import snapshot, state_text
 from server.protocol.events import Realtime
 from server.protocol.lines import LineProtocol
 from server.runtime.events import MachineState
-from server.runtime.status import snapshot, state_text
 from tests.conftest import make_config
 from tests.support.helpers import running, submit_all
 

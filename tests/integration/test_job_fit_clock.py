@@ -10,7 +10,7 @@ import pytest
 
 from server.app import App
 from server.errors import CommandError
-from server.runtime.jobs import JobProgress
+from server.jobs.jobs import JobProgress
 from tests.conftest import make_config
 from tests.support.helpers import running, submit_all
 

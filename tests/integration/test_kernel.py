@@ -16,10 +16,10 @@ from pydantic import Field
 from server.app import App
 from server.config_loader import build_config
 from server.errors import CommandError
+from server.kernel.module import Module, ModuleConfig, available_modules
 from server.runtime.clock import VirtualClock
 from server.runtime.dispatcher import Command
 from server.runtime.events import MachineState
-from server.runtime.module import Module, ModuleConfig, available_modules
 from tests.conftest import BASE, REPO
 from tests.support.helpers import SOURCE, running, submit_all
 

@@ -17,13 +17,13 @@ import numpy as np
 import pytest
 
 from server.app import App
-from server.backends.base import Piece
 from server.backends.klipper.backend import KlipperBackend
 from server.backends.klipper.steptimes import step_target
 from server.errors import CommandError
+from server.kernel.status import snapshot
+from server.motion.backend import Piece
 from server.motion.stepgen import HoldState
 from server.runtime.events import MachineState
-from server.runtime.status import snapshot
 from tests.conftest import CORPUS
 from tests.support.helpers import submit_all
 from tests.support.klipper_machine import klipper_machine

@@ -29,6 +29,7 @@ from hypothesis import given, settings
 
 from server.backends.sim import SimBackend
 from server.cli import main
+from server.machine.parts import planner_settings
 from server.motion.moves import Move, MoveKind
 from server.motion.planner import Planner, PlannerSettings
 from server.motion.stepgen import StepGenerator
@@ -36,7 +37,6 @@ from server.offline import commands
 from server.offline.stats import JobStats
 from server.runtime.clock import RealClock, VirtualClock
 from server.runtime.gcpacer import GcPacer
-from server.runtime.parts import planner_settings
 from server.transports.tcp import TcpTransport
 from tests.conftest import REPO, make_config
 from tests.integration.test_stepgen import POLYLINE, Quiet

@@ -14,7 +14,7 @@ import pytest
 from server.app import App
 from server.runtime.clock import RealClock
 from server.runtime.events import Event, MachineState
-from server.runtime.session import Session
+from server.sessions.session import Session
 from tests.conftest import make_config
 from tests.support.helpers import running
 from tests.support.senders import wait_for

@@ -12,13 +12,13 @@ from server.backends.sim import SimBackend
 from server.config import CoreConfig
 from server.gcode.interpreter import Interpreter
 from server.gcode.parser import parse_line
+from server.machine.parts import interpreter_settings, planner_settings
 from server.motion.moves import Move, MoveKind
 from server.motion.planner import Planner
 from server.motion.stepgen import HoldState, StepGenerator
 from server.offline.estimate import estimate, execute, iterate_blocks
 from server.offline.stats import JobStats
 from server.runtime.events import MachineState
-from server.runtime.parts import interpreter_settings, planner_settings
 from tests.conftest import CORPUS, make_config
 from tests.support.helpers import running, submit_all
 
@@ -171,7 +171,7 @@ def test_full_execution_steps_match_the_program_end_on_the_sim_backend() -> None
     execute(lines, core, backend)
     from server.gcode.interpreter import Interpreter
     from server.gcode.parser import parse_line
-    from server.runtime.parts import interpreter_settings
+    from server.machine.parts import interpreter_settings
 
     interpreter = Interpreter(interpreter_settings(core))
     interpreter.set_position((0.0, 0.0, 0.0))

@@ -6,12 +6,12 @@ from __future__ import annotations
 
 import random
 
-from server.backends.base import Piece
 from server.backends.null import NullBackend
+from server.machine.parts import planner_settings
+from server.motion.backend import Piece
 from server.motion.moves import Move, MoveKind
 from server.motion.planner import Planner
 from server.motion.stepgen import HoldState, StepGenerator
-from server.runtime.parts import planner_settings
 from tests.conftest import make_config
 from tests.integration.test_stepgen import Quiet, Ticker
 

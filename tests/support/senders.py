@@ -27,11 +27,11 @@ from server.config import CoreConfig
 from server.errors import CommandError
 from server.gcode.interpreter import Interpreter
 from server.gcode.parser import parse_line
+from server.machine.parts import interpreter_settings
 from server.motion.moves import Move, Position
-from server.runtime.parts import interpreter_settings
 
 if TYPE_CHECKING:
-    from server.runtime.machine import Machine
+    from server.machine.machine import Machine
 
 BANNER = "Grbl 1.1h ['$' for help]"
 RX_BUFFER_BYTES = 128

@@ -8,11 +8,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from server.kernel.control import halts_at_once
 from server.protocol.events import Event, LineReceived, Realtime, RealtimeReceived
 from server.protocol.lines import LineProtocol
-from server.runtime.backlog import Backlog
-from server.runtime.control import halts_at_once
-from server.runtime.session_input import seen_ahead
+from server.sessions.backlog import Backlog
+from server.sessions.input import seen_ahead
 
 
 def test_held_websocket_messages_come_back_with_their_ends_and_realtime_is_seen_at_once() -> None:

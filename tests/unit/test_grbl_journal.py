@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 
+from server.backends.grbl.journal import Sent, SentLines
 from server.gcode.interpreter import Interpreter, InterpreterSettings
 from server.gcode.parser import parse_line
-from server.runtime.grbl_journal import Sent, SentLines
 
 
 def machine() -> tuple[Interpreter, SentLines]:

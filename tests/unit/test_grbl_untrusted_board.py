@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import pytest
 
+from server.backends.grbl.feedback import FeedbackGate, clean_line, clean_reply
 from server.backends.grbl.link import (
     MAX_MESSAGES_PER_LINE,
     Answered,
@@ -13,7 +14,6 @@ from server.backends.grbl.link import (
     parse_build_options,
 )
 from server.backends.grbl.reports import parse_status
-from server.runtime.grbl_feedback import FeedbackGate, clean_line, clean_reply
 
 BANNER = b"\r\nGrbl 1.1h ['$' for help]\r\n"
 

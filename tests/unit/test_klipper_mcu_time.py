@@ -19,10 +19,10 @@ from server.backends.klipper.dictionary import Dictionary
 from server.backends.klipper.printclock import PrintClock
 from server.backends.klipper.stepcompress import StepCompressor
 from server.config_loader import build_config
+from server.machine.parts import planner_settings
 from server.motion.moves import Move, MoveKind, ToolMode
 from server.motion.planner import Planner
 from server.motion.stepgen import StepGenerator
-from server.runtime.parts import planner_settings
 
 CLOCK_HZ = 16_000_000
 

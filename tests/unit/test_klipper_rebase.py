@@ -9,10 +9,10 @@ from typing import Any
 from benchmarks.bench_klipper_host import Listener, OfflineBackend
 from server.backends.klipper.stepcompress import StepCompressor
 from server.config_loader import build_config
+from server.machine.parts import planner_settings
 from server.motion.moves import Move, MoveKind, ToolMode
 from server.motion.planner import Planner
 from server.motion.stepgen import StepGenerator
-from server.runtime.parts import planner_settings
 from tests.unit.test_klipper_mcu_time import CLOCK_HZ, FittedMcu
 
 

@@ -13,14 +13,14 @@ from typing import Any
 import pytest
 
 from benchmarks.bench_klipper_host import Listener, OfflineBackend
-from server.backends.base import Piece, PowerLaw
 from server.backends.klipper.stepcompress import StepCompressor
 from server.config_loader import build_config
+from server.machine.parts import planner_settings
 from server.motion import pieces as pieces_module
+from server.motion.backend import Piece, PowerLaw
 from server.motion.moves import Action, ActionName, Move, MoveKind, ToolMode
 from server.motion.planner import Planner
 from server.motion.stepgen import HoldState, StepGenerator
-from server.runtime.parts import planner_settings
 from tests.unit.test_klipper_mcu_time import CLOCK_HZ, FittedMcu
 
 TICK_S = 0.007  # not a multiple of a block's 1 ms: ticks fall inside blocks and runs

@@ -10,11 +10,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from server.machine.parts import planner_settings
 from server.motion.block import Block
 from server.motion.moves import Action, Move, MoveKind
 from server.motion.planner import MIN_LENGTH_MM, Planner, PlannerSettings
 from server.motion.trapezoid import junction_speed_sq, plan_window, plan_window_reference
-from server.runtime.parts import planner_settings
 
 XYZ = PlannerSettings(max_rate_mm_s=(500.0, 500.0, 50.0), accel_mm_s2=(1000.0, 1000.0, 100.0))
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from server.runtime.ratelimit import Allowance
-from server.runtime.session_input import RESET_COST, SLICE_COST, affordable, realtime_cost
+from server.sessions.input import RESET_COST, SLICE_COST, affordable, realtime_cost
 
 
 def test_realtime_cost_counts_the_bytes_the_protocol_reads_one_at_a_time() -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from server.runtime.kernel import on_grid_s
+from server.runtime.clock import on_grid_s
 
 
 def test_the_next_wake_up_is_the_first_whole_multiple_of_the_period_after_now() -> None:

@@ -3,5 +3,5 @@
 Pure cores (no I/O): :mod:`.codec` (framing, VLQ, the data dictionary), :mod:`.clocksync`
 (host seconds to MCU ticks), :mod:`.steptimes` (exact step times of a trajectory piece),
 :mod:`.stepcompress` (step times to ``queue_step`` triplets); :mod:`.link` is the asyncio serial
-transport and :mod:`.backend` the :class:`~server.backends.base.Backend`.
+transport and :mod:`.backend` the :class:`~server.motion.backend.Backend`.
 """

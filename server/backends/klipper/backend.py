@@ -48,7 +48,6 @@ from collections.abc import Callable, Sequence
 from dataclasses import replace
 from math import floor
 
-from server.backends.base import Piece
 from server.backends.klipper.codec import ProtocolError
 from server.backends.klipper.dictionary import Dictionary
 from server.backends.klipper.mcu import (
@@ -66,6 +65,7 @@ from server.backends.klipper.steptimes import FloatArray, Spans, step_target
 from server.backends.klipper.trail import Trail
 from server.config import CoreConfig
 from server.errors import CommandError, Error
+from server.motion.backend import Piece
 
 log = logging.getLogger("motiond.klipper")
 EXIT_GRACE_S = 0.3

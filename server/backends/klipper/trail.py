@@ -13,7 +13,7 @@ import bisect
 from collections import deque
 from dataclasses import replace
 
-from server.backends.base import Piece
+from server.motion.backend import Piece
 
 EPSILON_S = 1e-9  # a piece that ends this close to a cut is not cut (rounding)
 

@@ -1,7 +1,7 @@
 """Reading a job file as it plays: never whole, file I/O in threads, its plan stoppable.
 
 :func:`read_lines` gives the lines to the player :data:`READ_LINES` at a time, read in a thread;
-:func:`until` lets a plan read through the file (:func:`~server.runtime.job_clock.plan_job`)
+:func:`until` lets a plan read through the file (:func:`~server.jobs.clock.plan_job`)
 give up as soon as its ``stop`` event is set (the job was aborted). Memory is bounded by a
 batch of lines and the planner's window, whatever the file's size.
 """

@@ -17,7 +17,7 @@ from server.protocol.reports import StatusSnapshot
 from server.runtime.events import MachineState
 
 if TYPE_CHECKING:
-    from server.runtime.kernel import Kernel
+    from server.kernel.kernel import Kernel
 
 CUTTING = frozenset({MoveKind.FEED, MoveKind.ARC, MoveKind.PROBE})
 

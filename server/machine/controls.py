@@ -1,11 +1,11 @@
 """The machine's realtime commands: hold, resume, jog cancel, reset, stop, overrides, at once.
 
-:class:`RealtimeCommands` is the part of :class:`~server.runtime.machine.Machine` (a base class
+:class:`RealtimeCommands` is the part of :class:`~server.machine.machine.Machine` (a base class
 of it) that acts without waiting for the line queue: feed hold and cycle start, jog cancel,
 soft reset, M112 and the M410 quickstop, the coolant and spindle-stop toggles, the
 feed/rapid/spindle overrides, and the halts that resynchronise the pipeline to where the steps
 are. Every entry point reaches it
-through :class:`~server.runtime.control.MachineControl`. Its state is the machine's, created by
+through :class:`~server.kernel.control.MachineControl`. Its state is the machine's, created by
 ``Machine.__init__``.
 """
 
@@ -23,12 +23,12 @@ from server.runtime.events import Event, MachineState
 if TYPE_CHECKING:
     import asyncio
 
-    from server.backends.base import Backend
     from server.gcode.interpreter import Interpreter
+    from server.machine.machine import ToolState
+    from server.motion.backend import Backend
     from server.motion.planner import Planner
     from server.motion.stepgen import StepGenerator
     from server.runtime.events import EventBus
-    from server.runtime.machine import ToolState
     from server.runtime.state import MachineStatus
 
 

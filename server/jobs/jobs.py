@@ -1,5 +1,5 @@
 """Stored jobs: play through the dispatcher, progress, abort, suspend (the files themselves:
-:mod:`.job_store`).
+:mod:`.store`).
 
 Playing a file streams its lines through the same dispatcher a sender uses, so the job is
 executed, flow-controlled and error-checked exactly like streamed G-code; the first line that is
@@ -20,26 +20,49 @@ from collections import deque
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 from server.errors import CommandError, Error
 from server.gcode.parser import check_length
+from server.jobs.clock import JobClock, JobPlan, plan_job
+from server.jobs.reading import read_lines
+from server.jobs.store import JobStore
 from server.motion.moves import Action, ActionName
 from server.offline.stats import format_duration
 from server.paths import jobs_dir
 from server.runtime.dispatcher import Command
 from server.runtime.events import Event, MachineState
-from server.runtime.job_clock import JobClock, JobPlan, plan_job
-from server.runtime.job_reading import read_lines
-from server.runtime.job_store import JobStore
 
 if TYPE_CHECKING:
+    from server.config import Config
     from server.gcode.interpreter import Interpreter
-    from server.runtime.kernel import Kernel
+    from server.machine.machine import Machine
+    from server.runtime.clock import Clock
+    from server.runtime.dispatcher import Dispatcher
+    from server.runtime.events import EventBus
+    from server.runtime.state import MachineStatus
 
 log = logging.getLogger("motiond.jobs")
 YIELD_AFTER_S = 0.0003  # the job feeder gives other tasks a turn at least this often
 KEPT_PLANS = 4  # job plans kept for files whose plan may be asked again (bounded memory each)
+
+
+class JobHost(Protocol):
+    """What the jobs need of the kernel that owns them (the kernel is one)."""
+
+    config: Config
+    clock: Clock
+    events: EventBus
+    status: MachineStatus
+    machine: Machine
+    dispatcher: Dispatcher
+
+    @property
+    def state(self) -> MachineState: ...
+
+    def push(self, message: str) -> None: ...
+
+    def set_state(self, state: MachineState) -> None: ...
 
 
 @dataclass(slots=True)
@@ -80,7 +103,7 @@ class _JobSource:
 class Jobs(JobStore):
     """The job files of one kernel and the one job that may play at a time."""
 
-    def __init__(self, kernel: Kernel) -> None:
+    def __init__(self, kernel: JobHost) -> None:
         super().__init__(jobs_dir(kernel.config.core), kernel.config.core.jobs.max_upload_bytes)
         self.kernel = kernel
         self._task: asyncio.Task[None] | None = None

@@ -1,4 +1,5 @@
-"""The ``motiond estimate`` and ``motiond render`` commands: reading the job, a progress bar,
+"""The ``motiond estimate`` and ``motiond render`` commands (and the interpreter of the
+configured machine that ``check-config`` builds): reading the job, a progress bar,
 the garbage collector paused, and the figures printed as text or JSON.
 
 The work itself is the offline pipeline (:mod:`server.offline.estimate`) and the drawing
@@ -22,9 +23,13 @@ from pathlib import Path
 from typing import Any
 
 from server.config import Config
-from server.offline.estimate import estimate, iterate_blocks, machine_interpreter
+from server.gcode.interpreter import Interpreter
+from server.gcode.parser import parse_line
+from server.kernel.kernel import Kernel
+from server.offline.estimate import estimate, iterate_blocks
 from server.offline.fit import Fit, check_fit
 from server.offline.stats import JobStats, format_duration
+from server.runtime.clock import VirtualClock
 
 MISFIT_EXIT = 3
 
@@ -186,3 +191,23 @@ def render_command(args: Any, config: Config) -> int:
     if stats.error:
         print(f"  stopped at line {stats.error_line}: {stats.error}", file=sys.stderr)
     return exit_status(stats, fit, args)
+
+
+def machine_interpreter(config: Config, origin_mm: tuple[float, ...] = ()) -> Interpreter:
+    """The interpreter the configured machine would read a job with: its settings and the
+    M-codes its modules claim (the modules are built, never started), soft limits off (a
+    job's time does not depend on where it is placed: :mod:`server.offline.fit` checks
+    that). ``origin_mm`` (machine mm, missing axes 0) is the G54 work origin, set as
+    ``G10 L2 P1`` would, and where the tool starts.
+
+    Raises:
+        ConfigError: the config is invalid, or two modules claim one code.
+    """
+    interpreter = Kernel(config, VirtualClock()).machine.new_interpreter(soft_limits=False)
+    if any(origin_mm):
+        names = config.core.axis_names
+        origin = tuple(origin_mm[i] if i < len(origin_mm) else 0.0 for i in range(len(names)))
+        words = " ".join(f"{name}{value:.6f}" for name, value in zip(names, origin, strict=True))
+        interpreter.execute(parse_line(f"G10 L2 P1 {words}"))
+        interpreter.set_position(origin)
+    return interpreter

@@ -1,6 +1,6 @@
 """``[backend] kind = "grbl"``: the machine is a Grbl, grblHAL or FluidNC controller downstream.
 
-:class:`GrblMachine` is the :class:`~server.runtime.machine.Machine` of such a setup. motiond's
+:class:`GrblMachine` is the :class:`~server.machine.machine.Machine` of such a setup. motiond's
 whole front stays as it is (transports, protocol, dispatcher, jobs, API); only the end of the
 pipeline changes. Every G-code line still goes through the dispatcher and motiond's interpreter
 (one path per line: bad lines fail here with motiond's error numbers, soft limits and modal
@@ -10,7 +10,7 @@ line's reply is deferred (:attr:`Command.defer <server.runtime.dispatcher.Comman
 controller's ``ok`` or ``error:N``, sent to the client once the controller has answered, in
 order, while the following lines already stream.
 
-Realtime commands reach this machine through :class:`~server.runtime.control.MachineControl`
+Realtime commands reach this machine through :class:`~server.kernel.control.MachineControl`
 as on any backend and are written to the controller at once. The controller's status, polled
 at ``[backend] status_hz`` by one task, is the machine's: it drives the state, the position the
 web UI and ``M114`` show, and every client's ``?`` report (answered from the latest report, so
@@ -32,7 +32,19 @@ import re
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 
+from server.backends.grbl.adopt import adopt_offsets, adopt_settings, adopt_space
+from server.backends.grbl.answers import (
+    FEED_BYTES,
+    SPINDLE_BYTES,
+    an_answer,
+    axes_of,
+    controller_error,
+    mixed_line_error,
+    override_bytes,
+)
 from server.backends.grbl.controller import Controller, Handshake, LineDropped
+from server.backends.grbl.feedback import FeedbackGate, clean_reply
+from server.backends.grbl.journal import Sent, SentLines
 from server.backends.grbl.link import (
     Answered,
     compact,
@@ -41,6 +53,8 @@ from server.backends.grbl.reports import ControllerStatus
 from server.config import Config
 from server.errors import ALARM_MEANINGS, Alarm, CommandError, Error
 from server.gcode.parser import Line, parse_line
+from server.machine.machine import Machine
+from server.motion.backend import Backend
 from server.motion.moves import Move, Output, Sync, SyncKind, ToolMode
 from server.motion.stepgen import HoldState
 from server.protocol.events import Realtime
@@ -48,10 +62,6 @@ from server.protocol.reports import StatusSnapshot
 from server.runtime.clock import Clock
 from server.runtime.dispatcher import Command, Dispatcher
 from server.runtime.events import EventBus, MachineState
-from server.runtime.grbl_adopt import adopt_offsets, adopt_settings, adopt_space
-from server.runtime.grbl_feedback import FeedbackGate, clean_reply
-from server.runtime.grbl_journal import Sent, SentLines
-from server.runtime.machine import Machine
 from server.runtime.state import MachineStatus
 
 log = logging.getLogger("motiond.grbl")
@@ -77,10 +87,9 @@ class GrblMachine(Machine):
 
     counts_blocks = False  # the board executes the blocks: only its reports are known
 
-    def __init__(
-        self, config: Config, clock: Clock, events: EventBus, status: MachineStatus
-    ) -> None:
-        super().__init__(config, clock, events, status)
+    def __init__(self, config: Config, clock: Clock, events: EventBus, status: MachineStatus,
+                 backend: Backend) -> None:
+        super().__init__(config, clock, events, status, backend)
         self.controller = Controller(config.core.backend, self)
         self.controller_status: ControllerStatus | None = None
         self._controller_alarm = False  # the alarm in force came from the controller
@@ -105,7 +114,7 @@ class GrblMachine(Machine):
         codes = [value for letter, value in line.words
                  if letter == "M" and value in LOCAL_M_CODES]
         if len(words) > 1 and codes and not self.check_mode:
-            raise _mixed(max(codes))  # refused as the board refuses these codes, first
+            raise mixed_line_error(max(codes))  # refused as the board refuses these codes, first
         before = self.interpreter.save()
         outputs = self.interpret(command)
         syncs = [out for out in outputs if type(out) is Sync]
@@ -114,7 +123,7 @@ class GrblMachine(Machine):
                 len(local) < len(outputs) or self.interpreter.save() != before):
             self.interpreter.restore(before)  # nothing of it reaches the board
             if not any(sync.kind in STOPS for sync in local):
-                raise _mixed(0.0)  # a module's local code: the same as above
+                raise mixed_line_error(0.0)  # a module's local code: the same as above
             syncs = local  # a stop on the line wins: M112, M410 act, the rest is dropped
         if self.check_mode or local:
             messages: list[str] = []
@@ -315,7 +324,7 @@ class GrblMachine(Machine):
     def on_feedback(self, texts: list[str]) -> None:
         """Lines the board printed on its own: pushed to every client, cleaned and at a
         bounded rate (a summary line counts what was held back)."""
-        shown = [text for text in texts if not _an_answer(text)]  # to a line a reset dropped
+        shown = [text for text in texts if not an_answer(text)]  # to a line a reset dropped
         for line in self._feedback.offer_lines(shown, self.clock.now_s()):
             self.status.push(line)
 
@@ -379,9 +388,9 @@ class GrblMachine(Machine):
     ) -> None:
         """The API's override setter, as the realtime bytes Grbl knows (100 %, then ±10s and
         ±1s); the board's next report confirms them."""
-        for value, steps in ((feed, _FEED_BYTES), (spindle, _SPINDLE_BYTES)):
+        for value, steps in ((feed, FEED_BYTES), (spindle, SPINDLE_BYTES)):
             if value is not None:
-                for byte in _override_bytes(max(10, min(200, value)), steps):
+                for byte in override_bytes(max(10, min(200, value)), steps):
                     self.controller.realtime(byte)
         if rapid is not None:
             self.controller.realtime({100: Realtime.RAPID_100, 50: Realtime.RAPID_50}.get(
@@ -421,8 +430,8 @@ class GrblMachine(Machine):
             state = "Run"  # the board has not started (or not reported) the motion sent
         return StatusSnapshot(
             state=state,
-            machine_mm=_axes(machine, axes),
-            wco_mm=_axes(wco, axes),
+            machine_mm=axes_of(machine, axes),
+            wco_mm=axes_of(wco, axes),
             feed_mm_s=motion.speed_mm_s,
             spindle_s=report.spindle_s,
             planner_free_blocks=report.planner_free_blocks or 0,
@@ -458,7 +467,7 @@ class GrblMachine(Machine):
             code = answer.result().error
             assert code is not None
             self.status.push(f"[MSG:controller error:{code} on {text}]")
-            reply.set_exception(_controller_error(code, text))
+            reply.set_exception(controller_error(code, text))
         reply.exception()  # retrieved here: a caller gone since (a reset) must not log it
 
     # -- the task ---------------------------------------------------------------------------
@@ -468,43 +477,3 @@ class GrblMachine(Machine):
             await self.controller.run()
         finally:
             self.backend.close()
-
-
-# (100 %, +10, -10, +1, -1) for feed and spindle overrides
-_FEED_BYTES = (Realtime.FEED_100, Realtime.FEED_PLUS_10, Realtime.FEED_MINUS_10,
-               Realtime.FEED_PLUS_1, Realtime.FEED_MINUS_1)
-_SPINDLE_BYTES = (Realtime.SPINDLE_100, Realtime.SPINDLE_PLUS_10, Realtime.SPINDLE_MINUS_10,
-                  Realtime.SPINDLE_PLUS_1, Realtime.SPINDLE_MINUS_1)
-
-
-def _override_bytes(percent: int, steps: tuple[Realtime, ...]) -> list[int]:
-    """The realtime bytes that take an override from anything to ``percent``."""
-    hundred, plus_10, minus_10, plus_1, minus_1 = steps
-    tens, ones = divmod(abs(percent - 100), 10)
-    up = percent >= 100
-    return [hundred, *[plus_10 if up else minus_10] * tens, *[plus_1 if up else minus_1] * ones]
-
-
-def _an_answer(text: str) -> bool:
-    return text[:1] in "oOeE" and (text.lower() == "ok" or text.lower().startswith("error:"))
-
-
-def _axes(values: Sequence[float], count: int) -> tuple[float, ...]:
-    """``values`` for ``count`` axes: cut, or completed with zeros."""
-    return (*values[:count], *(0.0,) * (count - len(values)))
-
-
-def _mixed(code: float) -> CommandError:
-    """A line mixing motiond's own M-code with words for the board: Grbl's answer to the code
-    (20 unsupported; 23 for a number it cannot hold, M256 and up, as on the rig)."""
-    number = Error.INTEGER_REQUIRED if code >= 256 else Error.UNSUPPORTED
-    return CommandError(number, "M105, M114, M115, M400 and M999 are motiond's own: send "
-                        "them on a line of their own")
-
-
-def _controller_error(code: int, text: str) -> CommandError:
-    try:
-        return CommandError(code, f"the controller refused {text!r}")
-    except ValueError:  # a grblHAL or FluidNC number motiond does not know
-        return CommandError(Error.UNSUPPORTED, f"the controller refused {text!r}: error:{code}")
-

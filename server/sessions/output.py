@@ -1,12 +1,12 @@
 """A session's output: replies in order, rate-limited status reports and pushes, bounded.
 
-:class:`SessionOutput` is the part of :class:`~server.runtime.session.Session` (a base class of
+:class:`SessionOutput` is the part of :class:`~server.sessions.session.Session` (a base class of
 it) that writes to the client's :class:`Outbox`. It:
 
 * answers each line with exactly one ``ok`` or ``error:N``, in order. A line answered
   downstream (a Grbl controller behind motiond) is deferred: the next lines execute while it
   sits in the controller's buffer, and the replies behind it wait for its answer (at most
-  :data:`~server.runtime.session_input.INBOUND_LINES` of them), so the order holds;
+  :data:`~server.sessions.input.INBOUND_LINES` of them), so the order holds;
 * answers ``?`` at most ``[protocol] status_reports_per_s`` times a second per connection
   (bursts of :data:`STATUS_BURST`); requests beyond that share the next report, sent as soon
   as one is allowed: at most one report is ever pending, nothing queues up;
@@ -24,18 +24,18 @@ import time
 from typing import TYPE_CHECKING
 
 from server.errors import CommandError, Error
-from server.runtime.outbox import BoundedQueue
-from server.runtime.session_input import INBOUND_LINES
-from server.runtime.status import snapshot
+from server.kernel.status import snapshot
+from server.sessions.input import INBOUND_LINES
+from server.sessions.outbox import BoundedQueue
 
 if TYPE_CHECKING:
     from collections import deque
 
+    from server.kernel.kernel import Kernel
     from server.protocol.lines import LineProtocol
     from server.protocol.reports import StatusScheduler
-    from server.runtime.backlog import Backlog
-    from server.runtime.kernel import Kernel
     from server.runtime.ratelimit import TokenBucket
+    from server.sessions.backlog import Backlog
 
 log = logging.getLogger("motiond.session")
 STATUS_BURST = 5

@@ -1,19 +1,19 @@
 """One client connection, whatever the transport: protocol in, dispatcher, replies out.
 
 A transport creates a :class:`Session`, feeds it bytes (or WebSocket text) and drains its
-:class:`~server.runtime.session_output.Outbox`. The session has three parts on one state:
+:class:`~server.sessions.output.Outbox`. The session has three parts on one state:
 
-* its input, :class:`~server.runtime.session_input.LineAdmission`: realtime bytes acted on at
+* its input, :class:`~server.sessions.input.LineAdmission`: realtime bytes acted on at
   once (``M112`` the moment its line arrives), complete lines queued (bounded), bytes beyond
   that held in a bounded backlog whose realtime bytes still act at once;
 * this module: its lifecycle, logging in, and the executor, which runs the queued lines one at
   a time through the dispatcher;
-* its output, :class:`~server.runtime.session_output.SessionOutput`: exactly one ``ok`` or
+* its output, :class:`~server.sessions.output.SessionOutput`: exactly one ``ok`` or
   ``error:N`` per line, in order (deferred replies included), rate-limited status reports,
   pushes, all bounded.
 
 A client whose address is in ``[protocol] trusted_clients`` controls without the token (senders
-that cannot log in). Logging in: ``$AUTH=token`` (see :mod:`server.runtime.login_guard`:
+that cannot log in). Logging in: ``$AUTH=token`` (see :mod:`server.sessions.login_guard`:
 constant-time comparison, wrong tokens answered ever later per client address, the connection
 closed after ``auth_failures_per_connection``). An observer never logs in. A session on
 probation (it got a TCP slot reserved for logged-in connections) must log in with its first
@@ -47,27 +47,23 @@ from server.protocol.events import Dialect, LineReceived, LineRejected
 from server.protocol.http_sniff import HttpSniffer
 from server.protocol.lines import LineProtocol
 from server.protocol.reports import StatusScheduler
-from server.runtime.backlog import Backlog
 from server.runtime.events import Event as BusEvent
-from server.runtime.login_guard import LoginGuard, token_matches
-from server.runtime.ratelimit import TokenBucket
-from server.runtime.session_input import (
-    INBOUND_LINES,
+from server.runtime.ratelimit import (
     REALTIME_BURST_BYTES,
-    REALTIME_TOTAL_BURST_BYTES,
-    TOTAL_BURST_BYTES,
-    LineAdmission,
+    TokenBucket,
     input_budget,
-    line_size,
     realtime_allowance,
 )
-from server.runtime.session_output import STATUS_BURST, Outbox, SessionOutput
+from server.sessions.backlog import Backlog
+from server.sessions.input import INBOUND_LINES, LineAdmission, line_size
+from server.sessions.login_guard import LoginGuard, token_matches
+from server.sessions.output import STATUS_BURST, Outbox, SessionOutput
 
 if TYPE_CHECKING:
     from collections.abc import Awaitable
     from typing import TypeAlias
 
-    from server.runtime.kernel import Kernel
+    from server.kernel.kernel import Kernel
 
     # a line's reply (a future: answered downstream later), or the wait for it
     Reply: TypeAlias = bytes | asyncio.Future[bytes] | Awaitable[bytes | asyncio.Future[bytes]]
@@ -78,8 +74,7 @@ PROBATION_REFUSED = "this slot is reserved for logged-in connections: send $AUTH
 YIELD_AFTER_S = 0.0003  # the executor gives other tasks a turn at least this often
 BUSY_INTERVAL_S = 2.0  # Marlin's DEFAULT_KEEPALIVE_INTERVAL
 BUSY = "echo:busy: processing"
-__all__ = ["REALTIME_TOTAL_BURST_BYTES", "TOTAL_BURST_BYTES", "Session", "input_budget",
-           "line_token", "login_guard", "realtime_allowance", "token_matches"]
+__all__ = ["Session", "line_token", "login_guard", "token_matches"]
 
 
 class Session(LineAdmission, SessionOutput):

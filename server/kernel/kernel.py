@@ -10,43 +10,44 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import math
 import time
 from collections.abc import Callable
 from typing import Any
 
 from pydantic import BaseModel
 
+from server.backends.build import build_backend
+from server.backends.grbl.machine import GrblMachine
 from server.config import Config, ModuleSpec
 from server.errors import Alarm, ConfigError
 from server.gcode.codes import CodeConflict, CodeFactory
+from server.jobs.jobs import Jobs
+from server.kernel.commands import CoreCommands
+from server.kernel.control import MachineControl
+from server.kernel.loop_monitor import LoopMonitor
+from server.kernel.module import ApiHandler, ApiMethod, ApiParams, Module
+from server.kernel.status import build_status
+from server.machine.machine import Machine, SyncHandler
 from server.motion.moves import Action, Move, Position, SyncKind
 from server.motion.pieces import PowerOf
 from server.motion.stepgen import MotionState
-from server.runtime.clock import Clock
-from server.runtime.commands import CoreCommands
-from server.runtime.control import MachineControl
+from server.runtime.clock import Clock, on_grid_s
 from server.runtime.dispatcher import Dispatcher, Handler, SystemSource
 from server.runtime.events import Event, EventBus, MachineState
 from server.runtime.gcpacer import GcPacer
-from server.runtime.grbl import GrblMachine
-from server.runtime.jobs import Jobs
-from server.runtime.machine import Machine, SyncHandler
-from server.runtime.module import ApiHandler, ApiMethod, ApiParams, Module
-from server.runtime.session import (
+from server.runtime.ratelimit import (
     REALTIME_TOTAL_BURST_BYTES,
     TOTAL_BURST_BYTES,
     input_budget,
     realtime_allowance,
 )
 from server.runtime.state import MachineStatus
-from server.runtime.status import build_status
 
 log = logging.getLogger("motiond.kernel")
 
 
 class _Outputs:
-    """Output pins, set at the kernel clock's now (implements server.runtime.module.Outputs)."""
+    """Output pins, set at the kernel clock's now (implements server.kernel.module.Outputs)."""
 
     def __init__(self, machine: Machine, clock: Clock) -> None:
         self._machine, self._clock = machine, clock
@@ -73,7 +74,7 @@ class _Outputs:
 
 
 class _Inputs:
-    """Switch inputs (implements server.runtime.module.Inputs)."""
+    """Switch inputs (implements server.kernel.module.Inputs)."""
 
     def __init__(self, machine: Machine) -> None:
         self._machine = machine
@@ -86,7 +87,7 @@ class _Inputs:
 
 
 class _Motion:
-    """Moves outside G-code and motion controls (implements server.runtime.module.Motion)."""
+    """Moves outside G-code and motion controls (implements server.kernel.module.Motion)."""
 
     def __init__(self, machine: Machine) -> None:
         self._machine = machine
@@ -106,7 +107,7 @@ class _Motion:
 
 
 class _Context:
-    """A module's handle on the kernel (implements server.runtime.module.ModuleContext)."""
+    """A module's handle on the kernel (implements server.kernel.module.ModuleContext)."""
 
     def __init__(self, kernel: Kernel, name: str) -> None:
         self._kernel = kernel
@@ -208,100 +209,6 @@ LOCKED_STATES = (MachineState.ALARM, MachineState.SLEEP)
 QUIET_AFTER_S = 1.0  # no command for this long (and nothing moving): the loop monitor slows
 
 
-def on_grid_s(now_s: float, period_s: float) -> float:
-    """The first whole multiple of ``period_s`` after ``now_s`` (monotonic seconds): periodic
-    wake-ups on this grid coincide (one wake-up of the process serves them all)."""
-    return (math.floor(now_s / period_s) + 1) * period_s
-
-
-class LoopMonitor:
-    """Measures how late the event loop wakes a sleeper of ``period_s`` (1 ms; a step
-    generator that ticks less often, less often too): the worst stall, in seconds.
-
-    It uses monotonic time whatever the kernel's clock (not the loop's ``time()``, which uvloop
-    counts in whole milliseconds), since stalls are a property of the process;
-    ``worst_stall_s`` is exposed in the API and printed by the streaming benchmark.
-    ``worst_cpu_stall_s`` is the worst of the same stalls counted only while this thread ran
-    (``min(lateness, thread CPU time since the last wake-up)``): an upper bound on what the
-    process's own work (callbacks, garbage collection) delayed the loop, without the time the
-    OS gave the CPU to other processes, which is what most stalls are on a loaded machine.
-    It also wakes the kernel's :class:`~server.runtime.gcpacer.GcPacer`, if any.
-
-    While the step generator ticks on real time, the monitor rides its ticks (:meth:`tick`:
-    each tick's lateness after its deadline is the sleeper's lateness, measured the same way)
-    and keeps no timer of its own: every wake-up of the process costs CPU. Its own sleep runs
-    only while nothing ticks (:meth:`rest`), and while ``is_quiet()`` (nothing moves, no
-    command for a while) it sleeps ``quiet_period_s`` instead, so an idle server does not wake
-    a thousand times a second; a stall then still shows as a late wake-up, if a coarser one.
-    Its own wake-ups fall on whole multiples of the period (:func:`on_grid_s`), as the other
-    periodic ones of an idle server do (the kernel's second, a Klipper MCU's clock polls): one
-    wake-up of the process serves them all.
-    """
-
-    def __init__(self, period_s: float = 0.001, gc_pacer: GcPacer | None = None,
-                 is_quiet: Callable[[], bool] = lambda: False,
-                 quiet_period_s: float = 0.5) -> None:
-        self.period_s = period_s
-        self.quiet_period_s = quiet_period_s
-        self.is_quiet = is_quiet
-        self.gc_pacer = gc_pacer  # woken with the monitor: see server.runtime.gcpacer
-        self.worst_stall_s = 0.0
-        self.worst_cpu_stall_s = 0.0
-        self.samples = 0  # wake-ups measured (its own and the ticks')
-        self.own_samples = 0  # of which on its own timer
-        self.riding = False  # the step generator's ticks feed the monitor
-        self._resting = asyncio.Event()  # set by rest(): the monitor's own timer runs again
-        self._cpu_before_s = time.thread_time()
-
-    def reset(self) -> None:
-        self.worst_stall_s = self.worst_cpu_stall_s = 0.0
-
-    def tick(self, late_s: float) -> None:
-        """A tick of the step generator woke ``late_s`` after its deadline (monotonic time):
-        measured as the monitor's own wake-up would be; the monitor's timer rests meanwhile."""
-        self.riding = True
-        self._observe(max(0.0, late_s), time.monotonic())
-
-    def rest(self) -> None:
-        """The ticks stopped (the step generator sleeps, or its task ended): the monitor's own
-        timer runs again."""
-        if self.riding:
-            self.riding = False
-            self._resting.set()
-
-    def _observe(self, late_s: float, woke_s: float) -> None:
-        cpu_s = time.thread_time()
-        self.samples += 1
-        if late_s > self.worst_stall_s:
-            self.worst_stall_s = late_s
-        cpu_late_s = min(late_s, cpu_s - self._cpu_before_s)
-        if cpu_late_s > self.worst_cpu_stall_s:
-            self.worst_cpu_stall_s = cpu_late_s
-        self._cpu_before_s = cpu_s
-        if self.gc_pacer is not None:
-            self.gc_pacer.step(woke_s)
-
-    async def run(self) -> None:
-        try:
-            while True:
-                if self.riding:
-                    self._resting.clear()
-                    await self._resting.wait()
-                    self._cpu_before_s = time.thread_time()
-                    continue
-                period_s = self.quiet_period_s if self.is_quiet() else self.period_s
-                due_s = on_grid_s(time.monotonic(), period_s)
-                await asyncio.sleep(due_s - time.monotonic())
-                if self.riding:  # the ticks took over while it slept
-                    continue
-                woke_s = time.monotonic()
-                self.own_samples += 1
-                self._observe(woke_s - due_s, woke_s)
-        finally:
-            if self.gc_pacer is not None:
-                self.gc_pacer.close()
-
-
 class Kernel:
     """Owns the machine state and every core task."""
 
@@ -311,7 +218,8 @@ class Kernel:
         self.events = EventBus()
         self.status = MachineStatus(self.events)
         machine_class = GrblMachine if config.core.backend.kind == "grbl" else Machine
-        self.machine = machine_class(config, clock, self.events, self.status)
+        self.machine = machine_class(config, clock, self.events, self.status,
+                                     build_backend(config.core))
         self.dispatcher = Dispatcher(
             is_locked=lambda: self.status.state in LOCKED_STATES,
             is_busy=lambda: self.machine.busy or self.jobs.active,
@@ -322,7 +230,7 @@ class Kernel:
         )
         self.jobs = Jobs(self)
         self.control = MachineControl(self.machine, self.jobs)
-        # what all connections that may not control may send together (see session_input)
+        # what all connections that may not control may send together (see sessions.input)
         self.read_only_input = input_budget(
             config.core.protocol.read_only_input_total_bytes_per_s, TOTAL_BURST_BYTES)
         # the realtime bytes all flooding connections may have examined together

@@ -5,10 +5,10 @@ the step generator task, listens to what motion reaches (tool state, program end
 holds the settings and modes (``$x=``, ``$RST``, ``$C``). Its two other parts are base classes
 in their own modules, on the same state:
 
-* :class:`~server.runtime.machine_feed.GcodeFeed` takes lines in: it runs the interpreter,
+* :class:`~server.machine.feed.GcodeFeed` takes lines in: it runs the interpreter,
   feeds moves and ordered actions to the planner (waiting while it is full: that wait is the
   flow control that delays a sender's ``ok``) and carries out the interpreter's sync requests;
-* :class:`~server.runtime.machine_realtime.RealtimeCommands` acts at once: hold, resume, reset,
+* :class:`~server.machine.controls.RealtimeCommands` acts at once: hold, resume, reset,
   jog cancel, overrides, M112.
 """
 
@@ -26,6 +26,11 @@ from server.errors import Alarm, BackendFault
 from server.gcode.codes import CodeTable
 from server.gcode.interpreter import Interpreter
 from server.gcode.parser import Line
+from server.machine.controls import RealtimeCommands
+from server.machine.feed import GcodeFeed
+from server.machine.parts import interpreter_settings, planner_settings
+from server.machine.settings import Settings
+from server.motion.backend import Backend
 from server.motion.moves import Action, ActionName, SyncKind, ToolMode
 from server.motion.planner import Planner
 from server.motion.stepgen import HoldState, StepGenerator
@@ -34,10 +39,6 @@ from server.protocol.reports import StatusSnapshot
 from server.runtime.clock import Clock, VirtualClock
 from server.runtime.dispatcher import Command, Dispatcher
 from server.runtime.events import Event, EventBus, MachineState
-from server.runtime.machine_feed import GcodeFeed
-from server.runtime.machine_realtime import RealtimeCommands
-from server.runtime.parts import build_backend, interpreter_settings, planner_settings
-from server.runtime.settings import Settings
 from server.runtime.state import MachineStatus
 from server.runtime.ticks import TickWatch, run_ticks
 
@@ -62,14 +63,13 @@ class Machine(GcodeFeed, RealtimeCommands):
 
     counts_blocks = True  # the step generator's blocks_done counts the blocks executed
 
-    def __init__(
-        self, config: Config, clock: Clock, events: EventBus, status: MachineStatus
-    ) -> None:
+    def __init__(self, config: Config, clock: Clock, events: EventBus, status: MachineStatus,
+                 backend: Backend) -> None:
         core = config.core
         self.clock, self.events, self.status = clock, events, status
         status.stop_motion, status.before_unlock = self._halt_motion, self.leave_check_mode
         self.core = core
-        self.backend = build_backend(core)
+        self.backend = backend
         self.backend.watch_position(self.relocate)
         self.codes = CodeTable()
         self.spin_up_delay_s = 0.0

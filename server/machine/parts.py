@@ -1,31 +1,11 @@
-"""The machine's parts from its config: the backend, the interpreter's and the planner's
-settings."""
+"""The machine's parts from its config: the interpreter's and the planner's settings (the
+backend is built by :func:`server.backends.build.build_backend`)."""
 
 from __future__ import annotations
 
-from server.backends.base import Backend
-from server.backends.null import NullBackend
-from server.backends.sim import SimBackend
 from server.config import CoreConfig
 from server.gcode.interpreter import InterpreterSettings
 from server.motion.planner import PlannerSettings
-
-
-def build_backend(core: CoreConfig) -> Backend:
-    """The backend named by ``[backend] kind``."""
-    if core.backend.kind in ("null", "grbl"):  # a Grbl controller steps itself
-        return NullBackend()
-    if core.backend.kind == "klipper":
-        from server.backends.klipper.backend import KlipperBackend  # only when configured
-
-        return KlipperBackend(core)
-    return SimBackend(
-        core.axis_names,
-        [axis.steps_per_mm for axis in core.axes.values()],
-        history_samples=core.backend.history_samples,
-        trace_csv=core.backend.trace_csv,
-        probe_at_mm=core.backend.probe_at_mm,
-    )
 
 
 def interpreter_settings(core: CoreConfig, spin_up_delay_s: float = 0.0) -> InterpreterSettings:

@@ -207,11 +207,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             return install_service(args)
         config = load_config(args.config or find_config())
         if args.command == "estimate":
-            from server.offline.commands import estimate_command
+            from server.cli.offline import estimate_command
 
             return estimate_command(args, config)
         if args.command == "render":
-            from server.offline.commands import render_command
+            from server.cli.offline import render_command
 
             return render_command(args, config)
         return serve(args, config)
@@ -237,7 +237,7 @@ def setup_logging(level: str, log_file: Path | None) -> None:
 
 
 def check_config(path: Path) -> int:
-    from server.offline.estimate import machine_interpreter
+    from server.cli.offline import machine_interpreter
 
     try:
         config = load_config(path)
@@ -323,9 +323,8 @@ def _no_open_door(config: Config) -> None:
 
 
 async def _serve(config: Config) -> int:
-    from server.app import App
+    from server.app import App, default_transports
     from server.runtime.sdnotify import Notifier
-    from server.transports import default_transports
 
     loop = asyncio.get_running_loop()
     priority = realtime.claim_for(loop, config.core.stepgen.realtime_priority)
@@ -349,7 +348,3 @@ async def _serve(config: Config) -> int:
 async def _tell_systemd_when_ready(app: App, notifier: Notifier) -> None:
     await app.ready.wait()
     notifier.notify("READY=1", f"STATUS=serving {app.kernel.config.core.machine.name}")
-
-
-if __name__ == "__main__":
-    sys.exit(main())

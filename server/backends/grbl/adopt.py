@@ -24,7 +24,7 @@ from server.errors import CommandError
 from server.gcode.interpreter import Interpreter
 from server.gcode.modal import MM_PER_INCH
 from server.gcode.parser import MAX_MAGNITUDE, parse_line
-from server.runtime.settings import Settings
+from server.machine.settings import Settings
 
 log = logging.getLogger("motiond.grbl")
 SOFT_LIMITS, HOMING = 20, 22

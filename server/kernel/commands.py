@@ -20,7 +20,7 @@ from server.runtime.dispatcher import Command, Dispatcher, Handler
 from server.runtime.events import MachineState
 
 if TYPE_CHECKING:
-    from server.runtime.kernel import Kernel
+    from server.kernel.kernel import Kernel
 
 BANNER_VERSION = "1.1h"
 # M115's capability report: what RepRap hosts may rely on. EMERGENCY_PARSER: M112 and M410 act

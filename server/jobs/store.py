@@ -39,7 +39,7 @@ class JobFile:
 
 
 class JobStore:
-    """The job files of one server (:class:`~server.runtime.jobs.Jobs` plays them)."""
+    """The job files of one server (:class:`~server.jobs.jobs.Jobs` plays them)."""
 
     def __init__(self, jobs_dir: Path, max_bytes: int) -> None:
         self.jobs_dir, self.max_bytes = jobs_dir, max_bytes

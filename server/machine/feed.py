@@ -1,6 +1,6 @@
 """The machine's G-code feed: interpreter -> planner, with flow control and sync requests.
 
-:class:`GcodeFeed` is the part of :class:`~server.runtime.machine.Machine` (a base class of it)
+:class:`GcodeFeed` is the part of :class:`~server.machine.machine.Machine` (a base class of it)
 that takes a line in: it runs the interpreter, feeds moves and ordered actions to the planner
 (waiting while it is full: that wait is the flow control that delays a sender's ``ok``) and
 carries out the interpreter's sync requests (M112, M999, messages, probing, ``M114``, ``M400``
@@ -22,11 +22,11 @@ from server.runtime.events import MachineState
 if TYPE_CHECKING:
     from server.config import CoreConfig
     from server.gcode.interpreter import Interpreter
+    from server.machine.machine import SyncHandler
     from server.motion.planner import Planner
     from server.motion.stepgen import StepGenerator
     from server.runtime.clock import Clock
     from server.runtime.dispatcher import Command
-    from server.runtime.machine import SyncHandler
     from server.runtime.state import MachineStatus
 
 

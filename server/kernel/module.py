@@ -25,13 +25,13 @@ from pydantic import BaseModel, ConfigDict
 if TYPE_CHECKING:
     from server.config import CoreConfig
     from server.gcode.codes import CodeFactory
+    from server.machine.machine import SyncHandler
     from server.motion.moves import Action, Move, Position, SyncKind
     from server.motion.pieces import PowerOf
     from server.motion.stepgen import MotionState
     from server.runtime.clock import Clock
     from server.runtime.dispatcher import Handler
     from server.runtime.events import MachineState
-    from server.runtime.machine import SyncHandler
 
 ENTRY_POINT_GROUP = "motiond.modules"
 
@@ -123,7 +123,7 @@ class Motion(Protocol):
 class MachineControls(Protocol):
     """Realtime control, acted on at once: exactly what ``!``, ``~``, Ctrl-X and an arriving
     M112 or M410 do on any connection (one implementation:
-    ``server.runtime.control.MachineControl``).
+    ``server.kernel.control.MachineControl``).
     """
 
     def hold(self) -> None:
@@ -229,7 +229,7 @@ class ModuleContext(Protocol):
     def status(self) -> dict[str, Any]:
         """The machine now, as the web UI's status shows it (JSON-able: state, alarm and its
         meaning, positions, speed, tool power, queue, the job with its progress); the one
-        snapshot of :func:`server.runtime.status.build_status`, built on each call."""
+        snapshot of :func:`server.kernel.status.build_status`, built on each call."""
         ...
 
     def register_api_method(

@@ -1,6 +1,6 @@
 """A session's input: client bytes -> realtime actions now, complete lines into a bounded queue.
 
-:class:`LineAdmission` is the part of :class:`~server.runtime.session.Session` (a base class of
+:class:`LineAdmission` is the part of :class:`~server.sessions.session.Session` (a base class of
 it) that admits what the client sends. It:
 
 * closes a byte stream that starts as an HTTP request (:mod:`server.protocol.http_sniff`)
@@ -14,14 +14,14 @@ it) that admits what the client sends. It:
   ``!``, never waits for the others'); what arrives beyond that waits unread. A batch of
   realtime bytes acts as Grbl's realtime flags do: a command that repeats the state (a second
   ``!`` while held, an override at its limit) costs nearly nothing, a hold acts on its first
-  byte, toggles and override steps are folded into one change (:mod:`server.runtime.control`);
+  byte, toggles and override steps are folded into one change (:mod:`server.kernel.control`);
 * acts on realtime bytes at once (status, hold, resume, reset, overrides, jog cancel), even
   while lines wait for planner room, and on ``M112`` the moment its line arrives; an ``M410``
   quickstop too (Marlin's emergency parser): motion stops, and the lines this connection queued
   ahead of it are answered as flushed (``error:45``, one reply each) instead of running;
 * queues complete lines, at most :data:`INBOUND_LINES` of them, for the session's executor;
 * keeps taking bytes while its line queue is full: they wait in a
-  :class:`~server.runtime.backlog.Backlog` (``[protocol] backlog_bytes``) whose realtime bytes
+  :class:`~server.sessions.backlog.Backlog` (``[protocol] backlog_bytes``) whose realtime bytes
   are acted on as they arrive, so a sender that streams ahead without character counting can
   still hold (``!``) or reset (Ctrl-X) at once. This is the one realtime path of every
   transport: TCP, serial, pty and WebSocket messages (held with their ends, which end lines).
@@ -40,6 +40,7 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
+from server.kernel.control import MAY_STOP_AT_ONCE, halts_at_once, quickstops_at_once
 from server.protocol.events import (
     Dialect,
     Event,
@@ -49,29 +50,24 @@ from server.protocol.events import (
     RealtimeReceived,
 )
 from server.protocol.http_sniff import HttpSniffer
-from server.runtime.control import MAY_STOP_AT_ONCE, halts_at_once, quickstops_at_once
 from server.runtime.ratelimit import Allowance, TokenBucket
 
 if TYPE_CHECKING:
     from collections import deque
 
+    from server.kernel.kernel import Kernel
     from server.protocol.lines import LineProtocol
     from server.protocol.reports import StatusScheduler
-    from server.runtime.backlog import Backlog
-    from server.runtime.kernel import Kernel
-    from server.runtime.session_output import Outbox
     from server.runtime.state import MachineStatus
+    from server.sessions.backlog import Backlog
+    from server.sessions.output import Outbox
 
 log = logging.getLogger("motiond.session")
 HTTP_REFUSED = "this port speaks the Grbl line protocol, not HTTP: closing"
 READ_ONLY_CHUNK = 256  # bytes of a connection that may not control examined at a time
-BURST_BYTES = 1024  # what such a connection may send at once (then at its rate)
-TOTAL_BURST_BYTES = 2048  # what all of them may send at once
 INBOUND_LINES = 64
 SLICE_COST = 32  # realtime bytes examined in one loop turn at most (a few hundred us)
 RESET_COST = 8  # a Ctrl-X costs as much as this many other realtime bytes (banner, reset)
-REALTIME_BURST_BYTES = 256  # realtime bytes one connection may send at once (then at its rate)
-REALTIME_TOTAL_BURST_BYTES = 512  # what all flooding connections may send at once
 _STATUS_RUN = re.compile(rb"\?{2,}")
 _NOT_REALTIME = bytes(b for b in range(256) if b not in b"?!~\x18" and b < 0x80)
 _LOOKS_REALTIME = bytes(b for b in range(0x80) if b not in b"?!~")  # to delete: the rest does
@@ -380,11 +376,6 @@ class LineAdmission:
         self.kernel.control.realtime(command)
 
 
-def input_budget(rate_bytes_per_s: float, burst_bytes: float = BURST_BYTES) -> TokenBucket:
-    """A budget of input bytes for connections that may not control (see ``pace_input``)."""
-    return TokenBucket(rate_bytes_per_s, burst_bytes, time.monotonic())
-
-
 def realtime_cost(data: bytes) -> int:
     """What examining ``data`` costs in realtime bytes: the bytes the protocol may take one
     at a time (``?`` ``!`` ``~``, Ctrl-X, bytes above 0x7F; a run of ``?`` is taken at once),
@@ -417,11 +408,6 @@ def seen_ahead(lines: bytes) -> bool:
     if (b"112" not in lines and b"410" not in lines) or (b"M" not in lines and b"m" not in lines):
         return False  # (faster than the search below, which decides)
     return MAY_STOP_AT_ONCE.search(lines) is not None
-
-
-def realtime_allowance(rate_bytes_per_s: float, burst_bytes: float) -> Allowance:
-    """A budget of realtime bytes (see :meth:`LineAdmission.feed`)."""
-    return Allowance(rate_bytes_per_s, burst_bytes, time.monotonic())
 
 
 def line_size(event: LineReceived | LineRejected) -> int:

@@ -25,10 +25,10 @@ import numpy as np
 
 from server.config import CoreConfig
 from server.gcode.interpreter import Interpreter
+from server.jobs.reading import Stopped, until
 from server.motion.stepgen import MotionState
 from server.offline.estimate import estimate, file_lines
 from server.offline.fit import Fit, check_fit
-from server.runtime.job_reading import Stopped, until
 
 
 @dataclass(frozen=True, slots=True)

@@ -15,8 +15,8 @@ from typing import TYPE_CHECKING
 from server.protocol.events import Realtime
 
 if TYPE_CHECKING:
-    from server.runtime.jobs import Jobs
-    from server.runtime.machine import Machine
+    from server.jobs.jobs import Jobs
+    from server.machine.machine import Machine
 
 _HOLDS = frozenset({Realtime.HOLD, Realtime.DOOR})
 _TOGGLES = (Realtime.SPINDLE_STOP, Realtime.FLOOD, Realtime.MIST)
