@@ -56,8 +56,8 @@ def test_a_pure_core_imports_no_io_and_nothing_downstream(path: Path) -> None:
 def test_the_folders_are_layers_with_no_import_circle_between_them() -> None:
     """import-linter's contracts in pyproject.toml: each folder imports only the layers below
     it (``if TYPE_CHECKING:`` imports count too), and the pure cores no I/O library."""
-    done = subprocess.run([sys.executable, "-c", "from importlinter.cli import lint_imports_command;"
-                           " lint_imports_command()"], cwd=SERVER.parent,
+    lint = "from importlinter.cli import lint_imports_command; lint_imports_command()"
+    done = subprocess.run([sys.executable, "-c", lint], cwd=SERVER.parent,
                           capture_output=True, text=True, timeout=120, check=False)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-2000:]
     assert "Contracts: 2 kept, 0 broken." in done.stdout
