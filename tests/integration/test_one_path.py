@@ -11,10 +11,11 @@ import pytest
 from server.app import App
 from server.backends.sim import SimBackend
 from server.cli import main
+from server.cli.offline import machine_interpreter
 from server.errors import CommandError, ConfigError
 from server.motion.moves import Action, Move
 from server.motion.planner import Planner
-from server.offline.estimate import estimate, machine_interpreter
+from server.offline.estimate import estimate
 from server.offline.stats import JobStats
 from tests.conftest import CORPUS, make_config
 from tests.support.helpers import running, submit_all

@@ -29,11 +29,11 @@ from hypothesis import given, settings
 
 from server.backends.sim import SimBackend
 from server.cli import main
+from server.cli import offline as commands
 from server.machine.parts import planner_settings
 from server.motion.moves import Move, MoveKind
 from server.motion.planner import Planner, PlannerSettings
 from server.motion.stepgen import StepGenerator
-from server.offline import commands
 from server.offline.stats import JobStats
 from server.runtime.clock import RealClock, VirtualClock
 from server.runtime.gcpacer import GcPacer
