@@ -7,6 +7,10 @@ a pause or an emergency stop. At most ``PENDING_SCRIPTS`` wait; more are refused
 holding only ``PAUSE``/``RESUME``/``CANCEL_PRINT``/``M112`` (and ``emergency_stop``,
 ``pause_resume/*``) acts on arrival, as the realtime bytes of a Grbl sender do.
 
+A malformed request (:class:`wire.Malformed`, a parameter of the wrong type, a
+``response_template`` that cannot be sent back) is answered with an error and changes
+nothing; the connection goes on.
+
 The session never writes to a socket: :attr:`Session.send` takes each message (the transport
 queues it, bounded).
 """
@@ -14,6 +18,7 @@ queues it, bounded).
 from __future__ import annotations
 
 import asyncio
+import json
 import os
 from collections.abc import Callable
 from typing import Any, Protocol
@@ -33,6 +38,7 @@ from server.runtime.control import halts_at_once
 from server.runtime.module import ModuleContext
 
 PENDING_SCRIPTS = 32
+TEMPLATE_BYTES = 512  # a response_template as JSON (Moonraker's: 40 bytes)
 IMMEDIATE = frozenset({"pause", "resume", "cancel", "estop"})
 ENDPOINTS = ("info", "list_endpoints", "objects/list", "objects/query", "objects/subscribe",
              "gcode/script", "gcode/help", "gcode/subscribe_output", "gcode/restart",
@@ -73,8 +79,11 @@ class Session:
         self._scripts: asyncio.Queue[tuple[Any, list[Step]]] = asyncio.Queue(PENDING_SCRIPTS)
 
     # -- requests ---------------------------------------------------------------------------
-    def on_request(self, request: wire.Request) -> None:
+    def on_request(self, request: wire.Item) -> None:
         """Answer a request now, or queue its script; never waits."""
+        if isinstance(request, wire.Malformed):
+            self.send(wire.error(request.id, request.message))
+            return
         try:
             answer = self._dispatch(request)
         except CommandError as exc:
@@ -121,8 +130,8 @@ class Session:
 
     def _subscribe(self, wanted: dict[str, Any], template: Any) -> dict[str, Any]:
         """Replace this connection's subscription; answer the current values."""
-        self.subscription = wanted
         self.status_template = _template(template)
+        self.subscription = wanted
         answer = self._query(wanted)
         self.last_status = answer["status"]
         return answer
@@ -262,16 +271,28 @@ def _text(exc: CommandError) -> str:
 def _objects_param(params: dict[str, Any]) -> dict[str, Any]:
     wanted = params.get("objects")
     if not isinstance(wanted, dict) or not all(
-            isinstance(name, str) and (fields is None or isinstance(fields, list))
-            for name, fields in wanted.items()):
-        raise CommandError(Error.UNSUPPORTED, "'objects' must map names to field lists or null")
+            fields is None or (isinstance(fields, list)
+                               and all(isinstance(key, str) for key in fields))
+            for fields in wanted.values()):
+        raise CommandError(Error.UNSUPPORTED,
+                           "'objects' must map names to lists of field names or null")
     return wanted
 
 
 def _template(value: Any) -> dict[str, Any]:
+    """A ``response_template`` that every push can carry: an object of at most
+    :data:`TEMPLATE_BYTES` as JSON (so never nested deep enough to fail later)."""
     if not isinstance(value, dict):
         raise CommandError(Error.UNSUPPORTED, "'response_template' must be an object")
-    return {key: item for key, item in value.items() if key != "params"}
+    template = {key: item for key, item in value.items() if key != "params"}
+    try:
+        size_bytes = len(json.dumps(template, allow_nan=False))
+    except (ValueError, TypeError, RecursionError):
+        size_bytes = TEMPLATE_BYTES + 1
+    if size_bytes > TEMPLATE_BYTES:
+        raise CommandError(Error.UNSUPPORTED,
+                           f"'response_template' must be at most {TEMPLATE_BYTES} bytes of JSON")
+    return template
 
 
 def _eventtime() -> float:
