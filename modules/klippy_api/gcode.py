@@ -23,7 +23,10 @@ Everything else (``M84``, ``G0``, ``$$``...) is motiond's own G-code, unchanged.
 
 A script's lines are split at ``\n``, as Klipper's ``run_script`` splits them. A line longer
 than :data:`LINE_LIMIT` characters (error 11, as on every other stream) or a number beyond
-:data:`MAX_NUMBER` in a Klipper command is refused.
+:data:`MAX_NUMBER` in a Klipper command is refused. A long script is translated in pieces of
+about :data:`PIECE_CHARS` (:func:`pieces`, :func:`translate_piece`), so that the caller can
+let the event loop run between them; :func:`stops_at_once` finds an ``M112`` line anywhere in
+a script in one pass of the regular expression engine.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ from __future__ import annotations
 import math
 import re
 import shlex
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 from server.errors import CommandError, Error
@@ -38,6 +42,7 @@ from server.errors import CommandError, Error
 JOG_MACRO = "_CLIENT_LINEAR_MOVE"
 LINE_LIMIT = 256  # characters in one line, as the line protocol's (error:11)
 MAX_NUMBER = 1e9  # mm, mm/min, percent: anything larger is a mistake or an attack
+PIECE_CHARS = 4096  # a long script is translated this many characters at a time
 HELP: dict[str, str] = {
     "SDCARD_PRINT_FILE": "Play a stored job: SDCARD_PRINT_FILE FILENAME=<name>",
     "PAUSE": "Pause the job (feed hold)",
@@ -63,7 +68,9 @@ HELP: dict[str, str] = {
 _WORD = re.compile(r"([A-Z])\s*([-+]?(?:\d+\.?\d*|\.\d+))")
 _NAME = re.compile(r"([A-Za-z_][A-Za-z0-9_]*)(?:\s+(.*))?$", re.S)
 _MOVE = re.compile(r"G0*[01]$")
-
+# server.runtime.control.halts_at_once on every line of a script at once: a line (after \n)
+# that starts, after blanks and a line number, with M112 (no other digit after it)
+_M112_LINE = re.compile(r"^\s*(?:N\d+[^\S\n]*)?M[^\S\n]*0*112(?:\D|$)", re.I | re.M)
 
 
 @dataclass(frozen=True, slots=True)
@@ -113,6 +120,29 @@ def translate(script: str, jog_feed_mm_min: float) -> list[Step]:
     if jog is not None:
         return jog
     return [step for line in lines for step in _line(line, jog_feed_mm_min)]
+
+
+def pieces(script: str, size_chars: int = PIECE_CHARS) -> Iterator[str]:
+    """The script in pieces of whole lines: each ends at the first line end after
+    ``size_chars`` characters (or with the script)."""
+    start = 0
+    while start < len(script):
+        end = script.find("\n", start + size_chars)
+        end = len(script) if end < 0 else end + 1
+        yield script[start:end]
+        start = end
+
+
+def translate_piece(piece: str, jog_feed_mm_min: float) -> list[Step]:
+    """The steps of some lines of a long script (the front-ends' jog sequence is a whole
+    script of two to four lines: not looked for here)."""
+    return [step for line in _lines(piece) for step in _line(line, jog_feed_mm_min)]
+
+
+def stops_at_once(script: str) -> bool:
+    """Whether a line of the script is an ``M112``, which acts on arrival (looked for line
+    by line only in a script that holds ``112``: a fast search first)."""
+    return "112" in script and _M112_LINE.search(script) is not None
 
 
 def _lines(script: str) -> list[str]:
