@@ -20,17 +20,29 @@ as every other source. What is translated:
   front-end starts afresh, as after Klipper's restart; ``M112``: emergency stop.
 
 Everything else (``M84``, ``G0``, ``$$``...) is motiond's own G-code, unchanged.
+
+A script's lines are split at ``\n``, as Klipper's ``run_script`` splits them. A line longer
+than :data:`LINE_LIMIT` characters (error 11, as on every other stream) or a number beyond
+:data:`MAX_NUMBER` in a Klipper command is refused. A long script is translated in pieces of
+about :data:`PIECE_CHARS` (:func:`pieces`, :func:`translate_piece`), so that the caller can
+let the event loop run between them; :func:`stops_at_once` finds an ``M112`` line anywhere in
+a script in one pass of the regular expression engine.
 """
 
 from __future__ import annotations
 
+import math
 import re
 import shlex
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 from server.errors import CommandError, Error
 
 JOG_MACRO = "_CLIENT_LINEAR_MOVE"
+LINE_LIMIT = 256  # characters in one line, as the line protocol's (error:11)
+MAX_NUMBER = 1e9  # mm, mm/min, percent: anything larger is a mistake or an attack
+PIECE_CHARS = 4096  # a long script is translated this many characters at a time
 HELP: dict[str, str] = {
     "SDCARD_PRINT_FILE": "Play a stored job: SDCARD_PRINT_FILE FILENAME=<name>",
     "PAUSE": "Pause the job (feed hold)",
@@ -56,6 +68,9 @@ HELP: dict[str, str] = {
 _WORD = re.compile(r"([A-Z])\s*([-+]?(?:\d+\.?\d*|\.\d+))")
 _NAME = re.compile(r"([A-Za-z_][A-Za-z0-9_]*)(?:\s+(.*))?$", re.S)
 _MOVE = re.compile(r"G0*[01]$")
+# server.kernel.control.halts_at_once on every line of a script at once: a line (after \n)
+# that starts, after blanks and a line number, with M112 (no other digit after it)
+_M112_LINE = re.compile(r"^\s*(?:N\d+[^\S\n]*)?M[^\S\n]*0*112(?:\D|$)", re.I | re.M)
 
 
 @dataclass(frozen=True, slots=True)
@@ -100,11 +115,43 @@ Step = Line | StartJob | Control | FeedOverride | Message | GcodeOffset
 def translate(script: str, jog_feed_mm_min: float) -> list[Step]:
     """One script's steps; raises :class:`CommandError` for a malformed Klipper command (and
     then nothing of the script runs)."""
-    lines = [line.strip() for line in script.splitlines() if line.strip()]
+    lines = _lines(script)
     jog = _jog_sequence(lines, jog_feed_mm_min)
     if jog is not None:
         return jog
     return [step for line in lines for step in _line(line, jog_feed_mm_min)]
+
+
+def pieces(script: str, size_chars: int = PIECE_CHARS) -> Iterator[str]:
+    """The script in pieces of whole lines: each ends at the first line end after
+    ``size_chars`` characters (or with the script)."""
+    start = 0
+    while start < len(script):
+        end = script.find("\n", start + size_chars)
+        end = len(script) if end < 0 else end + 1
+        yield script[start:end]
+        start = end
+
+
+def translate_piece(piece: str, jog_feed_mm_min: float) -> list[Step]:
+    """The steps of some lines of a long script (the front-ends' jog sequence is a whole
+    script of two to four lines: not looked for here)."""
+    return [step for line in _lines(piece) for step in _line(line, jog_feed_mm_min)]
+
+
+def stops_at_once(script: str) -> bool:
+    """Whether a line of the script is an ``M112``, which acts on arrival (looked for line
+    by line only in a script that holds ``112``: a fast search first)."""
+    return "112" in script and _M112_LINE.search(script) is not None
+
+
+def _lines(script: str) -> list[str]:
+    lines = [line.strip() for line in script.split("\n")]
+    for line in lines:
+        if len(line) > LINE_LIMIT:
+            raise CommandError(Error.LINE_OVERFLOW,
+                               f"a line longer than {LINE_LIMIT} characters")
+    return [line for line in lines if line]
 
 
 def _line(text: str, jog_feed_mm_min: float) -> list[Step]:
@@ -125,7 +172,10 @@ def _line(text: str, jog_feed_mm_min: float) -> list[Step]:
     if name == "SDCARD_PRINT_FILE":
         return [StartJob(_params(name, rest).get("FILENAME", "").lstrip("/"))]
     if name == "SET_VELOCITY_FACTOR":
-        return [FeedOverride(round(100 * _number(name, _params(name, rest), "FACTOR")))]
+        factor = _number(name, _params(name, rest), "FACTOR")
+        if factor <= 0.0:
+            raise CommandError(Error.UNSUPPORTED, f"{name}: FACTOR must be positive")
+        return [FeedOverride(round(100 * factor))]
     if name == JOG_MACRO:
         return [Line(_client_move(_params(name, rest), jog_feed_mm_min))]
     if name == "SET_GCODE_OFFSET":
@@ -135,7 +185,7 @@ def _line(text: str, jog_feed_mm_min: float) -> list[Step]:
                                               "(G91, one G0/G1, G90) is supported")
     words = dict(_WORD.findall(text.upper()))
     if name == "M220":
-        return [FeedOverride(round(float(words.get("S", "100"))))]
+        return [FeedOverride(round(_number(name, {"S": words.get("S", "100")}, "S")))]
     if name == "G28":
         axes = [axis for axis in "XYZ" if axis in text.upper()[3:]]
         return [Line("G28.2" + "".join(f" {axis}0" for axis in axes))]
@@ -162,8 +212,9 @@ def _number(name: str, params: dict[str, str], key: str) -> float:
         value = float(params[key])
     except (KeyError, ValueError) as exc:
         raise CommandError(Error.UNSUPPORTED, f"{name}: {key}=<number> required") from exc
-    if value != value or value in (float("inf"), float("-inf")):
-        raise CommandError(Error.UNSUPPORTED, f"{name}: {key} must be finite")
+    if not math.isfinite(value) or abs(value) > MAX_NUMBER:
+        raise CommandError(Error.UNSUPPORTED, f"{name}: {key} must be a number within "
+                                              f"+-{MAX_NUMBER:g}")
     return value
 
 
@@ -221,8 +272,9 @@ def _jog_sequence(lines: list[str], jog_feed_mm_min: float) -> list[Step] | None
     if not words or len(words) != len(rest.split()) or any(
             letter not in "XYZF" for letter, _ in words):
         return None
-    axes = {letter: float(value) for letter, value in words if letter != "F"}
-    feeds = [float(value) for letter, value in words if letter == "F"]
+    numbers = dict(words)
+    axes = {letter: _number("G1", numbers, letter) for letter in numbers if letter != "F"}
+    feeds = [_number("G1", numbers, "F")] if "F" in numbers else []
     if not axes:
         return None
     feed = feeds[0] if feeds else jog_feed_mm_min

@@ -10,15 +10,21 @@ and drive this machine. The socket is created owner-only (mode 0600, set before 
 whoever can open it controls the machine, like a token holder.
 
 Each connection is a :class:`~modules.klippy_api.session.Session`; the printer objects come
-from :mod:`modules.klippy_api.objects`. Subscribers get what changed at most ``status_hz``
-times a second. Messages the machine pushes to every sender (alarms, ``[MSG:...]``) go to the
-G-code output subscribers. A client that does not read (``OUTGOING_LIMIT`` messages waiting) is
-disconnected.
+from :mod:`modules.klippy_api.objects`, built at most once per loop turn and shared by every
+request and push of that turn. Subscribers get what changed ``status_hz`` times a second, and
+at once when the machine's or the job's state changes. Messages the machine pushes to every
+sender (alarms, ``[MSG:...]``) go to the G-code output subscribers.
+
+The socket is bounded like every other input (:mod:`modules.klippy_api.connection`): at most
+:data:`MAX_CONNECTIONS` clients (the next is told so and closed), requests and pushes within
+one :class:`~modules.klippy_api.budget.LoopBudget` of loop time, waiting scripts within
+:data:`SCRIPT_BYTES` together, answers within a bounded queue per client.
 """
 
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import os
 import platform
@@ -32,34 +38,28 @@ from typing import Any
 from pydantic import Field
 
 from modules.klippy_api import objects as printer
-from modules.klippy_api import wire
+from modules.klippy_api.budget import ByteBudget, LoopBudget
+from modules.klippy_api.connection import (
+    READ_BYTES,
+    Connection,
+    refuse,
+    serve,
+)
 from modules.klippy_api.gcode import HELP
-from modules.klippy_api.session import Session, response_text
+from modules.klippy_api.scripts import response_text
 from server import __version__
 from server.kernel.module import Module, ModuleConfig, ModuleContext
 from server.paths import jobs_dir
 from server.runtime.events import Event
 
-OUTGOING_LIMIT = 1000
-READ_BYTES = 65536
+MAX_CONNECTIONS = 8  # Moonraker takes one; a few direct tools beside it
+SCRIPT_BYTES = 4 << 20  # all connections' waiting scripts together
+PUSHES_WAITING = 8  # state changes whose snapshots wait for the push task
 
 
 class KlippyApiConfig(ModuleConfig):
     socket: Path = Field(description="the Unix socket Moonraker's klippy_uds_address names")
     status_hz: float = Field(4.0, gt=0, le=50, description="subscription pushes per second")
-
-
-class _Connection:
-    def __init__(self, writer: asyncio.StreamWriter) -> None:
-        self.writer = writer
-        self.outgoing: asyncio.Queue[bytes] = asyncio.Queue(OUTGOING_LIMIT)
-        self.session: Session | None = None
-
-    def send(self, message: dict[str, Any]) -> None:
-        try:
-            self.outgoing.put_nowait(wire.encode(message))
-        except asyncio.QueueFull:
-            self.writer.close()  # it does not read: dropped, never waited for
 
 
 class KlippyApi(Module):
@@ -79,17 +79,32 @@ class KlippyApi(Module):
         self.times = printer.JobTimes()
         self.machine = printer.Machine((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0.0, 0.0,
                                        Path(), frozenset())
-        self.connections: set[_Connection] = set()
+        self.connections: set[Connection] = set()
+        self.budget = LoopBudget()
+        self.script_bytes = ByteBudget(SCRIPT_BYTES)
+        self._snapshot: dict[str, Any] | None = None
+        self._pushes: collections.deque[dict[str, Any]] = collections.deque(
+            maxlen=PUSHES_WAITING)
+        self._push_now = asyncio.Event()
+        self._refused, self._refusal_logged_s = 0, float("-inf")
         ctx.subscribe(Event.PUSH, lambda message: self.output(response_text(str(message))))
         ctx.subscribe(Event.JOB, self._on_job)
         for event in (Event.STATE, Event.HALT, Event.CLEAR_HALT):
-            ctx.subscribe(event, lambda *_: self._push_all())
+            ctx.subscribe(event, lambda *_: self._changed())
 
     # -- Hub --------------------------------------------------------------------------------
     def objects(self) -> dict[str, Any]:
-        self.extra.host = _host_stats()
-        self.extra.durations_s = self.times.durations(self.ctx.clock.now_s())
-        return printer.build_objects(self.ctx.status(), self.machine, self.extra)
+        """Every printer object now: built once per loop turn (a flood of queries reads one
+        snapshot), forgotten at the next turn or when the state changes."""
+        if self._snapshot is None:
+            self.extra.host = _host_stats()
+            self.extra.durations_s = self.times.durations(self.ctx.clock.now_s())
+            self._snapshot = printer.build_objects(self.ctx.status(), self.machine, self.extra)
+            asyncio.get_running_loop().call_soon(self._forget_snapshot)
+        return self._snapshot
+
+    def _forget_snapshot(self) -> None:
+        self._snapshot = None
 
     def info(self) -> dict[str, Any]:
         hooks = printer.webhooks(self.ctx.status())
@@ -107,12 +122,11 @@ class KlippyApi(Module):
 
     def output(self, text: str) -> None:
         for connection in list(self.connections):
-            if connection.session is not None:
-                connection.session.push_output(text)
+            connection.session.push_output(text)
 
     def restart(self) -> None:
         for connection in list(self.connections):
-            connection.writer.close()
+            connection.close()
 
     def status(self) -> dict[str, Any]:
         return {"socket": str(self.path), "clients": len(self.connections)}
@@ -147,41 +161,59 @@ class KlippyApi(Module):
             jobs_dir(core).resolve(), homeable, dict(HELP))
 
     async def _push_status(self) -> None:
+        """Push what changed to every subscriber ``status_hz`` times a second, and each
+        snapshot taken at a state change (a pause and resume between two periods are two
+        changes), one session at a time within the loop budget."""
+        loop = asyncio.get_running_loop()
         period_s = 1.0 / self.config.status_hz
+        next_s = loop.time() + period_s
         while True:
-            await asyncio.sleep(period_s)
-            self._push_all()
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout_at(next_s):
+                    await self._push_now.wait()
+            self._push_now.clear()
+            while self._pushes:
+                await self._push(self._pushes.popleft())
+            if loop.time() >= next_s:
+                next_s = max(next_s + period_s, loop.time())
+                await self._push(None)
 
-    def _push_all(self) -> None:
-        """Push what changed to every subscriber (on a tick, and at once when the machine's
-        or the job's state changes: a pause and resume between two ticks is two changes)."""
-        sessions = [c.session for c in self.connections
-                    if c.session is not None and c.session.subscription]
-        if sessions:
-            now = self.objects()
-            for session in sessions:
-                session.push_status(now)
+    async def _push(self, snapshot: dict[str, Any] | None) -> None:
+        """One push to each subscriber: of ``snapshot``, or of the objects at its turn."""
+        for connection in list(self.connections):
+            session = connection.session
+            if session.subscription and not connection.closed:
+                await self.budget.turn()
+                session.push_status(self.objects() if snapshot is None else snapshot)
+
+    def _changed(self) -> None:
+        """The machine's or the job's state changed: snapshot it now for the subscribers."""
+        self._snapshot = None
+        if any(connection.session.subscription for connection in self.connections):
+            self._pushes.append(self.objects())
+            self._push_now.set()
 
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        connection = _Connection(writer)
-        session = connection.session = Session(self, connection.send)
+        if len(self.connections) >= MAX_CONNECTIONS:
+            self._log_refusal()
+            await refuse(reader, writer, f"too many API connections (at most "
+                         f"{MAX_CONNECTIONS})")
+            return
+        connection = Connection(writer, self)
         self.connections.add(connection)
-        framer = wire.Framer()
         try:
-            async with asyncio.TaskGroup() as group:
-                sender = group.create_task(_drain(connection), name="klippy-api-send")
-                scripts = group.create_task(session.run_scripts(), name="klippy-api-scripts")
-                try:
-                    while data := await reader.read(READ_BYTES):
-                        for request in framer.feed(data):
-                            session.on_request(request)
-                except (wire.FramingError, ConnectionError) as exc:
-                    self.ctx.log.warning("API client dropped: %s", exc)
-                sender.cancel()
-                scripts.cancel()
+            await serve(connection, reader, self, self.ctx.log)
         finally:
             self.connections.discard(connection)
-            writer.close()
+
+    def _log_refusal(self) -> None:
+        """Log refused clients at most once a second (a flood of them writes one line)."""
+        self._refused += 1
+        now_s = time.monotonic()
+        if now_s - self._refusal_logged_s >= 1.0:
+            self.ctx.log.warning("%d API client(s) refused since the last such line: %d "
+                                 "connections already", self._refused, MAX_CONNECTIONS)
+            self._refusal_logged_s, self._refused = now_s, 0
 
     def _on_job(self, progress: Any) -> None:
         if progress is not None:
@@ -193,18 +225,7 @@ class KlippyApi(Module):
                 ).st_size
             except OSError:
                 self.extra.file_size_bytes = 0
-        self._push_all()
-
-
-async def _drain(connection: _Connection) -> None:
-    writer = connection.writer
-    try:
-        while True:
-            data = await connection.outgoing.get()
-            writer.write(data)
-            await writer.drain()
-    except ConnectionError:
-        writer.close()  # the reader then ends the connection
+        self._changed()
 
 
 def _listening_socket(path: Path) -> socket.socket:
@@ -224,7 +245,7 @@ def _listening_socket(path: Path) -> socket.socket:
     os.fchmod(sock.fileno(), 0o600)  # Linux: the socket file takes this mode when bound
     sock.bind(str(path))
     os.chmod(path, 0o600)
-    sock.listen(8)
+    sock.listen(64)
     sock.setblocking(False)
     return sock
 
