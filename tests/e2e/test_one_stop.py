@@ -89,7 +89,7 @@ async def test_a_job_whose_start_is_being_checked_never_starts_after_a_stop(
 
 
 # -- 2. another connection's stream -------------------------------------------------------------
-async def _hold_and_reset_on_tcp(rig: Rig, rpc: RpcClient) -> None:
+async def _hold_and_reset_on_tcp(rig: Rig, rpc: RpcClient | None = None) -> None:
     operator = await rig.tcp()
     operator.send(b"!")
     await operator.wait_state("Hold:0")
@@ -125,6 +125,26 @@ async def test_a_hold_and_reset_drop_what_another_sender_queued_with_its_banner_
         await sender.wait_state("Idle")
         status = await rpc.call("machine.status")
     assert status["state"] == "Idle" and status["power_pct"] == 0.0, status
+
+
+async def test_a_hold_and_reset_refuse_each_line_a_reprap_host_queued_and_run_none(
+        tmp_path: Path) -> None:
+    """A RepRap host waits for one reply per line (no banner tells it to start again): each
+    line the reset overtook is refused, Marlin's way (``echo:`` then ``ok``), and none runs."""
+    moves = 100
+    async with stop_rig(tmp_path) as rig:
+        host = await rig.tcp()
+        assert (await host.command("N0 M110 N0*125"))[-1] == "ok"
+        host.send(b"G21 G90\n" + b"".join(
+            f"G1 X{1 + i} F600 M3 S1000\n".encode() for i in range(moves)))
+        await host.until(lambda got: got.count("ok") >= 5)
+        await rig.moving()
+        await _hold_and_reset_on_tcp(rig)
+        await rig.assert_still(1.2, "after the reset")
+        refused = [line for line in host.lines if line.startswith("echo:") and "not run" in line]
+    assert host.lines.count("ok") == 1 + 1 + moves, "one reply per line"
+    assert len(refused) > moves // 2, host.lines[-4:]
+    assert host.lines.count(BANNER) == 1, "no Grbl banner for a RepRap host"
 
 
 # -- 3. every stop leaves the laser off in the modal state ---------------------------------------
@@ -200,6 +220,22 @@ async def test_a_ctrl_x_flushes_the_lines_written_right_behind_it_as_meerk40t_st
         await rig.assert_still(1.0, "after the reset")  # (an answer to the lines meanwhile)
     assert [line for line in sender.lines[mark:] if line] == [
         "ALARM:3", "[MSG:reset while in motion: position may be lost, re-home]", BANNER]
+
+
+@pytest.mark.parametrize("comment", ["(outer contour, first pass)", "(激光切割外轮廓第一层)"],
+                         ids=["ascii-comment", "utf-8-comment"])
+async def test_every_byte_written_right_behind_a_ctrl_x_is_flushed_whatever_it_holds(
+        tmp_path: Path, comment: str) -> None:
+    """What follows a Ctrl-X in the same write is dropped, as Grbl's reset flushes its
+    buffer: also when the write holds more than one slice of realtime-looking bytes (30
+    bytes of UTF-8 in a CAM comment), not only up to the end of the Ctrl-X's slice."""
+    async with stop_rig(tmp_path) as rig:
+        sender = await rig.tcp()
+        mark = len(sender.lines)
+        sender.send(b"\x18" + f"G4 P0 {comment}\nG1 X5 F600\n".encode())
+        await sender.until(lambda got: BANNER in got[mark:])
+        await rig.assert_still(1.0, "after the reset")
+    assert [line for line in sender.lines[mark:] if line] == [BANNER]
 
 
 # -- 6. M112 acts whatever its framing says ------------------------------------------------------
