@@ -52,7 +52,7 @@ Reply = Callable[[dict[str, Any]], None]
 @dataclass(frozen=True, slots=True)
 class _Batch:
     request: Gcode | StartJob
-    generation: int
+    ticket: int  # the stop generation the message arrived in: after a stop, none of it runs
 
 
 class Control:
@@ -66,7 +66,6 @@ class Control:
         self.allowed, self.max_lines, self.max_payload_bytes = allowed, max_lines, max_payload_bytes
         self.refused = 0  # messages refused whole (disabled, malformed, busy)
         self._batches: asyncio.Queue[_Batch] = asyncio.Queue(PENDING_BATCHES)
-        self._generation = 0
         self._retained_seen: dict[tuple[str, bytes], None] = {}  # refused, oldest first
 
     def on_command(self, command: str, payload: bytes, *, retained: bool = False) -> None:
@@ -118,14 +117,12 @@ class Control:
     def _realtime(self, request: Realtime) -> None:
         controls = self.ctx.control
         action = {"hold": controls.hold, "resume": controls.resume, "reset": controls.reset}
-        if request.command == "reset":
-            self._generation += 1  # lines not yet started are dropped
-        action[request.command]()
+        action[request.command]()  # a reset is a stop: the batches waiting are void
         self.reply(ok_reply(request.id, "realtime", action=request.command))
 
-    async def _start_job(self, request: StartJob) -> None:
+    async def _start_job(self, request: StartJob, ticket: int) -> None:
         try:
-            await self.ctx.start_job(request.name)
+            await self.ctx.start_job(request.name, ticket)
         except CommandError as exc:
             self.reply(error_reply(request.id, "job", "refused", _text(exc), int(exc.code)))
             return
@@ -133,7 +130,7 @@ class Control:
 
     def _queue(self, request: Gcode | StartJob) -> None:
         try:
-            self._batches.put_nowait(_Batch(request, self._generation))
+            self._batches.put_nowait(_Batch(request, self.ctx.ticket()))
         except asyncio.QueueFull:
             self.refused += 1
             if isinstance(request, StartJob):
@@ -152,18 +149,16 @@ class Control:
             batch = await self._batches.get()
             request = batch.request
             if isinstance(request, StartJob):
-                await self._start_job(request)
+                await self._start_job(request, batch.ticket)
                 continue
             for index, line in enumerate(request.lines):
                 self.reply(await self._line(batch, line, limit) | {"index": index, "line": line})
 
     async def _line(self, batch: _Batch, line: str, limit: int) -> dict[str, Any]:
         request_id = batch.request.id
-        if batch.generation != self._generation:
-            return error_reply(request_id, "gcode", "busy", "overtaken by a reset", Error.BUSY)
         try:
             check_length(line, limit)
-            messages = await self.ctx.run_gcode(line)
+            messages = await self.ctx.run_gcode(line, batch.ticket)
         except CommandError as exc:
             return error_reply(request_id, "gcode", "refused", _text(exc), int(exc.code))
         return ok_reply(request_id, "gcode", messages=messages)

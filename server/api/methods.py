@@ -15,6 +15,7 @@ import asyncio
 import inspect
 from collections import OrderedDict
 from collections.abc import Callable, Iterable
+from contextvars import ContextVar
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -103,6 +104,11 @@ CORE_METHODS = MethodTable()  # server.*, machine.*, gcode.*
 method = CORE_METHODS.method
 
 
+# The stop generation the JSON-RPC request being handled arrived in (each request is handled in
+# a task of its own: see server.api.server), read by every line it submits.
+_REQUEST_TICKET: ContextVar[int | None] = ContextVar("request_ticket", default=None)
+
+
 class Methods:
     """The API's view of one kernel; holds the toolpath cache."""
 
@@ -131,15 +137,21 @@ class Methods:
                 f"{'.'.join(map(str, e['loc'])) or 'params'}: {e['msg']}" for e in exc.errors()
             ]
             raise RpcError(INVALID_PARAMS, "invalid params: " + "; ".join(problems)) from exc
-        result = spec.handler(self, connection, parsed)
-        if inspect.isawaitable(result):
-            result = await result
+        token = _REQUEST_TICKET.set(self.kernel.status.ticket())  # this request's, at arrival
+        try:
+            result = spec.handler(self, connection, parsed)
+            if inspect.isawaitable(result):
+                result = await result
+        finally:
+            _REQUEST_TICKET.reset(token)
         return result
 
     async def submit(self, connection: Connection, line: str) -> list[str]:
-        """One line through the dispatcher, in order with this connection's other lines."""
+        """One line through the dispatcher, in order with this connection's other lines,
+        with the stop ticket of the request it is part of: a stop after the request arrived
+        refuses its lines still to run (error 45), whatever they waited for."""
         async with connection.gcode_lock:
-            return await self.kernel.dispatcher.submit(line, connection)
+            return await self.kernel.dispatcher.submit(line, connection, _REQUEST_TICKET.get())
 
     def state(self) -> dict[str, Any]:
         return {"state": state_text(self.kernel)}

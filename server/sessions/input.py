@@ -95,6 +95,7 @@ class LineAdmission:
     _resetting: bool
     _closing: bool
     _discarded: bool  # the last stop dropped something this connection sent
+    _feeding: bool  # a read is being fed in slices (feed)
     _replies: deque[tuple[int, asyncio.Future[bytes]]]
     _queued_bytes: int
     _scheduler: StatusScheduler
@@ -149,7 +150,17 @@ class LineAdmission:
         waiting while the backlog is full. What such bytes turn out to be inside complete lines
         (UTF-8 text) is not charged to the realtime budget. ``gone()`` says the client has
         hung up: what of a flood it had sent is not examined yet is then dropped, so its
-        realtime bytes never act late, after it left (a ``~`` after the operator's ``!``)."""
+        realtime bytes never act late, after it left (a ``~`` after the operator's ``!``).
+        A reset while the read is fed (its own Ctrl-X, or another's) drops the rest of it:
+        those bytes came before the reset, as the ones Grbl flushes from its buffer."""
+        epoch = self._epoch
+        try:
+            await self._feed_slices(data, final, gone, epoch)
+        finally:
+            self._feeding = False
+
+    async def _feed_slices(self, data: bytes, final: bool, gone: Callable[[], bool] | None,
+                           epoch: int) -> None:
         first = True
         while True:
             if not first and gone is not None and gone():
@@ -157,12 +168,13 @@ class LineAdmission:
             first = False
             size = affordable(data, SLICE_COST)
             piece, data = data[:size], data[size:]
+            self._feeding = bool(data)  # more of this read waits behind this slice
             cost = realtime_cost(piece)
             if not self.can_control:
                 await self.pace_input(len(piece))
             if self._realtime_wait_s() > 0.0:
                 await self._pace_realtime()
-            if self.outbox.closed:
+            if self.outbox.closed or self._epoch != epoch:  # (a reset: the rest came before it)
                 return
             self._text_cost = 0
             self._text_counting = cost > 0  # nothing to refund: no line's text is looked at
@@ -329,7 +341,8 @@ class LineAdmission:
         A read-only connection's queries are not requests: they stay."""
         if self._closing or not self.can_control:
             return
-        self._discarded = bool(self._queued_bytes or self._backlog or self._replies)
+        self._discarded = bool(self._queued_bytes or self._backlog or self._replies
+                               or self._feeding)
         self._backlog.clear()
         self._input_room.set()
         self.protocol.reset()
@@ -342,7 +355,7 @@ class LineAdmission:
         Ctrl-X always, else when the reset dropped something of a Grbl sender's (a RepRap
         host, which waits for one reply per line, gets its lines refused instead)."""
         own, self._resetting = self._resetting, False
-        dropped, self._discarded = self._discarded, False
+        dropped, self._discarded = self._discarded or self._feeding, False
         if self._closing or not (own or (dropped and self.protocol.dialect is Dialect.GRBL)):
             return
         self._epoch += 1

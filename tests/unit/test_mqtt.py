@@ -192,24 +192,35 @@ def test_the_fleet_table() -> None:
 
 
 class FakeContext:
-    """Just what :class:`Control` uses of a ModuleContext."""
+    """Just what :class:`Control` uses of a ModuleContext: a reset is a stop, which makes the
+    lines sent before it void where they would start (as the dispatcher does with tickets)."""
 
     def __init__(self) -> None:
         self.calls: list[str] = []
+        self.stops = 0
         self.core = SimpleNamespace(protocol=SimpleNamespace(line_limit=256))
-        self.control = SimpleNamespace(**{name: (lambda n=name: self.calls.append(n))
+        self.control = SimpleNamespace(**{name: (lambda n=name: self._control(n))
                                           for name in ("hold", "resume", "reset",
                                                        "emergency_stop")})
         self.gate = asyncio.Event()
 
-    async def run_gcode(self, text: str) -> list[str]:
+    def _control(self, name: str) -> None:
+        self.calls.append(name)
+        self.stops += name in ("reset", "emergency_stop")
+
+    def ticket(self) -> int:
+        return self.stops
+
+    async def run_gcode(self, text: str, ticket: int | None = None) -> list[str]:
+        if ticket is not None and ticket != self.stops:
+            raise CommandError(Error.BUSY, "a stop came after this line was sent: not run")
         self.calls.append(text)
         await self.gate.wait()
         if text == "G999":
             raise CommandError(Error.UNSUPPORTED, "unsupported")
         return []
 
-    async def start_job(self, name: str) -> None:
+    async def start_job(self, name: str, ticket: int | None = None) -> None:
         raise CommandError(Error.FILE_ERROR, f"no job file {name}")
 
 
@@ -234,8 +245,9 @@ async def test_control_answers_each_line_once_and_a_reset_drops_what_has_not_sta
     gcode = [(r["id"], r["index"], r["ok"]) for r in replies if r["command"] == "gcode"]
     assert gcode == [("a", 0, True), ("a", 1, False), ("b", 0, True), ("c", 0, True),
                      ("c", 1, False)]
-    assert replies[-1]["error"] == {"reason": "busy", "code": 45,
-                                    "message": "overtaken by a reset"}
+    assert replies[-1]["error"] == {
+        "reason": "refused", "code": 45,
+        "message": "error:45 a stop came after this line was sent: not run"}
     job = next(r for r in replies if r["command"] == "job")
     assert job["error"]["code"] == 44 and job["error"]["reason"] == "refused"
     assert ctx.calls == ["G0 X1", "G999", "G0 X2", "G0 X3", "reset"]
