@@ -57,6 +57,15 @@ def motiond_files_in_home() -> list[Path]:
     return sorted(path for path in HOME.rglob("*") if path.name == "motiond")
 
 
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """The fast tier (``pytest -m "not slow"``, a developer's loop after each change) leaves
+    out every end-to-end test (processes, browsers, brokers, firmware rigs) and the in-process
+    tests marked ``slow`` (seconds each: whole corpus files, real-time holds)."""
+    for item in items:
+        if "e2e" in item.path.parts:
+            item.add_marker(pytest.mark.slow)
+
+
 def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
     stray = motiond_files_in_home()
     shutil.rmtree(DATA_ROOT, ignore_errors=True)

@@ -121,6 +121,7 @@ async def test_noise_in_reports_breaks_no_session_and_the_front_answers_quickly(
         assert machine.controller.link.buffer_bytes == 255
 
 
+@pytest.mark.slow
 async def test_a_board_that_stops_answering_alarms_turns_tools_off_and_is_reconnected(
         tmp_path: Path) -> None:
     async with linked(tmp_path) as (fake, app):
@@ -170,6 +171,7 @@ async def test_lines_printed_while_a_line_is_in_flight_are_bounded(tmp_path: Pat
         assert "more lines from the controller" in reply[-1]
 
 
+@pytest.mark.slow
 async def test_a_chatty_board_neither_disconnects_clients_nor_floods_them_or_the_log(
         tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     async with linked(tmp_path) as (fake, app):

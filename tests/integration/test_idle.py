@@ -78,6 +78,7 @@ async def test_a_hold_with_moves_queued_keeps_ticking_and_resumes(tmp_path: Path
         assert machine.stepgen.state.position_mm[0] == pytest.approx(40.0)
 
 
+@pytest.mark.slow
 async def test_the_klipper_backend_rests_while_idle_and_wakes_for_motion_outputs_and_faults(
         ) -> None:
     """The Klipper backend ticks only while it has steps queued, an output on or a fault to

@@ -102,6 +102,7 @@ async def test_identify_reads_the_dictionary_and_configures_with_a_crc(mcu: Virt
         assert backend.mcu.move_count == mcu.move_count
 
 
+@pytest.mark.slow
 async def test_idle_polling_costs_under_20_bytes_a_second_and_draws_no_resend(
     mcu: VirtualMcu
 ) -> None:
@@ -145,6 +146,7 @@ async def test_the_fitted_clock_maps_host_time_to_mcu_ticks(mcu: VirtualMcu) -> 
     ("laser-raster-tree.nc", 160, 4.0),
     ("cnc-arcs-arrows.nc", 90, 3.0),
 ])
+@pytest.mark.slow
 async def test_corpus_steps_land_exactly_where_and_when_the_step_generator_put_them(
     mcu: VirtualMcu, job: str, lines: int, feed_scale: float
 ) -> None:
@@ -237,6 +239,7 @@ def speed_at(pieces: list[Piece], when_s: float) -> float | None:
     return float(found.start_mm_s + found.accel_mm_s2 * (when_s - found.start_s))
 
 
+@pytest.mark.slow
 async def test_status_shows_the_boards_position_and_speed_a_lead_behind_the_plan(
     mcu: VirtualMcu
 ) -> None:
@@ -274,6 +277,7 @@ async def test_status_shows_the_boards_position_and_speed_a_lead_behind_the_plan
         assert len({x for x, _, _ in samples}) == len(samples), "a new position every report"
 
 
+@pytest.mark.slow
 async def test_feed_hold_decelerates_within_the_lead_time_and_resume_is_exact(
     mcu: VirtualMcu
 ) -> None:
@@ -376,6 +380,7 @@ async def test_a_stall_beyond_the_lead_time_alarms_and_never_sends_a_late_step(
         assert set(mcu.shutdowns) <= {"Command request"}, mcu.shutdowns
 
 
+@pytest.mark.slow
 async def test_a_status_reply_from_before_an_emergency_stop_does_not_make_its_shutdown_a_fault(
     mcu: VirtualMcu
 ) -> None:
@@ -419,6 +424,7 @@ async def test_stopping_the_server_mid_move_stops_the_mcu_before_it_lets_go(
     assert clocks[-1] <= stop_clock and mcu.output_events("PA8")[-1][1] == 0
 
 
+@pytest.mark.slow
 async def test_flow_control_keeps_a_small_move_queue_full_but_never_overflowing() -> None:
     # 40 moves of this raster cover about 90 ms, less than the 200 ms lead time, so the queue
     # is the limit; a smaller queue would cover so little time that a shared machine's
@@ -434,6 +440,7 @@ async def test_flow_control_keeps_a_small_move_queue_full_but_never_overflowing(
         small.stop()
 
 
+@pytest.mark.slow
 async def test_m18_turns_the_drivers_off_after_motion_and_the_next_move_turns_them_on_first(
     mcu: VirtualMcu
 ) -> None:
@@ -461,6 +468,7 @@ async def test_m18_turns_the_drivers_off_after_motion_and_the_next_move_turns_th
         assert mcu.output_events("PB14")[-1][1] == 1, "$SLP turns them off too"
 
 
+@pytest.mark.slow
 async def test_m18_after_a_move_ending_between_steps_waits_for_its_last_step(
     mcu: VirtualMcu
 ) -> None:

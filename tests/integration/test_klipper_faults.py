@@ -43,6 +43,7 @@ async def test_lost_and_corrupted_blocks_are_sent_again_and_no_step_is_lost(
         assert check_steps(app, mcu) > 5000
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault", ["silent", "restart"])
 async def test_an_mcu_that_stops_answering_or_restarts_alarms_within_a_second_tools_off(
     mcu: VirtualMcu, fault: str

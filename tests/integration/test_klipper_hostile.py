@@ -22,6 +22,7 @@ from tests.support.virtual_mcu import VirtualMcu
 LASER = {"pin": "PA8"}
 
 
+@pytest.mark.slow
 async def test_an_output_on_is_refreshed_within_its_max_duration_and_a_hung_host_lets_it_go_off(
     mcu: VirtualMcu
 ) -> None:

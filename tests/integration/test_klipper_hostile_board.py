@@ -71,6 +71,7 @@ def board(tmp_path: Path) -> Iterator[HostileMcu]:
     virtual.stop()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", list(CASES))
 async def test_a_hostile_board_alarms_at_once_naming_what_it_saw_and_the_laser_goes_off(
     board: HostileMcu, case: str
@@ -124,6 +125,7 @@ async def test_a_hostile_board_alarms_at_once_naming_what_it_saw_and_the_laser_g
         assert now_on and all(value == 0 for _, value in now_on), "nothing on from before"
 
 
+@pytest.mark.slow
 async def test_host_stalls_and_a_board_that_lags_under_the_lead_time_are_ridden_through_exactly(
     board: HostileMcu
 ) -> None:
@@ -148,6 +150,7 @@ async def test_host_stalls_and_a_board_that_lags_under_the_lead_time_are_ridden_
         assert check_steps(app, board) > 5000
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("evidence", ["starting", "unconfigured"])
 async def test_a_restart_is_caught_by_the_firmware_s_own_evidence(
     board: HostileMcu, evidence: str

@@ -13,6 +13,8 @@ import time
 from collections.abc import AsyncIterator, Callable
 from typing import Any
 
+import pytest
+
 from server.app import App
 from server.backends.klipper.backend import SAMPLE_GAP_MAX_S, KlipperBackend
 from server.motion.stepgen import HoldState
@@ -68,6 +70,7 @@ async def cruising(mcu: VirtualMcu) -> AsyncIterator[tuple[App, KlipperBackend, 
         yield app, backend, samples
 
 
+@pytest.mark.slow
 async def test_a_cruise_is_sampled_only_when_the_backend_needs_it(mcu: VirtualMcu) -> None:
     """100 mm/s along X for 1.5 s: in the cruise the backend is sampled about every 165 ms
     (each run's turn to leave, as late as a flush would send it), not every 20 ms flush (50 a
@@ -176,6 +179,7 @@ async def test_a_board_shutdown_mid_cruise_is_read_within_the_longest_sample_gap
         assert backend.fault is not None
 
 
+@pytest.mark.slow
 async def test_an_idle_server_wakes_only_for_its_periodic_jobs_on_one_grid(
         mcu: VirtualMcu) -> None:
     """Quiet and idle (the steps done, no command for a second): the event loop's timers wake

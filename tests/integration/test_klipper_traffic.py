@@ -38,6 +38,7 @@ def test_the_hold_back_is_the_lead_but_the_ride_through_and_a_quarter_of_a_short
     assert hold_back_s(0.1) == pytest.approx(0.025)  # a quarter: 55 ms ride-through
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("lead_s", [0.2, 0.3])
 async def test_a_100_mm_cruise_sends_runs_as_long_as_the_hold_back_and_each_in_time(
     mcu: VirtualMcu, lead_s: float

@@ -198,6 +198,7 @@ async def test_a_job_with_module_codes_plans_the_same_live_and_offline(
     assert offline == live
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("path", _corpus(), ids=lambda p: p.name)
 async def test_every_corpus_file_plans_the_same_live_and_offline(
     path: Path, monkeypatch: pytest.MonkeyPatch

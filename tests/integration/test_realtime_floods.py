@@ -34,6 +34,7 @@ async def moving_session(app: App, name: str = "sender") -> Session:
     return session
 
 
+@pytest.mark.slow
 async def test_a_flood_of_holds_holds_once_and_a_resume_after_the_last_hold_resumes(
         app: App) -> None:
     holds: list[object] = []

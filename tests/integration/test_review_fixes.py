@@ -66,6 +66,7 @@ async def test_a_job_stopped_by_an_alarm_is_failed_not_done() -> None:
         assert "alarm" in (progress.error or "")
 
 
+@pytest.mark.slow
 async def test_the_job_player_lets_other_tasks_run_on_lines_that_never_wait() -> None:
     async with running(make_config()) as app:
         jobs = app.kernel.jobs

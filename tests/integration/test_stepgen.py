@@ -153,6 +153,7 @@ def test_hold_on_short_blocks_decelerates_across_block_boundaries() -> None:
     assert backend.steps == [round(99.5 * 80), 0, 0]
 
 
+@pytest.mark.slow
 def test_estimate_agrees_with_full_execution_on_corpus_files() -> None:
     core = make_config(machine={"soft_limits": False}).core
     for name in ("laser-vector-jsdc.gcode", "laser-engrave-tball.gcode"):
@@ -164,6 +165,7 @@ def test_estimate_agrees_with_full_execution_on_corpus_files() -> None:
         assert abs(fast.duration_s - full.duration_s) <= allowed_s, name
 
 
+@pytest.mark.slow
 def test_full_execution_steps_match_the_program_end_on_the_sim_backend() -> None:
     core = make_config(machine={"soft_limits": False}).core
     backend = SimBackend(core.axis_names, [a.steps_per_mm for a in core.axes.values()])
@@ -266,6 +268,7 @@ def test_lazy_replanning_gives_exactly_the_plan_of_replanning_at_every_pop(
 
 @pytest.mark.parametrize(
     "name", ["zigzag"] + sorted(p.name for p in CORPUS.iterdir() if p.suffix != ".md"))
+@pytest.mark.slow
 def test_estimate_in_settled_batches_sums_the_blocks_popped_one_by_one(name: str) -> None:
     if name == "zigzag":
         planner = {"max_blocks": 6, "max_planned_s": 60.0}
