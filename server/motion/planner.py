@@ -4,12 +4,13 @@ Pure computation (no asyncio, no I/O). Units are machine mm, mm/s, mm/s² and se
 
 The interpreter side calls :meth:`Planner.append` / :meth:`Planner.append_action` and watches
 :meth:`Planner.is_full` for back-pressure (a writer that found it full waits until
-:meth:`Planner.has_room`: a batch's worth below the bounds); the step generator calls
-:meth:`Planner.pop` for the next block to run, and :meth:`Planner.plan` first whenever
-:meth:`Planner.lookahead_short`. Appending is O(1) plain Python: the block's length, feed and
-direction are staged; every ``sync_blocks`` appends (and at ``plan()``) the staged blocks are
-copied into the columns of one growable numpy array and their limits derived in a batch
-(projected axis rates and accelerations, nominal speeds, junction limits and node caps).
+:meth:`Planner.has_room`: a batch's worth below the bounds): that side is the planner's intake,
+:mod:`server.motion.planner_intake` (a base class of :class:`Planner`), which stages each block
+in O(1) plain Python. The step generator calls :meth:`Planner.pop` for the next block to run,
+and :meth:`Planner.plan` first whenever :meth:`Planner.lookahead_short`: that side is this
+module. Every ``sync_blocks`` appends (and at ``plan()``) the staged blocks are copied into the
+columns of one growable numpy array and their limits derived in a batch (projected axis rates
+and accelerations, nominal speeds, junction limits and node caps).
 ``plan()`` plans at most ``plan_blocks`` blocks from the head with a handful of numpy
 operations (:func:`server.motion.trapezoid.plan_prefix`): the rest of the window enters the
 backward pass through one minimum, taken with three array operations, so the plan of those
@@ -24,8 +25,6 @@ window) stays feasible; its exit speed becomes the fixed start speed of the next
 from __future__ import annotations
 
 import math
-from operator import mul, sub
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -38,44 +37,32 @@ from server.motion.limits import (
     ESTIMATE,
     EXIT,
     FEED,
-    FEED_OVERRIDE,
     FEED_OVERRIDE_RANGE,
     KIND,
     LEAD,
     LENGTH,
     NO_OVERRIDE,
     NOMINAL,
-    RAPID_OVERRIDE,
     RAPID_OVERRIDE_RANGE,
     UNIT,
     Limits,
     PlannerSettings,
     kind_and_feed,
 )
-from server.motion.moves import Action, Move, MoveKind, Position
+from server.motion.moves import Action, Move, Position
+from server.motion.planner_intake import MIN_LENGTH_MM, REFILL_FRACTION, Geometry, PlannerIntake
 from server.motion.trapezoid import plan_prefix
-
-if TYPE_CHECKING:
-    from collections.abc import Sequence
 
 __all__ = ["MIN_LENGTH_MM", "Block", "Planner", "PlannerSettings", "SettledBlocks"]
 
-MIN_LENGTH_MM = 1e-6
-"""Moves shorter than this are dropped; the next block starts where the last one ended, so
-the skipped displacement is not lost."""
-REFILL_FRACTION = 16
-"""A full window takes more blocks once it has drained 1/16 of its bounds (of ``max_blocks``,
-at least one block, and of ``max_planned_s``): see :meth:`Planner.has_room`."""
 PREALLOCATED_BLOCKS = 16384
 GEOMETRY_COMPACT = 1024  # popped blocks' geometry entries dropped at once
-_RAPID, _JOG, _HOMING = MoveKind.RAPID, MoveKind.JOG, MoveKind.HOMING
 
-_Geometry = tuple[Move | None, list[Action], Position, Position, Position]
-_TAKEN: _Geometry = (None, [], (), (), ())  # in the geometry list, where a popped block was
+_TAKEN: Geometry = (None, [], (), (), ())  # in the geometry list, where a popped block was
 _POP_ROWS = DURATION + 1
 
 
-class Planner:
+class Planner(PlannerIntake):
     """The waiting window of blocks, planned with look-ahead from the start speed to a stop.
 
     ``position_mm`` is the target of the last appended move (machine mm).
@@ -91,7 +78,7 @@ class Planner:
         )
         self._planned = 0  # blocks from the head covered by the last plan
         self._settled = 0  # ... of which appending more blocks cannot change the speeds
-        self._geometry: list[_Geometry] = []  # of the blocks from _geometry_head on
+        self._geometry: list[Geometry] = []  # of the blocks from _geometry_head on
         self._geometry_head = 0
         self._pending: list[Action] = []
         self._start_mm_s = 0.0
@@ -130,124 +117,7 @@ class Planner:
         limits.rapid_override = self._limits.rapid_override
         self._limits = limits
 
-    # ------------------------------------------------------------------ appending
-
-    def append(self, move: Move) -> bool:
-        """Queue a straight move from the end of the last one to ``move.target_mm``; return
-        :meth:`is_full` afterwards.
-
-        A move shorter than :data:`MIN_LENGTH_MM` is dropped; its actions ride on the next block.
-        O(1): the block is staged; its limits are derived in batches of ``sync_blocks``.
-        """
-        self.moves_appended += 1
-        start, target = self._chain_mm, move.target_mm
-        if type(target) is not tuple:
-            target = tuple(target)
-        if len(target) != len(start):
-            raise ValueError(f"expected {len(start)} coordinates, got {len(target)}")
-        if len(start) == 3:  # the common machine, unrolled (the same operations, 3x faster)
-            x0, y0, z0 = start
-            x1, y1, z1 = target
-            delta: Sequence[float] = (x1 - x0, y1 - y0, z1 - z0)
-            length = math.hypot(*delta)
-            inverse = 1.0 / length if length >= MIN_LENGTH_MM else 0.0
-            dx, dy, dz = delta
-            unit: tuple[float, ...] = (dx * inverse, dy * inverse, dz * inverse)
-        else:
-            delta = list(map(sub, target, start))
-            length = math.hypot(*delta)
-            inverse = 1.0 / length if length >= MIN_LENGTH_MM else 0.0
-            unit = tuple([x * inverse for x in delta])
-        self.position_mm = target
-        if length < MIN_LENGTH_MM:
-            self._pending.extend(move.actions)
-            return self.is_full()
-        self._chain_mm = target
-        kind = move.kind
-        if kind is _RAPID:
-            code, feed = RAPID_OVERRIDE, math.inf
-            estimate_s = max(map(mul, map(abs, delta), self._inv_rate))
-            estimate_s /= self._limits.rapid_override
-        else:
-            feed = move.feed_mm_s if move.feed_mm_s > 0.0 else 0.0
-            code, scaled = FEED_OVERRIDE, feed * self._limits.feed_override
-            if kind is _JOG or kind is _HOMING:
-                code, scaled = NO_OVERRIDE, feed
-            estimate_s = length / (scaled if scaled > self._min_feed_mm_s else self._min_feed_mm_s)
-        self._time_estimate_s += estimate_s
-        actions = self._take_pending(move.actions) if self._pending else move.actions
-        self._geometry.append((move, actions, start, target, unit))
-        self._dirty = True
-        columns = self._columns
-        if columns.push((length, feed, code, 0.0, estimate_s, *unit)):
-            self._sync()
-        count = columns.tail - columns.head
-        return count >= 2 and (
-            count >= self._max_blocks
-            or self._time_planned_s + self._time_estimate_s >= self._max_planned_s
-        )
-
-    def append_action(self, action: Action) -> None:
-        """Queue a non-motion action in order with motion.
-
-        A follow action rides on the next block; a lead action (``lead_s > 0`` or
-        ``stops_motion``) becomes a zero-length block where motion stops, carrying any pending
-        follow actions before it.
-        """
-        if action.lead_s <= 0.0 and not action.stops_motion:
-            self._pending.append(action)
-            return
-        lead_s = max(action.lead_s, 0.0)
-        here = self._chain_mm
-        self._geometry.append((None, self._take_pending([action]), here, here, self._zero))
-        self._time_estimate_s += lead_s
-        self._dirty = True
-        if self._columns.push((0.0, math.inf, NO_OVERRIDE, lead_s, lead_s, *self._zero)):
-            self._sync()
-
-    # ------------------------------------------------------------------ window state
-
-    def __len__(self) -> int:
-        """Blocks waiting, counting pending follow actions as one action-only block."""
-        return len(self._columns) + (1 if self._pending else 0)
-
-    def is_full(self) -> bool:
-        """True when the window holds ``max_blocks`` blocks or ``max_planned_s`` of motion.
-
-        Never full with fewer than two blocks, so a single very long move can always queue.
-        """
-        columns = self._columns
-        count = columns.tail - columns.head
-        return count >= 2 and (
-            count >= self._max_blocks
-            or self._time_planned_s + self._time_estimate_s >= self._max_planned_s
-        )
-
-    def has_room(self) -> bool:
-        """True when the window has drained :data:`REFILL_FRACTION` of its bounds below them
-        (or holds fewer than two blocks); never while :meth:`is_full`.
-
-        The hysteresis of back-pressure: a writer that found the window full is woken when
-        this holds, not at every popped block, so it takes lines in batches: one wake-up of
-        the writer, one reply and one read of the sender's next lines per batch, not per
-        line (a 0.1 mm raster at F6000 on the simulated machine: half of what a line cost
-        beyond the tick, ``python -m benchmarks lines``). While lines wait, the window stays
-        above 15/16 of its bounds: the blocks are the same, and a block's speeds differ
-        only where that much look-ahead is what limits them (a stop longer than 0.47 s of
-        motion at the default ``max_planned_s``), as they would for a sender a little slower.
-        """
-        columns = self._columns
-        count = columns.tail - columns.head
-        return count < 2 or (
-            count <= self._refill_blocks
-            and self._time_planned_s + self._time_estimate_s <= self._refill_s
-        )
-
-    def planned_time_s(self) -> float:
-        """Seconds of queued motion: planned durations, plus a lower bound (the time at the
-        requested feed, or at the axes' rates for rapids) for blocks appended since the last
-        plan."""
-        return self._time_planned_s + self._time_estimate_s
+    # ------------------------------------------------------------------ planning and popping
 
     def lookahead_short(self) -> bool:
         """Whether the head may plan differently now that blocks were appended since the last
@@ -257,8 +127,6 @@ class Planner:
         can wait.
         """
         return self._dirty and (self._head_dirty or self._settled <= 0)
-
-    # ------------------------------------------------------------------ planning and popping
 
     def plan(self) -> None:
         """Re-plan the head of the window (at most ``plan_blocks`` blocks, with the whole
@@ -462,7 +330,7 @@ class Planner:
             self._limits.derive(first, columns.tail)
             self._limits.derive_caps(first, columns.tail)
 
-    def _take_geometry(self, count: int) -> list[_Geometry]:
+    def _take_geometry(self, count: int) -> list[Geometry]:
         """Remove the geometry of ``count`` blocks from the head and return it."""
         geometry, head = self._geometry, self._geometry_head
         taken = geometry[head : head + count]
@@ -480,14 +348,6 @@ class Planner:
             del self._geometry[:head]
             head = 0
         self._geometry_head = head
-
-    def _take_pending(self, more: list[Action]) -> list[Action]:
-        if not self._pending:
-            return list(more)
-        actions = self._pending
-        actions.extend(more)
-        self._pending = []
-        return actions
 
     def _pop_pending(self) -> Block | None:
         if not self._pending:

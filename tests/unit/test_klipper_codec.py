@@ -9,7 +9,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from klippy import msgproto  # type: ignore[import-untyped]
 
-from server.backends.klipper.backend import level
 from server.backends.klipper.codec import (
     PAYLOAD_MAX,
     BlockReader,
@@ -21,6 +20,7 @@ from server.backends.klipper.codec import (
     vlq_size,
 )
 from server.backends.klipper.dictionary import Dictionary, vlq
+from server.backends.klipper.outputs import level
 from server.backends.klipper.stepcompress import StepRun, run_clocks
 from tests.support.klipper_dictionary import compressed, dictionary_data
 
