@@ -206,14 +206,18 @@ async def ws_stream_ahead(served: Served) -> None:
 async def hold_then_reset(served: Served, send: Callable[[bytes], Awaitable[None]]) -> None:
     """The streaming sender's ``!`` must show as a hold within a second (asked on another
     connection: its own replies are far behind), then its Ctrl-X and ``$X`` (a reset in
-    motion alarms) leave the machine to the moving sender again within a second."""
+    motion alarms) leave the machine to the moving sender again within a second each."""
     await send(b"!")
     reader, writer = await asyncio.open_connection("127.0.0.1", served.tcp_port)
     try:
         async with asyncio.timeout(1.0):
             while not (await reader.readline()).startswith(b"<Hold"):
                 writer.write(b"?")
-        await send(b"\x18$X\n")
+        await send(b"\x18")  # then $X apart: a reset flushes what follows it in one write
+        async with asyncio.timeout(1.0):
+            while not (await reader.readline()).startswith((b"<Idle", b"<Alarm", b"<Run")):
+                writer.write(b"?")
+        await send(b"$X\n")
         async with asyncio.timeout(1.0):
             while not (await reader.readline()).startswith((b"<Idle", b"<Run")):
                 writer.write(b"?")
