@@ -21,13 +21,19 @@ from pathlib import Path
 import pytest
 
 from tests.support.api_client import RpcClient, client
-from tests.support.stop_rig import BANNER, LineClient, Rig, field_of, stop_rig
+from tests.support.stop_rig import (
+    BANNER,
+    LineClient,
+    Rig,
+    assert_a_reset_boards_modes,
+    field_of,
+    stop_rig,
+)
 
 # A job whose fit check takes about 2 s here (1.4 MB of short moves: 1.35 MB measured 2.15 s
 # on an idle 2-core machine), so that a stop 0.4 s after job.start lands during the check.
 CHECK_LINES = 100_000
 STOP_AFTER_S = 0.4
-OFFSET = "[G54:5.000,3.000,0.000]"  # G10 L20 P1 X-5 Y-3 at the origin
 
 
 def big_job() -> str:
@@ -195,16 +201,7 @@ async def test_after_a_stop_and_unlock_the_modal_state_is_m5_s0_m9_and_the_next_
         await rig.moving()
         assert rig.laser_fired_since(0), "the move cut"
         await MODAL_STOPS[stop](rig, sender, rpc)
-        modal = (await sender.command("$G"))[0].strip("[]").split()
-        assert {"M5", "S0", "M9"} <= set(modal), modal
-        assert OFFSET in await sender.command("$#"), "the work offset stays"
-        mark = rig.laser_mark()
-        assert await sender.command("G1 X10 F600") == ["ok"]
-        await rig.moving()
-        await sender.wait_state("Idle")
-        where = field_of(await sender.report(), "MPos")
-    assert where == "15.000,0.000,0.000", "it moved, to work X10"
-    assert not rig.laser_fired_since(mark), "the laser stayed off"
+        await assert_a_reset_boards_modes(rig, sender)
 
 
 # -- 5. MeerK40t's Stop ------------------------------------------------------------------------

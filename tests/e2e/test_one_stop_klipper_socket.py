@@ -17,11 +17,17 @@ from pathlib import Path
 
 import pytest
 
-from tests.support.stop_rig import BANNER, KlippyClient, LineClient, Rig, field_of, stop_rig
+from tests.support.stop_rig import (
+    BANNER,
+    KlippyClient,
+    LineClient,
+    Rig,
+    assert_a_reset_boards_modes,
+    stop_rig,
+)
 
 CHECK_LINES = 100_000  # a fit check of about 2 s here (see test_one_stop.big_job)
 STOP_AFTER_S = 0.4
-OFFSET = "[G54:5.000,3.000,0.000]"  # G10 L20 P1 X-5 Y-3 at the origin
 
 
 def big_job() -> str:
@@ -89,16 +95,7 @@ async def test_after_klippers_stops_the_modal_state_is_m5_s0_m9_and_the_next_mov
         assert rig.laser_fired_since(0), "the move cut"
         await stop(rig, sender)
         assert (await sender.report()).startswith("<Idle|"), "unlocked by the restart"
-        modal = (await sender.command("$G"))[0].strip("[]").split()
-        assert {"M5", "S0", "M9"} <= set(modal), modal
-        assert OFFSET in await sender.command("$#"), "the work offset stays"
-        mark = rig.laser_mark()
-        assert await sender.command("G1 X10 F600") == ["ok"]
-        await rig.moving()
-        await sender.wait_state("Idle")
-        where = field_of(await sender.report(), "MPos")
-    assert where == "15.000,0.000,0.000", "it moved, to work X10"
-    assert not rig.laser_fired_since(mark), "the laser stayed off"
+        await assert_a_reset_boards_modes(rig, sender)
 
 
 # -- 4. a deferred jog -------------------------------------------------------------------------

@@ -11,41 +11,13 @@ import stat
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from pathlib import Path
-from typing import Any
 
 from server.app import App
 from server.runtime.clock import RealClock
 from server.runtime.events import MachineState
 from tests.conftest import make_config
 from tests.support.helpers import running
-
-
-class Client:
-    def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        self.reader, self.writer = reader, writer
-        self.pushed: list[dict[str, Any]] = []
-        self.answers: dict[int, dict[str, Any]] = {}
-        self._next = 0
-
-    async def send(self, method: str, **params: Any) -> int:
-        self._next += 1
-        message = {"id": self._next, "method": method, "params": params}
-        self.writer.write(json.dumps(message).encode() + b"\x03")
-        await self.writer.drain()
-        return self._next
-
-    async def answer(self, request_id: int, timeout_s: float = 10.0) -> dict[str, Any]:
-        async with asyncio.timeout(timeout_s):
-            while request_id not in self.answers:
-                message = json.loads((await self.reader.readuntil(b"\x03"))[:-1])
-                if "id" in message:
-                    self.answers[message["id"]] = message
-                else:
-                    self.pushed.append(message)
-        return self.answers.pop(request_id)
-
-    async def call(self, method: str, **params: Any) -> dict[str, Any]:
-        return await self.answer(await self.send(method, **params))
+from tests.support.klippy_client import KlippyClient
 
 
 @asynccontextmanager
@@ -61,10 +33,10 @@ async def served(tmp_path: Path) -> AsyncIterator[tuple[App, Path]]:
 
 
 @asynccontextmanager
-async def client(socket: Path) -> AsyncIterator[Client]:
+async def client(socket: Path) -> AsyncIterator[KlippyClient]:
     reader, writer = await asyncio.open_unix_connection(str(socket))
     try:
-        yield Client(reader, writer)
+        yield KlippyClient(reader, writer)
     finally:
         writer.close()
 

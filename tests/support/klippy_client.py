@@ -66,6 +66,23 @@ class KlippyClient:
     async def call(self, method: str, **params: Any) -> dict[str, Any]:
         return await self.answer(await self.send(method, **params))
 
+    async def closed_by_server(self, timeout_s: float = 5.0) -> bool:
+        """Whether the server closes the connection within ``timeout_s`` (answers meanwhile
+        are kept)."""
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(timeout_s):
+                while True:
+                    try:
+                        message = await self.message(timeout_s)
+                    except (asyncio.IncompleteReadError, ConnectionError):
+                        return True
+                    if "id" in message:
+                        self.answers[message["id"]] = message
+        return False
+
+    def close(self) -> None:
+        self.writer.close()
+
     async def pipeline(self, count: int, method: str, **params: Any) -> list[dict[str, Any]]:
         """``count`` requests in one write, then their answers in order."""
         first_id = self._next_id + 1

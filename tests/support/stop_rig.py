@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import time
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
@@ -28,6 +27,7 @@ from server.transports.tcp import TcpTransport
 from server.transports.websocket import HttpTransport
 from tests.conftest import make_config
 from tests.support.helpers import running
+from tests.support.klippy_client import KlippyClient
 from tests.support.senders import wait_for
 
 BANNER = "Grbl 1.1h ['$' for help]"
@@ -131,55 +131,6 @@ def field_of(report: str, name: str) -> str | None:
     return None
 
 
-class KlippyClient:
-    """Klipper's API as Moonraker speaks it: JSON requests each ended by 0x03."""
-
-    def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        self.reader, self.writer = reader, writer
-        self.answers: dict[int, dict[str, Any]] = {}
-        self.pushed: list[dict[str, Any]] = []
-        self._next = 0
-
-    async def send(self, method: str, **params: Any) -> int:
-        """Send a request; its id (its answer may come later: :meth:`answer`)."""
-        self._next += 1
-        message = {"id": self._next, "method": method, "params": params}
-        self.writer.write(json.dumps(message).encode() + b"\x03")
-        await self.writer.drain()
-        return self._next
-
-    async def answer(self, request_id: int, timeout_s: float = 5.0) -> dict[str, Any]:
-        """The answer to one request (``result`` or ``error``); what came meanwhile is kept."""
-        async with asyncio.timeout(timeout_s):
-            while request_id not in self.answers:
-                message = json.loads((await self.reader.readuntil(b"\x03"))[:-1])
-                if "id" in message:
-                    self.answers[message["id"]] = message
-                else:
-                    self.pushed.append(message)
-        return self.answers.pop(request_id)
-
-    async def call(self, method: str, **params: Any) -> dict[str, Any]:
-        return await self.answer(await self.send(method, **params))
-
-    async def closed_by_server(self, timeout_s: float = 5.0) -> bool:
-        """Whether the server closes the connection within ``timeout_s`` (answers meanwhile
-        are kept)."""
-        with contextlib.suppress(TimeoutError):
-            async with asyncio.timeout(timeout_s):
-                while True:
-                    try:
-                        message = json.loads((await self.reader.readuntil(b"\x03"))[:-1])
-                    except (asyncio.IncompleteReadError, ConnectionError):
-                        return True
-                    if "id" in message:
-                        self.answers[message["id"]] = message
-        return False
-
-    def close(self) -> None:
-        self.writer.close()
-
-
 @dataclass
 class Rig:
     """The served machine: its app (in this process), ports and Klipper API socket."""
@@ -276,3 +227,21 @@ async def stop_rig(tmp_path: Path, *, klippy: bool = False, **sections: Any) -> 
         finally:
             for client in rig.clients:
                 client.close()
+
+
+OFFSET = "[G54:5.000,3.000,0.000]"  # G10 L20 P1 X-5 Y-3 at the origin
+
+
+async def assert_a_reset_boards_modes(rig: Rig, sender: LineClient) -> None:
+    """After a stop and its unlock: ``$G`` shows ``M5``, ``S0`` and ``M9``, the work offset
+    (:data:`OFFSET`) stays, and a plain ``G1`` moves with the laser off."""
+    modal = (await sender.command("$G"))[0].strip("[]").split()
+    assert {"M5", "S0", "M9"} <= set(modal), modal
+    assert OFFSET in await sender.command("$#"), "the work offset stays"
+    mark = rig.laser_mark()
+    assert await sender.command("G1 X10 F600") == ["ok"]
+    await rig.moving()
+    await sender.wait_state("Idle")
+    where = field_of(await sender.report(), "MPos")
+    assert where == "15.000,0.000,0.000", "it moved, to work X10"
+    assert not rig.laser_fired_since(mark), "the laser stayed off"
