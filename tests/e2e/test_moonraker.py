@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import stat
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -17,7 +18,7 @@ import aiohttp
 import pytest
 
 from tests.e2e.test_mqtt import mpos, tcp_report
-from tests.support.moonraker import Moonraker, MoonrakerError, moonraker
+from tests.support.moonraker import Moonraker, MoonrakerError, documented_config, moonraker
 from tests.support.processes import Served, motiond
 
 # An XY laser with homing switches below zero, and Z without one.
@@ -26,22 +27,28 @@ AXES = "".join(
     f"min_mm = 0\nmax_mm = 300\n" for axis in "xy"
 ) + ("[axes.z]\nsteps_per_mm = 400\nmax_rate_mm_s = 10\naccel_mm_s2 = 200\n"
      "min_mm = -50\nmax_mm = 0\n")
-EXTRA = """
+ENDSTOPS = """
 [endstops]
 axes.x = { direction = "min", seek_mm_s = 200, feed_mm_s = 20, pull_off_mm = 1, switch_at_mm = -1 }
 axes.y = { direction = "min", seek_mm_s = 200, feed_mm_s = 20, pull_off_mm = 1, switch_at_mm = -1 }
-[klippy_api]
-socket = "{socket}"
 """
 
 
 @contextlib.asynccontextmanager
-async def stack(tmp_path: Path) -> AsyncIterator[tuple[Served, Moonraker, Path]]:
-    socket = tmp_path / "klippy_uds"
+async def stack(tmp_path: Path, machine_toml: str = ENDSTOPS, axes_toml: str = AXES,
+                ) -> AsyncIterator[tuple[Served, Moonraker, Path]]:
+    """motiond and Moonraker configured as docs/moonraker.md says, word for word (the port
+    aside), for a user whose home is ``tmp_path/home``: no link between their folders."""
+    home = tmp_path / "home"
+    motiond_toml, moonraker_conf = documented_config()
+    printer_data = home / "printer_data"
     async with contextlib.AsyncExitStack() as stack:
         served = await stack.enter_async_context(
-            motiond(tmp_path, EXTRA.replace("{socket}", str(socket)), axes_toml=AXES))
-        server = await stack.enter_async_context(moonraker(tmp_path, socket, served.jobs_dir))
+            motiond(tmp_path, machine_toml + motiond_toml, axes_toml=axes_toml, home=home))
+        served = dataclasses.replace(served, jobs=printer_data / "gcodes")
+        socket = printer_data / "comms" / "klippy.sock"
+        server = await stack.enter_async_context(
+            moonraker(tmp_path, socket, conf=moonraker_conf, home=home))
         yield served, server, socket
 
 

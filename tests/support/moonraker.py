@@ -97,18 +97,39 @@ class MoonrakerError(AssertionError):
         self.status, self.body = status, body
 
 
+DOC = Path(__file__).resolve().parents[2] / "docs" / "moonraker.md"
+
+
+def documented_config() -> tuple[str, str]:
+    """docs/moonraker.md's configuration, verbatim: motiond's TOML and ``moonraker.conf``
+    (with ``{port}`` for the port, so that tests on one host do not collide)."""
+    text = DOC.read_text()
+    toml = text.split("```toml\n", 1)[1].split("```", 1)[0]
+    conf = text.split("```ini\n", 1)[1].split("```", 1)[0]
+    assert "port: 7125\n" in conf, "moonraker.md: Moonraker's port is no longer 7125"
+    return toml, conf.replace("port: 7125\n", "port: {port}\n")
+
+
 @contextlib.asynccontextmanager
-async def moonraker(tmp_path: Path, socket: Path, gcodes: Path) -> AsyncIterator[Moonraker]:
-    """Moonraker on a free port, for the motiond API socket ``socket``, with motiond's jobs
-    folder ``gcodes`` as its own (a symbolic link), until Klippy is ready."""
+async def moonraker(tmp_path: Path, socket: Path, gcodes: Path | None = None, *,
+                    conf: str | None = None, home: Path | None = None,
+                    ) -> AsyncIterator[Moonraker]:
+    """Moonraker on a free port, for the motiond API socket ``socket``, until Klippy is ready.
+    Either with ``gcodes`` (motiond's jobs folder, linked in as its own) and the tests'
+    configuration, or as the user whose ``home`` holds ``~/printer_data`` with ``conf``."""
     program = await asyncio.to_thread(ensure_moonraker)
-    data = tmp_path / "printer_data"
+    if home is None:
+        home = tmp_path / "home"
+        data = tmp_path / "printer_data"
+    else:
+        data = home / "printer_data"
     (data / "config").mkdir(parents=True, exist_ok=True)
-    (data / "gcodes").symlink_to(gcodes, target_is_directory=True)
-    home = tmp_path / "home"
+    if gcodes is not None:
+        (data / "gcodes").symlink_to(gcodes, target_is_directory=True)
     home.mkdir(exist_ok=True)
     port = free_port()
-    (data / "config" / "moonraker.conf").write_text(moonraker_conf(port, socket))
+    text = conf.replace("{port}", str(port)) if conf else moonraker_conf(port, socket)
+    (data / "config" / "moonraker.conf").write_text(text)
     log_path = tmp_path / "moonraker.log"
     with log_path.open("ab") as log:
         process = await asyncio.create_subprocess_exec(
