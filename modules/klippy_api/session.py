@@ -185,6 +185,7 @@ class Session:
         elif step.action == "restart":  # a reset board, as Klipper's restarts leave it
             ctx.control.reset()
             await ctx.run_gcode("$X")
+            await ctx.run_gcode("M84")  # motors off, homing lost: as after Klipper's restart
             self.hub.restart()
         else:
             self._control(step.action)

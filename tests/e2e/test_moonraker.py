@@ -186,6 +186,8 @@ async def _emergency_stop_then_firmware_restart(served: Served, server: Moonrake
     status = await server.wait_for(lambda s: s["webhooks"]["state"] == "shutdown",
                                    timeout_s=5, webhooks=None)
     assert "ALARM:40" in status["webhooks"]["state_message"]
+    homed = await server.query(toolhead=["homed_axes"])
+    assert homed["toolhead"]["homed_axes"] == "z", "an emergency stop loses X and Y's homing"
     with contextlib.suppress(MoonrakerError):
         await moving
     stopped_at = mpos(await tcp_report(served.tcp_port))
@@ -195,15 +197,31 @@ async def _emergency_stop_then_firmware_restart(served: Served, server: Moonrake
     with pytest.raises(MoonrakerError):
         await server.gcode("G1 X10")  # locked out
     await server.post("/printer/firmware_restart")
+    await _klippy_ready(server)
+    await server.gcode("G1 X10 F6000")
+    await server.wait_for(lambda s: s["toolhead"]["position"][0] == 10.0,
+                          toolhead=["position"])
+    for lose in ("M84", "RESTART"):  # motors off, and Klipper's restart, unhome as Klipper's
+        await server.gcode("G28")
+        await server.wait_for(lambda s: s["toolhead"]["homed_axes"] == "xyz",
+                              toolhead=["homed_axes"])
+        with contextlib.suppress(MoonrakerError):  # RESTART: the connection closes
+            await server.gcode(lose)
+        await _klippy_ready(server)
+        await server.wait_for(lambda s: s["toolhead"]["homed_axes"] == "z",
+                              toolhead=["homed_axes"])
+
+
+async def _klippy_ready(server: Moonraker) -> None:
+    """Until Moonraker is connected to motiond again (after a restart), ready."""
+    await asyncio.sleep(0.3)  # Moonraker sees the connection close first
     for _ in range(200):
         with contextlib.suppress(MoonrakerError, AssertionError):
             info = await server.get("/server/info")
             if info["klippy_state"] == "ready":
-                break
+                return
         await asyncio.sleep(0.1)
-    await server.gcode("G1 X10 F6000")
-    await server.wait_for(lambda s: s["toolhead"]["position"][0] == 10.0,
-                          toolhead=["position"])
+    raise AssertionError("Moonraker did not reconnect")
 
 
 async def _console_output_reaches_the_gcode_store(server: Moonraker) -> None:
