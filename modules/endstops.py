@@ -226,9 +226,10 @@ class Endstops(Module):
         """The endstop axes named (none named: all of them)."""
         unknown = letters - {axis.name for axis in self.axes}
         if unknown:
+            named = "".join(sorted(unknown))
             raise CommandError(
-                Error.INVALID_STATEMENT, f"no endstop configured for {''.join(sorted(unknown))}"
-            )
+                Error.INVALID_STATEMENT, f"{named}: no homing switch ([endstops] axes): "
+                "an axis without one needs no homing, its position is kept from start-up")
         return [axis for axis in self.axes if axis.name in letters or not letters]
 
     async def home(self, axes: Sequence[_Axis]) -> None:

@@ -144,7 +144,8 @@ class KlippyApi(Module):
         return printer.Machine(
             (low[0], low[1], low[2]), (high[0], high[1], high[2]),
             max(axis.max_rate_mm_s for axis in planar), max(axis.accel_mm_s2 for axis in planar),
-            jobs_dir(core).resolve(), homeable, dict(HELP))
+            jobs_dir(core).resolve(), homeable, dict(HELP),
+            "".join(axis.lower() for axis in "XYZ" if axis in axes))
 
     async def _push_status(self) -> None:
         period_s = 1.0 / self.config.status_hz

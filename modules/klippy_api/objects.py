@@ -36,6 +36,7 @@ class Machine:
     jobs_dir: Path
     homeable: frozenset[str]  # axes with a homing switch (lower case); the rest need none
     commands: dict[str, str] = field(default_factory=dict)  # G-code name -> help
+    axes: str = "xyz"  # the machine's axes among X, Y, Z (lower case): no Z on an XY laser
 
 
 @dataclass(slots=True)
@@ -127,6 +128,8 @@ def configfile(machine: Machine) -> dict[str, Any]:
         settings[f"gcode_macro {name}"] = {"description": f"motiond: {name.upper()} is built in",
                                            "gcode": ""}
     for index, axis in enumerate("xyz"):
+        if axis not in machine.axes:
+            continue  # a front-end shows the axes whose stepper section exists
         settings[f"stepper_{axis}"] = {"position_min": machine.axis_min_mm[index],
                                        "position_max": machine.axis_max_mm[index]}
     config = {section: {key: str(value) for key, value in values.items()}
@@ -144,7 +147,8 @@ def homed_axes(status: dict[str, Any], machine: Machine) -> str:
     """Axes without a switch need no homing; the others once homed (``[endstops]``)."""
     homed = {name.lower() for name in status.get("modules", {}).get("endstops", {})
              .get("homed", [])}
-    return "".join(axis for axis in "xyz" if axis not in machine.homeable or axis in homed)
+    return "".join(axis for axis in machine.axes
+                   if axis not in machine.homeable or axis in homed)
 
 
 def toolhead(status: dict[str, Any], machine: Machine) -> dict[str, Any]:

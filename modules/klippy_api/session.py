@@ -169,7 +169,11 @@ class Session:
         if not ctx.still_valid(ticket):
             raise CommandError(Error.BUSY, "a stop came after this script was sent: not run")
         if isinstance(step, Line):
-            for message in await ctx.run_gcode(step.text, ticket):
+            try:
+                messages = await ctx.run_gcode(step.text, ticket)
+            except CommandError as exc:
+                raise gcode.klipper_error(step.text, exc) from exc
+            for message in messages:
                 self.hub.output(response_text(message))
         elif isinstance(step, StartJob):
             await ctx.start_job(step.name, ticket)
@@ -182,6 +186,10 @@ class Session:
         elif step.action == "help":
             self.hub.output("\n".join(["// Available commands:",
                                        *(f"// {k}: {v}" for k, v in gcode.HELP.items())]))
+        elif step.action == "velocity_limit":
+            toolhead = self.hub.objects()["toolhead"]
+            self.hub.output(gcode.velocity_report(toolhead["max_velocity"],
+                                                  toolhead["max_accel"]))
         elif step.action == "restart":  # a reset board, as Klipper's restarts leave it
             ctx.control.reset()
             await ctx.run_gcode("$X")

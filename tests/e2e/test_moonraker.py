@@ -57,6 +57,7 @@ async def test_moonraker_sees_motiond_ready_scripts_home_jog_move_and_emergency_
     async with stack(tmp_path) as (served, server, socket):
         await _ready_with_position(served, server, socket)
         await _console_output_reaches_the_gcode_store(server)
+        await _klipper_words_for_unknown_commands_and_velocity_limits(server)
         await _home_jog_and_move(served, server)
         await _emergency_stop_then_firmware_restart(served, server)
 
@@ -233,3 +234,17 @@ async def _console_output_reaches_the_gcode_store(server: Moonraker) -> None:
     responses = [item["message"] for item in store["gcode_store"]
                  if item["type"] == "response"]
     assert any(message.startswith("X:0.0000 Y:0.0000") for message in responses), responses
+
+
+async def _klipper_words_for_unknown_commands_and_velocity_limits(server: Moonraker) -> None:
+    with pytest.raises(MoonrakerError) as unknown:
+        await server.gcode("FOO_BAR")
+    assert 'Unknown command:"FOO_BAR"' in unknown.value.body["error"]["message"]
+    with pytest.raises(MoonrakerError) as limit:
+        await server.gcode("SET_VELOCITY_LIMIT VELOCITY=100")  # Mainsail's Machine panel
+    message = limit.value.body["error"]["message"]
+    assert "Error on 'SET_VELOCITY_LIMIT VELOCITY=100'" in message and "max_rate_mm_s" in message
+    await server.gcode("SET_VELOCITY_LIMIT")
+    store = await server.get("/server/gcode_store", count="10")
+    responses = [item["message"] for item in store["gcode_store"]]
+    assert "// max_velocity: 200.000000" in "\n".join(responses), responses

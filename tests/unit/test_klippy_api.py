@@ -3,6 +3,7 @@ objects from a status snapshot, and the change-only subscription diff."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any
@@ -17,10 +18,11 @@ from modules.klippy_api.gcode import (
     Line,
     Message,
     StartJob,
+    klipper_error,
     translate,
 )
 from modules.klippy_api.session import response_text
-from server.errors import CommandError
+from server.errors import CommandError, Error
 
 JOG_FEED = 30000.0
 MACHINE = objects.Machine((0.0, 0.0, -50.0), (400.0, 300.0, 0.0), 500.0, 3000.0,
@@ -146,6 +148,24 @@ def test_homed_axes_are_those_homed_and_those_without_a_switch() -> None:
     assert objects.homed_axes(status(), MACHINE) == "z"
     homed = status(modules={"endstops": {"homed": ["X", "Y"]}})
     assert objects.homed_axes(homed, MACHINE) == "xyz"
+
+
+def test_a_two_axis_machine_has_no_z_stepper_and_homes_only_x_and_y() -> None:
+    planar = dataclasses.replace(MACHINE, axes="xy")
+    built = objects.build_objects(status(modules={"endstops": {"homed": ["X", "Y"]}}), planar,
+                                  objects.Extra())
+    assert built["toolhead"]["homed_axes"] == "xy"
+    sections = built["configfile"]["settings"]
+    assert "stepper_x" in sections and "stepper_z" not in sections
+
+
+def test_unknown_extended_commands_and_velocity_limits_in_klippers_words() -> None:
+    refused = CommandError(Error.BAD_NUMBER_FORMAT, "bad number after 'F'")
+    assert klipper_error("foo_bar X=1", refused).message == 'Unknown command:"FOO_BAR"'
+    assert klipper_error("G1 X1", refused) is refused  # a G-code line keeps motiond's error
+    with pytest.raises(CommandError, match="Error on 'SET_VELOCITY_LIMIT ACCEL=500'"):
+        translate("SET_VELOCITY_LIMIT ACCEL=500", JOG_FEED)
+    assert translate("SET_VELOCITY_LIMIT", JOG_FEED) == [Control("velocity_limit")]
 
 
 def test_print_stats_and_sdcard_follow_the_job() -> None:
