@@ -15,6 +15,8 @@ as every other source. What is translated:
 - ``SET_GCODE_OFFSET [X|Y|Z=mm] [X|Y|Z_ADJUST=mm] [MOVE=1]``: the offset Klipper calls
   ``homing_origin`` (motiond's work offset) set or adjusted with ``G92`` once the machine is
   idle; with ``MOVE=1`` the head moves by the change first (a jog);
+- ``SET_PIN PIN=name VALUE=v``: a switch's own line (``M8``, ``M106 S..``), see
+  :mod:`modules.klippy_api.outputs`;
 - ``M117 text`` sets ``display_status.message``; ``HELP`` lists the commands;
   ``RESTART``/``FIRMWARE_RESTART``: ``$X`` (unlock), then the API connections close so the
   front-end starts afresh, as after Klipper's restart; ``M112``: emergency stop.
@@ -46,6 +48,7 @@ HELP: dict[str, str] = {
     JOG_MACRO: "Jog: _CLIENT_LINEAR_MOVE X=<mm> Y=<mm> Z=<mm> F=<mm/min> [ABSOLUTE=1]",
     "M117": "Show a message on the display: M117 <text>",
     "SET_GCODE_OFFSET": "Work offset: SET_GCODE_OFFSET Z=<mm>|Z_ADJUST=<mm> [MOVE=1]",
+    "SET_PIN": "Switch an output (air assist, fan): SET_PIN PIN=<name> VALUE=<0..1>",
     "SET_VELOCITY_LIMIT": "Report the velocity and acceleration limits (set in the config)",
     "M112": "Emergency stop",
     "RESTART": "Unlock after an alarm ($X) and reconnect",
@@ -104,7 +107,15 @@ class GcodeOffset:
     speed_mm_s: float | None
 
 
-Step = Line | StartJob | Control | FeedOverride | Message | GcodeOffset
+@dataclass(frozen=True, slots=True)
+class SetPin:
+    """Klipper's ``SET_PIN PIN=name VALUE=v``: an output pin (a switch) to ``value`` (0..1)."""
+
+    pin: str
+    value: float
+
+
+Step = Line | StartJob | Control | FeedOverride | Message | GcodeOffset | SetPin
 
 
 def translate(script: str, jog_feed_mm_min: float) -> list[Step]:
@@ -140,6 +151,9 @@ def _line(text: str, jog_feed_mm_min: float) -> list[Step]:
         return [Line(_client_move(_params(name, rest), jog_feed_mm_min))]
     if name == "SET_GCODE_OFFSET":
         return [_gcode_offset(_params(name, rest))]
+    if name == "SET_PIN":
+        params = _params(name, rest)
+        return [SetPin(params.get("PIN", ""), _number(name, params, "VALUE"))]
     if name == "SET_VELOCITY_LIMIT":
         return [_velocity_limit(text, _params(name, rest))]
     if name in ("SAVE_GCODE_STATE", "RESTORE_GCODE_STATE"):

@@ -2,7 +2,8 @@
 
 Every value comes from :func:`server.kernel.status.build_status` (what the machine executed:
 ``mpos`` is the step generator's or the board's position) and from the machine's config; no
-extruder, heater or output pin is invented. Positions are Klipper's four-element lists
+extruder or heater is invented; the laser and the switches are output pins
+(:mod:`modules.klippy_api.outputs`). Positions are Klipper's four-element lists
 ``[x, y, z, e]`` in mm, ``e`` always 0; speeds are mm/s (``gcode_move.speed`` mm/min, as
 Klipper's). Soft-limit and other Grbl alarms keep ``webhooks.state`` ``ready`` (the front-end
 stays usable, the message says what to do); an emergency stop (ALARM:40) and a failed module
@@ -15,6 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from modules.klippy_api import outputs
 from server.errors import Alarm
 
 SHUTDOWN_ALARMS = frozenset({Alarm.HALT, Alarm.MODULE_FAILED, Alarm.BACKEND_FAILED})
@@ -89,7 +91,7 @@ def build_objects(status: dict[str, Any], machine: Machine, extra: Extra) -> dic
     job = status.get("job") or None
     return {
         "webhooks": webhooks(status),
-        "configfile": configfile(machine),
+        "configfile": configfile(machine, outputs.output_pin_settings(status)),
         "gcode": {"commands": {name: {"help": text} for name, text in machine.commands.items()}},
         "toolhead": toolhead(status, machine),
         "gcode_move": gcode_move(status),
@@ -100,6 +102,7 @@ def build_objects(status: dict[str, Any], machine: Machine, extra: Extra) -> dic
         "display_status": {"progress": _progress(job), "message": extra.message},
         "idle_timeout": idle_timeout(status, job),
         "system_stats": dict(extra.host),
+        **outputs.output_pins(status),
     }
 
 
@@ -115,8 +118,10 @@ def webhooks(status: dict[str, Any]) -> dict[str, Any]:
     return {"state": "ready", "state_message": f"{text}. $X unlocks."}
 
 
-def configfile(machine: Machine) -> dict[str, Any]:
-    """Klipper's raw config (strings) and settings (values) for what motiond has."""
+def configfile(machine: Machine,
+               pins: dict[str, dict[str, Any]] | None = None) -> dict[str, Any]:
+    """Klipper's raw config (strings) and settings (values) for what motiond has (``pins``:
+    the output pins' sections, :mod:`modules.klippy_api.outputs`)."""
     settings: dict[str, dict[str, Any]] = {
         "printer": {"kinematics": "cartesian", "max_velocity": machine.max_velocity_mm_s,
                     "max_accel": machine.max_accel_mm_s2},
@@ -132,6 +137,7 @@ def configfile(machine: Machine) -> dict[str, Any]:
             continue  # a front-end shows the axes whose stepper section exists
         settings[f"stepper_{axis}"] = {"position_min": machine.axis_min_mm[index],
                                        "position_max": machine.axis_max_mm[index]}
+    settings.update(pins or {})
     config = {section: {key: str(value) for key, value in values.items()}
               for section, values in settings.items()}
     return {"config": config, "settings": settings, "save_config_pending": False,

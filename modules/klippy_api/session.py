@@ -18,13 +18,14 @@ import os
 from collections.abc import Callable
 from typing import Any, Protocol
 
-from modules.klippy_api import gcode, objects, wire
+from modules.klippy_api import gcode, objects, outputs, wire
 from modules.klippy_api.gcode import (
     Control,
     FeedOverride,
     GcodeOffset,
     Line,
     Message,
+    SetPin,
     StartJob,
     Step,
 )
@@ -91,7 +92,7 @@ class Session:
         if method == "list_endpoints":
             return {"endpoints": list(ENDPOINTS)}
         if method == "objects/list":
-            return {"objects": list(objects.OBJECT_NAMES)}
+            return {"objects": list(hub.objects())}  # with the output pins
         if method == "objects/query":
             return self._query(_objects_param(params))
         if method == "objects/subscribe":
@@ -177,6 +178,9 @@ class Session:
                 self.hub.output(response_text(message))
         elif isinstance(step, StartJob):
             await ctx.start_job(step.name, ticket)
+        elif isinstance(step, SetPin):
+            line = outputs.set_pin_line(ctx.status(), step.pin, step.value)
+            await self._step(Line(line), ticket)
         elif isinstance(step, FeedOverride):
             ctx.control.set_feed_override(step.percent)
         elif isinstance(step, Message):
