@@ -77,6 +77,7 @@ class KlippyApi(Module):
         self.jog_feed_mm_min = 60.0 * min(rates or [10.0])
         self.extra = printer.Extra()
         self.times = printer.JobTimes()
+        self.job_state: str | None = None
         self.machine = printer.Machine((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0.0, 0.0,
                                        Path(), frozenset())
         self.connections: set[_Connection] = set()
@@ -185,6 +186,7 @@ class KlippyApi(Module):
             writer.close()
 
     def _on_job(self, progress: Any) -> None:
+        self.job_state = None if progress is None else str(progress.state)
         if progress is not None:
             self.times.update(progress.name, progress.started_s, progress.state,
                               self.ctx.clock.now_s())

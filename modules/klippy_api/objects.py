@@ -99,7 +99,8 @@ def build_objects(status: dict[str, Any], machine: Machine, extra: Extra) -> dic
         "print_stats": print_stats(job, extra.durations_s),
         "virtual_sdcard": virtual_sdcard(job, machine, extra),
         "pause_resume": {"is_paused": job is not None and job.get("state") == "paused"},
-        "display_status": {"progress": _progress(job), "message": extra.message},
+        "display_status": {"progress": _progress(job, extra.durations_s[1]),
+                           "message": extra.message},
         "idle_timeout": idle_timeout(status, job),
         "system_stats": dict(extra.host),
         **outputs.output_pins(status),
@@ -215,22 +216,28 @@ def print_stats(job: dict[str, Any] | None,
     }
 
 
-def _progress(job: dict[str, Any] | None) -> float:
+def _progress(job: dict[str, Any] | None, print_s: float = 0.0) -> float:
+    """How far the job is, 0..1: by motiond's planned time where it has it, so that the
+    front-ends' "time left" (print time / progress - print time) is motiond's remaining
+    time; else by the lines run."""
     if job is None:
         return 0.0
     if job.get("state") == "done":
         return 1.0
+    remaining_s = job.get("remaining_s")
+    if remaining_s is not None and print_s + remaining_s > 0:
+        return round(print_s / (print_s + remaining_s), 4)
     done, total = job.get("lines_done", 0), job.get("lines_total", 0)
     return round(done / total, 4) if total else 0.0
 
 
 def virtual_sdcard(job: dict[str, Any] | None, machine: Machine, extra: Extra) -> dict[str, Any]:
-    """The job's file and how far it is, in bytes (``file_position`` follows the lines run:
-    the fraction of lines done times the file's size)."""
+    """The job's file and how far it is, in bytes (``file_position``: the fraction done,
+    :func:`_progress`, times the file's size)."""
     if job is None:
         return {"file_path": None, "progress": 0.0, "is_active": False, "file_position": 0,
                 "file_size": 0}
-    progress = _progress(job)
+    progress = _progress(job, extra.durations_s[1])
     return {
         "file_path": str(machine.jobs_dir / job["name"]),
         "progress": progress,

@@ -46,6 +46,7 @@ class Hub(Protocol):
 
     ctx: ModuleContext
     jog_feed_mm_min: float
+    job_state: str | None  # the last job's state (running, paused, done...), None before
 
     def objects(self) -> dict[str, Any]: ...
 
@@ -170,6 +171,7 @@ class Session:
         if not ctx.still_valid(ticket):
             raise CommandError(Error.BUSY, "a stop came after this script was sent: not run")
         if isinstance(step, Line):
+            gcode.check_motion_during_job(step.text, self.hub.job_state)
             try:
                 messages = await ctx.run_gcode(step.text, ticket)
             except CommandError as exc:

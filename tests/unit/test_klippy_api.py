@@ -222,3 +222,13 @@ def test_set_gcode_offset_parses_absolute_adjust_and_move() -> None:
         GcodeOffset({"X": 1.0, "Y": -2.0}, {}, False, None)]
     with pytest.raises(CommandError):
         translate("SET_GCODE_OFFSET E=1", JOG_FEED)
+
+
+def test_progress_follows_motiond_planned_time_so_time_left_is_motiond_s() -> None:
+    job = {"name": "a.nc", "state": "running", "lines_done": 90, "lines_total": 100,
+           "remaining_s": 240.0, "error": None}
+    extra = objects.Extra(file_size_bytes=1000, durations_s=(61.0, 60.0))
+    built = objects.build_objects(status(job=job), MACHINE, extra)
+    progress = built["virtual_sdcard"]["progress"]
+    assert progress == 0.2 and built["display_status"]["progress"] == 0.2
+    assert 60.0 / progress - 60.0 == pytest.approx(240.0)  # the front-ends' time left
