@@ -226,7 +226,7 @@ def _progress(job: dict[str, Any] | None, print_s: float = 0.0) -> float:
         return 1.0
     remaining_s = job.get("remaining_s")
     if remaining_s is not None and print_s + remaining_s > 0:
-        return round(print_s / (print_s + remaining_s), 4)
+        return round(print_s / (print_s + float(remaining_s)), 4)
     done, total = job.get("lines_done", 0), job.get("lines_total", 0)
     return round(done / total, 4) if total else 0.0
 
