@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import os
 import platform
 import socket
@@ -40,6 +41,9 @@ from server.kernel.module import Module, ModuleConfig, ModuleContext
 from server.paths import jobs_dir
 from server.runtime.events import Event
 
+# Klipper's source folder as Moonraker reads it: its config/ and docs/ (README files that
+# point at motiond's), so Moonraker's config_examples and docs roots are valid folders.
+KLIPPER_PATH = Path(__file__).resolve().parent / "klipper"
 OUTGOING_LIMIT = 1000
 READ_BYTES = 65536
 
@@ -98,8 +102,8 @@ class KlippyApi(Module):
             "state": hooks["state"], "state_message": hooks["state_message"],
             "hostname": socket.gethostname(), "software_version": f"motiond {__version__}",
             "cpu_info": platform.processor() or platform.machine(), "app": "Klipper",
-            "klipper_path": str(Path(__file__).resolve().parents[2]),
-            "python_path": sys.executable,
+            "klipper_path": str(KLIPPER_PATH), "python_path": sys.executable,
+            **_log_file(),
             "process_id": os.getpid(), "user_id": os.getuid(), "group_id": os.getgid(),
         }
 
@@ -112,6 +116,11 @@ class KlippyApi(Module):
                 connection.session.push_output(text)
 
     def restart(self) -> None:
+        """After RESTART/FIRMWARE_RESTART: the last job is forgotten (``print_stats`` is
+        ``standby``, as after Klipper's restart) and every connection closes."""
+        job = self.ctx.status().get("job") or {}
+        if job:
+            self.extra.forgotten_job = (str(job["name"]), float(job["started_s"]))
         for connection in list(self.connections):
             connection.writer.close()
 
@@ -230,6 +239,15 @@ def _listening_socket(path: Path) -> socket.socket:
     sock.listen(8)
     sock.setblocking(False)
     return sock
+
+
+def _log_file() -> dict[str, str]:
+    """``log_file``: the file motiond logs to (``--log-file``), which Moonraker serves as
+    ``klippy.log`` (the front-ends' log buttons); nothing when it logs to stderr only."""
+    for handler in logging.getLogger().handlers:
+        if isinstance(handler, logging.FileHandler):
+            return {"log_file": handler.baseFilename}
+    return {}
 
 
 def _host_stats() -> dict[str, float]:

@@ -22,9 +22,11 @@ from server.errors import Alarm
 SHUTDOWN_ALARMS = frozenset({Alarm.HALT, Alarm.MODULE_FAILED, Alarm.BACKEND_FAILED})
 PRINT_STATES = {"running": "printing", "paused": "paused", "done": "complete",
                 "aborted": "cancelled", "failed": "error"}
+# Klipper's job macros, built in here: objects of their own, as the front-ends look for them.
+MACROS = ("PAUSE", "RESUME", "CANCEL_PRINT")
 OBJECT_NAMES = ("webhooks", "configfile", "gcode", "toolhead", "gcode_move", "motion_report",
                 "print_stats", "virtual_sdcard", "pause_resume", "display_status",
-                "idle_timeout", "system_stats")
+                "idle_timeout", "system_stats", *(f"gcode_macro {name}" for name in MACROS))
 
 
 @dataclass(frozen=True, slots=True)
@@ -81,14 +83,17 @@ class Extra:
     the host."""
 
     message: str | None = None
+    forgotten_job: tuple[str, float] | None = None  # (name, started_s) a restart ended
     file_size_bytes: int = 0
     host: dict[str, float] = field(default_factory=dict)  # sysload, cputime, memavail
     durations_s: tuple[float, float] = (0.0, 0.0)  # the job's (total, printing)
 
 
 def build_objects(status: dict[str, Any], machine: Machine, extra: Extra) -> dict[str, Any]:
-    """Every printer object, now."""
+    """Every printer object, now (a job a restart ended is no job: ``standby``)."""
     job = status.get("job") or None
+    if job is not None and (job.get("name"), job.get("started_s")) == extra.forgotten_job:
+        job = None
     return {
         "webhooks": webhooks(status),
         "configfile": configfile(machine, outputs.output_pin_settings(status)),
@@ -103,6 +108,7 @@ def build_objects(status: dict[str, Any], machine: Machine, extra: Extra) -> dic
                            "message": extra.message},
         "idle_timeout": idle_timeout(status, job),
         "system_stats": dict(extra.host),
+        **{f"gcode_macro {name}": {} for name in MACROS},
         **outputs.output_pins(status),
     }
 
@@ -130,7 +136,7 @@ def configfile(machine: Machine,
         "pause_resume": {"recover_velocity": 50.0},
         "display_status": {},
     }
-    for name in ("pause", "resume", "cancel_print"):  # built in: what the front-ends check
+    for name in (macro.lower() for macro in MACROS):  # built in: what the front-ends check
         settings[f"gcode_macro {name}"] = {"description": f"motiond: {name.upper()} is built in",
                                            "gcode": ""}
     for index, axis in enumerate("xyz"):

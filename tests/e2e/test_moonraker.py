@@ -40,11 +40,12 @@ async def stack(tmp_path: Path, machine_toml: str = ENDSTOPS, axes_toml: str = A
     """motiond and Moonraker configured as docs/moonraker.md says, word for word (the port
     aside), for a user whose home is ``tmp_path/home``: no link between their folders."""
     home = tmp_path / "home"
-    motiond_toml, moonraker_conf = documented_config()
+    motiond_toml, moonraker_conf, options = documented_config(home)
     printer_data = home / "printer_data"
     async with contextlib.AsyncExitStack() as stack:
-        served = await stack.enter_async_context(
-            motiond(tmp_path, machine_toml + motiond_toml, axes_toml=axes_toml, home=home))
+        served = await stack.enter_async_context(motiond(
+            tmp_path, machine_toml + motiond_toml, axes_toml=axes_toml, home=home,
+            args=options))
         served = dataclasses.replace(served, jobs=printer_data / "gcodes")
         socket = printer_data / "comms" / "klippy.sock"
         server = await stack.enter_async_context(
@@ -76,8 +77,10 @@ async def _ready_with_position(served: Served, server: Moonraker, socket: Path) 
     assert status["toolhead"]["homed_axes"] == "z"  # X and Y have switches, not yet homed
     sdcard = status["configfile"]["settings"]["virtual_sdcard"]["path"]
     assert Path(sdcard) == served.jobs_dir.resolve()
-    warnings = (await server.get("/server/info"))["warnings"]
-    assert not [text for text in warnings if "GCode path" in text], warnings
+    assert (await server.get("/server/info"))["warnings"] == []  # none, on this set-up
+    assert {"gcode_macro PAUSE", "gcode_macro RESUME", "gcode_macro CANCEL_PRINT"} <= set(objects)
+    async with server.session.get(server.url + "/server/files/klippy.log") as log:
+        assert log.status == 200  # the "Klipper log" buttons: motiond's --log-file
 
 
 async def _home_jog_and_move(served: Served, server: Moonraker) -> None:
@@ -153,6 +156,10 @@ async def test_store_through_moonraker_then_print_pause_resume_and_cancel(tmp_pa
             pushed = await states
         assert pushed == ["printing", "paused", "printing", "cancelled", "printing", "complete"]
         await _history_shows(server, ["completed", "cancelled"])
+        await server.post("/printer/restart")  # Klipper's restart: the job is forgotten
+        await _klippy_ready(server)
+        status = await server.query(print_stats=["state", "filename"])
+        assert status["print_stats"] == {"state": "standby", "filename": ""}
 
 
 async def _history_shows(server: Moonraker, statuses: list[str]) -> None:

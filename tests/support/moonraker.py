@@ -13,6 +13,7 @@ import asyncio
 import contextlib
 import json
 import os
+import re
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -100,14 +101,20 @@ class MoonrakerError(AssertionError):
 DOC = Path(__file__).resolve().parents[2] / "docs" / "moonraker.md"
 
 
-def documented_config() -> tuple[str, str]:
-    """docs/moonraker.md's configuration, verbatim: motiond's TOML and ``moonraker.conf``
-    (with ``{port}`` for the port, so that tests on one host do not collide)."""
+def documented_config(home: Path) -> tuple[str, str, list[str]]:
+    """docs/moonraker.md's configuration, verbatim: motiond's TOML, ``moonraker.conf`` (with
+    ``{port}`` for the port, so that tests on one host do not collide) and the options of
+    motiond's ``ExecStart`` but ``--config`` (``/home/laser`` is ``home``)."""
     text = DOC.read_text()
     toml = text.split("```toml\n", 1)[1].split("```", 1)[0]
     conf = text.split("```ini\n", 1)[1].split("```", 1)[0]
     assert "port: 7125\n" in conf, "moonraker.md: Moonraker's port is no longer 7125"
-    return toml, conf.replace("port: 7125\n", "port: {port}\n")
+    command = re.search(r"ExecStart=\S+/motiond (.*)", text)
+    assert command is not None, "moonraker.md: no ExecStart for motiond"
+    words = command.group(1).replace("/home/laser", str(home)).split()
+    options = [word for pair in zip(words[::2], words[1::2], strict=True)
+               if pair[0] != "--config" for word in pair]
+    return toml, conf.replace("port: 7125\n", "port: {port}\n"), options
 
 
 @contextlib.asynccontextmanager
