@@ -10,7 +10,7 @@ from typing import Any
 
 import pytest
 
-from modules.klippy_api import objects, wire
+from modules.klippy_api import objects, outputs, wire
 from modules.klippy_api.gcode import (
     Control,
     FeedOverride,
@@ -232,3 +232,22 @@ def test_progress_follows_motiond_planned_time_so_time_left_is_motiond_s() -> No
     progress = built["virtual_sdcard"]["progress"]
     assert progress == 0.2 and built["display_status"]["progress"] == 0.2
     assert 60.0 / progress - 60.0 == pytest.approx(240.0)  # the front-ends' time left
+
+
+def test_laser_and_switches_are_output_pins_switched_by_their_own_lines() -> None:
+    modules = {"laser": {"power": 0.25}, "switch.air": {
+        "pin": "air", "value": 1.0, "on_gcode": "M8", "off_gcode": "M9", "level_gcode": None,
+        "max_s": 255.0}, "switch.fan": {"pin": "fan", "value": 0.5, "on_gcode": "M106",
+                                       "off_gcode": "M107", "level_gcode": "M106 S",
+                                       "max_s": 255.0}}
+    built = objects.build_objects(status(modules=modules), MACHINE, objects.Extra())
+    assert built["output_pin laser"] == {"value": 0.25} and built["output_pin air"]["value"] == 1
+    settings = built["configfile"]["settings"]
+    assert settings["output_pin air"]["pwm"] is False and settings["output_pin fan"]["pwm"]
+    state = status(modules=modules)
+    assert outputs.set_pin_line(state, "air", 1.0) == "M8"
+    assert outputs.set_pin_line(state, "air", 0.0) == "M9"
+    assert outputs.set_pin_line(state, "fan", 0.5) == "M106 S127.5"
+    for pin, value in (("laser", 1.0), ("nozzle", 1.0), ("fan", 2.0)):
+        with pytest.raises(CommandError):
+            outputs.set_pin_line(state, pin, value)
