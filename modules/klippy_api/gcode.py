@@ -66,8 +66,8 @@ _MOVE = re.compile(r"G0*[01]$")
 # Klipper's extended command: a name whose second character is no part of a number (G1 is a
 # traditional command, FOO_BAR and SET_PIN extended ones).
 _EXTENDED = re.compile(r"([A-Za-z_][A-Za-z_][A-Za-z0-9_]*)(?:\s|$)")
-# Lines that move the machine: a jog, homing, G0-G3 (not G4, G28.1 or G30.1, G90...).
-_MOTION_LINE = re.compile(r"\s*(\$J=|\$H|G28\.2|G0*[0-3](?![\d.]))", re.I)
+# Lines that move the machine: a jog, homing, G0-G3 anywhere (not G4, G10, G90...).
+_MOTION_LINE = re.compile(r"^\s*(\$J=|\$H)|(?<![A-Z])G(28\.2|0*[0-3](?![\d.]))", re.I)
 # motiond's errors for a line its parser could not read as G-code: a name nobody registered.
 _NOT_GCODE = frozenset({Error.EXPECTED_COMMAND_LETTER, Error.BAD_NUMBER_FORMAT,
                         Error.UNKNOWN_COMMAND})
@@ -224,12 +224,13 @@ def velocity_report(max_velocity_mm_s: float, max_accel_mm_s2: float) -> str:
 
 
 def check_motion_during_job(text: str, job_state: str | None) -> None:
-    """Refuse a front-end's motion (a jog, homing, a move) at once while a job runs or is
-    paused: it would wait behind the job's lines until the job ends, unanswered (Klipper
-    jogs in a pause; motiond's paused job keeps the machine and its planned path)."""
-    if job_state in ("running", "paused") and _MOTION_LINE.match(text):
-        raise CommandError(Error.BUSY, f"the job is {job_state}: motion from the console "
-                           "waits for no job here. Resume or cancel the job first")
+    """Refuse at once what would wait unanswered behind a job's lines: while the job is
+    paused, any line (the job holds the ordered path until it resumes); while it runs, a
+    front-end's motion (a jog, homing, a move: refused once its turn came). Klipper jogs in a
+    pause; motiond's paused job keeps the machine and its planned path."""
+    if job_state == "paused" or (job_state == "running" and _MOTION_LINE.search(text)):
+        raise CommandError(Error.BUSY, f"the job is {job_state}: G-code from the console "
+                           "waits for the job here. Resume or cancel the job first")
 
 
 def klipper_error(text: str, exc: CommandError) -> CommandError:

@@ -43,6 +43,8 @@ async def test_jog_in_a_pause_answers_at_once_and_time_left_is_motiond_s(
             await server.gcode("_CLIENT_LINEAR_MOVE X=5 F=3000")  # Mainsail's jog button
         assert time.monotonic() - asked_s < 2.0, "answered at once, not at Resume"
         assert "paused" in refused.value.body["error"]["message"]
+        with pytest.raises(MoonrakerError):  # any console line: it would wait for Resume
+            await asyncio.wait_for(server.gcode("M114"), 2.0)
         await server.post("/printer/print/resume")
         left_s, at_s = await _time_left_at(server, 0.2)
         await server.wait_for(lambda s: s["print_stats"]["state"] == "complete",
