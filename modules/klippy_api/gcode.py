@@ -223,7 +223,7 @@ def velocity_report(max_velocity_mm_s: float, max_accel_mm_s2: float) -> str:
             "// minimum_cruise_ratio: 0.500000\n// square_corner_velocity: 5.000000")
 
 
-def check_motion_during_job(text: str, job_state: str | None) -> None:
+def check_line_during_job(text: str, job_state: str | None) -> None:
     """Refuse at once what would wait unanswered behind a job's lines: while the job is
     paused, any line (the job holds the ordered path until it resumes); while it runs, a
     front-end's motion (a jog, homing, a move: refused once its turn came). Klipper jogs in a

@@ -171,7 +171,7 @@ class Session:
         if not ctx.still_valid(ticket):
             raise CommandError(Error.BUSY, "a stop came after this script was sent: not run")
         if isinstance(step, Line):
-            gcode.check_motion_during_job(step.text, self.hub.job_state)
+            gcode.check_line_during_job(step.text, self.hub.job_state)
             try:
                 messages = await ctx.run_gcode(step.text, ticket)
             except CommandError as exc:

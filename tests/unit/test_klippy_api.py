@@ -18,7 +18,7 @@ from modules.klippy_api.gcode import (
     Line,
     Message,
     StartJob,
-    check_motion_during_job,
+    check_line_during_job,
     klipper_error,
     translate,
 )
@@ -257,10 +257,10 @@ def test_laser_and_switches_are_output_pins_switched_by_their_own_lines() -> Non
 def test_a_paused_job_refuses_every_console_line_a_running_one_its_motion() -> None:
     for line in ("M114", "G90 G1 X10", "$J=G91 X1 F100"):
         with pytest.raises(CommandError, match="the job is paused"):
-            check_motion_during_job(line, "paused")
+            check_line_during_job(line, "paused")
     for line in ("G90 G1 X10", "$J=G91 X1 F100", "G28.2 X0", "g0x1"):
         with pytest.raises(CommandError, match="the job is running"):
-            check_motion_during_job(line, "running")
+            check_line_during_job(line, "running")
     for line in ("M114", "G4 P1", "G10 L20 P1 X0", "M8"):
-        check_motion_during_job(line, "running")
-    check_motion_during_job("G1 X10", "done")
+        check_line_during_job(line, "running")
+    check_line_during_job("G1 X10", "done")
