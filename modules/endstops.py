@@ -18,6 +18,12 @@ Outside homing, a switch that becomes active while the machine moves raises ALAR
 limit; edge-triggered as Grbl, so one may jog off a pressed switch after ``$X``). ``M119``
 answers ``X_min:0 Y_min:1 ...`` and the status report's ``Pn:`` shows active switches.
 
+An axis stays homed (``homed`` in the status) until its position may be lost, as Klipper
+forgets it: motors off (``M84``/``M18``, ``$SLP``, Klipper's restarts), an alarm that stops
+motion abruptly or says the position may be lost (emergency stop, hard limit, reset in motion,
+a failed homing, module or backend), and at the start of its own homing. A soft limit or a
+failed probe keeps it (the position is kept).
+
     [endstops]
     hard_limits = true
     axes.x = { direction = "min", seek_mm_s = 50, feed_mm_s = 5, pull_off_mm = 2, order = 2 }
@@ -46,6 +52,8 @@ SEEK_SCALE = 1.5  # Grbl: search up to 1.5 x the travel
 LOCATE_SCALE = 5.0  # Grbl: locate within 5 x the pull-off
 # States in which nothing moves: the switch watcher rests until the state changes.
 RESTING_STATES = frozenset({MachineState.IDLE, MachineState.ALARM, MachineState.SLEEP})
+# Alarms after which the position is still what it was (Grbl: "position retained").
+POSITION_KEPT = frozenset({Alarm.SOFT_LIMIT, Alarm.PROBE_INITIAL, Alarm.PROBE_CONTACT})
 
 
 class AxisEndstop(ModuleConfig):
@@ -109,6 +117,8 @@ class Endstops(Module):
         ctx.add_feature("homing")
         ctx.register_code(119, self._m119, query=True)
         ctx.subscribe(Event.STATE, self._on_state)
+        ctx.subscribe(Event.MOTORS_DISABLE, self.forget_homing)
+        ctx.subscribe(Event.HALT, self._on_halt)
 
     def _resolve_axes(self) -> list[_Axis]:
         core = self.ctx.core
@@ -175,6 +185,19 @@ class Endstops(Module):
         if self.homing and state is not MachineState.HOME and self._abort is None:
             self._abort = f"homing aborted (machine went to {state.value})"
 
+    def forget_homing(self) -> None:
+        """Every axis unhomed: its position may no longer be where the steps say."""
+        if self.homed:
+            self.ctx.log.info("homing lost: %s", ", ".join(sorted(self.homed)))
+        self.homed.clear()
+
+    def _on_halt(self, _reason: str) -> None:
+        """An alarm loses homing unless it kept the position (:data:`POSITION_KEPT`); a halt
+        without an alarm (a job's abort, M410) keeps it."""
+        alarm = self.ctx.status().get("alarm")
+        if alarm is not None and alarm.get("code") not in POSITION_KEPT:
+            self.forget_homing()
+
     # -- homing ----------------------------------------------------------------------------
     async def _home_command(self, command: Command) -> list[str]:
         """``$H`` or ``$HX``."""
@@ -203,9 +226,10 @@ class Endstops(Module):
         """The endstop axes named (none named: all of them)."""
         unknown = letters - {axis.name for axis in self.axes}
         if unknown:
+            named = "".join(sorted(unknown))
             raise CommandError(
-                Error.INVALID_STATEMENT, f"no endstop configured for {''.join(sorted(unknown))}"
-            )
+                Error.INVALID_STATEMENT, f"{named}: no homing switch ([endstops] axes): "
+                "an axis without one needs no homing, its position is kept from start-up")
         return [axis for axis in self.axes if axis.name in letters or not letters]
 
     async def home(self, axes: Sequence[_Axis]) -> None:
@@ -215,6 +239,7 @@ class Endstops(Module):
         self._abort = None
         self.ctx.set_state(MachineState.HOME)
         self.homing = True
+        self.homed.difference_update(axis.name for axis in axes)  # homed again, or not at all
         try:
             for order in sorted({axis.cfg.order for axis in axes}):
                 await self._home_group([axis for axis in axes if axis.cfg.order == order])

@@ -138,11 +138,15 @@ class Switch(Module):
 
     def status(self) -> dict[str, Any]:
         """State, and the lines that switch it (for the UI's button): its M-codes, M9 for a
-        coolant switch, else M42."""
+        coolant switch, else M42; ``level_gcode`` + ``S<value>`` sets a PWM switch's level."""
         on, off = self.config.on_mcode, self.config.off_mcode
         if off is None and self.coolant is not None:
             off = 9
         m42 = f"M42 P{self.pin} S"
+        level = None  # a line that takes S<0..max_s> (a PWM switch), else only on and off
+        if self.config.pwm and self.coolant is None:
+            level = f"M{on} S" if on is not None else m42
         return {"pin": self.pin, "value": self.value, "on": self.value > 0.0,
                 "on_gcode": f"M{on}" if on is not None else f"{m42}{self.config.max_s:g}",
-                "off_gcode": f"M{off}" if off is not None else f"{m42}0"}
+                "off_gcode": f"M{off}" if off is not None else f"{m42}0",
+                "level_gcode": level, "max_s": self.config.max_s}

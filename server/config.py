@@ -305,6 +305,9 @@ class JobsConfig(Strict):
     data_dir: Path | None = Field(
         None, description="motiond's data folder (job files in jobs/, the default machine's "
         "settings.toml); default: the user's data folder, see server/paths.py")
+    jobs_dir: Path | None = Field(
+        None, description="the job files' folder; default: jobs/ in the data folder. "
+        "Moonraker's gcodes folder when Moonraker runs in front ([klippy_api])")
     max_upload_bytes: int = Field(256 << 20, gt=0)
     frame_feed_mm_min: float = Field(3000.0, gt=0)  # Frame: the speed round the job's extent
     frame_power_s: float = Field(0.0, ge=0)  # Frame: 0 = laser off (jogs); else M3 at this S

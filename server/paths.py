@@ -5,7 +5,8 @@ its own data folder moves every file motiond writes. The folders follow the plat
 (``platformdirs``: ``$XDG_DATA_HOME/motiond``, else ``~/.local/share/motiond`` on Linux):
 
 - the data folder: ``[jobs] data_dir`` (``--data-dir``, ``$MOTIOND_DATA_DIR``), else the
-  user's data folder. It holds ``jobs/`` (the job files, nothing else) and ``settings.toml``
+  user's data folder. It holds ``jobs/`` (the job files, nothing else, unless ``[jobs]
+  jobs_dir`` puts them elsewhere: Moonraker's ``gcodes`` folder) and ``settings.toml``
   (the ``$x=`` settings of the embedded default machine); other parts add their files here
   through :func:`data_dir`.
 - configs: ``--config FILE`` (``$MOTIOND_CONFIG``), else the first ``motiond.toml`` found in
@@ -36,7 +37,10 @@ def data_dir(core: CoreConfig) -> Path:
 
 
 def jobs_dir(core: CoreConfig) -> Path:
-    """The job files: a folder of their own, so no other file is ever listed as a job."""
+    """The job files: a folder of their own, so no other file is ever listed as a job
+    (``[jobs] jobs_dir``, e.g. Moonraker's ``gcodes`` folder, else the data folder's ``jobs/``)."""
+    if core.jobs.jobs_dir is not None:
+        return core.jobs.jobs_dir.expanduser()
     return data_dir(core) / "jobs"
 
 

@@ -15,11 +15,16 @@ as every other source. What is translated:
 - ``SET_GCODE_OFFSET [X|Y|Z=mm] [X|Y|Z_ADJUST=mm] [MOVE=1]``: the offset Klipper calls
   ``homing_origin`` (motiond's work offset) set or adjusted with ``G92`` once the machine is
   idle; with ``MOVE=1`` the head moves by the change first (a jog);
+- ``SET_PIN PIN=name VALUE=v``: a switch's own line (``M8``, ``M106 S..``), see
+  :mod:`modules.klippy_api.outputs`;
 - ``M117 text`` sets ``display_status.message``; ``HELP`` lists the commands;
   ``RESTART``/``FIRMWARE_RESTART``: ``$X`` (unlock), then the API connections close so the
   front-end starts afresh, as after Klipper's restart; ``M112``: emergency stop.
 
-Everything else (``M84``, ``G0``, ``$$``...) is motiond's own G-code, unchanged.
+Everything else (``M84``, ``G0``, ``$$``...) is motiond's own G-code, unchanged; an
+extended command motiond does not know is refused in Klipper's words
+(``Unknown command:"FOO_BAR"``, :func:`klipper_error`), and so is ``SET_VELOCITY_LIMIT``
+with values (motiond's limits are its configuration's; without values it reports them).
 
 A script's lines are split at ``\n``, as Klipper's ``run_script`` splits them. A line longer
 than :data:`LINE_LIMIT` characters (error 11, as on every other stream) or a number beyond
@@ -55,6 +60,8 @@ HELP: dict[str, str] = {
     JOG_MACRO: "Jog: _CLIENT_LINEAR_MOVE X=<mm> Y=<mm> Z=<mm> F=<mm/min> [ABSOLUTE=1]",
     "M117": "Show a message on the display: M117 <text>",
     "SET_GCODE_OFFSET": "Work offset: SET_GCODE_OFFSET Z=<mm>|Z_ADJUST=<mm> [MOVE=1]",
+    "SET_PIN": "Switch an output (air assist, fan): SET_PIN PIN=<name> VALUE=<0..1>",
+    "SET_VELOCITY_LIMIT": "Report the velocity and acceleration limits (set in the config)",
     "M112": "Emergency stop",
     "RESTART": "Unlock after an alarm ($X) and reconnect",
     "FIRMWARE_RESTART": "Unlock after an alarm ($X) and reconnect",
@@ -71,6 +78,14 @@ _MOVE = re.compile(r"G0*[01]$")
 # server.kernel.control.halts_at_once on every line of a script at once: a line (after \n)
 # that starts, after blanks and a line number, with M112 (no other digit after it)
 _M112_LINE = re.compile(r"^\s*(?:N\d+[^\S\n]*)?M[^\S\n]*0*112(?:\D|$)", re.I | re.M)
+# Klipper's extended command: a name whose second character is no part of a number (G1 is a
+# traditional command, FOO_BAR and SET_PIN extended ones).
+_EXTENDED = re.compile(r"([A-Za-z_][A-Za-z_][A-Za-z0-9_]*)(?:\s|$)")
+# Lines that move the machine: a jog, homing, G0-G3 anywhere (not G4, G10, G90...).
+_MOTION_LINE = re.compile(r"^\s*(\$J=|\$H)|(?<![A-Z])G(28\.2|0*[0-3](?![\d.]))", re.I)
+# motiond's errors for a line its parser could not read as G-code: a name nobody registered.
+_NOT_GCODE = frozenset({Error.EXPECTED_COMMAND_LETTER, Error.BAD_NUMBER_FORMAT,
+                        Error.UNKNOWN_COMMAND})
 
 
 @dataclass(frozen=True, slots=True)
@@ -109,7 +124,15 @@ class GcodeOffset:
     speed_mm_s: float | None
 
 
-Step = Line | StartJob | Control | FeedOverride | Message | GcodeOffset
+@dataclass(frozen=True, slots=True)
+class SetPin:
+    """Klipper's ``SET_PIN PIN=name VALUE=v``: an output pin (a switch) to ``value`` (0..1)."""
+
+    pin: str
+    value: float
+
+
+Step = Line | StartJob | Control | FeedOverride | Message | GcodeOffset | SetPin
 
 
 def translate(script: str, jog_feed_mm_min: float) -> list[Step]:
@@ -180,6 +203,11 @@ def _line(text: str, jog_feed_mm_min: float) -> list[Step]:
         return [Line(_client_move(_params(name, rest), jog_feed_mm_min))]
     if name == "SET_GCODE_OFFSET":
         return [_gcode_offset(_params(name, rest))]
+    if name == "SET_PIN":
+        params = _params(name, rest)
+        return [SetPin(params.get("PIN", ""), _number(name, params, "VALUE"))]
+    if name == "SET_VELOCITY_LIMIT":
+        return [_velocity_limit(text, _params(name, rest))]
     if name in ("SAVE_GCODE_STATE", "RESTORE_GCODE_STATE"):
         raise CommandError(Error.UNSUPPORTED, f"{name}: only the front-ends' jog sequence "
                                               "(G91, one G0/G1, G90) is supported")
@@ -228,6 +256,41 @@ def _client_move(params: dict[str, str], jog_feed_mm_min: float) -> str:
     feed = _number(JOG_MACRO, params, "F") if "F" in params else jog_feed_mm_min
     mode = "G90" if params.get("ABSOLUTE", "0") not in ("0", "") else "G91"
     return _jog(mode, axes, feed)
+
+
+def _velocity_limit(text: str, params: dict[str, str]) -> Control:
+    """Without values, Klipper's report of the limits; with values, refused in Klipper's
+    words: motiond plans with its configured limits (per axis, ``[axes.*]``)."""
+    if params:
+        raise CommandError(Error.UNSUPPORTED, f"Error on '{text}': motiond's velocity and "
+                           "acceleration limits are its configuration's ([axes.*] "
+                           "max_rate_mm_s, accel_mm_s2) and cannot change at run time")
+    return Control("velocity_limit")
+
+
+def velocity_report(max_velocity_mm_s: float, max_accel_mm_s2: float) -> str:
+    """``SET_VELOCITY_LIMIT``'s answer, as Klipper's console shows it."""
+    return (f"// max_velocity: {max_velocity_mm_s:.6f}\n// max_accel: {max_accel_mm_s2:.6f}\n"
+            "// minimum_cruise_ratio: 0.500000\n// square_corner_velocity: 5.000000")
+
+
+def check_line_during_job(text: str, job_state: str | None) -> None:
+    """Refuse at once what would wait unanswered behind a job's lines: while the job is
+    paused, any line (the job holds the ordered path until it resumes); while it runs, a
+    front-end's motion (a jog, homing, a move: refused once its turn came). Klipper jogs in a
+    pause; motiond's paused job keeps the machine and its planned path."""
+    if job_state == "paused" or (job_state == "running" and _MOTION_LINE.search(text)):
+        raise CommandError(Error.BUSY, f"the job is {job_state}: G-code from the console "
+                           "waits for the job here. Resume or cancel the job first")
+
+
+def klipper_error(text: str, exc: CommandError) -> CommandError:
+    """A refused line's error as Klipper words it: an extended command motiond could not
+    read as G-code is ``Unknown command:"NAME"``; any other error is unchanged."""
+    match = _EXTENDED.match(text.strip())
+    if match is None or exc.code not in _NOT_GCODE:
+        return exc
+    return CommandError(Error.UNKNOWN_COMMAND, f'Unknown command:"{match.group(1).upper()}"')
 
 
 def _gcode_offset(params: dict[str, str]) -> GcodeOffset:

@@ -19,6 +19,7 @@ class Hub(Protocol):
     jog_feed_mm_min: float
     budget: LoopBudget
     script_bytes: ByteBudget
+    job_state: str | None  # the last job's state (running, paused, done...), None before
 
     def objects(self) -> dict[str, Any]:
         """Every printer object now (one snapshot per loop turn, shared: read only)."""

@@ -26,6 +26,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import logging
 import os
 import platform
 import socket
@@ -55,6 +56,9 @@ from server.runtime.events import Event
 MAX_CONNECTIONS = 8  # Moonraker takes one; a few direct tools beside it
 SCRIPT_BYTES = 4 << 20  # all connections' waiting scripts together
 PUSHES_WAITING = 8  # state changes whose snapshots wait for the push task
+# Klipper's source folder as Moonraker reads it: its config/ and docs/ (README files that
+# point at motiond's), so Moonraker's config_examples and docs roots are valid folders.
+KLIPPER_PATH = Path(__file__).resolve().parent / "klipper"
 
 
 class KlippyApiConfig(ModuleConfig):
@@ -77,6 +81,7 @@ class KlippyApi(Module):
         self.jog_feed_mm_min = 60.0 * min(rates or [10.0])
         self.extra = printer.Extra()
         self.times = printer.JobTimes()
+        self.job_state: str | None = None
         self.machine = printer.Machine((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0.0, 0.0,
                                        Path(), frozenset())
         self.connections: set[Connection] = set()
@@ -112,8 +117,8 @@ class KlippyApi(Module):
             "state": hooks["state"], "state_message": hooks["state_message"],
             "hostname": socket.gethostname(), "software_version": f"motiond {__version__}",
             "cpu_info": platform.processor() or platform.machine(), "app": "Klipper",
-            "klipper_path": str(Path(__file__).resolve().parents[2]),
-            "python_path": sys.executable,
+            "klipper_path": str(KLIPPER_PATH), "python_path": sys.executable,
+            **_log_file(),
             "process_id": os.getpid(), "user_id": os.getuid(), "group_id": os.getgid(),
         }
 
@@ -125,6 +130,11 @@ class KlippyApi(Module):
             connection.session.push_output(text)
 
     def restart(self) -> None:
+        """After RESTART/FIRMWARE_RESTART: the last job is forgotten (``print_stats`` is
+        ``standby``, as after Klipper's restart) and every connection closes."""
+        job = self.ctx.status().get("job") or {}
+        if job:
+            self.extra.forgotten_job = (str(job["name"]), float(job["started_s"]))
         for connection in list(self.connections):
             connection.close()
 
@@ -158,7 +168,8 @@ class KlippyApi(Module):
         return printer.Machine(
             (low[0], low[1], low[2]), (high[0], high[1], high[2]),
             max(axis.max_rate_mm_s for axis in planar), max(axis.accel_mm_s2 for axis in planar),
-            jobs_dir(core).resolve(), homeable, dict(HELP))
+            jobs_dir(core).resolve(), homeable, dict(HELP),
+            "".join(axis.lower() for axis in "XYZ" if axis in axes))
 
     async def _push_status(self) -> None:
         """Push what changed to every subscriber ``status_hz`` times a second, and each
@@ -216,6 +227,7 @@ class KlippyApi(Module):
             self._refusal_logged_s, self._refused = now_s, 0
 
     def _on_job(self, progress: Any) -> None:
+        self.job_state = None if progress is None else str(progress.state)
         if progress is not None:
             self.times.update(progress.name, progress.started_s, progress.state,
                               self.ctx.clock.now_s())
@@ -248,6 +260,15 @@ def _listening_socket(path: Path) -> socket.socket:
     sock.listen(64)
     sock.setblocking(False)
     return sock
+
+
+def _log_file() -> dict[str, str]:
+    """``log_file``: the file motiond logs to (``--log-file``), which Moonraker serves as
+    ``klippy.log`` (the front-ends' log buttons); nothing when it logs to stderr only."""
+    for handler in logging.getLogger().handlers:
+        if isinstance(handler, logging.FileHandler):
+            return {"log_file": handler.baseFilename}
+    return {}
 
 
 def _host_stats() -> dict[str, float]:

@@ -2,7 +2,8 @@
 
 Every value comes from :func:`server.kernel.status.build_status` (what the machine executed:
 ``mpos`` is the step generator's or the board's position) and from the machine's config; no
-extruder, heater or output pin is invented. Positions are Klipper's four-element lists
+extruder or heater is invented; the laser and the switches are output pins
+(:mod:`modules.klippy_api.outputs`). Positions are Klipper's four-element lists
 ``[x, y, z, e]`` in mm, ``e`` always 0; speeds are mm/s (``gcode_move.speed`` mm/min, as
 Klipper's). Soft-limit and other Grbl alarms keep ``webhooks.state`` ``ready`` (the front-end
 stays usable, the message says what to do); an emergency stop (ALARM:40) and a failed module
@@ -15,14 +16,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from modules.klippy_api import outputs
 from server.errors import Alarm
 
 SHUTDOWN_ALARMS = frozenset({Alarm.HALT, Alarm.MODULE_FAILED, Alarm.BACKEND_FAILED})
 PRINT_STATES = {"running": "printing", "paused": "paused", "done": "complete",
                 "aborted": "cancelled", "failed": "error"}
+# Klipper's job macros, built in here: objects of their own, as the front-ends look for them.
+MACROS = ("PAUSE", "RESUME", "CANCEL_PRINT")
 OBJECT_NAMES = ("webhooks", "configfile", "gcode", "toolhead", "gcode_move", "motion_report",
                 "print_stats", "virtual_sdcard", "pause_resume", "display_status",
-                "idle_timeout", "system_stats")
+                "idle_timeout", "system_stats", *(f"gcode_macro {name}" for name in MACROS))
 
 
 @dataclass(frozen=True, slots=True)
@@ -36,6 +40,7 @@ class Machine:
     jobs_dir: Path
     homeable: frozenset[str]  # axes with a homing switch (lower case); the rest need none
     commands: dict[str, str] = field(default_factory=dict)  # G-code name -> help
+    axes: str = "xyz"  # the machine's axes among X, Y, Z (lower case): no Z on an XY laser
 
 
 @dataclass(slots=True)
@@ -78,17 +83,20 @@ class Extra:
     the host."""
 
     message: str | None = None
+    forgotten_job: tuple[str, float] | None = None  # (name, started_s) a restart ended
     file_size_bytes: int = 0
     host: dict[str, float] = field(default_factory=dict)  # sysload, cputime, memavail
     durations_s: tuple[float, float] = (0.0, 0.0)  # the job's (total, printing)
 
 
 def build_objects(status: dict[str, Any], machine: Machine, extra: Extra) -> dict[str, Any]:
-    """Every printer object, now."""
+    """Every printer object, now (a job a restart ended is no job: ``standby``)."""
     job = status.get("job") or None
+    if job is not None and (job.get("name"), job.get("started_s")) == extra.forgotten_job:
+        job = None
     return {
         "webhooks": webhooks(status),
-        "configfile": configfile(machine),
+        "configfile": configfile(machine, outputs.output_pin_settings(status)),
         "gcode": {"commands": {name: {"help": text} for name, text in machine.commands.items()}},
         "toolhead": toolhead(status, machine),
         "gcode_move": gcode_move(status),
@@ -96,9 +104,12 @@ def build_objects(status: dict[str, Any], machine: Machine, extra: Extra) -> dic
         "print_stats": print_stats(job, extra.durations_s),
         "virtual_sdcard": virtual_sdcard(job, machine, extra),
         "pause_resume": {"is_paused": job is not None and job.get("state") == "paused"},
-        "display_status": {"progress": _progress(job), "message": extra.message},
+        "display_status": {"progress": _progress(job, extra.durations_s[1]),
+                           "message": extra.message},
         "idle_timeout": idle_timeout(status, job),
         "system_stats": dict(extra.host),
+        **{f"gcode_macro {name}": {} for name in MACROS},
+        **outputs.output_pins(status),
     }
 
 
@@ -114,8 +125,10 @@ def webhooks(status: dict[str, Any]) -> dict[str, Any]:
     return {"state": "ready", "state_message": f"{text}. $X unlocks."}
 
 
-def configfile(machine: Machine) -> dict[str, Any]:
-    """Klipper's raw config (strings) and settings (values) for what motiond has."""
+def configfile(machine: Machine,
+               pins: dict[str, dict[str, Any]] | None = None) -> dict[str, Any]:
+    """Klipper's raw config (strings) and settings (values) for what motiond has (``pins``:
+    the output pins' sections, :mod:`modules.klippy_api.outputs`)."""
     settings: dict[str, dict[str, Any]] = {
         "printer": {"kinematics": "cartesian", "max_velocity": machine.max_velocity_mm_s,
                     "max_accel": machine.max_accel_mm_s2},
@@ -123,12 +136,15 @@ def configfile(machine: Machine) -> dict[str, Any]:
         "pause_resume": {"recover_velocity": 50.0},
         "display_status": {},
     }
-    for name in ("pause", "resume", "cancel_print"):  # built in: what the front-ends check
+    for name in (macro.lower() for macro in MACROS):  # built in: what the front-ends check
         settings[f"gcode_macro {name}"] = {"description": f"motiond: {name.upper()} is built in",
                                            "gcode": ""}
     for index, axis in enumerate("xyz"):
+        if axis not in machine.axes:
+            continue  # a front-end shows the axes whose stepper section exists
         settings[f"stepper_{axis}"] = {"position_min": machine.axis_min_mm[index],
                                        "position_max": machine.axis_max_mm[index]}
+    settings.update(pins or {})
     config = {section: {key: str(value) for key, value in values.items()}
               for section, values in settings.items()}
     return {"config": config, "settings": settings, "save_config_pending": False,
@@ -144,7 +160,8 @@ def homed_axes(status: dict[str, Any], machine: Machine) -> str:
     """Axes without a switch need no homing; the others once homed (``[endstops]``)."""
     homed = {name.lower() for name in status.get("modules", {}).get("endstops", {})
              .get("homed", [])}
-    return "".join(axis for axis in "xyz" if axis not in machine.homeable or axis in homed)
+    return "".join(axis for axis in machine.axes
+                   if axis not in machine.homeable or axis in homed)
 
 
 def toolhead(status: dict[str, Any], machine: Machine) -> dict[str, Any]:
@@ -205,22 +222,28 @@ def print_stats(job: dict[str, Any] | None,
     }
 
 
-def _progress(job: dict[str, Any] | None) -> float:
+def _progress(job: dict[str, Any] | None, print_s: float = 0.0) -> float:
+    """How far the job is, 0..1: by motiond's planned time where it has it, so that the
+    front-ends' "time left" (print time / progress - print time) is motiond's remaining
+    time; else by the lines run."""
     if job is None:
         return 0.0
     if job.get("state") == "done":
         return 1.0
+    remaining_s = job.get("remaining_s")
+    if remaining_s is not None and print_s + remaining_s > 0:
+        return round(print_s / (print_s + float(remaining_s)), 4)
     done, total = job.get("lines_done", 0), job.get("lines_total", 0)
     return round(done / total, 4) if total else 0.0
 
 
 def virtual_sdcard(job: dict[str, Any] | None, machine: Machine, extra: Extra) -> dict[str, Any]:
-    """The job's file and how far it is, in bytes (``file_position`` follows the lines run:
-    the fraction of lines done times the file's size)."""
+    """The job's file and how far it is, in bytes (``file_position``: the fraction done,
+    :func:`_progress`, times the file's size)."""
     if job is None:
         return {"file_path": None, "progress": 0.0, "is_active": False, "file_position": 0,
                 "file_size": 0}
-    progress = _progress(job)
+    progress = _progress(job, extra.durations_s[1])
     return {
         "file_path": str(machine.jobs_dir / job["name"]),
         "progress": progress,

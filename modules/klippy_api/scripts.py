@@ -23,13 +23,14 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from modules.klippy_api import gcode, wire
+from modules.klippy_api import gcode, outputs, wire
 from modules.klippy_api.gcode import (
     Control,
     FeedOverride,
     GcodeOffset,
     Line,
     Message,
+    SetPin,
     StartJob,
     Step,
 )
@@ -148,10 +149,18 @@ class Scripts:
         if not ctx.still_valid(ticket):
             raise CommandError(Error.BUSY, "a stop came after this script was sent: not run")
         if isinstance(step, Line):
-            for message in await ctx.run_gcode(step.text, ticket):
+            gcode.check_line_during_job(step.text, self.hub.job_state)
+            try:
+                messages = await ctx.run_gcode(step.text, ticket)
+            except CommandError as exc:
+                raise gcode.klipper_error(step.text, exc) from exc
+            for message in messages:
                 self.hub.output(response_text(message))
         elif isinstance(step, StartJob):
             await ctx.start_job(step.name, ticket)
+        elif isinstance(step, SetPin):
+            line = outputs.set_pin_line(ctx.status(), step.pin, step.value)
+            await self._step(Line(line), ticket)
         elif isinstance(step, FeedOverride):
             ctx.control.set_feed_override(step.percent)
         elif isinstance(step, Message):
@@ -161,9 +170,15 @@ class Scripts:
         elif step.action == "help":
             self.hub.output("\n".join(["// Available commands:",
                                        *(f"// {k}: {v}" for k, v in gcode.HELP.items())]))
+        elif step.action == "velocity_limit":
+            toolhead = self.hub.objects()["toolhead"]
+            self.hub.output(gcode.velocity_report(toolhead["max_velocity"],
+                                                  toolhead["max_accel"]))
         elif step.action == "restart":  # a reset board, as Klipper's restarts leave it
             ctx.control.reset()
             await ctx.run_gcode("$X")
+            await ctx.run_gcode("M84")  # motors off, homing lost: as after Klipper's restart
+            await ctx.moves.wait_idle()  # (M84 is ordered with motion: done before the answer)
             self.hub.restart()
         else:
             control(ctx, step.action)

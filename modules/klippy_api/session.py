@@ -63,7 +63,7 @@ class Session:
         if method == "list_endpoints":
             return {"endpoints": list(ENDPOINTS)}
         if method == "objects/list":
-            return {"objects": list(objects.OBJECT_NAMES)}
+            return {"objects": list(hub.objects())}  # with the output pins
         if method == "objects/query":
             return self._query(_objects_param(params))
         if method == "objects/subscribe":

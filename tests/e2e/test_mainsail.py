@@ -20,6 +20,7 @@ from aiohttp import web
 from playwright.async_api import Page, async_playwright, expect
 
 from tests.e2e.test_moonraker import stack
+from tests.e2e.test_moonraker_laser import LASER_AND_AIR
 from tests.e2e.test_mqtt import mpos, tcp_report
 from tests.e2e.test_web_e2e import CHROMIUM, CHROMIUM_ARGS, DESKTOP, SHOTS
 from tests.support.moonraker import Moonraker
@@ -83,12 +84,13 @@ JOB = "G90 G21\nM4 S300\n" + "".join(
 
 
 async def test_mainsail_shows_and_drives_motiond(tmp_path: Path) -> None:
-    async with stack(tmp_path) as (served, server, _), mainsail(tmp_path, server.port) as url, \
-            browser_page(url) as page:
+    async with stack(tmp_path, LASER_AND_AIR) as (served, server, _), \
+            mainsail(tmp_path, server.port) as url, browser_page(url) as page:
         toolhead = page.locator(".v-card", has_text="Toolhead").first
         await expect(toolhead).to_be_visible(timeout=90_000)  # its bundle, on a busy machine
         await expect(page.get_by_text("Missing configuration")).to_have_count(0)
         await shot(page, "dashboard")
+        await _air_assist_switched_from_the_dashboard(page, server)
 
         await page.get_by_role("button", name="ALL").click()  # G28: motiond homes X and Y
         await server.wait_for(lambda s: s["toolhead"]["homed_axes"] == "xyz",
@@ -136,6 +138,20 @@ async def test_mainsail_shows_and_drives_motiond(tmp_path: Path) -> None:
         await page.wait_for_timeout(1500)
         await shot(page, "emergency-stop")
         assert mpos(await tcp_report(served.tcp_port)) == stopped_at
+        homed = await server.query(toolhead=["homed_axes"])
+        assert homed["toolhead"]["homed_axes"] == "z", "X and Y unhomed, as Klipper's"
+
+
+async def _air_assist_switched_from_the_dashboard(page: Page, server: Moonraker) -> None:
+    """The Miscellaneous panel shows the laser (a slider, whose SET_PIN motiond refuses) and
+    air assist (a toggle, not PWM); the toggle runs M8 through motiond's ordered path."""
+    panel = page.locator(".v-card", has_text="Miscellaneous").first
+    await expect(panel).to_be_visible(timeout=UI_S)
+    await expect(panel.get_by_text("Laser").first).to_be_visible(timeout=UI_S)
+    await panel.locator(".v-subheader", has_text="Air").first.locator("button").click()
+    await server.wait_for(lambda s: s["output_pin air"]["value"] == 1.0,
+                          **{"output_pin air": None})
+    await shot(page, "air-assist")
 
 
 _PERCENT = re.compile(r"^\s*[1-9]\d?% Paused\s*$")

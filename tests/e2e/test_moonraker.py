@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import stat
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -17,7 +18,7 @@ import aiohttp
 import pytest
 
 from tests.e2e.test_mqtt import mpos, tcp_report
-from tests.support.moonraker import Moonraker, MoonrakerError, moonraker
+from tests.support.moonraker import Moonraker, MoonrakerError, documented_config, moonraker
 from tests.support.processes import Served, motiond
 
 # An XY laser with homing switches below zero, and Z without one.
@@ -26,22 +27,29 @@ AXES = "".join(
     f"min_mm = 0\nmax_mm = 300\n" for axis in "xy"
 ) + ("[axes.z]\nsteps_per_mm = 400\nmax_rate_mm_s = 10\naccel_mm_s2 = 200\n"
      "min_mm = -50\nmax_mm = 0\n")
-EXTRA = """
+ENDSTOPS = """
 [endstops]
 axes.x = { direction = "min", seek_mm_s = 200, feed_mm_s = 20, pull_off_mm = 1, switch_at_mm = -1 }
 axes.y = { direction = "min", seek_mm_s = 200, feed_mm_s = 20, pull_off_mm = 1, switch_at_mm = -1 }
-[klippy_api]
-socket = "{socket}"
 """
 
 
 @contextlib.asynccontextmanager
-async def stack(tmp_path: Path) -> AsyncIterator[tuple[Served, Moonraker, Path]]:
-    socket = tmp_path / "klippy_uds"
+async def stack(tmp_path: Path, machine_toml: str = ENDSTOPS, axes_toml: str = AXES,
+                ) -> AsyncIterator[tuple[Served, Moonraker, Path]]:
+    """motiond and Moonraker configured as docs/moonraker.md says, word for word (the port
+    aside), for a user whose home is ``tmp_path/home``: no link between their folders."""
+    home = tmp_path / "home"
+    motiond_toml, moonraker_conf, options = documented_config(home)
+    printer_data = home / "printer_data"
     async with contextlib.AsyncExitStack() as stack:
-        served = await stack.enter_async_context(
-            motiond(tmp_path, EXTRA.replace("{socket}", str(socket)), axes_toml=AXES))
-        server = await stack.enter_async_context(moonraker(tmp_path, socket, served.jobs_dir))
+        served = await stack.enter_async_context(motiond(
+            tmp_path, machine_toml + motiond_toml, axes_toml=axes_toml, home=home,
+            args=options))
+        served = dataclasses.replace(served, jobs=printer_data / "gcodes")
+        socket = printer_data / "comms" / "klippy.sock"
+        server = await stack.enter_async_context(
+            moonraker(tmp_path, socket, conf=moonraker_conf, home=home))
         yield served, server, socket
 
 
@@ -50,6 +58,7 @@ async def test_moonraker_sees_motiond_ready_scripts_home_jog_move_and_emergency_
     async with stack(tmp_path) as (served, server, socket):
         await _ready_with_position(served, server, socket)
         await _console_output_reaches_the_gcode_store(server)
+        await _klipper_words_for_unknown_commands_and_velocity_limits(server)
         await _home_jog_and_move(served, server)
         await _emergency_stop_then_firmware_restart(served, server)
 
@@ -68,8 +77,10 @@ async def _ready_with_position(served: Served, server: Moonraker, socket: Path) 
     assert status["toolhead"]["homed_axes"] == "z"  # X and Y have switches, not yet homed
     sdcard = status["configfile"]["settings"]["virtual_sdcard"]["path"]
     assert Path(sdcard) == served.jobs_dir.resolve()
-    warnings = (await server.get("/server/info"))["warnings"]
-    assert not [text for text in warnings if "GCode path" in text], warnings
+    assert (await server.get("/server/info"))["warnings"] == []  # none, on this set-up
+    assert {"gcode_macro PAUSE", "gcode_macro RESUME", "gcode_macro CANCEL_PRINT"} <= set(objects)
+    async with server.session.get(server.url + "/server/files/klippy.log") as log:
+        assert log.status == 200  # the "Klipper log" buttons: motiond's --log-file
 
 
 async def _home_jog_and_move(served: Served, server: Moonraker) -> None:
@@ -145,6 +156,10 @@ async def test_store_through_moonraker_then_print_pause_resume_and_cancel(tmp_pa
             pushed = await states
         assert pushed == ["printing", "paused", "printing", "cancelled", "printing", "complete"]
         await _history_shows(server, ["completed", "cancelled"])
+        await server.post("/printer/restart")  # Klipper's restart: the job is forgotten
+        await _klippy_ready(server)
+        status = await server.query(print_stats=["state", "filename"])
+        assert status["print_stats"] == {"state": "standby", "filename": ""}
 
 
 async def _history_shows(server: Moonraker, statuses: list[str]) -> None:
@@ -179,6 +194,8 @@ async def _emergency_stop_then_firmware_restart(served: Served, server: Moonrake
     status = await server.wait_for(lambda s: s["webhooks"]["state"] == "shutdown",
                                    timeout_s=5, webhooks=None)
     assert "ALARM:40" in status["webhooks"]["state_message"]
+    homed = await server.query(toolhead=["homed_axes"])
+    assert homed["toolhead"]["homed_axes"] == "z", "an emergency stop loses X and Y's homing"
     with contextlib.suppress(MoonrakerError):
         await moving
     stopped_at = mpos(await tcp_report(served.tcp_port))
@@ -188,15 +205,31 @@ async def _emergency_stop_then_firmware_restart(served: Served, server: Moonrake
     with pytest.raises(MoonrakerError):
         await server.gcode("G1 X10")  # locked out
     await server.post("/printer/firmware_restart")
+    await _klippy_ready(server)
+    await server.gcode("G1 X10 F6000")
+    await server.wait_for(lambda s: s["toolhead"]["position"][0] == 10.0,
+                          toolhead=["position"])
+    for lose in ("M84", "RESTART"):  # motors off, and Klipper's restart, unhome as Klipper's
+        await server.gcode("G28")
+        await server.wait_for(lambda s: s["toolhead"]["homed_axes"] == "xyz",
+                              toolhead=["homed_axes"])
+        with contextlib.suppress(MoonrakerError):  # RESTART: the connection closes
+            await server.gcode(lose)
+        await _klippy_ready(server)
+        await server.wait_for(lambda s: s["toolhead"]["homed_axes"] == "z",
+                              toolhead=["homed_axes"])
+
+
+async def _klippy_ready(server: Moonraker) -> None:
+    """Until Moonraker is connected to motiond again (after a restart), ready."""
+    await asyncio.sleep(0.3)  # Moonraker sees the connection close first
     for _ in range(200):
         with contextlib.suppress(MoonrakerError, AssertionError):
             info = await server.get("/server/info")
             if info["klippy_state"] == "ready":
-                break
+                return
         await asyncio.sleep(0.1)
-    await server.gcode("G1 X10 F6000")
-    await server.wait_for(lambda s: s["toolhead"]["position"][0] == 10.0,
-                          toolhead=["position"])
+    raise AssertionError("Moonraker did not reconnect")
 
 
 async def _console_output_reaches_the_gcode_store(server: Moonraker) -> None:
@@ -208,3 +241,17 @@ async def _console_output_reaches_the_gcode_store(server: Moonraker) -> None:
     responses = [item["message"] for item in store["gcode_store"]
                  if item["type"] == "response"]
     assert any(message.startswith("X:0.0000 Y:0.0000") for message in responses), responses
+
+
+async def _klipper_words_for_unknown_commands_and_velocity_limits(server: Moonraker) -> None:
+    with pytest.raises(MoonrakerError) as unknown:
+        await server.gcode("FOO_BAR")
+    assert 'Unknown command:"FOO_BAR"' in unknown.value.body["error"]["message"]
+    with pytest.raises(MoonrakerError) as limit:
+        await server.gcode("SET_VELOCITY_LIMIT VELOCITY=100")  # Mainsail's Machine panel
+    message = limit.value.body["error"]["message"]
+    assert "Error on 'SET_VELOCITY_LIMIT VELOCITY=100'" in message and "max_rate_mm_s" in message
+    await server.gcode("SET_VELOCITY_LIMIT")
+    store = await server.get("/server/gcode_store", count="10")
+    responses = [item["message"] for item in store["gcode_store"]]
+    assert "// max_velocity: 200.000000" in "\n".join(responses), responses

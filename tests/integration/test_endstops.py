@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 from typing import Any
 
 import pytest
@@ -165,3 +166,35 @@ def test_an_endstop_on_an_axis_the_machine_lacks_is_a_config_error() -> None:
     with pytest.raises(ConfigError) as info:
         App(make_config(endstops={"axes": {"a": {}}}), clock=VirtualClock())
     assert info.value.problems == ["[endstops.axes.a]: no such axis (axes: X, Y, Z)"]
+
+
+def homed(app: App) -> list[str]:
+    return list(app.kernel.modules["endstops"].status()["homed"])
+
+
+async def test_homing_is_lost_at_motors_off_an_emergency_stop_and_a_reset_in_motion() -> None:
+    async with running(make_config(endstops=endstops())) as app:
+        for lose in (["M84"], ["M112"]):
+            await submit_all(app, ["$H"])
+            assert homed(app) == ["X", "Y", "Z"]
+            with contextlib.suppress(CommandError):
+                await submit_all(app, lose)
+            await app.kernel.machine.wait_idle()
+            assert homed(app) == [], lose
+        await submit_all(app, ["$H", "G1 X200 F600"])
+        await app.clock.sleep(0.5)  # type: ignore[attr-defined]
+        app.kernel.control.reset()  # Ctrl-X while moving: ALARM:3
+        assert app.kernel.alarm_code == 3 and homed(app) == []
+        await submit_all(app, ["$H", "$SLP"])
+        assert homed(app) == []
+
+
+async def test_homing_is_kept_by_a_soft_limit_alarm_and_a_reset_at_rest() -> None:
+    async with running(make_config(endstops=endstops())) as app:
+        await submit_all(app, ["$H"])
+        with pytest.raises(CommandError):
+            await submit_all(app, ["G1 X5000 F600"])
+        assert app.kernel.alarm_code == 2 and homed(app) == ["X", "Y", "Z"]
+        await submit_all(app, ["$X"])
+        app.kernel.control.reset()
+        assert homed(app) == ["X", "Y", "Z"]

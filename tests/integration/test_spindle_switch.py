@@ -126,7 +126,8 @@ async def test_fan_comes_on_exactly_when_the_first_move_ends() -> None:
         assert trace(app, "fan") == [(ends[0], 1.0), (ends[1], pytest.approx(128 / 255)),
                                      (ends[2], 0.0)], "each exactly when the move before ends"
         assert app.kernel.modules["switch.fan"].status() == {
-            "pin": "fan", "value": 0.0, "on": False, "on_gcode": "M106", "off_gcode": "M107"}
+            "pin": "fan", "value": 0.0, "on": False, "on_gcode": "M106", "off_gcode": "M107",
+            "level_gcode": "M106 S", "max_s": 255.0}
 
 
 async def test_a_coolant_switch_follows_m8_and_m9_in_order_and_the_realtime_toggle() -> None:

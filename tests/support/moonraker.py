@@ -13,6 +13,7 @@ import asyncio
 import contextlib
 import json
 import os
+import re
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -97,18 +98,45 @@ class MoonrakerError(AssertionError):
         self.status, self.body = status, body
 
 
+DOC = Path(__file__).resolve().parents[2] / "docs" / "moonraker.md"
+
+
+def documented_config(home: Path) -> tuple[str, str, list[str]]:
+    """docs/moonraker.md's configuration, verbatim: motiond's TOML, ``moonraker.conf`` (with
+    ``{port}`` for the port, so that tests on one host do not collide) and the options of
+    motiond's ``ExecStart`` but ``--config`` (``/home/laser`` is ``home``)."""
+    text = DOC.read_text()
+    toml = text.split("```toml\n", 1)[1].split("```", 1)[0]
+    conf = text.split("```ini\n", 1)[1].split("```", 1)[0]
+    assert "port: 7125\n" in conf, "moonraker.md: Moonraker's port is no longer 7125"
+    command = re.search(r"ExecStart=\S+/motiond (.*)", text)
+    assert command is not None, "moonraker.md: no ExecStart for motiond"
+    words = command.group(1).replace("/home/laser", str(home)).split()
+    options = [word for pair in zip(words[::2], words[1::2], strict=True)
+               if pair[0] != "--config" for word in pair]
+    return toml, conf.replace("port: 7125\n", "port: {port}\n"), options
+
+
 @contextlib.asynccontextmanager
-async def moonraker(tmp_path: Path, socket: Path, gcodes: Path) -> AsyncIterator[Moonraker]:
-    """Moonraker on a free port, for the motiond API socket ``socket``, with motiond's jobs
-    folder ``gcodes`` as its own (a symbolic link), until Klippy is ready."""
+async def moonraker(tmp_path: Path, socket: Path, gcodes: Path | None = None, *,
+                    conf: str | None = None, home: Path | None = None,
+                    ) -> AsyncIterator[Moonraker]:
+    """Moonraker on a free port, for the motiond API socket ``socket``, until Klippy is ready.
+    Either with ``gcodes`` (motiond's jobs folder, linked in as its own) and the tests'
+    configuration, or as the user whose ``home`` holds ``~/printer_data`` with ``conf``."""
     program = await asyncio.to_thread(ensure_moonraker)
-    data = tmp_path / "printer_data"
+    if home is None:
+        home = tmp_path / "home"
+        data = tmp_path / "printer_data"
+    else:
+        data = home / "printer_data"
     (data / "config").mkdir(parents=True, exist_ok=True)
-    (data / "gcodes").symlink_to(gcodes, target_is_directory=True)
-    home = tmp_path / "home"
+    if gcodes is not None:
+        (data / "gcodes").symlink_to(gcodes, target_is_directory=True)
     home.mkdir(exist_ok=True)
     port = free_port()
-    (data / "config" / "moonraker.conf").write_text(moonraker_conf(port, socket))
+    text = conf.replace("{port}", str(port)) if conf else moonraker_conf(port, socket)
+    (data / "config" / "moonraker.conf").write_text(text)
     log_path = tmp_path / "moonraker.log"
     with log_path.open("ab") as log:
         process = await asyncio.create_subprocess_exec(

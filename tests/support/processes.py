@@ -34,10 +34,11 @@ class Served:
     http_port: int
     data_dir: Path
     log: list[str] = field(default_factory=list)
+    jobs: Path | None = None  # [jobs] jobs_dir, when the config names one
 
     @property
     def jobs_dir(self) -> Path:
-        return self.data_dir / "jobs"
+        return self.jobs if self.jobs is not None else self.data_dir / "jobs"
 
     @property
     def http(self) -> str:
@@ -58,21 +59,30 @@ async def _wait_listening(port: int, process: asyncio.subprocess.Process) -> Non
 
 @contextlib.asynccontextmanager
 async def motiond(tmp_path: Path, extra_toml: str = "", *, args: Sequence[str] = (),
-                  axes_toml: str = AXES_TOML, name: str = "machine") -> AsyncIterator[Served]:
+                  axes_toml: str = AXES_TOML, name: str = "machine",
+                  home: Path | None = None) -> AsyncIterator[Served]:
     """``motiond --config`` on free ports with ``extra_toml`` appended to a small XY machine
-    (``axes_toml``), more command-line ``args`` (``--pty PATH``); ``name`` names its files."""
-    data_dir = tmp_path / f"data-{name}" if name != "machine" else tmp_path / "data"
-    (data_dir / "jobs").mkdir(parents=True, exist_ok=True)
+    (``axes_toml``), more command-line ``args`` (``--pty PATH``); ``name`` names its files.
+    With ``home``, it runs as a user whose home that is, with the folders of its config
+    (``extra_toml`` then holds the ``[jobs]`` section, a ``~`` is that home)."""
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    if home is None:
+        data_dir = tmp_path / f"data-{name}" if name != "machine" else tmp_path / "data"
+        (data_dir / "jobs").mkdir(parents=True, exist_ok=True)
+        extra_toml = f"[jobs]\ndata_dir = '{data_dir}'\n" + extra_toml
+    else:
+        env = {key: value for key, value in env.items() if not key.startswith("XDG_")}
+        env["HOME"] = str(home)
+        data_dir = home / ".local" / "share" / "motiond"  # platformdirs' user data folder
     config = tmp_path / f"{name}.toml"
-    config.write_text(axes_toml + f"[jobs]\ndata_dir = '{data_dir}'\n" + extra_toml)
+    config.write_text(axes_toml + extra_toml)
     tcp_port, http_port = free_port(), free_port()
     log_file = (tmp_path / f"{name}.log").open("ab")  # its warnings, for a failing test
     process = await asyncio.create_subprocess_exec(
         sys.executable, "-m", "server.cli", "--config", str(config), "--host", "127.0.0.1",
         "--tcp-port", str(tcp_port), "--http-port", str(http_port), "--log-level", "warning",
         *args,
-        cwd=REPO, env={**os.environ, "PYTHONUNBUFFERED": "1"},
-        stdout=asyncio.subprocess.DEVNULL, stderr=log_file,
+        cwd=REPO, env=env, stdout=asyncio.subprocess.DEVNULL, stderr=log_file,
     )
     log_file.close()
     try:

@@ -3,13 +3,14 @@ objects from a status snapshot, and the change-only subscription diff."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-from modules.klippy_api import objects, wire
+from modules.klippy_api import objects, outputs, wire
 from modules.klippy_api.gcode import (
     Control,
     FeedOverride,
@@ -17,10 +18,12 @@ from modules.klippy_api.gcode import (
     Line,
     Message,
     StartJob,
+    check_line_during_job,
+    klipper_error,
     translate,
 )
 from modules.klippy_api.session import response_text
-from server.errors import CommandError
+from server.errors import CommandError, Error
 
 JOG_FEED = 30000.0
 MACHINE = objects.Machine((0.0, 0.0, -50.0), (400.0, 300.0, 0.0), 500.0, 3000.0,
@@ -148,6 +151,24 @@ def test_homed_axes_are_those_homed_and_those_without_a_switch() -> None:
     assert objects.homed_axes(homed, MACHINE) == "xyz"
 
 
+def test_a_two_axis_machine_has_no_z_stepper_and_homes_only_x_and_y() -> None:
+    planar = dataclasses.replace(MACHINE, axes="xy")
+    built = objects.build_objects(status(modules={"endstops": {"homed": ["X", "Y"]}}), planar,
+                                  objects.Extra())
+    assert built["toolhead"]["homed_axes"] == "xy"
+    sections = built["configfile"]["settings"]
+    assert "stepper_x" in sections and "stepper_z" not in sections
+
+
+def test_unknown_extended_commands_and_velocity_limits_in_klippers_words() -> None:
+    refused = CommandError(Error.BAD_NUMBER_FORMAT, "bad number after 'F'")
+    assert klipper_error("foo_bar X=1", refused).message == 'Unknown command:"FOO_BAR"'
+    assert klipper_error("G1 X1", refused) is refused  # a G-code line keeps motiond's error
+    with pytest.raises(CommandError, match="Error on 'SET_VELOCITY_LIMIT ACCEL=500'"):
+        translate("SET_VELOCITY_LIMIT ACCEL=500", JOG_FEED)
+    assert translate("SET_VELOCITY_LIMIT", JOG_FEED) == [Control("velocity_limit")]
+
+
 def test_print_stats_and_sdcard_follow_the_job() -> None:
     job = {"name": "a.nc", "state": "running", "lines_done": 25, "lines_total": 100,
            "elapsed_s": 3.0, "error": None}
@@ -202,3 +223,44 @@ def test_set_gcode_offset_parses_absolute_adjust_and_move() -> None:
         GcodeOffset({"X": 1.0, "Y": -2.0}, {}, False, None)]
     with pytest.raises(CommandError):
         translate("SET_GCODE_OFFSET E=1", JOG_FEED)
+
+
+def test_progress_follows_motiond_planned_time_so_time_left_is_motiond_s() -> None:
+    job = {"name": "a.nc", "state": "running", "lines_done": 90, "lines_total": 100,
+           "remaining_s": 240.0, "error": None}
+    extra = objects.Extra(file_size_bytes=1000, durations_s=(61.0, 60.0))
+    built = objects.build_objects(status(job=job), MACHINE, extra)
+    progress = built["virtual_sdcard"]["progress"]
+    assert progress == 0.2 and built["display_status"]["progress"] == 0.2
+    assert 60.0 / progress - 60.0 == pytest.approx(240.0)  # the front-ends' time left
+
+
+def test_laser_and_switches_are_output_pins_switched_by_their_own_lines() -> None:
+    modules = {"laser": {"power": 0.25}, "switch.air": {
+        "pin": "air", "value": 1.0, "on_gcode": "M8", "off_gcode": "M9", "level_gcode": None,
+        "max_s": 255.0}, "switch.fan": {"pin": "fan", "value": 0.5, "on_gcode": "M106",
+                                       "off_gcode": "M107", "level_gcode": "M106 S",
+                                       "max_s": 255.0}}
+    built = objects.build_objects(status(modules=modules), MACHINE, objects.Extra())
+    assert built["output_pin laser"] == {"value": 0.25} and built["output_pin air"]["value"] == 1
+    settings = built["configfile"]["settings"]
+    assert settings["output_pin air"]["pwm"] is False and settings["output_pin fan"]["pwm"]
+    state = status(modules=modules)
+    assert outputs.set_pin_line(state, "air", 1.0) == "M8"
+    assert outputs.set_pin_line(state, "air", 0.0) == "M9"
+    assert outputs.set_pin_line(state, "fan", 0.5) == "M106 S127.5"
+    for pin, value in (("laser", 1.0), ("nozzle", 1.0), ("fan", 2.0)):
+        with pytest.raises(CommandError):
+            outputs.set_pin_line(state, pin, value)
+
+
+def test_a_paused_job_refuses_every_console_line_a_running_one_its_motion() -> None:
+    for line in ("M114", "G90 G1 X10", "$J=G91 X1 F100"):
+        with pytest.raises(CommandError, match="the job is paused"):
+            check_line_during_job(line, "paused")
+    for line in ("G90 G1 X10", "$J=G91 X1 F100", "G28.2 X0", "g0x1"):
+        with pytest.raises(CommandError, match="the job is running"):
+            check_line_during_job(line, "running")
+    for line in ("M114", "G4 P1", "G10 L20 P1 X0", "M8"):
+        check_line_during_job(line, "running")
+    check_line_during_job("G1 X10", "done")

@@ -39,6 +39,11 @@ def test_a_configured_data_folder_holds_jobs_and_settings_apart(tmp_path: Path) 
     assert paths.settings_path(config) == tmp_path / "data" / "settings.toml"  # type: ignore[arg-type]
 
 
+def test_a_configured_jobs_folder_is_used_as_is_with_the_home_expanded() -> None:
+    config = make_config(jobs={"jobs_dir": "~/printer_data/gcodes"})
+    assert paths.jobs_dir(config.core) == HOME / "printer_data" / "gcodes"
+
+
 def test_settings_of_a_config_file_live_beside_it(tmp_path: Path) -> None:
     config = make_config()
     config = type(config)(config.core, config.modules, tmp_path / "laser.toml")
