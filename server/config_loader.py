@@ -21,6 +21,7 @@ from pydantic import BaseModel, ValidationError
 from server.config import Config, CoreConfig, ModuleSpec
 from server.errors import ConfigError
 from server.kernel.module import Module, available_modules
+from server.paths import check_config_file
 
 CORE_SECTIONS = frozenset(CoreConfig.model_fields)
 
@@ -35,6 +36,8 @@ def load_config(
 ) -> Config:
     """Load and validate a config file (the embedded default when ``path`` is None)."""
     label = str(path) if path else "<default config>"
+    if path is not None:
+        check_config_file(path)
     try:
         text = path.read_text() if path else default_config_text()
     except OSError as exc:

@@ -16,11 +16,14 @@ its own data folder moves every file motiond writes. The folders follow the plat
 from __future__ import annotations
 
 import logging
+import os
+import stat
 from pathlib import Path
 
 import platformdirs
 
 from server.config import Config, CoreConfig
+from server.errors import ConfigError
 
 log = logging.getLogger("motiond.paths")
 APP = "motiond"
@@ -70,3 +73,23 @@ def find_config() -> Path | None:
 def log_dir() -> Path:
     """The user's log folder (``$XDG_STATE_HOME/motiond/log``), for ``--log-file`` defaults."""
     return Path(platformdirs.user_log_path(APP))
+
+
+def check_config_file(path: Path, uid: int | None = None) -> None:
+    """Refuse a config another account could have written, as ssh refuses such a key: the
+    file must belong to ``uid`` (default: this process's) or root, and others may not write
+    it. A config names the machine's limits, its backend and who may control it."""
+    uid = os.geteuid() if uid is None else uid
+    try:
+        info = path.stat()
+    except OSError:
+        return  # reading it says why
+    problem = None
+    if info.st_uid not in (uid, 0):
+        problem = f"owned by uid {info.st_uid}, not by the account that runs motiond ({uid}) " \
+                  f"or root: sudo chown {uid} {path}"
+    elif info.st_mode & stat.S_IWOTH:
+        problem = f"writable by every account (mode {stat.S_IMODE(info.st_mode):04o}): " \
+                  f"chmod o-w {path}"
+    if problem:
+        raise ConfigError([f"{path}: refusing a config file {problem}"])

@@ -52,16 +52,6 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--version", action="version", version=f"motiond {__version__}")
-    parser.add_argument(
-        "--log-level",
-        default="info",
-        choices=["debug", "info", "warning", "error"],
-        help="default: info",
-    )
-    parser.add_argument(
-        "--log-file", type=Path, default=_env_path("MOTIOND_LOG_FILE"),
-        help="also log to this file, reopened when logrotate moves it (default: "
-        "$MOTIOND_LOG_FILE, else stderr only)")
     commands = parser.add_subparsers(dest="command", metavar="COMMAND")
     serve = commands.add_parser("serve", help="run the server (the default command)")
     _serve_options(serve, after_command=True)
@@ -168,6 +158,16 @@ def _serve_options(parser: argparse.ArgumentParser, *, after_command: bool = Fal
         help="event loop: asyncio's when its thread may run at real-time priority, else "
         "uvloop's when installed (pip install 'motiond[fast]'), else asyncio's (default: auto)",
     )
+    parser.add_argument(
+        "--log-level",
+        default="info",
+        choices=["debug", "info", "warning", "error"],
+        help="default: info",
+    )
+    parser.add_argument(
+        "--log-file", type=Path, default=_env_path("MOTIOND_LOG_FILE"),
+        help="also log to this file, reopened when logrotate moves it (default: "
+        "$MOTIOND_LOG_FILE, else stderr only)")
     parser.add_argument(
         "--data-dir",
         type=Path,
