@@ -205,7 +205,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             from server.service import install_service
 
             return install_service(args)
-        config = load_config(args.config or find_config())
+        config = _env_data_dir(load_config(args.config or find_config()))
         if args.command == "estimate":
             from server.cli.offline import estimate_command
 
@@ -240,7 +240,7 @@ def check_config(path: Path) -> int:
     from server.cli.offline import machine_interpreter
 
     try:
-        config = load_config(path)
+        config = _env_data_dir(load_config(path))
         machine_interpreter(config)  # builds the modules: codes claimed twice are errors too
     except ConfigError as exc:
         for problem in exc.problems:
@@ -251,6 +251,15 @@ def check_config(path: Path) -> int:
     modules = ", ".join(spec.section for spec in config.modules) or "none"
     print(f"{path}: ok ({config.core.machine.name}; axes {axes}; modules {modules})")
     return 0
+
+
+def _env_data_dir(config: Config) -> Config:
+    """``$MOTIOND_DATA_DIR`` for every command, unless the config names its data folder
+    (``serve``'s ``--data-dir`` wins over both)."""
+    folder = _env_path("MOTIOND_DATA_DIR")
+    if folder is not None and config.core.jobs.data_dir is None:
+        config.core.jobs.data_dir = folder
+    return config
 
 
 def apply_overrides(args: argparse.Namespace, config: Config) -> Config:
