@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 
 from server import __version__
 from server.config import Config
-from server.config_loader import load_config
+from server.config_loader import config_layers, load_config
 from server.errors import ConfigError
 from server.paths import find_config
 from server.runtime import realtime
@@ -237,6 +237,7 @@ def setup_logging(level: str, log_file: Path | None) -> None:
 
 
 def check_config(path: Path) -> int:
+    from server.cli.config_view import describe, trusted
     from server.cli.offline import machine_interpreter
 
     try:
@@ -249,7 +250,13 @@ def check_config(path: Path) -> int:
         return 1
     axes = ", ".join(config.core.axis_names)
     modules = ", ".join(spec.section for spec in config.modules) or "none"
-    print(f"{path}: ok ({config.core.machine.name}; axes {axes}; modules {modules})")
+    layers = config_layers(path)
+    base = "extends the built-in machine" if len(layers) > 1 else "a machine of its own"
+    print(f"{path}: ok ({config.core.machine.name}; axes {axes}; modules {modules}; {base})")
+    print(trusted(config))
+    print(f"# the machine it describes, each value with where it came from ({path}, the "
+          f"built-in machine, or the option's default):")
+    print("\n".join(describe(config, layers)))
     return 0
 
 
