@@ -276,16 +276,42 @@ class ProtocolConfig(Strict):
     @classmethod
     def _networks(cls, entries: list[str]) -> list[str]:
         for entry in entries:
-            try:
-                client_networks([entry])
-            except ValueError as exc:
-                raise ValueError(f"not an address or subnet: {entry!r}") from exc
+            client_network(entry)
         return entries
 
 
-def client_networks(entries: list[str]) -> list[ipaddress.IPv4Network | ipaddress.IPv6Network]:
-    """``[protocol] trusted_clients`` as networks (an address is a network of one)."""
-    return [ipaddress.ip_network(entry.strip(), strict=False) for entry in entries]
+Network = ipaddress.IPv4Network | ipaddress.IPv6Network
+_MAPPED = ipaddress.IPv6Network("::ffff:0:0/96")
+
+
+def client_network(entry: str) -> Network:
+    """One ``trusted_clients`` entry as a network (an address is a network of one; an
+    IPv4-mapped IPv6 one is its IPv4 form, as clients' addresses are compared).
+
+    Raises:
+        ValueError: not an address or subnet, host bits set (``192.168.1.77/24``: which was
+            meant?), or a ``/0`` (every address: no token at all).
+    """
+    text = entry.strip()
+    try:
+        network = ipaddress.ip_network(text, strict=False)
+    except ValueError:
+        raise ValueError(f"not an address or subnet: {entry!r}") from None
+    if network.prefixlen == 0:
+        raise ValueError(f"{entry!r} trusts every address, as if no token were set: list your "
+                         "own computers (192.168.1.77) or their subnet (192.168.1.0/24)")
+    if network.network_address != ipaddress.ip_interface(text).ip:
+        raise ValueError(f"{entry!r} has host bits set: write {network} for the subnet or "
+                         f"{text.split('/')[0]} for the one address")
+    if isinstance(network, ipaddress.IPv6Network) and network.subnet_of(_MAPPED):
+        mapped = network.network_address.ipv4_mapped
+        return ipaddress.IPv4Network(f"{mapped}/{max(network.prefixlen - 96, 0)}")
+    return network
+
+
+def client_networks(entries: list[str]) -> list[Network]:
+    """``[protocol] trusted_clients`` as networks."""
+    return [client_network(entry) for entry in entries]
 
 
 def trusted_client(address: str | None, entries: list[str]) -> bool:
