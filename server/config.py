@@ -191,6 +191,10 @@ class HttpConfig(Strict):
         description="names a request's Host (and a page's Origin) may carry; default: localhost"
         " names, the bound address and this machine's names; '*' allows any",
     )
+    also_allowed_hosts: list[str] = Field(
+        default_factory=list,
+        description="names allowed besides allowed_hosts (or its default): a container's "
+        "host's names, as $MOTIOND_ALLOWED_HOSTS gives them (nas.local,nas)")
     token: str | None = None
     max_connections: int = Field(
         32, ge=1, description="WebSocket connections (/ws and /api) that presented the token"

@@ -56,6 +56,9 @@ def build_parser() -> argparse.ArgumentParser:
     serve = commands.add_parser("serve", help="run the server (the default command)")
     _serve_options(serve, after_command=True)
     _serve_options(parser)
+    health = commands.add_parser(
+        "health", help="exit 0 when the server this config describes answers GET /health")
+    _serve_options(health, after_command=True)
     check = commands.add_parser("check-config", help="validate a config file")
     check.add_argument("file", type=Path)
     for name, help_text in (
@@ -148,7 +151,8 @@ def _serve_options(parser: argparse.ArgumentParser, *, after_command: bool = Fal
     )
     parser.add_argument("--host", help="bind address for TCP and HTTP (overrides config)")
     parser.add_argument("--tcp-port", type=int, help="raw TCP port (default 2323)")
-    parser.add_argument("--http-port", type=int, help="HTTP/WebSocket port (default 8080)")
+    parser.add_argument("--http-port", type=int, default=_env_port("MOTIOND_HTTP_PORT"),
+                        help="HTTP/WebSocket port (default: $MOTIOND_HTTP_PORT, else 8080)")
     parser.add_argument("--serial", metavar="DEVICE", help="also serve a serial device")
     parser.add_argument("--pty", metavar="PATH", help="also serve a pseudo-terminal linked at PATH")
     parser.add_argument(
@@ -181,6 +185,17 @@ def _serve_options(parser: argparse.ArgumentParser, *, after_command: bool = Fal
                 action.default = argparse.SUPPRESS
 
 
+def _env_port(name: str) -> int | None:
+    value = os.environ.get(name)
+    return _port(value) if value else None
+
+
+def _port(text: str) -> int:
+    if not text.isdecimal() or not 0 <= int(text) <= 65535:
+        raise SystemExit(f"motiond: {text!r} is not a port (0-65535)")
+    return int(text)
+
+
 def _env_path(name: str) -> Path | None:
     value = os.environ.get(name)
     return Path(value) if value else None
@@ -206,6 +221,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             return install_service(args)
         config = _env_data_dir(load_config(args.config or find_config()))
+        if args.command == "health":
+            from server.cli.health import health_command
+
+            return health_command(apply_overrides(args, config))
         if args.command == "estimate":
             from server.cli.offline import estimate_command
 
@@ -284,6 +303,9 @@ def apply_overrides(args: argparse.Namespace, config: Config) -> Config:
         core.serial.pty = args.pty
     if args.data_dir:
         core.jobs.data_dir = args.data_dir
+    hosts = os.environ.get("MOTIOND_ALLOWED_HOSTS", "").replace(",", " ").split()
+    if hosts:
+        core.http.also_allowed_hosts = [*core.http.also_allowed_hosts, *hosts]
     return config
 
 

@@ -96,7 +96,7 @@ class HttpTransport:
         self.kernel = kernel
         self.config = kernel.config.core.http
         self.port = self.config.port
-        self.hosts = HostPolicy(self.config.allowed_hosts or default_hosts(self.config.host, []))
+        self.hosts = self._host_policy([])
         self.slots = ConnectionSlots(
             self.config.max_connections, self.config.max_unauthenticated_connections
         )
@@ -115,10 +115,13 @@ class HttpTransport:
         self._login_guard = login_guard(kernel)
         self._not_found = NotFoundLog()
 
+    def _host_policy(self, machine_names: list[str]) -> HostPolicy:
+        allowed = self.config.allowed_hosts or default_hosts(self.config.host, machine_names)
+        return HostPolicy([*allowed, *self.config.also_allowed_hosts])
+
     async def start(self) -> None:
         if self.config.allowed_hosts is None:
-            names = await machine_names()
-            self.hosts = HostPolicy(default_hosts(self.config.host, names))
+            self.hosts = self._host_policy(await machine_names())
         self._runner = web.AppRunner(
             self.app,
             access_log=None,

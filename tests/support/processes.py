@@ -8,7 +8,7 @@ import json
 import os
 import socket
 import sys
-from collections.abc import AsyncIterator, Sequence
+from collections.abc import AsyncIterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -58,9 +58,11 @@ async def _wait_listening(port: int, process: asyncio.subprocess.Process) -> Non
 
 @contextlib.asynccontextmanager
 async def motiond(tmp_path: Path, extra_toml: str = "", *, args: Sequence[str] = (),
-                  axes_toml: str = AXES_TOML, name: str = "machine") -> AsyncIterator[Served]:
+                  axes_toml: str = AXES_TOML, name: str = "machine",
+                  env: Mapping[str, str] | None = None) -> AsyncIterator[Served]:
     """``motiond --config`` on free ports with ``extra_toml`` appended to a small XY machine
-    (``axes_toml``), more command-line ``args`` (``--pty PATH``); ``name`` names its files."""
+    (``axes_toml``), more command-line ``args`` (``--pty PATH``) and ``env``; ``name`` names its
+    files."""
     data_dir = tmp_path / f"data-{name}" if name != "machine" else tmp_path / "data"
     (data_dir / "jobs").mkdir(parents=True, exist_ok=True)
     config = tmp_path / f"{name}.toml"
@@ -71,7 +73,7 @@ async def motiond(tmp_path: Path, extra_toml: str = "", *, args: Sequence[str] =
         sys.executable, "-m", "server.cli", "--config", str(config), "--host", "127.0.0.1",
         "--tcp-port", str(tcp_port), "--http-port", str(http_port), "--log-level", "warning",
         *args,
-        cwd=REPO, env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        cwd=REPO, env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})},
         stdout=asyncio.subprocess.DEVNULL, stderr=log_file,
     )
     log_file.close()
