@@ -218,6 +218,13 @@ class HttpConfig(Strict):
     request_timeout_s: float = Field(
         15.0, gt=0, le=3600, description="for a request's headers, and idle keep-alive"
     )
+    max_pending_requests: int = Field(
+        64, ge=1, le=10_000, description="connections that have not yet sent a whole first "
+        "request; further ones are closed at once (half-sent requests cannot fill the "
+        "descriptor table and lock the TCP operator out)")
+    first_request_timeout_s: float = Field(
+        5.0, gt=0, le=3600, description="a connection's first request must arrive whole "
+        "this fast")
 
 
 class SerialConfig(Strict):

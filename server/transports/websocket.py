@@ -42,6 +42,7 @@ from server.transports.access import (
     tokens_equal,
     usable_token,
 )
+from server.transports.first_request import FirstRequestGuard, GuardedSite
 
 if TYPE_CHECKING:
     from server.kernel.kernel import Kernel
@@ -114,6 +115,8 @@ class HttpTransport:
         self._ids = itertools.count(1)
         self._login_guard = login_guard(kernel)
         self._not_found = NotFoundLog()
+        self.first_request = FirstRequestGuard(
+            self.config.max_pending_requests, self.config.first_request_timeout_s)
 
     def _host_policy(self, machine_names: list[str]) -> HostPolicy:
         allowed = self.config.allowed_hosts or default_hosts(self.config.host, machine_names)
@@ -132,7 +135,7 @@ class HttpTransport:
             lingering_time=0,  # a refused request's body is never drained: the connection closes
         )
         await self._runner.setup()
-        site = web.TCPSite(self._runner, self.config.host, self.config.port)
+        site = GuardedSite(self._runner, self.config.host, self.config.port, self.first_request)
         await site.start()
         server = site._server  # noqa: SLF001 - aiohttp exposes the bound port only here
         if server is not None and server.sockets:  # type: ignore[attr-defined]
@@ -152,6 +155,7 @@ class HttpTransport:
     @web.middleware
     async def _guard(self, request: web.Request, handler: Handler) -> web.StreamResponse:
         """Every route: a ``Host`` this server does not answer to is a rebinding page: 403."""
+        self.first_request.arrived(request.protocol)
         host = request.headers.get("Host")
         if not self.hosts.allows(host) and request.path != "/health":
             self.hosts.note_refused(str(host), request.path)
