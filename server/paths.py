@@ -20,11 +20,14 @@ import os
 import stat
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import platformdirs
 
-from server.config import Config, CoreConfig
 from server.errors import ConfigError
+
+if TYPE_CHECKING:  # the health check imports this module: no pydantic at run time
+    from server.config import Config, CoreConfig
 
 log = logging.getLogger("motiond.paths")
 APP = "motiond"

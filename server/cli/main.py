@@ -222,9 +222,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             return install_service(args)
         config = _env_data_dir(load_config(args.config or find_config()))
         if args.command == "health":
-            from server.cli.health import health_command
+            from server.health import check, health_url
 
-            return health_command(apply_overrides(args, config))
+            core = apply_overrides(args, config).core
+            return check(health_url(None, core.http.port, core.http.host))
         if args.command == "estimate":
             from server.cli.offline import estimate_command
 

@@ -40,3 +40,18 @@ async def test_motiond_health_asks_the_port_the_server_was_given(tmp_path: Path)
                 stderr=asyncio.subprocess.PIPE)
             _, said = await checked.communicate()
             assert checked.returncode == code, said
+
+
+async def test_the_image_health_check_follows_the_port_of_motiond_config(tmp_path: Path) -> None:
+    """``python -m server.health`` (the HEALTHCHECK) reads the port from $MOTIOND_CONFIG (a
+    file extending the built-in machine) without building the machine."""
+    async with motiond(tmp_path) as served:
+        for port, code in ((served.http_port, 0), (free_port(), 1)):
+            moved = tmp_path / f"moved-{port}.toml"
+            moved.write_text(f"http.port = {port}\n")
+            checked = await asyncio.create_subprocess_exec(
+                sys.executable, "-m", "server.health", cwd=tmp_path,
+                env={**os.environ, "PYTHONPATH": str(REPO), "MOTIOND_CONFIG": str(moved)},
+                stderr=asyncio.subprocess.PIPE)
+            _, said = await checked.communicate()
+            assert checked.returncode == code, said

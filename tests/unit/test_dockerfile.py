@@ -44,7 +44,7 @@ def test_healthcheck_asks_the_configured_port_with_a_start_period() -> None:
     text = (REPO / "Dockerfile").read_text()
     (check,) = re.findall(r"^HEALTHCHECK (.+?)\n\s+CMD (.+)$", text, re.M)
     assert "--start-period=" in check[0]
-    assert json.loads(check[1]) == ["motiond", "health"]  # follows the config, not 8080
+    assert json.loads(check[1]) == ["python", "-m", "server.health"]  # the config's port
     assert "8080" not in check[1]
     assert "--format docker" in text  # podman's OCI format drops HEALTHCHECK
 
