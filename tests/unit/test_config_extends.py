@@ -60,3 +60,12 @@ def test_check_config_shows_the_merged_machine_and_where_each_value_came_from(
     assert "line_limit = 256  # default" in out
     assert "192.168.1.0/24 (256 addresses), 10.0.0.5/32 (1 address)" in out
     assert "a-secret-token" not in out and 'token = "<set>"' in out
+
+
+def test_the_pi_guides_three_line_config_is_enough(tmp_path: Path) -> None:
+    guide = (REPO / "docs" / "install.md").read_text()
+    text = guide.split("<<'TOML'\n", 1)[1].split("   TOML\n", 1)[0]
+    config = load_config(_file(tmp_path, "\n".join(line.strip() for line in text.splitlines())))
+    assert (config.core.tcp.host, config.core.http.host) == ("0.0.0.0", "0.0.0.0")
+    assert config.core.http.also_allowed_hosts == ["laser.local"]
+    assert config.core.http.allowed_hosts is None  # the local names stay allowed
