@@ -13,6 +13,7 @@ import socket
 import stat
 import subprocess
 import sys
+import sysconfig
 import tempfile
 from pathlib import Path
 
@@ -193,18 +194,47 @@ async def test_the_units_start_line_runs_as_systemd_runs_it_to_ready_and_a_clean
         config.write_text(AXES_TOML + f"[tcp]\nport = {tcp_port}\n[http]\nport = {http_port}\n")
         data = base / 'data 100% $HOME "q"'
         unit = base / "motiond.service"
-        assert main(["install-service", "--run-as", account, "--config", str(config),
-                     "--data-dir", str(data), "-o", str(unit)]) == 0 or not root
+        python = _python_the_account_can_run(account, base)
+        subprocess.run([str(python), "-m", "server.cli", "install-service", "--run-as", account,
+                        "--config", str(config), "--data-dir", str(data), "-o", str(unit)],
+                       check=True, cwd=base, env={**os.environ, "PYTHONPATH": str(REPO)},
+                       capture_output=True, timeout=60)
         directives = unit_directives(unit.read_text())
         argv = exec_argv(directives["ExecStart"][0])
-        # the account runs it if it can reach this environment's Python (not one in /root)
+        assert argv[0] == str(python.with_name("motiond"))
         runs_as = account if root and unreachable(Path(argv[0]), account) is None else None
+        assert runs_as or not root or python == Path(sys.executable), "as the account if it can"
         await _run_as_systemd(argv, directives, runs_as, base, tcp_port)
-        logged = (data / "motiond.log").read_text()
+        log_file = data / "motiond.log"
+        logged = log_file.read_text()
         assert f"TCP listening on 127.0.0.1:{tcp_port}" in logged and "stopped" in logged
+        if runs_as:  # written by the account, under UMask=0077
+            assert log_file.stat().st_uid == pwd.getpwnam(account).pw_uid
+            assert stat.S_IMODE(log_file.stat().st_mode) == 0o600
         assert "Traceback" not in logged
     finally:
         shutil.rmtree(base)
+
+
+def _python_the_account_can_run(account: str, base: Path) -> Path:
+    """This environment's Python, or when the account cannot run it (a venv of a Python in
+    /root, as here) one it can: a venv of the system's Python of this version in ``base``,
+    seeing this environment's packages through a .pth file, with its ``motiond`` script."""
+    here = Path(sys.executable)
+    system = Path(f"/usr/bin/python{sys.version_info.major}.{sys.version_info.minor}")
+    if unreachable(here, account) is None or not system.is_file():
+        return here
+    venv = base / "venv"
+    subprocess.run([str(system), "-m", "venv", "--without-pip", str(venv)], check=True,
+                   timeout=60)
+    version = f"python{sys.version_info.major}.{sys.version_info.minor}"
+    (venv / "lib" / version / "site-packages" / "this-environment.pth").write_text(
+        sysconfig.get_paths()["purelib"] + "\n")
+    script = venv / "bin" / "motiond"
+    script.write_text(f"#!{venv / 'bin' / 'python'}\nimport sys\nfrom server.cli import main\n"
+                      "sys.exit(main())\n")
+    script.chmod(0o755)
+    return venv / "bin" / "python"
 
 
 async def _run_as_systemd(argv: list[str], directives: dict[str, list[str]], user: str | None,
