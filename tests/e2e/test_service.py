@@ -195,10 +195,8 @@ async def test_the_units_start_line_runs_as_systemd_runs_it_to_ready_and_a_clean
         data = base / 'data 100% $HOME "q"'
         unit = base / "motiond.service"
         python = _python_the_account_can_run(account, base)
-        subprocess.run([str(python), "-m", "server.cli", "install-service", "--run-as", account,
-                        "--config", str(config), "--data-dir", str(data), "-o", str(unit)],
-                       check=True, cwd=base, env={**os.environ, "PYTHONPATH": str(REPO)},
-                       capture_output=True, timeout=60)
+        _install_service(python, "--run-as", account, "--config", str(config),
+                         "--data-dir", str(data), "-o", str(unit))
         directives = unit_directives(unit.read_text())
         argv = exec_argv(directives["ExecStart"][0])
         assert argv[0] == str(python.with_name("motiond"))
@@ -214,6 +212,11 @@ async def test_the_units_start_line_runs_as_systemd_runs_it_to_ready_and_a_clean
         assert "Traceback" not in logged
     finally:
         shutil.rmtree(base)
+
+
+def _install_service(python: Path, *args: str) -> None:
+    subprocess.run([str(python), "-m", "server.cli", "install-service", *args], check=True,
+                   env={**os.environ, "PYTHONPATH": str(REPO)}, capture_output=True, timeout=60)
 
 
 def _python_the_account_can_run(account: str, base: Path) -> Path:
