@@ -120,7 +120,7 @@ def _system_lines(service: Service) -> list[str]:
         "SystemCallArchitectures=native",
         "SystemCallFilter=@system-service",
         "SystemCallFilter=~@privileged @obsolete",
-        "SystemCallFilter=fchown fchownat",  # the pseudo-terminal's group ([serial] pty_group)
+        "SystemCallFilter=@chown",  # the pseudo-terminal's group ([serial] pty_group)
         "SystemCallErrorNumber=EPERM",
     ]
 
