@@ -191,6 +191,10 @@ class HttpConfig(Strict):
         description="names a request's Host (and a page's Origin) may carry; default: localhost"
         " names, the bound address and this machine's names; '*' allows any",
     )
+    also_allowed_hosts: list[str] = Field(
+        default_factory=list,
+        description="names allowed besides allowed_hosts (or its default): a container's "
+        "host's names, as $MOTIOND_ALLOWED_HOSTS gives them (nas.local,nas)")
     token: str | None = None
     max_connections: int = Field(
         32, ge=1, description="WebSocket connections (/ws and /api) that presented the token"
@@ -214,6 +218,13 @@ class HttpConfig(Strict):
     request_timeout_s: float = Field(
         15.0, gt=0, le=3600, description="for a request's headers, and idle keep-alive"
     )
+    max_pending_requests: int = Field(
+        64, ge=1, le=10_000, description="connections that have not yet sent a whole first "
+        "request; further ones are closed at once (half-sent requests cannot fill the "
+        "descriptor table and lock the TCP operator out)")
+    first_request_timeout_s: float = Field(
+        5.0, gt=0, le=3600, description="a connection's first request must arrive whole "
+        "this fast")
 
 
 class SerialConfig(Strict):
@@ -276,16 +287,42 @@ class ProtocolConfig(Strict):
     @classmethod
     def _networks(cls, entries: list[str]) -> list[str]:
         for entry in entries:
-            try:
-                client_networks([entry])
-            except ValueError as exc:
-                raise ValueError(f"not an address or subnet: {entry!r}") from exc
+            client_network(entry)
         return entries
 
 
-def client_networks(entries: list[str]) -> list[ipaddress.IPv4Network | ipaddress.IPv6Network]:
-    """``[protocol] trusted_clients`` as networks (an address is a network of one)."""
-    return [ipaddress.ip_network(entry.strip(), strict=False) for entry in entries]
+Network = ipaddress.IPv4Network | ipaddress.IPv6Network
+_MAPPED = ipaddress.IPv6Network("::ffff:0:0/96")
+
+
+def client_network(entry: str) -> Network:
+    """One ``trusted_clients`` entry as a network (an address is a network of one; an
+    IPv4-mapped IPv6 one is its IPv4 form, as clients' addresses are compared).
+
+    Raises:
+        ValueError: not an address or subnet, host bits set (``192.168.1.77/24``: which was
+            meant?), or a ``/0`` (every address: no token at all).
+    """
+    text = entry.strip()
+    try:
+        network = ipaddress.ip_network(text, strict=False)
+    except ValueError:
+        raise ValueError(f"not an address or subnet: {entry!r}") from None
+    if network.prefixlen == 0:
+        raise ValueError(f"{entry!r} trusts every address, as if no token were set: list your "
+                         "own computers (192.168.1.77) or their subnet (192.168.1.0/24)")
+    if network.network_address != ipaddress.ip_interface(text).ip:
+        raise ValueError(f"{entry!r} has host bits set: write {network} for the subnet or "
+                         f"{text.split('/')[0]} for the one address")
+    if isinstance(network, ipaddress.IPv6Network) and network.subnet_of(_MAPPED):
+        mapped = network.network_address.ipv4_mapped
+        return ipaddress.IPv4Network(f"{mapped}/{max(network.prefixlen - 96, 0)}")
+    return network
+
+
+def client_networks(entries: list[str]) -> list[Network]:
+    """``[protocol] trusted_clients`` as networks."""
+    return [client_network(entry) for entry in entries]
 
 
 def trusted_client(address: str | None, entries: list[str]) -> bool:

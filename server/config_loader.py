@@ -21,8 +21,10 @@ from pydantic import BaseModel, ValidationError
 from server.config import Config, CoreConfig, ModuleSpec
 from server.errors import ConfigError
 from server.kernel.module import Module, available_modules
+from server.paths import check_config_file
 
 CORE_SECTIONS = frozenset(CoreConfig.model_fields)
+DEFAULT_LABEL = "<default config>"
 
 
 def default_config_text() -> str:
@@ -33,17 +35,49 @@ def default_config_text() -> str:
 def load_config(
     path: Path | None = None, registry: Mapping[str, type[Module]] | None = None
 ) -> Config:
-    """Load and validate a config file (the embedded default when ``path`` is None)."""
-    label = str(path) if path else "<default config>"
+    """Load and validate a config file (the embedded default when ``path`` is None): the
+    built-in machine extended by the file (:func:`config_layers`)."""
+    layers = config_layers(path)
+    data: dict[str, Any] = {}
+    for _, layer in layers:
+        data = extend(data, layer)
+    return build_config(data, str(path) if path else DEFAULT_LABEL, registry, path)
+
+
+def config_layers(path: Path | None) -> list[tuple[str, dict[str, Any]]]:
+    """The parsed tables a config is made of, each with its label, later ones winning: the
+    built-in machine, then the file. A file that names ``[axes]`` describes a machine of its
+    own and stands alone (it would otherwise inherit the built-in Z axis, laser and
+    endstops); any other file extends the built-in machine, so ``[protocol] trusted_clients
+    = [...]`` alone is a whole config."""
+    default = (DEFAULT_LABEL, _parse(default_config_text(), DEFAULT_LABEL))
+    if path is None:
+        return [default]
+    check_config_file(path)
     try:
-        text = path.read_text() if path else default_config_text()
+        text = path.read_text()
     except OSError as exc:
-        raise ConfigError([f"{label}: cannot read: {exc.strerror}"]) from exc
+        raise ConfigError([f"{path}: cannot read: {exc.strerror}"]) from exc
+    own = (str(path), _parse(text, str(path)))
+    return [own] if "axes" in own[1] else [default, own]
+
+
+def extend(base: Mapping[str, Any], own: Mapping[str, Any]) -> dict[str, Any]:
+    """``base`` with every table and key ``own`` names replaced, tables merged key by key."""
+    merged = dict(base)
+    for key, value in own.items():
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = extend(merged[key], value)
+        else:
+            merged[key] = value
+    return merged
+
+
+def _parse(text: str, label: str) -> dict[str, Any]:
     try:
-        data = tomllib.loads(text)
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError([f"{label}: not valid TOML: {exc}"]) from exc
-    return build_config(data, label, registry, path)
 
 
 def build_config(

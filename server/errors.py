@@ -53,6 +53,7 @@ class Error(enum.IntEnum):
     BUSY = 45
     AUTH_REQUIRED = 46
     JOB_DOES_NOT_FIT = 47
+    SETTING_NOT_SAVED = 48
 
 
 class Alarm(enum.IntEnum):
@@ -113,6 +114,8 @@ ERROR_MEANINGS: dict[int, str] = {
     Error.AUTH_REQUIRED: "this connection may not control the machine",
     Error.JOB_DOES_NOT_FIT: "the job does not fit the travel from the current work origin; "
     "nothing moved",
+    Error.SETTING_NOT_SAVED: "the setting could not be saved (a full disk, a read-only "
+    "folder): the old value is kept",
 }
 
 ALARM_MEANINGS: dict[int, str] = {

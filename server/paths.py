@@ -17,11 +17,18 @@ its own data folder moves every file motiond writes. The folders follow the plat
 from __future__ import annotations
 
 import logging
+import os
+import stat
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import platformdirs
 
-from server.config import Config, CoreConfig
+from server.errors import ConfigError
+
+if TYPE_CHECKING:  # the health check imports this module: no pydantic at run time
+    from server.config import Config, CoreConfig
 
 log = logging.getLogger("motiond.paths")
 APP = "motiond"
@@ -33,7 +40,23 @@ def data_dir(core: CoreConfig) -> Path:
     """motiond's data folder for this machine (not created here)."""
     if core.jobs.data_dir is not None:
         return core.jobs.data_dir.expanduser()
-    return Path(platformdirs.user_data_path(APP))
+    folder = _user_folder(platformdirs.user_data_path)
+    if folder is None:
+        raise ConfigError([
+            f"no data folder: uid {os.getuid()} has no home folder (no account and $HOME "
+            "unset); give one with --data-dir, $MOTIOND_DATA_DIR or [jobs] data_dir, or set "
+            "HOME"])
+    return folder
+
+
+def _user_folder(where: Callable[[str], Path]) -> Path | None:
+    """A folder of this user's (platformdirs'), or None when there is no home to put it in:
+    a uid without an account (``docker run --user 1000``, Kubernetes' runAsUser) and no
+    ``$HOME``. Looked up only when a path is needed, so such a uid runs all that needs none."""
+    try:
+        return Path(where(APP))
+    except (RuntimeError, KeyError):
+        return None
 
 
 def jobs_dir(core: CoreConfig) -> Path:
@@ -59,9 +82,10 @@ def settings_path(config: Config) -> Path:
 
 def config_search_path() -> list[Path]:
     """Where ``motiond.toml`` is looked for when no config is named, first match wins."""
+    user = _user_folder(platformdirs.user_config_path)
     return [
         Path.cwd() / CONFIG_NAME,
-        platformdirs.user_config_path(APP) / CONFIG_NAME,
+        *([user / CONFIG_NAME] if user is not None else []),
         SYSTEM_CONFIG_DIR / CONFIG_NAME,
     ]
 
@@ -73,4 +97,27 @@ def find_config() -> Path | None:
 
 def log_dir() -> Path:
     """The user's log folder (``$XDG_STATE_HOME/motiond/log``), for ``--log-file`` defaults."""
-    return Path(platformdirs.user_log_path(APP))
+    folder = _user_folder(platformdirs.user_log_path)
+    if folder is None:
+        raise ConfigError(["no log folder: uid without a home folder; give --log-file"])
+    return folder
+
+
+def check_config_file(path: Path, uid: int | None = None) -> None:
+    """Refuse a config another account could have written, as ssh refuses such a key: the
+    file must belong to ``uid`` (default: this process's) or root, and others may not write
+    it. A config names the machine's limits, its backend and who may control it."""
+    uid = os.geteuid() if uid is None else uid
+    try:
+        info = path.stat()
+    except OSError:
+        return  # reading it says why
+    problem = None
+    if info.st_uid not in (uid, 0):
+        problem = f"owned by uid {info.st_uid}, not by the account that runs motiond ({uid}) " \
+                  f"or root: sudo chown {uid} {path}"
+    elif info.st_mode & stat.S_IWOTH:
+        problem = f"writable by every account (mode {stat.S_IMODE(info.st_mode):04o}): " \
+                  f"chmod o-w {path}"
+    if problem:
+        raise ConfigError([f"{path}: refusing a config file {problem}"])

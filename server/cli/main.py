@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 
 from server import __version__
 from server.config import Config
-from server.config_loader import load_config
+from server.config_loader import config_layers, load_config
 from server.errors import ConfigError
 from server.paths import find_config
 from server.runtime import realtime
@@ -52,20 +52,13 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--version", action="version", version=f"motiond {__version__}")
-    parser.add_argument(
-        "--log-level",
-        default="info",
-        choices=["debug", "info", "warning", "error"],
-        help="default: info",
-    )
-    parser.add_argument(
-        "--log-file", type=Path, default=_env_path("MOTIOND_LOG_FILE"),
-        help="also log to this file, reopened when logrotate moves it (default: "
-        "$MOTIOND_LOG_FILE, else stderr only)")
     commands = parser.add_subparsers(dest="command", metavar="COMMAND")
     serve = commands.add_parser("serve", help="run the server (the default command)")
     _serve_options(serve, after_command=True)
     _serve_options(parser)
+    health = commands.add_parser(
+        "health", help="exit 0 when the server this config describes answers GET /health")
+    _serve_options(health, after_command=True)
     check = commands.add_parser("check-config", help="validate a config file")
     check.add_argument("file", type=Path)
     for name, help_text in (
@@ -158,7 +151,8 @@ def _serve_options(parser: argparse.ArgumentParser, *, after_command: bool = Fal
     )
     parser.add_argument("--host", help="bind address for TCP and HTTP (overrides config)")
     parser.add_argument("--tcp-port", type=int, help="raw TCP port (default 2323)")
-    parser.add_argument("--http-port", type=int, help="HTTP/WebSocket port (default 8080)")
+    parser.add_argument("--http-port", type=int, default=_env_port("MOTIOND_HTTP_PORT"),
+                        help="HTTP/WebSocket port (default: $MOTIOND_HTTP_PORT, else 8080)")
     parser.add_argument("--serial", metavar="DEVICE", help="also serve a serial device")
     parser.add_argument("--pty", metavar="PATH", help="also serve a pseudo-terminal linked at PATH")
     parser.add_argument(
@@ -168,6 +162,16 @@ def _serve_options(parser: argparse.ArgumentParser, *, after_command: bool = Fal
         help="event loop: asyncio's when its thread may run at real-time priority, else "
         "uvloop's when installed (pip install 'motiond[fast]'), else asyncio's (default: auto)",
     )
+    parser.add_argument(
+        "--log-level",
+        default="info",
+        choices=["debug", "info", "warning", "error"],
+        help="default: info",
+    )
+    parser.add_argument(
+        "--log-file", type=Path, default=_env_path("MOTIOND_LOG_FILE"),
+        help="also log to this file, reopened when logrotate moves it (default: "
+        "$MOTIOND_LOG_FILE, else stderr only)")
     parser.add_argument(
         "--data-dir",
         type=Path,
@@ -179,6 +183,17 @@ def _serve_options(parser: argparse.ArgumentParser, *, after_command: bool = Fal
         for action in parser._actions:  # noqa: SLF001 - argparse has no public way
             if action.dest != "help":
                 action.default = argparse.SUPPRESS
+
+
+def _env_port(name: str) -> int | None:
+    value = os.environ.get(name)
+    return _port(value) if value else None
+
+
+def _port(text: str) -> int:
+    if not text.isdecimal() or not 0 <= int(text) <= 65535:
+        raise SystemExit(f"motiond: {text!r} is not a port (0-65535)")
+    return int(text)
 
 
 def _env_path(name: str) -> Path | None:
@@ -205,7 +220,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             from server.service import install_service
 
             return install_service(args)
-        config = load_config(args.config or find_config())
+        config = _env_data_dir(load_config(args.config or find_config()))
+        if args.command == "health":
+            from server.health import check, health_url
+
+            core = apply_overrides(args, config).core
+            return check(health_url(None, core.http.port, core.http.host))
         if args.command == "estimate":
             from server.cli.offline import estimate_command
 
@@ -237,10 +257,11 @@ def setup_logging(level: str, log_file: Path | None) -> None:
 
 
 def check_config(path: Path) -> int:
+    from server.cli.config_view import describe, trusted
     from server.cli.offline import machine_interpreter
 
     try:
-        config = load_config(path)
+        config = _env_data_dir(load_config(path))
         machine_interpreter(config)  # builds the modules: codes claimed twice are errors too
     except ConfigError as exc:
         for problem in exc.problems:
@@ -249,8 +270,23 @@ def check_config(path: Path) -> int:
         return 1
     axes = ", ".join(config.core.axis_names)
     modules = ", ".join(spec.section for spec in config.modules) or "none"
-    print(f"{path}: ok ({config.core.machine.name}; axes {axes}; modules {modules})")
+    layers = config_layers(path)
+    base = "extends the built-in machine" if len(layers) > 1 else "a machine of its own"
+    print(f"{path}: ok ({config.core.machine.name}; axes {axes}; modules {modules}; {base})")
+    print(trusted(config))
+    print(f"# the machine it describes, each value with where it came from ({path}, the "
+          f"built-in machine, or the option's default):")
+    print("\n".join(describe(config, layers)))
     return 0
+
+
+def _env_data_dir(config: Config) -> Config:
+    """``$MOTIOND_DATA_DIR`` for every command, unless the config names its data folder
+    (``serve``'s ``--data-dir`` wins over both)."""
+    folder = _env_path("MOTIOND_DATA_DIR")
+    if folder is not None and config.core.jobs.data_dir is None:
+        config.core.jobs.data_dir = folder
+    return config
 
 
 def apply_overrides(args: argparse.Namespace, config: Config) -> Config:
@@ -268,6 +304,9 @@ def apply_overrides(args: argparse.Namespace, config: Config) -> Config:
         core.serial.pty = args.pty
     if args.data_dir:
         core.jobs.data_dir = args.data_dir
+    hosts = os.environ.get("MOTIOND_ALLOWED_HOSTS", "").replace(",", " ").split()
+    if hosts:
+        core.http.also_allowed_hosts = [*core.http.also_allowed_hosts, *hosts]
     return config
 
 

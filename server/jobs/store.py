@@ -18,6 +18,7 @@ import os
 import re
 import tempfile
 import time
+import unicodedata
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +31,13 @@ MAX_NAME = 200
 UPLOAD_PREFIX = ".upload-"
 # Control characters (C0, DEL, C1) and every line break str.splitlines knows.
 _BAD_NAME_CHARACTER = re.compile("[\x00-\x1f\x7f-\x9f\u2028\u2029]")
+# Unicode categories no file name needs: controls, format characters (the bidi overrides that
+# show "\u202egnp.nc" as "cn.png", zero-width characters), separators, surrogates, unassigned
+_BAD_CATEGORIES = frozenset({"Cc", "Cf", "Zl", "Zp", "Cs", "Co", "Cn"})
+_IDEOGRAPHIC_STOPS = frozenset("\u3002\uff61")
+# Names Windows gives to devices, whatever the extension (a job copied to a share or a PC)
+_DEVICE = re.compile(r"(?:CON|PRN|AUX|NUL|COM[0-9\u00b9\u00b2\u00b3]|LPT[0-9\u00b9\u00b2\u00b3]"
+                     r"|CONIN\$|CONOUT\$)(?:\..*)?", re.IGNORECASE)
 
 @dataclass(slots=True)
 class JobFile:
@@ -65,6 +73,9 @@ class JobStore:
         )
         if bad:
             raise CommandError(Error.FILE_ERROR, f"invalid job file name {name!r}")
+        problem = name_problem(name)
+        if problem is not None:
+            raise CommandError(Error.FILE_ERROR, f"invalid job file name {name!r}: {problem}")
         path = (self.jobs_dir / name).resolve()
         if path.parent != self.jobs_dir.resolve():
             raise CommandError(Error.FILE_ERROR, f"invalid job file name {name!r}")
@@ -121,7 +132,26 @@ class JobStore:
 def valid_name(name: str) -> bool:
     """Whether a file in the data directory may be listed and played under ``name``."""
     return not name.startswith(".") and len(name) <= MAX_NAME and not (
-        _BAD_NAME_CHARACTER.search(name) or "\\" in name or name != name.strip())
+        _BAD_NAME_CHARACTER.search(name) or "\\" in name or name != name.strip()
+        or name_problem(name))
+
+
+def name_problem(name: str) -> str | None:
+    """Why ``name`` misleads or fails elsewhere, or None: a character that is not what it
+    looks like (a bidi override, a zero-width or look-alike dot), a Windows device name
+    (``CON``, ``NUL.nc``), or a trailing dot (Windows drops it)."""
+    for char in name:
+        category = unicodedata.category(char)
+        if category in _BAD_CATEGORIES:
+            return f"invisible or control character U+{ord(char):04X} ({category})"
+        if char != "." and ("." in unicodedata.normalize("NFKC", char)
+                            or char in _IDEOGRAPHIC_STOPS):
+            return f"U+{ord(char):04X} looks like a dot but is not one"
+    if _DEVICE.fullmatch(name.rstrip(" .")):
+        return "a device name on Windows"
+    if name.endswith("."):
+        return "ends with a dot"
+    return None
 
 
 def remove_stale_uploads(folder: Path) -> None:

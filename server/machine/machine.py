@@ -22,7 +22,7 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 from server.config import Config
-from server.errors import Alarm, BackendFault
+from server.errors import Alarm, BackendFault, CommandError, Error
 from server.gcode.codes import CodeTable
 from server.gcode.interpreter import Interpreter
 from server.gcode.parser import Line
@@ -115,8 +115,16 @@ class Machine(GcodeFeed, RealtimeCommands):
 
     async def write_setting(self, command: Command) -> list[str]:
         """``$x=value``: checked, applied live and saved (a downstream board: its own)."""
+        before = self.settings.snapshot()
         self.settings.write(command.args)
-        await asyncio.to_thread(self.settings.save, self.settings.file_text())
+        try:
+            await asyncio.to_thread(self.settings.save, self.settings.file_text())
+        except OSError as exc:
+            self.settings.restore(before)
+            log.warning("$%s not saved to %s: %s", command.args, self.settings.path, exc)
+            raise CommandError(Error.SETTING_NOT_SAVED,
+                               f"${command.args} not saved ({exc.strerror}): the old value "
+                               "is kept") from exc
         return []
 
     def register_commands(self, dispatcher: Dispatcher) -> None:

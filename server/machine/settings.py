@@ -289,13 +289,26 @@ class Settings:
 
     def save(self, text: str) -> None:
         """Write ``text`` (:meth:`file_text`) atomically; blocks for an fsync or two, so the
-        server calls it in a thread. The ok of ``$x=`` comes once the value is on disk."""
-        if self.path is None:
-            return
-        try:
+        server calls it in a thread. The ok of ``$x=`` comes once the value is on disk.
+
+        Raises:
+            OSError: not saved (a full disk, a read-only folder); the file is as it was.
+        """
+        if self.path is not None:
             write_atomically(self.path, text)
-        except OSError as exc:
-            log.warning("could not save settings to %s: %s", self.path, exc)
+
+    def snapshot(self) -> dict[int, float]:
+        """Every writable setting's value now, for :meth:`restore`."""
+        return {number: setting.read(self.core) for number, setting in self.table.items()
+                if setting.write is not None}
+
+    def restore(self, values: dict[int, float]) -> None:
+        """Put back a :meth:`snapshot` (a value that could not be saved is not kept)."""
+        for number, value in values.items():
+            write = self.table[number].write
+            if write is not None and self.table[number].read(self.core) != value:
+                write(self.core, value)
+        self._apply()
 
 
 def _read_saved(path: Path) -> dict[str, Any] | None:
@@ -329,11 +342,15 @@ def write_atomically(path: Path, text: str) -> None:
     fsync the folder so the rename itself is durable."""
     path.parent.mkdir(parents=True, exist_ok=True)
     temp = path.with_name(path.name + ".tmp")
-    with temp.open("w", encoding="utf-8") as handle:
-        handle.write(text)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(temp, path)
+    try:
+        with temp.open("w", encoding="utf-8") as handle:
+            handle.write(text)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(temp, path)
+    except BaseException:
+        temp.unlink(missing_ok=True)  # a full disk leaves no half-written file behind
+        raise
     folder = os.open(path.parent, os.O_RDONLY)
     try:
         os.fsync(folder)

@@ -69,7 +69,11 @@ class TcpTransport:
         for writer, _ in list(self._clients.values()):
             writer.transport.abort()  # each client task then ends on its own
         if self._clients:
-            await asyncio.wait(list(self._clients), timeout=1.0)
+            _, late = await asyncio.wait(list(self._clients), timeout=1.0)
+            for task in late:  # one still pacing a flood: ended here, not by the loop's end
+                task.cancel()
+            if late:
+                await asyncio.wait(late, timeout=1.0)
         if self._server is not None:
             with contextlib.suppress(Exception):
                 await self._server.wait_closed()
@@ -94,6 +98,10 @@ class TcpTransport:
                  " (reserved slot: must log in)" if session.on_probation else "")
         try:
             await serve_stream(session, reader, writer, self._deadline(session))
+        except asyncio.CancelledError:
+            # Shutting down ends this connection: its task returns (asyncio's stream server
+            # logs a client task that ends cancelled with a traceback, as if it had failed).
+            log.debug("%s: ended by the shutdown", session.name)
         finally:
             self._clients.pop(task, None)
             log.info("%s disconnected", session.name)

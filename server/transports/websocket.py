@@ -42,6 +42,7 @@ from server.transports.access import (
     tokens_equal,
     usable_token,
 )
+from server.transports.first_request import FirstRequestGuard, GuardedSite
 
 if TYPE_CHECKING:
     from server.kernel.kernel import Kernel
@@ -96,7 +97,7 @@ class HttpTransport:
         self.kernel = kernel
         self.config = kernel.config.core.http
         self.port = self.config.port
-        self.hosts = HostPolicy(self.config.allowed_hosts or default_hosts(self.config.host, []))
+        self.hosts = self._host_policy([])
         self.slots = ConnectionSlots(
             self.config.max_connections, self.config.max_unauthenticated_connections
         )
@@ -114,11 +115,16 @@ class HttpTransport:
         self._ids = itertools.count(1)
         self._login_guard = login_guard(kernel)
         self._not_found = NotFoundLog()
+        self.first_request = FirstRequestGuard(
+            self.config.max_pending_requests, self.config.first_request_timeout_s)
+
+    def _host_policy(self, machine_names: list[str]) -> HostPolicy:
+        allowed = self.config.allowed_hosts or default_hosts(self.config.host, machine_names)
+        return HostPolicy([*allowed, *self.config.also_allowed_hosts])
 
     async def start(self) -> None:
         if self.config.allowed_hosts is None:
-            names = await machine_names()
-            self.hosts = HostPolicy(default_hosts(self.config.host, names))
+            self.hosts = self._host_policy(await machine_names())
         self._runner = web.AppRunner(
             self.app,
             access_log=None,
@@ -129,7 +135,7 @@ class HttpTransport:
             lingering_time=0,  # a refused request's body is never drained: the connection closes
         )
         await self._runner.setup()
-        site = web.TCPSite(self._runner, self.config.host, self.config.port)
+        site = GuardedSite(self._runner, self.config.host, self.config.port, self.first_request)
         await site.start()
         server = site._server  # noqa: SLF001 - aiohttp exposes the bound port only here
         if server is not None and server.sockets:  # type: ignore[attr-defined]
@@ -149,6 +155,7 @@ class HttpTransport:
     @web.middleware
     async def _guard(self, request: web.Request, handler: Handler) -> web.StreamResponse:
         """Every route: a ``Host`` this server does not answer to is a rebinding page: 403."""
+        self.first_request.arrived(request.protocol)
         host = request.headers.get("Host")
         if not self.hosts.allows(host) and request.path != "/health":
             self.hosts.note_refused(str(host), request.path)

@@ -8,7 +8,7 @@ import json
 import os
 import socket
 import sys
-from collections.abc import AsyncIterator, Sequence
+from collections.abc import AsyncIterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -60,19 +60,21 @@ async def _wait_listening(port: int, process: asyncio.subprocess.Process) -> Non
 @contextlib.asynccontextmanager
 async def motiond(tmp_path: Path, extra_toml: str = "", *, args: Sequence[str] = (),
                   axes_toml: str = AXES_TOML, name: str = "machine",
-                  home: Path | None = None) -> AsyncIterator[Served]:
+                  home: Path | None = None,
+                  env: Mapping[str, str] | None = None) -> AsyncIterator[Served]:
     """``motiond --config`` on free ports with ``extra_toml`` appended to a small XY machine
-    (``axes_toml``), more command-line ``args`` (``--pty PATH``); ``name`` names its files.
-    With ``home``, it runs as a user whose home that is, with the folders of its config
-    (``extra_toml`` then holds the ``[jobs]`` section, a ``~`` is that home)."""
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    (``axes_toml``), more command-line ``args`` (``--pty PATH``) and ``env``; ``name`` names
+    its files. With ``home``, it runs as a user whose home that is, with the folders of its
+    config (``extra_toml`` then holds the ``[jobs]`` section, a ``~`` is that home)."""
+    environment = {**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}
     if home is None:
         data_dir = tmp_path / f"data-{name}" if name != "machine" else tmp_path / "data"
         (data_dir / "jobs").mkdir(parents=True, exist_ok=True)
         extra_toml = f"[jobs]\ndata_dir = '{data_dir}'\n" + extra_toml
     else:
-        env = {key: value for key, value in env.items() if not key.startswith("XDG_")}
-        env["HOME"] = str(home)
+        environment = {key: value for key, value in environment.items()
+                       if not key.startswith("XDG_")}
+        environment["HOME"] = str(home)
         data_dir = home / ".local" / "share" / "motiond"  # platformdirs' user data folder
     config = tmp_path / f"{name}.toml"
     config.write_text(axes_toml + extra_toml)
@@ -82,7 +84,7 @@ async def motiond(tmp_path: Path, extra_toml: str = "", *, args: Sequence[str] =
         sys.executable, "-m", "server.cli", "--config", str(config), "--host", "127.0.0.1",
         "--tcp-port", str(tcp_port), "--http-port", str(http_port), "--log-level", "warning",
         *args,
-        cwd=REPO, env=env, stdout=asyncio.subprocess.DEVNULL, stderr=log_file,
+        cwd=REPO, env=environment, stdout=asyncio.subprocess.DEVNULL, stderr=log_file,
     )
     log_file.close()
     try:
