@@ -1,0 +1,198 @@
+"""SVG to layers, with svgelements (the parser MeerK40t and vpype use).
+
+svgelements applies groups' transforms, the viewBox and physical units (``width="100mm"``)
+and turns basic shapes into paths; here each path is cut into straight pieces within
+:data:`TOLERANCE_MM` of the curve and sorted into layers: its stroke colour's (mode line)
+and its fill colour's (mode fill). Text is not cut: it must be converted to paths first, and
+a warning says so. Embedded images are skipped with a warning (import them as images).
+
+Hostile input is refused before svgelements sees it (:func:`check_source`): entity
+declarations (expansion bombs, external entities), more than :data:`MAX_BYTES`, more than
+:data:`MAX_ELEMENTS` elements, or a path or polyline of more than :data:`MAX_PATH_NUMBERS`
+coordinates (the whole file: :data:`MAX_NUMBERS`), each error naming the element's line.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import re
+from typing import Any
+
+import numpy as np
+
+from server.cam.model import Drawing, Layer, LayerSettings, Shape
+from server.errors import DrawingError
+
+MM_PER_PX = 25.4 / 96.0  # svgelements' user unit at 96 ppi, as browsers and Inkscape
+TOLERANCE_MM = 0.01
+MAX_BYTES = 32 << 20
+MAX_ELEMENTS = 200_000
+MAX_PATH_NUMBERS = 1_000_000  # a path of 500,000 points
+MAX_NUMBERS = 4_000_000
+MAX_PIECES_PER_CURVE = 1000
+_ENTITY = re.compile(rb"<!ENTITY", re.IGNORECASE)
+_POINTS = re.compile(rb"\s(?:d|points)\s*=\s*(?:\"[^\"]*\"|'[^']*')")
+_NUMBER = re.compile(rb"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
+
+
+def check_source(data: bytes, name: str) -> None:
+    """Refuse what would make the parser expand, fetch or grow without bound.
+
+    Raises:
+        DrawingError: naming the rule broken and the line it was broken on.
+    """
+    if len(data) > MAX_BYTES:
+        raise DrawingError(f"{name}: {len(data):,} bytes, over the {MAX_BYTES:,} an SVG may have")
+    entity = _ENTITY.search(data)
+    if entity is not None:
+        raise DrawingError(f"{name}, line {_line(data, entity.start())}: entity declarations "
+                           "(<!ENTITY>) are refused: they can expand without bound or read "
+                           "other files")
+    if data.count(b"<") > MAX_ELEMENTS:
+        raise DrawingError(f"{name}: more than {MAX_ELEMENTS:,} elements")
+    total = 0
+    for match in _POINTS.finditer(data):
+        numbers = len(_NUMBER.findall(match.group()))
+        if numbers > MAX_PATH_NUMBERS:
+            raise DrawingError(
+                f"{name}, line {_line(data, match.start())}: a path of {numbers // 2:,} points, "
+                f"over the {MAX_PATH_NUMBERS // 2:,} one path may have")
+        total += numbers
+        if total > MAX_NUMBERS:
+            raise DrawingError(f"{name}, line {_line(data, match.start())}: over "
+                               f"{MAX_NUMBERS // 2:,} points in the paths so far")
+
+
+def _line(data: bytes, offset: int) -> int:
+    return data.count(b"\n", 0, offset) + 1
+
+
+def read_svg(data: bytes, name: str) -> Drawing:
+    """The drawing in ``data``, one layer per stroke or fill colour, in order of appearance.
+
+    Raises:
+        DrawingError: refused input (:func:`check_source`) or XML the parser cannot read.
+    """
+    import svgelements as se
+
+    check_source(data, name)
+    try:
+        svg = se.SVG.parse(io.BytesIO(data), reify=True, ppi=96.0)
+    except Exception as exc:  # the parser's errors have no common base: ParseError, ValueError
+        raise DrawingError(f"{name}: not a readable SVG: {exc}") from exc
+    height_mm = float(svg.height or 0.0) * MM_PER_PX
+    width_mm = float(svg.width or 0.0) * MM_PER_PX
+    layers: dict[str, Layer] = {}
+    warnings: list[str] = []
+    texts = images = 0
+    for element in svg.elements():
+        if isinstance(element, se.Text):
+            texts += 1
+        elif isinstance(element, se.Image):
+            images += 1
+        elif isinstance(element, se.Shape) and _visible(element):
+            _add_shape(element, layers, height_mm)
+    if texts:
+        warnings.append(f"{texts} text element(s) not cut: convert text to paths first "
+                        "(Inkscape: Path > Object to Path)")
+    if images:
+        warnings.append(f"{images} embedded image(s) skipped: import images as PNG or JPEG")
+    return Drawing(name, list(layers.values()), width_mm, height_mm, warnings)
+
+
+def _visible(element: Any) -> bool:
+    values = element.values
+    return bool(values.get("visibility") != "hidden" and values.get("display") != "none")
+
+
+def _add_shape(element: Any, layers: dict[str, Layer], height_mm: float) -> None:
+    stroke, fill = _colour(element.stroke), _colour(element.fill)
+    if stroke is None and fill is None:
+        return
+    shapes = _flatten(element, height_mm)
+    if not shapes:
+        return
+    wanted = {fill: "fill"} if fill is not None else {}
+    if stroke is not None:
+        wanted[stroke] = "line"  # stroked and filled in one colour: cut it by default
+    for colour, mode in wanted.items():
+        layer = layers.get(colour)
+        if layer is None:
+            layer = layers[colour] = Layer(colour, LayerSettings(mode=mode))
+        elif mode == "line" and layer.settings.mode == "fill":
+            layer.settings = layer.settings.model_copy(update={"mode": "line"})
+        if mode == "fill":  # a fill closes its subpaths
+            layer.shapes.extend(Shape(s.points, len(s.points) > 2) for s in shapes)
+        else:
+            layer.shapes.extend(shapes)
+
+
+def _colour(colour: Any) -> str | None:
+    if colour is None or colour.value is None or colour.alpha == 0:
+        return None
+    return str(colour.hexrgb)
+
+
+def _flatten(element: Any, height_mm: float) -> list[Shape]:
+    """The element's subpaths as polylines in mm, Y up."""
+    import svgelements as se
+
+    shapes: list[Shape] = []
+    for subpath in se.Path(element).as_subpaths():
+        pieces: list[np.ndarray] = []
+        closed = False
+        for segment in subpath:
+            if isinstance(segment, se.Move):
+                pieces.append(np.array([[segment.end.x, segment.end.y]]))
+            elif isinstance(segment, se.Close):
+                closed = True
+            elif segment.start is not None and segment.end is not None:
+                pieces.append(_segment_points(segment, se))
+        if not pieces:
+            continue
+        points = np.concatenate(pieces) * MM_PER_PX
+        points[:, 1] = height_mm - points[:, 1]
+        shapes.extend(_shape(points, closed))
+    return shapes
+
+
+def _shape(points: np.ndarray, closed: bool) -> list[Shape]:
+    keep = np.ones(len(points), dtype=bool)
+    keep[1:] = np.any(np.abs(np.diff(points, axis=0)) > 1e-9, axis=1)
+    points = points[keep]
+    if len(points) > 2 and np.allclose(points[0], points[-1], atol=1e-9):
+        points, closed = points[:-1], True
+    if len(points) < 2:
+        return []
+    return [Shape(points, closed and len(points) > 2)]
+
+
+def _segment_points(segment: Any, se: Any) -> np.ndarray:
+    """The points after the segment's start (its end included), within the tolerance."""
+    count = _pieces(segment, se)
+    if count == 1:
+        return np.array([[segment.end.x, segment.end.y]])
+    positions = np.linspace(0.0, 1.0, count + 1)[1:]
+    return np.asarray(segment.npoint(positions), dtype=np.float64)
+
+
+def _pieces(segment: Any, se: Any) -> int:
+    """How many straight pieces keep a curve within :data:`TOLERANCE_MM`."""
+    tolerance = TOLERANCE_MM / MM_PER_PX
+    if isinstance(segment, se.Line):
+        return 1
+    if isinstance(segment, se.Arc):
+        radius = max(abs(segment.rx), abs(segment.ry), 1e-9)
+        step = 2.0 * math.acos(max(-1.0, 1.0 - tolerance / radius))
+        count = abs(segment.sweep) / max(step, 1e-6)
+    elif isinstance(segment, se.CubicBezier):
+        p0, p1, p2, p3 = (np.array(p, dtype=float) for p in segment)
+        bend = max(np.hypot(*(p0 - 2 * p1 + p2)), np.hypot(*(p1 - 2 * p2 + p3)))
+        count = math.sqrt(0.75 * bend / tolerance)
+    elif isinstance(segment, se.QuadraticBezier):
+        p0, p1, p2 = (np.array(p, dtype=float) for p in segment)
+        count = math.sqrt(0.25 * np.hypot(*(p0 - 2 * p1 + p2)) / tolerance)
+    else:
+        count = 16
+    return max(1, min(MAX_PIECES_PER_CURVE, math.ceil(float(count))))

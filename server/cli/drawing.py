@@ -1,0 +1,79 @@
+"""``motiond import FILE -o job.gcode``: a drawing (SVG, DXF, PNG, JPEG) made into a laser
+job with :mod:`server.cam`, each layer's settings from ``--layer``; the layers are listed on
+stderr (``--json``: the drawing and the job as JSON on stdout). Exit status: 0, 1 for a file
+refused, 2 for a missing extra or bad options."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from server.config import Config
+from server.errors import DrawingError
+
+CAM_PACKAGES = ("svgelements", "ezdxf", "PIL", "shapely")
+
+
+def missing_cam_packages() -> list[str]:
+    """The ``[cam]`` extra's packages not installed."""
+    return [name for name in CAM_PACKAGES if importlib.util.find_spec(name) is None]
+
+
+def laser_max_s(config: Config) -> float:
+    """The configured laser's S for full power (1000, Grbl's, without a [laser] section)."""
+    for spec in config.modules:
+        if spec.section == "laser":
+            return float(getattr(spec.config, "maximum_s_value", 1000.0))
+    return 1000.0
+
+
+def import_command(args: Any, config: Config) -> int:
+    """``motiond import FILE -o OUT``."""
+    missing = missing_cam_packages()
+    if missing:
+        print(f"motiond import needs {', '.join(missing)}: pip install 'motiond[cam]'",
+              file=sys.stderr)
+        return 2
+    from server.cam.job import make_job, read_drawing
+    from server.cam.model import apply_layer_options, parse_layer_option
+
+    path: Path = args.file
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        print(f"motiond: cannot read {path}: {exc.strerror}", file=sys.stderr)
+        return 1
+    started = time.perf_counter()
+    try:
+        drawing = read_drawing(data, path.name, width_mm=args.width_mm, dpi=args.dpi)
+        apply_layer_options(drawing, dict(parse_layer_option(text) for text in args.layer))
+        gcode = make_job(drawing, laser_max_s(config))
+    except DrawingError as exc:
+        print(f"motiond: {exc}", file=sys.stderr)
+        return 1
+    args.output.write_text(gcode)
+    elapsed_s = time.perf_counter() - started
+    lines = gcode.count("\n")
+    if args.json:
+        print(json.dumps({"drawing": drawing.describe(), "output": str(args.output),
+                          "lines": lines, "elapsed_s": round(elapsed_s, 3)}, indent=2))
+        return 0
+    for warning in drawing.warnings:
+        print(f"warning: {warning}", file=sys.stderr)
+    for layer in drawing.layers:
+        print(_describe_layer(layer.describe()), file=sys.stderr)
+    print(f"wrote {args.output} ({lines:,} lines in {elapsed_s:.2f} s)", file=sys.stderr)
+    return 0
+
+
+def _describe_layer(layer: dict[str, Any]) -> str:
+    s = layer["settings"]
+    what = (f"{layer['image'][0]} x {layer['image'][1]} px" if layer["image"]
+            else f"{layer['shapes']} shapes ({layer['closed']} closed)")
+    state = "" if s["enabled"] else " (off)"
+    return (f"  {layer['name']:<8} {s['mode']:<5} {what}, {s['speed_mm_min']:g} mm/min, "
+            f"{s['power_pct']:g} %, {s['passes']} pass(es){state}")
