@@ -1,7 +1,7 @@
 """The whole way from a file's bytes to G-code: :func:`read_drawing` then :func:`make_job`.
 
-Layers are cut in the drawing's order (the CLI's and the API's settings may reorder or
-disable them), each pass of a layer after the one before; within a layer, line mode cuts the
+Layers are cut in :func:`default_order` (engravings, then cuts from the innermost; a
+layer may be disabled), each pass of a layer after the one before; within a layer, line mode cuts the
 shapes in :func:`~server.cam.order.cut_order` (inner first, nearest next), fill mode hatches
 the region line by line (:mod:`.hatch`), image mode engraves (:mod:`.raster`). ``progress``
 is called with a fraction 0..1 after each layer's pass, for a bar or a pushed status.
@@ -25,12 +25,32 @@ KINDS = {".svg": "svg", ".dxf": "dxf", ".png": "image", ".jpg": "image", ".jpeg"
 
 def read_drawing(data: bytes, name: str, *, width_mm: float | None = None,
                  dpi: float | None = None) -> Drawing:
-    """The drawing in ``data``; its kind from the name's suffix (.svg, .dxf, .png, .jpg).
-    ``width_mm``/``dpi`` size an image (default: the DPI it carries, else 96).
+    """The drawing in ``data``; its kind from the name's suffix (.svg, .dxf, .png, .jpg),
+    its layers in :func:`default_order`. ``width_mm``/``dpi`` size an image (default: the
+    DPI it carries, else 96).
 
     Raises:
         DrawingError: an unknown kind, or what the importer refused.
     """
+    drawing = _read(data, name, width_mm, dpi)
+    drawing.layers = default_order(drawing.layers)
+    return drawing
+
+
+def default_order(layers: list[Layer]) -> list[Layer]:
+    """Engravings first (image, fill), then the line layers from the smallest extent to the
+    largest: an outline that holds the rest is cut last, after everything inside it, as
+    within a layer. Otherwise the drawing's order (the sort is stable)."""
+    def key(layer: Layer) -> tuple[int, float]:
+        if layer.settings.mode != "line":
+            return (0, 0.0)
+        (x0, y0), (x1, y1) = layer.bounds_mm()
+        return (1, (x1 - x0) * (y1 - y0))
+
+    return sorted(layers, key=key)
+
+
+def _read(data: bytes, name: str, width_mm: float | None, dpi: float | None) -> Drawing:
     kind = KINDS.get(PurePath(name).suffix.lower())
     if kind == "svg":
         from server.cam.svg import read_svg

@@ -108,6 +108,8 @@ def _visible(element: Any) -> bool:
 
 def _add_shape(element: Any, layers: dict[str, Layer], height_mm: float) -> None:
     stroke, fill = _colour(element.stroke), _colour(element.fill)
+    if not (element.stroke_width or 0.0) > 0.0:  # stroke-width="0" draws no stroke
+        stroke = None
     if stroke is None and fill is None:
         return
     shapes = _flatten(element, height_mm)
