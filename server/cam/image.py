@@ -43,8 +43,10 @@ def read_image(data: bytes, name: str, *, width_mm: float | None = None,
             gray = _gray(image)
     except DrawingError:
         raise
-    except (OSError, ValueError, Image.DecompressionBombError,
-            Image.DecompressionBombWarning) as exc:
+    except (Image.DecompressionBombError, Image.DecompressionBombWarning) as exc:
+        raise DrawingError(f"{name}: over the {MAX_PIXELS:,} pixels an image may have "
+                           f"({exc})") from exc
+    except (OSError, ValueError) as exc:
         raise DrawingError(f"{name}: not an image motiond reads: {exc}") from exc
     width, height = _size_mm(image, name, width_mm, dpi)
     raster = Raster(gray, 0.0, 0.0, width, height)

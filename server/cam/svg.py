@@ -33,7 +33,6 @@ MAX_NUMBERS = 4_000_000
 MAX_PIECES_PER_CURVE = 1000
 _ENTITY = re.compile(rb"<!ENTITY", re.IGNORECASE)
 _POINTS = re.compile(rb"\s(?:d|points)\s*=\s*(?:\"[^\"]*\"|'[^']*')")
-_NUMBER = re.compile(rb"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
 
 
 def check_source(data: bytes, name: str) -> None:
@@ -53,15 +52,27 @@ def check_source(data: bytes, name: str) -> None:
         raise DrawingError(f"{name}: more than {MAX_ELEMENTS:,} elements")
     total = 0
     for match in _POINTS.finditer(data):
-        numbers = len(_NUMBER.findall(match.group()))
+        numbers = _count_numbers(data, match.start(), match.end())
         if numbers > MAX_PATH_NUMBERS:
             raise DrawingError(
-                f"{name}, line {_line(data, match.start())}: a path of {numbers // 2:,} points, "
-                f"over the {MAX_PATH_NUMBERS // 2:,} one path may have")
+                f"{name}, line {_line(data, match.start())}: a path of over "
+                f"{MAX_PATH_NUMBERS // 2:,} points, more than one path may have")
         total += numbers
         if total > MAX_NUMBERS:
             raise DrawingError(f"{name}, line {_line(data, match.start())}: over "
                                f"{MAX_NUMBERS // 2:,} points in the paths so far")
+
+
+def _count_numbers(data: bytes, start: int, end: int) -> int:
+    """How many numbers ``data[start:end]`` holds (runs of digits and dots; an exponent
+    counts twice, an upper bound), a megabyte at a time in numpy."""
+    count, previous = 0, False
+    for chunk_start in range(start, end, 1 << 20):
+        chunk = np.frombuffer(data, np.uint8, min(1 << 20, end - chunk_start), chunk_start)
+        digit = ((chunk >= 48) & (chunk <= 57)) | (chunk == 46)
+        count += int(np.count_nonzero(digit[1:] & ~digit[:-1])) + int(digit[0] and not previous)
+        previous = bool(digit[-1])
+    return count
 
 
 def _line(data: bytes, offset: int) -> int:

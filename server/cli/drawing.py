@@ -20,7 +20,14 @@ CAM_PACKAGES = ("svgelements", "ezdxf", "PIL", "shapely")
 
 def missing_cam_packages() -> list[str]:
     """The ``[cam]`` extra's packages not installed."""
-    return [name for name in CAM_PACKAGES if importlib.util.find_spec(name) is None]
+    return [name for name in CAM_PACKAGES if not _installed(name)]
+
+
+def _installed(name: str) -> bool:
+    try:
+        return importlib.util.find_spec(name) is not None
+    except ValueError:  # in sys.modules as None: blocked
+        return False
 
 
 def laser_max_s(config: Config) -> float:

@@ -17,7 +17,8 @@ import numpy as np
 import resvg_py
 from PIL import Image
 
-from server.config import CoreConfig
+from server.cli.offline import machine_interpreter
+from server.config import Config
 from server.motion.moves import MoveKind, ToolMode
 from server.offline.estimate import iterate_blocks
 from server.offline.stats import JobStats
@@ -35,10 +36,12 @@ class Burn:
     nominal_mm_s: np.ndarray
 
 
-def burn(gcode: str, core: CoreConfig) -> Burn:
+def burn(gcode: str, config: Config) -> Burn:
+    """The job run on ``config``'s machine, soft limits off (an overscan may pass zero)."""
     rows, s, entry, nominal = [], [], [], []
     stats = JobStats()
-    for block in iterate_blocks(gcode.splitlines(), core, stats):
+    interpreter = machine_interpreter(config)
+    for block in iterate_blocks(gcode.splitlines(), config.core, stats, interpreter=interpreter):
         move = block.move
         if (move is None or move.kind not in (MoveKind.FEED, MoveKind.ARC)
                 or move.tool_mode is ToolMode.OFF or move.s_value <= 0):

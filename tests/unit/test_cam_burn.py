@@ -31,7 +31,7 @@ def _job(name: str, **settings: object) -> tuple[bytes, str, object]:
 @pytest.mark.parametrize("name", ["air-balloon.svg", "settings.svg"])
 def test_a_line_drawing_burns_what_the_reference_renderer_draws(name: str) -> None:
     data, gcode, drawing = _job(name)
-    burnt = burn(gcode, make_config().core)
+    burnt = burn(gcode, make_config())
     reference = render(data.replace(b'stroke-width="2"', b'stroke-width="0.25"'), 96, 96)
     score = iou(burn_mask(burnt.segments, 96, 96, KERF_MM), reference[..., 3] > 127)
     assert score >= 0.97, f"{name}: IoU {score:.4f}"
@@ -39,7 +39,7 @@ def test_a_line_drawing_burns_what_the_reference_renderer_draws(name: str) -> No
 
 def test_a_filled_drawing_burns_its_area() -> None:
     data, gcode, _ = _job("award.svg", interval_mm=0.1)
-    burnt = burn(gcode, make_config().core)
+    burnt = burn(gcode, make_config())
     reference = render(data, 96, 96)[..., 3] > 127
     score = iou(burn_mask(burnt.segments, 96, 96, 0.1, cap="butt"), reference)
     assert score >= 0.97, f"IoU {score:.4f}"
@@ -57,7 +57,7 @@ def test_three_colour_drawing_burns_each_layer_in_its_mode() -> None:
         for other in others:
             other.settings = other.settings.model_copy(update={"enabled": False})
         layer.settings = layer.settings.model_copy(update={"enabled": True})
-        burnt = burn(make_job(drawing), make_config().core)
+        burnt = burn(make_job(drawing), make_config())
         fill = layer.settings.mode == "fill"
         mask = burn_mask(burnt.segments, 120, 90, 0.1 if fill else 0.8,
                          cap="butt" if fill else "round")
@@ -68,7 +68,7 @@ def test_three_colour_drawing_burns_each_layer_in_its_mode() -> None:
 def test_a_dxf_burns_what_the_same_geometry_drawn_as_svg_shows() -> None:
     data, gcode, drawing = _job("bracket.dxf")
     assert (drawing.width_mm, drawing.height_mm) == pytest.approx((80.0, 50.0), abs=1e-6)
-    burnt = burn(gcode, make_config().core)
+    burnt = burn(gcode, make_config())
     reference = render((DATA / "bracket_reference.svg").read_bytes(), 80, 50)[..., 3] > 127
     score = iou(burn_mask(burnt.segments, 80, 50, 0.8), reference)
     assert score >= 0.97, f"IoU {score:.4f}"
