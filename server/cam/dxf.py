@@ -4,8 +4,9 @@ The model space's LINE, ARC, CIRCLE, ELLIPSE, LWPOLYLINE and POLYLINE (bulges in
 SPLINE entities, and those inside block references (INSERT, with their transforms), become
 polylines within :data:`TOLERANCE_MM` (ezdxf's ``make_path`` and ``flattening``), scaled to mm
 by the header's ``$INSUNITS`` (unitless: mm) and moved so the drawing's lower-left corner is
-at 0,0; pieces whose ends meet are joined (:mod:`.chain`). One layer per colour (the entity's, or its DXF layer's when BYLAYER; ACI 7, white on
-a black screen, is black on the material). Annotations (text, dimensions, hatches, points,
+at 0,0; pieces whose ends meet are joined (:mod:`.chain`). One layer per colour (the
+entity's, or its DXF layer's when BYLAYER; ACI 7, white on a black screen, is black on the
+material). Annotations (text, dimensions, hatches, points,
 images) are skipped with a warning; any other entity is refused, naming its type and handle.
 """
 
@@ -37,14 +38,14 @@ def read_dxf(data: bytes, name: str) -> Drawing:
     Raises:
         DrawingError: not a DXF ezdxf reads, an unknown entity, or over the bounds.
     """
-    import ezdxf
     from ezdxf import recover
+    from ezdxf.lldxf.const import DXFError
 
     if len(data) > MAX_BYTES:
         raise DrawingError(f"{name}: {len(data):,} bytes, over the {MAX_BYTES:,} a DXF may have")
     try:
         doc, _auditor = recover.read(io.BytesIO(data))
-    except (ezdxf.DXFError, OSError, ValueError, UnicodeDecodeError) as exc:
+    except (DXFError, OSError, ValueError, UnicodeDecodeError) as exc:
         raise DrawingError(f"{name}: not a readable DXF: {exc}") from exc
     scale = _mm_per_unit(doc)
     reader = _Reader(doc, name, scale)
@@ -57,7 +58,13 @@ def _mm_per_unit(doc: Any) -> float:
     from ezdxf import units
 
     code = int(doc.header.get("$INSUNITS", 0))
-    return 1.0 if code == 0 else float(units.conversion_factor(code, units.MM))
+    if code == 0:
+        return 1.0
+    try:
+        unit = units.InsertUnits(code)
+        return float(units.conversion_factor(unit, units.InsertUnits.Millimeters))
+    except ValueError as exc:
+        raise DrawingError(f"$INSUNITS {code}: not a unit motiond knows") from exc
 
 
 class _Reader:

@@ -57,7 +57,7 @@ class Program:
         self.travel(float(points[0, 0]), float(points[0, 1]))
         s = self.s_value(power_pct)
         words = self._modal(s)
-        cuts = [f"G1 X{_n(x)} Y{_n(y)}" for x, y in points[1:].tolist()]
+        cuts = [f"G1 X{x} Y{y}" for x, y in np.round(points[1:], 3).tolist()]
         if cuts:
             cuts[0] += words
             self.lines += cuts
@@ -68,12 +68,22 @@ class Program:
         self.lines.append(f"G1 X{_n(x)} Y{_n(y)}{self._modal(self.s_value(power_pct))}")
         self._at = (x, y)
 
-    def line_x(self, x_mm: np.ndarray, s_values: np.ndarray) -> None:
-        """Cut along X (the head's Y stays) to each ``x_mm`` at the matching S."""
-        for x, s in zip(x_mm.tolist(), s_values.tolist(), strict=True):
-            self.lines.append(f"G1 X{_n(x)}{self._modal(int(s))}")
-        if len(x_mm):
-            self._at = (float(x_mm[-1]), self._at[1] if self._at else 0.0)
+    def moves_x(self, moves: list[tuple[float, int]], y: float) -> None:
+        """G1 along X (the head's Y stays ``y``) to each x at its S value (0: laser off)."""
+        lines = self.lines
+        feed = f" F{_n(self._feed)}" if self._f != self._feed else ""
+        self._f = self._feed
+        s_now = self._s
+        for x, s in moves:
+            if s != s_now:
+                lines.append(f"G1 X{round(x, 3)} S{s}{feed}")
+                s_now = s
+            else:
+                lines.append(f"G1 X{round(x, 3)}{feed}")
+            feed = ""
+        self._s = s_now
+        if moves:
+            self._at = (moves[-1][0], y)
 
     def _modal(self, s: int) -> str:
         words = ""

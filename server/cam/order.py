@@ -16,21 +16,42 @@ from server.cam.model import Points, Shape
 
 
 def containment(shapes: list[Shape]) -> list[list[int]]:
-    """For each shape, the indices of the shapes it contains (only closed shapes contain)."""
+    """For each shape, the indices of the shapes it contains (only closed shapes contain).
+
+    B contains A when A's bounding box lies within B's and A's probe points (up to
+    :data:`PROBES` vertices) are all inside B's outline (even-odd, so a self-crossing
+    outline needs no repair first). The boxes are paired by shapely's STRtree, the points
+    tested by ``shapely.contains_xy`` on prepared polygons, all at once.
+    """
     import shapely
 
-    closed = [i for i, shape in enumerate(shapes) if shape.closed and len(shape.points) > 2]
     inside: list[list[int]] = [[] for _ in shapes]
+    closed = [i for i, shape in enumerate(shapes) if shape.closed and len(shape.points) > 2]
     if not closed:
         return inside
-    polygons = shapely.make_valid(np.array([shapely.Polygon(shapes[i].points) for i in closed]))
-    geometries = np.array([shapely.LineString(shape.points) for shape in shapes])
-    tree = shapely.STRtree(polygons)
-    pairs = tree.query(geometries, predicate="within")  # [geometry index, polygon index]
-    for child, parent_slot in zip(pairs[0], pairs[1], strict=True):
-        parent = closed[int(parent_slot)]
-        if parent != child and not _same_outline(shapes[parent], shapes[int(child)]):
-            inside[parent].append(int(child))
+    lows = np.array([shape.points.min(axis=0) for shape in shapes])
+    highs = np.array([shape.points.max(axis=0) for shape in shapes])
+    boxes = shapely.box(lows[:, 0], lows[:, 1], highs[:, 0], highs[:, 1])
+    tree = shapely.STRtree(boxes[closed])
+    children, slots = tree.query(boxes, predicate="covered_by")
+    parents = np.asarray(closed)[slots]
+    keep = children != parents
+    children, parents = children[keep], parents[keep]
+    if not len(children):
+        return inside
+    polygons = np.array([shapely.Polygon(shape.points) if shape.closed and len(shape.points) > 2
+                         else None for shape in shapes], dtype=object)
+    shapely.prepare(polygons[closed])
+    probes = [_probe_points(shape) for shape in shapes]
+    count = np.array([len(probes[c]) for c in children])
+    points = np.concatenate([probes[c] for c in children])
+    owners = np.repeat(np.arange(len(children)), count)
+    hit = shapely.contains_xy(polygons[parents[owners]], points[:, 0], points[:, 1])
+    all_inside = np.logical_and.reduceat(hit, np.concatenate([[0], np.cumsum(count)[:-1]]))
+    for child, parent in zip(children[all_inside].tolist(), parents[all_inside].tolist(),
+                             strict=True):
+        if not _same_outline(shapes[parent], shapes[child]):
+            inside[parent].append(child)
     return inside
 
 

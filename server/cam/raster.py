@@ -97,7 +97,7 @@ def engrave(program: Program, raster: Raster, settings: LayerSettings) -> None:
     gray = resampled(raster, settings.interval_mm)
     s_values = np.rint(program.max_s * power_levels(gray, settings) / 100.0).astype(np.int64)
     pitch = raster.width_mm / gray.shape[1]
-    edges = raster.x_mm + pitch * np.arange(gray.shape[1] + 1)
+    edges = (raster.x_mm + pitch * np.arange(gray.shape[1] + 1)).tolist()
     forward = True
     for row in range(gray.shape[0]):
         line = s_values[row]
@@ -109,27 +109,28 @@ def engrave(program: Program, raster: Raster, settings: LayerSettings) -> None:
         forward = not forward if settings.bidirectional else True
 
 
-def _line(program: Program, line: np.ndarray, edges: np.ndarray, y: float,
+def _line(program: Program, line: np.ndarray, edges: list[float], y: float,
           overscan_mm: float, forward: bool) -> None:
     """One image line: runs of one S from the first burnt pixel to the last."""
     burnt = np.flatnonzero(line)
-    first, last = int(burnt[0]), int(burnt[-1]) + 1
-    values = line[first:last]
+    first = int(burnt[0])
+    values = line[first:int(burnt[-1]) + 1]
     change = np.flatnonzero(np.diff(values)) + 1
-    starts = np.concatenate([[0], change]) + first
-    ends = np.concatenate([change, [len(values)]]) + first
-    levels = values[starts - first]
+    starts = (np.concatenate([[0], change]) + first).tolist()
+    ends = (np.concatenate([change, [len(values)]]) + first).tolist()
+    levels = values[np.asarray(starts) - first].tolist()
     if not forward:
         starts, ends, levels = ends[::-1], starts[::-1], levels[::-1]
     sign = 1.0 if forward else -1.0
-    program.travel(float(edges[starts[0]]) - sign * overscan_mm, y)
-    program.line_x(np.array([edges[starts[0]]]), np.array([0]))
-    for start, end, level in zip(starts.tolist(), ends.tolist(), levels.tolist(), strict=True):
-        span = abs(edges[end] - edges[start])
-        if level == 0 and span > 2.0 * overscan_mm + 1.0:
-            program.line_x(np.array([edges[start] + sign * overscan_mm]), np.array([0]))
-            program.travel(float(edges[end] - sign * overscan_mm), y)
-            program.line_x(np.array([edges[end]]), np.array([0]))
+    program.travel(edges[starts[0]] - sign * overscan_mm, y)
+    moves: list[tuple[float, int]] = [(edges[starts[0]], 0)]
+    for start, end, level in zip(starts, ends, levels, strict=True):
+        if level == 0 and abs(edges[end] - edges[start]) > 2.0 * overscan_mm + 1.0:
+            moves.append((edges[start] + sign * overscan_mm, 0))
+            program.moves_x(moves, y)
+            program.travel(edges[end] - sign * overscan_mm, y)
+            moves = [(edges[end], 0)]
         else:
-            program.line_x(np.array([edges[end]]), np.array([level]))
-    program.line_x(np.array([edges[ends[-1]] + sign * overscan_mm]), np.array([0]))
+            moves.append((edges[end], level))
+    moves.append((edges[ends[-1]] + sign * overscan_mm, 0))
+    program.moves_x(moves, y)

@@ -14,6 +14,7 @@ coordinates (the whole file: :data:`MAX_NUMBERS`), each error naming the element
 
 from __future__ import annotations
 
+import functools
 import io
 import math
 import re
@@ -151,22 +152,23 @@ def _flatten(element: Any, height_mm: float) -> list[Shape]:
     """The element's subpaths as polylines in mm, Y up."""
     import svgelements as se
 
+    path = element if isinstance(element, se.Path) else se.Path(element)
     shapes: list[Shape] = []
-    for subpath in se.Path(element).as_subpaths():
-        pieces: list[np.ndarray] = []
+    for subpath in path.as_subpaths():
+        points: list[tuple[float, float]] = []
         closed = False
         for segment in subpath:
             if isinstance(segment, se.Move):
-                pieces.append(np.array([[segment.end.x, segment.end.y]]))
+                points.append((segment.end.x, segment.end.y))
             elif isinstance(segment, se.Close):
                 closed = True
             elif segment.start is not None and segment.end is not None:
-                pieces.append(_segment_points(segment, se))
-        if not pieces:
+                points += _segment_points(segment, se)
+        if not points:
             continue
-        points = np.concatenate(pieces) * MM_PER_PX
-        points[:, 1] = height_mm - points[:, 1]
-        shapes.extend(_shape(points, closed))
+        array = np.array(points, dtype=np.float64) * MM_PER_PX
+        array[:, 1] = height_mm - array[:, 1]
+        shapes.extend(_shape(array, closed))
     return shapes
 
 
@@ -181,31 +183,52 @@ def _shape(points: np.ndarray, closed: bool) -> list[Shape]:
     return [Shape(points, closed and len(points) > 2)]
 
 
-def _segment_points(segment: Any, se: Any) -> np.ndarray:
-    """The points after the segment's start (its end included), within the tolerance."""
-    count = _pieces(segment, se)
-    if count == 1:
-        return np.array([[segment.end.x, segment.end.y]])
-    positions = np.linspace(0.0, 1.0, count + 1)[1:]
-    return np.asarray(segment.npoint(positions), dtype=np.float64)
-
-
-def _pieces(segment: Any, se: Any) -> int:
-    """How many straight pieces keep a curve within :data:`TOLERANCE_MM`."""
-    tolerance = TOLERANCE_MM / MM_PER_PX
+def _segment_points(segment: Any, se: Any) -> list[tuple[float, float]]:
+    """The points after the segment's start (its end included), within the tolerance: lines
+    as they are, Béziers evaluated in numpy, arcs by svgelements."""
+    end = segment.end
     if isinstance(segment, se.Line):
-        return 1
-    if isinstance(segment, se.Arc):
-        radius = max(abs(segment.rx), abs(segment.ry), 1e-9)
-        step = 2.0 * math.acos(max(-1.0, 1.0 - tolerance / radius))
-        count = abs(segment.sweep) / max(step, 1e-6)
-    elif isinstance(segment, se.CubicBezier):
-        p0, p1, p2, p3 = (np.array(p, dtype=float) for p in segment)
-        bend = max(np.hypot(*(p0 - 2 * p1 + p2)), np.hypot(*(p1 - 2 * p2 + p3)))
-        count = math.sqrt(0.75 * bend / tolerance)
+        return [(end.x, end.y)]
+    if isinstance(segment, se.CubicBezier):
+        controls: tuple[Any, ...] = (segment.start, segment.control1, segment.control2, end)
     elif isinstance(segment, se.QuadraticBezier):
-        p0, p1, p2 = (np.array(p, dtype=float) for p in segment)
-        count = math.sqrt(0.25 * np.hypot(*(p0 - 2 * p1 + p2)) / tolerance)
+        controls = (segment.start, segment.control, end)
     else:
-        count = 16
-    return max(1, min(MAX_PIECES_PER_CURVE, math.ceil(float(count))))
+        count = _arc_pieces(segment, se)
+        positions = np.linspace(0.0, 1.0, count + 1)[1:]
+        return [(x, y) for x, y in np.asarray(segment.npoint(positions)).tolist()]
+    xs = [float(p.x) for p in controls]
+    ys = [float(p.y) for p in controls]
+    count = _bezier_pieces(xs, ys)
+    if count == 1:
+        return [(end.x, end.y)]
+    weights = _bernstein(len(controls) - 1, count)
+    return list(zip((weights @ xs).tolist(), (weights @ ys).tolist(), strict=True))
+
+
+@functools.lru_cache(maxsize=2048)
+def _bernstein(degree: int, count: int) -> np.ndarray:
+    """The Bézier weights of the control points at ``t = 1/count .. 1`` (rows)."""
+    t = np.linspace(0.0, 1.0, count + 1)[1:, None]
+    return np.hstack([math.comb(degree, k) * t**k * (1.0 - t) ** (degree - k)
+                      for k in range(degree + 1)])
+
+
+def _bezier_pieces(xs: list[float], ys: list[float]) -> int:
+    """Pieces that keep a Bézier within :data:`TOLERANCE_MM`: its chord error after n pieces
+    is at most ``d (d-1) / 8 * max|second difference| / n²`` for degree d."""
+    degree = len(xs) - 1
+    bend = max(math.hypot(xs[k] - 2 * xs[k + 1] + xs[k + 2], ys[k] - 2 * ys[k + 1] + ys[k + 2])
+               for k in range(degree - 1))
+    count = math.sqrt(degree * (degree - 1) / 8.0 * bend / (TOLERANCE_MM / MM_PER_PX))
+    return max(1, min(MAX_PIECES_PER_CURVE, math.ceil(count)))
+
+
+def _arc_pieces(segment: Any, se: Any) -> int:
+    """Pieces that keep an arc within :data:`TOLERANCE_MM` (of its larger radius)."""
+    if not isinstance(segment, se.Arc):
+        return 16
+    radius = max(abs(segment.rx), abs(segment.ry), 1e-9)
+    step = 2.0 * math.acos(max(-1.0, 1.0 - TOLERANCE_MM / MM_PER_PX / radius))
+    count = float(abs(segment.sweep)) / max(step, 1e-6)
+    return max(1, min(MAX_PIECES_PER_CURVE, math.ceil(count)))
