@@ -56,13 +56,14 @@ def read_dxf(data: bytes, name: str) -> Drawing:
 
 def _mm_per_unit(doc: Any) -> float:
     from ezdxf import units
+    from ezdxf.enums import InsertUnits
 
     code = int(doc.header.get("$INSUNITS", 0))
     if code == 0:
         return 1.0
     try:
-        unit = units.InsertUnits(code)
-        return float(units.conversion_factor(unit, units.InsertUnits.Millimeters))
+        unit = InsertUnits(code)
+        return float(units.conversion_factor(unit, InsertUnits.Millimeters))
     except ValueError as exc:
         raise DrawingError(f"$INSUNITS {code}: not a unit motiond knows") from exc
 

@@ -2,8 +2,8 @@
 
 Layers are cut in :func:`default_order` (engravings, then cuts from the innermost; a
 layer may be disabled), each pass of a layer after the one before; within a layer, line mode
-cuts the shapes in :func:`~server.cam.order.cut_order` (inner first, nearest next), fill mode hatches
-the region line by line (:mod:`.hatch`), image mode engraves (:mod:`.raster`). ``progress``
+cuts the shapes in :func:`~server.cam.order.cut_order` (inner first, nearest next), fill mode
+hatches the region line by line (:mod:`.hatch`), image mode engraves (:mod:`.raster`). ``progress``
 is called with a fraction 0..1 after each layer's pass, for a bar or a pushed status.
 """
 
