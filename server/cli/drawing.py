@@ -30,14 +30,6 @@ def _installed(name: str) -> bool:
         return False
 
 
-def laser_max_s(config: Config) -> float:
-    """The configured laser's S for full power (1000, Grbl's, without a [laser] section)."""
-    for spec in config.modules:
-        if spec.section == "laser":
-            return float(getattr(spec.config, "maximum_s_value", 1000.0))
-    return 1000.0
-
-
 def import_command(args: Any, config: Config) -> int:
     """``motiond import FILE -o OUT``."""
     missing = missing_cam_packages()
@@ -58,7 +50,7 @@ def import_command(args: Any, config: Config) -> int:
     try:
         drawing = read_drawing(data, path.name, width_mm=args.width_mm, dpi=args.dpi)
         apply_layer_options(drawing, dict(parse_layer_option(text) for text in args.layer))
-        gcode = make_job(drawing, laser_max_s(config))
+        gcode = make_job(drawing, config.laser_max_s())
     except DrawingError as exc:
         print(f"motiond: {exc}", file=sys.stderr)
         return 1
