@@ -47,13 +47,17 @@ def import_command(args: Any, config: Config) -> int:
         print(f"motiond: cannot read {path}: {exc.strerror}", file=sys.stderr)
         return 1
     started = time.perf_counter()
+    bar = _bar(path.name, enabled=not args.json and sys.stderr.isatty())
     try:
         drawing = read_drawing(data, path.name, width_mm=args.width_mm, dpi=args.dpi)
         apply_layer_options(drawing, dict(parse_layer_option(text) for text in args.layer))
-        gcode = make_job(drawing, config.laser_max_s())
+        gcode = make_job(drawing, config.laser_max_s(),
+                         lambda fraction: bar.update(round(100 * fraction) - bar.n))
     except DrawingError as exc:
         print(f"motiond: {exc}", file=sys.stderr)
         return 1
+    finally:
+        bar.close()
     args.output.write_text(gcode)
     elapsed_s = time.perf_counter() - started
     lines = gcode.count("\n")
@@ -67,6 +71,13 @@ def import_command(args: Any, config: Config) -> int:
         print(_describe_layer(layer.describe()), file=sys.stderr)
     print(f"wrote {args.output} ({lines:,} lines in {elapsed_s:.2f} s)", file=sys.stderr)
     return 0
+
+
+def _bar(label: str, enabled: bool) -> Any:
+    """A progress bar in percent of the layers' passes made (tqdm, on a terminal)."""
+    from tqdm import tqdm
+
+    return tqdm(total=100, unit="%", desc=label, disable=not enabled, leave=False)
 
 
 def _describe_layer(layer: dict[str, Any]) -> str:
