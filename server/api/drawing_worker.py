@@ -39,7 +39,9 @@ def read_task(data: bytes, name: str, width_mm: float | None, dpi: float | None,
 def generate_task(data: bytes, name: str, width_mm: float | None, dpi: float | None,
                   layers: dict[str, dict[str, Any]], max_s: float,
                   progress: Callable[[float], None]) -> dict[str, Any]:
-    """The G-code of the drawing with ``layers``' settings applied, and its description."""
+    """The G-code of the drawing with ``layers``' settings applied (UTF-8 bytes, counted
+    here: a large job's text is never encoded or scanned on the server's event loop), and
+    its description."""
     from server.cam.job import make_job, read_drawing
     from server.cam.model import apply_layer_options
 
@@ -47,7 +49,7 @@ def generate_task(data: bytes, name: str, width_mm: float | None, dpi: float | N
     progress(0.1)
     apply_layer_options(drawing, layers)
     gcode = make_job(drawing, max_s, lambda fraction: progress(0.1 + 0.9 * fraction))
-    return {"gcode": gcode, "drawing": drawing.describe()}
+    return {"gcode": gcode.encode(), "lines": gcode.count("\n"), "drawing": drawing.describe()}
 
 
 TASKS: dict[str, Callable[..., dict[str, Any]]] = {"read": read_task, "generate": generate_task}

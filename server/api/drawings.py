@@ -98,8 +98,7 @@ async def drawing_generate(m: Methods, connection: Connection,
     result = await _run(m, "generate", params.name, {
         "data": await _data(m, params), "name": params.name, "width_mm": params.width_mm,
         "dpi": params.dpi, "layers": params.layers, "max_s": m.kernel.config.laser_max_s()})
-    gcode: str = result["gcode"]
     job = params.job or f"{PurePath(params.name).stem}.gcode"
-    stored = await m.kernel.jobs.save(job, gcode.encode())
+    stored = await m.kernel.jobs.save(job, result["gcode"])  # written in a thread
     m.file_changed("upload", stored.name)
-    return {"job": asdict(stored), "lines": gcode.count("\n"), "drawing": result["drawing"]}
+    return {"job": asdict(stored), "lines": result["lines"], "drawing": result["drawing"]}

@@ -1,7 +1,8 @@
 """``motiond import FILE -o job.gcode``: a drawing (SVG, DXF, PNG, JPEG) made into a laser
 job with :mod:`server.cam`, each layer's settings from ``--layer``; the layers are listed on
-stderr (``--json``: the drawing and the job as JSON on stdout). Exit status: 0, 1 for a file
-refused, 2 for a missing extra or bad options."""
+stderr (``--json``: the drawing and the job as JSON on stdout). ``--material NAME`` applies a
+material of the machine's library (saved from the web UI) before ``--layer``. Exit status: 0,
+1 for a file refused, 2 for a missing extra or bad options."""
 
 from __future__ import annotations
 
@@ -38,6 +39,7 @@ def import_command(args: Any, config: Config) -> int:
               file=sys.stderr)
         return 2
     from server.cam.job import make_job, read_drawing
+    from server.cam.materials import apply_material
     from server.cam.model import apply_layer_options, parse_layer_option
 
     path: Path = args.file
@@ -50,6 +52,8 @@ def import_command(args: Any, config: Config) -> int:
     bar = _bar(path.name, enabled=not args.json and sys.stderr.isatty())
     try:
         drawing = read_drawing(data, path.name, width_mm=args.width_mm, dpi=args.dpi)
+        if args.material:
+            apply_material(drawing, _library(config), args.material)
         apply_layer_options(drawing, dict(parse_layer_option(text) for text in args.layer))
         gcode = make_job(drawing, config.laser_max_s(),
                          lambda fraction: bar.update(round(100 * fraction) - bar.n))
@@ -71,6 +75,20 @@ def import_command(args: Any, config: Config) -> int:
         print(_describe_layer(layer.describe()), file=sys.stderr)
     print(f"wrote {args.output} ({lines:,} lines in {elapsed_s:.2f} s)", file=sys.stderr)
     return 0
+
+
+def _library(config: Config) -> Any:
+    """The machine's material library (``materials.json`` in its data folder; none: empty)."""
+    from server.cam.materials import parse_library
+    from server.paths import materials_path
+
+    path = materials_path(config.core)
+    try:
+        return parse_library(path.read_text(), str(path))
+    except FileNotFoundError:
+        return {}
+    except OSError as exc:
+        raise DrawingError(f"cannot read {path}: {exc.strerror}") from exc
 
 
 def _bar(label: str, enabled: bool) -> Any:

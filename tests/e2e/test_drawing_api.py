@@ -93,3 +93,18 @@ async def test_an_import_over_its_time_or_memory_is_stopped(
         refused = await rpc.error("drawing.read", name="noise.png", file="noise.png")
         assert "took over 0.2 s and was stopped" in refused["message"]
         assert (await rpc.call("machine.status"))["state"] == "Idle"
+
+
+async def test_the_material_library_is_kept_in_the_data_folder(tmp_path: Path) -> None:
+    async with serving(api_config(tmp_path)) as (_, address), client(address) as rpc:
+        assert await rpc.call("material.list") == {}
+        saved = await rpc.call("material.save", name="plywood",
+                               layers={"#ff0000": {"speed_mm_min": 600, "passes": 2}})
+        assert saved == {"plywood": {"#ff0000": {"speed_mm_min": 600.0, "passes": 2}}}
+        refused = await rpc.error("material.save", name="acrylic",
+                                  layers={"#ff0000": {"power_pct": 300}})
+        assert refused["code"] == 44 and "power_pct" in refused["message"]
+        assert '"plywood"' in (tmp_path / "materials.json").read_text()
+        assert await rpc.call("material.list") == saved
+        assert await rpc.call("material.delete", name="plywood") == {}
+        assert (await rpc.error("material.delete", name="plywood"))["code"] == 44

@@ -94,3 +94,24 @@ async def test_a_photo_dropped_in_the_ui_becomes_a_dithered_engrave(tmp_path: Pa
         await expect(page.locator("#job-fit")).to_have_text("Fits")
         gcode = (tmp_path / "jobs" / "portrait.gcode").read_text()
         assert {s for s in gcode.split() if s.startswith("S")} == {"S0", "S600"}
+
+
+async def test_layer_settings_saved_as_a_material_fill_the_next_drawing(tmp_path: Path) -> None:
+    async with laser_ui(tmp_path) as (_, page):
+        await page.locator("#file-input").set_input_files(str(DATA / "three-colours.svg"))
+        await expect(page.locator("#drawing-layers tr")).to_have_count(3)
+        await _set(page, "#0000ff", "power_pct", "25")
+        await _set(page, "#ff0000", "passes", "3")
+        await page.locator("#drawing-material-name").fill("3 mm plywood")
+        await page.locator("#drawing-material-save").click()
+        await expect(page.locator("#toasts")).to_contain_text("Saved the material 3 mm plywood")
+        await page.locator("#drawing-cancel").click()
+        await page.locator("#file-input").set_input_files(str(DATA / "three-colours.svg"))
+        power = page.locator("#drawing-layers tr[data-layer='#0000ff'] [data-key='power_pct']")
+        await expect(power).to_have_value("50")
+        await page.locator("#drawing-material").select_option("3 mm plywood")
+        await expect(power).to_have_value("25")
+        passes = page.locator("#drawing-layers tr[data-layer='#ff0000'] [data-key='passes']")
+        await expect(passes).to_have_value("3")
+        await shot(page, "drawing-material")
+    assert "3 mm plywood" in (tmp_path / "materials.json").read_text()

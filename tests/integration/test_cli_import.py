@@ -66,3 +66,15 @@ def test_a_missing_extra_is_named(tmp_path: Path, capsys: Any,
     assert main(["import", str(DATA / "bracket.dxf"), "-o", str(tmp_path / "b.gcode"),
                  "--config", str(default_config(tmp_path))]) == 2
     assert "needs ezdxf: pip install 'motiond[cam]'" in capsys.readouterr().err
+
+
+def test_a_material_from_the_machines_library_applies_before_layer_options(
+        tmp_path: Path) -> None:
+    (tmp_path / "materials.json").write_text(json.dumps({"materials": {"plywood": {
+        "#ff0000": {"power_pct": 90, "passes": 3}, "#0000ff": {"power_pct": 20}}}}))
+    out = tmp_path / "coaster.gcode"
+    assert main(["import", str(DATA / "three-colours.svg"), "-o", str(out),
+                 "--config", str(default_config(tmp_path)), "--material", "plywood",
+                 "--layer", "#ff0000:passes=1"]) == 0
+    gcode = out.read_text()
+    assert gcode.count("; layer #ff0000") == 1 and " S900" in gcode and " S200" in gcode

@@ -29,6 +29,9 @@ export class DrawingView {
     this.canvas = $("#drawing-canvas");
     $("#drawing-generate").addEventListener("click", (event) => { event.preventDefault(); this.generate(); });
     $("#drawing-cancel").addEventListener("click", () => this.dialog.close());
+    $("#drawing-material").addEventListener("change", () => this.useMaterial($("#drawing-material").value));
+    $("#drawing-material-save").addEventListener("click", () => this.saveMaterial());
+    this.materials = {};
     api.on("notify_drawing_progress", ({ name, task, fraction }) => {
       if (this.source?.name === name) this.status(`${task === "read" ? "Reading" : "Making the job"}… ${Math.round(100 * fraction)}%`);
     });
@@ -63,6 +66,7 @@ export class DrawingView {
     this.status(`${this.drawing.width_mm.toFixed(1)} × ${this.drawing.height_mm.toFixed(1)} mm, placed at the work origin`);
     this.showWarnings(this.drawing.warnings);
     this.showLayers();
+    await this.loadMaterials();
     $("#drawing-generate").disabled = false;
     await this.loadThumbnails();
     this.paint();
@@ -121,6 +125,57 @@ export class DrawingView {
       el("td", {}, number("interval_mm", s.interval_mm, { min: 0.01, max: 10, step: 0.01 })),
       el("td", {}, image ? choice("dither", DITHERS, s.dither) : number("angle_deg", s.angle_deg, { min: -360, max: 360, step: 5 })),
     ]);
+  }
+
+  // -- the material library: layer settings by name, kept on the machine ----------------------
+  async loadMaterials() {
+    try {
+      this.materials = await this.api.call("material.list");
+    } catch (error) {
+      report(error);
+      return;
+    }
+    const select = $("#drawing-material");
+    const chosen = select.value;
+    select.replaceChildren(el("option", { value: "" }, "Layer defaults"),
+      ...Object.keys(this.materials).sort().map((name) => el("option", { value: name, selected: name === chosen ? "" : undefined }, name)));
+  }
+
+  /** Fill the table from a material: each layer it names takes its settings. */
+  useMaterial(name) {
+    if (!name) {
+      this.showLayers();
+    } else {
+      for (const [layer, values] of Object.entries(this.materials[name] || {})) {
+        const row = $("#drawing-layers").querySelector(`tr[data-layer="${CSS.escape(layer)}"]`);
+        if (!row) continue;
+        for (const [key, value] of Object.entries(values)) {
+          const input = row.querySelector(`[data-key="${key}"]`);
+          if (!input) continue;
+          if (input.type === "checkbox") input.checked = Boolean(value);
+          else input.value = String(value);
+        }
+      }
+      $("#drawing-material-name").value = name;
+    }
+    this.paint();
+  }
+
+  async saveMaterial() {
+    const name = $("#drawing-material-name").value.trim();
+    if (!name) {
+      report({ message: "name the material first (e.g. 3 mm plywood)" });
+      return;
+    }
+    try {
+      this.materials = await this.api.call("material.save", { name, layers: this.settings() });
+      toast(`Saved the material ${name}`, "ok");
+      $("#drawing-material").value = "";
+      await this.loadMaterials();
+      $("#drawing-material").value = name;
+    } catch (error) {
+      report(error);
+    }
   }
 
   /** Each layer's settings from the table. */
