@@ -120,3 +120,18 @@ def test_an_image_is_sized_by_its_dpi_or_by_the_width_given() -> None:
     assert read_drawing(_png(pixels, dpi=300), "a.png").width_mm == pytest.approx(25.4, rel=1e-4)
     given = read_drawing(_png(pixels), "a.png", width_mm=60.0)
     assert (given.width_mm, given.height_mm) == pytest.approx((60.0, 30.0))
+
+
+def test_the_estimate_of_an_engrave_equals_its_simulated_run() -> None:
+    from server.offline.estimate import estimate, execute
+
+    pixels = _photo(100, 50)  # 10 x 5 mm
+    drawing = read_drawing(_png(pixels), "photo.png")
+    layer = drawing.layers[0]
+    layer.settings = layer_settings({"interval": 0.2, "speed": 6000, "dither": "jarvis"},
+                                    layer.settings)
+    lines = make_job(drawing).splitlines()
+    core = make_config().core.model_copy(deep=True)
+    core.machine.soft_limits = False  # the overscan starts left of zero
+    planned, run = estimate(lines, core).duration_s, execute(lines, core).duration_s
+    assert run > 2.0 and abs(planned - run) <= 0.01 * run, (planned, run)
