@@ -70,10 +70,16 @@ def layer_settings(values: dict[str, Any], base: LayerSettings | None = None,
 
 @dataclass(slots=True)
 class Shape:
-    """A polyline in mm; ``closed``: its last point joins its first (not repeated)."""
+    """A polyline in mm; ``closed``: its last point joins its first (not repeated).
+
+    For a fill, the shapes of one ``group`` (the subpaths of one SVG element) make one region
+    under their rule (``nonzero``, else even-odd), and the regions of a layer are united; a
+    DXF's shapes are all one even-odd group (a circle inside an outline is a hole)."""
 
     points: Points
     closed: bool
+    group: int = 0
+    nonzero: bool = False
 
 
 @dataclass(slots=True)

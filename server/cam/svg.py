@@ -98,13 +98,13 @@ def read_svg(data: bytes, name: str) -> Drawing:
     layers: dict[str, Layer] = {}
     warnings: list[str] = []
     texts = images = 0
-    for element in svg.elements():
+    for index, element in enumerate(svg.elements()):
         if isinstance(element, se.Text):
             texts += 1
         elif isinstance(element, se.Image):
             images += 1
         elif isinstance(element, se.Shape) and _visible(element):
-            _add_shape(element, layers, height_mm)
+            _add_shape(element, layers, height_mm, group=index)
     if texts:
         warnings.append(f"{texts} text element(s) not cut: convert text to paths first "
                         "(Inkscape: Path > Object to Path)")
@@ -118,7 +118,9 @@ def _visible(element: Any) -> bool:
     return bool(values.get("visibility") != "hidden" and values.get("display") != "none")
 
 
-def _add_shape(element: Any, layers: dict[str, Layer], height_mm: float) -> None:
+def _add_shape(element: Any, layers: dict[str, Layer], height_mm: float, group: int) -> None:
+    """The element's subpaths into its stroke colour's layer and its fill colour's; for the
+    fill, as one region (``group``) under the element's fill rule."""
     stroke, fill = _colour(element.stroke), _colour(element.fill)
     if not (element.stroke_width or 0.0) > 0.0:  # stroke-width="0" draws no stroke
         stroke = None
@@ -137,7 +139,9 @@ def _add_shape(element: Any, layers: dict[str, Layer], height_mm: float) -> None
         elif mode == "line" and layer.settings.mode == "fill":
             layer.settings = layer.settings.model_copy(update={"mode": "line"})
         if mode == "fill":  # a fill closes its subpaths
-            layer.shapes.extend(Shape(s.points, len(s.points) > 2) for s in shapes)
+            nonzero = element.values.get("fill-rule", "nonzero") != "evenodd"
+            layer.shapes.extend(Shape(s.points, len(s.points) > 2, group, nonzero)
+                                for s in shapes)
         else:
             layer.shapes.extend(shapes)
 

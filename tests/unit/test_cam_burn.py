@@ -115,3 +115,20 @@ def test_the_estimate_of_a_generated_job_equals_its_simulated_run() -> None:
     run = execute(gcode.splitlines(), core).duration_s
     assert run > 1.0
     assert abs(planned - run) <= 0.01 * run, (planned, run)
+
+
+OVERLAPS = b"""<svg xmlns="http://www.w3.org/2000/svg" width="80mm" height="40mm"
+  viewBox="0 0 80 40">
+  <circle cx="20" cy="20" r="12" fill="#000"/>
+  <circle cx="32" cy="20" r="12" fill="#000"/>
+  <path fill="#000" d="M48 6 h10 v28 h-10 z M50 10 h6 v8 h-6 z"/>
+  <path fill="#000" fill-rule="evenodd" d="M64 6 h10 v28 h-10 z M66 22 h6 v8 h-6 z"/>
+</svg>"""
+
+
+def test_overlapping_fills_unite_and_each_path_keeps_its_fill_rule() -> None:
+    drawing = read_drawing(OVERLAPS, "overlaps.svg")
+    burnt = burn(make_job(drawing), make_config())
+    score = iou(burn_mask(burnt.segments, 80, 40, 0.1, cap="butt"),
+                render(OVERLAPS, 80, 40)[..., 3] > 127)
+    assert score >= 0.97, f"IoU {score:.4f}"
