@@ -37,7 +37,7 @@ def read_task(data: bytes, name: str, width_mm: float | None, dpi: float | None,
 
 
 def generate_task(data: bytes, name: str, width_mm: float | None, dpi: float | None,
-                  layers: dict[str, dict[str, Any]], max_s: float,
+                  layers: dict[str, dict[str, Any]], order: list[str], max_s: float,
                   progress: Callable[[float], None]) -> dict[str, Any]:
     """The G-code of the drawing with ``layers``' settings applied (UTF-8 bytes, counted
     here: a large job's text is never encoded or scanned on the server's event loop), and
@@ -48,6 +48,7 @@ def generate_task(data: bytes, name: str, width_mm: float | None, dpi: float | N
     drawing = read_drawing(data, name, width_mm=width_mm, dpi=dpi)
     progress(0.1)
     apply_layer_options(drawing, layers)
+    drawing.reorder(order)
     gcode = make_job(drawing, max_s, lambda fraction: progress(0.1 + 0.9 * fraction))
     return {"gcode": gcode.encode(), "lines": gcode.count("\n"), "drawing": drawing.describe()}
 

@@ -41,6 +41,7 @@ class DrawingParams(Params):
 
 class GenerateParams(DrawingParams):
     layers: dict[str, dict[str, Any]] = Field(default_factory=dict)
+    order: list[str] = Field(default_factory=list, max_length=256)  # layers cut first, in turn
     job: str | None = Field(None, min_length=1, max_length=200)
 
 
@@ -97,7 +98,8 @@ async def drawing_generate(m: Methods, connection: Connection,
                            params: GenerateParams) -> dict[str, Any]:
     result = await _run(m, "generate", params.name, {
         "data": await _data(m, params), "name": params.name, "width_mm": params.width_mm,
-        "dpi": params.dpi, "layers": params.layers, "max_s": m.kernel.config.laser_max_s()})
+        "dpi": params.dpi, "layers": params.layers, "order": params.order,
+        "max_s": m.kernel.config.laser_max_s()})
     job = params.job or f"{PurePath(params.name).stem}.gcode"
     stored = await m.kernel.jobs.save(job, result["gcode"])  # written in a thread
     m.file_changed("upload", stored.name)

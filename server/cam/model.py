@@ -143,6 +143,15 @@ class Drawing:
         names = ", ".join(layer.name for layer in self.layers) or "none"
         raise DrawingError(f"{self.name}: no layer {name!r} (layers: {names})")
 
+    def reorder(self, names: list[str]) -> None:
+        """The layers named first, in that order; the others after them as they were.
+
+        Raises:
+            DrawingError: a name that is not a layer's.
+        """
+        first = [self.layer(name) for name in names]
+        self.layers = first + [layer for layer in self.layers if layer not in first]
+
     def describe(self) -> dict[str, Any]:
         return {
             "name": self.name, "width_mm": round(self.width_mm, 3),

@@ -55,6 +55,7 @@ def import_command(args: Any, config: Config) -> int:
         if args.material:
             apply_material(drawing, _library(config), args.material)
         apply_layer_options(drawing, dict(parse_layer_option(text) for text in args.layer))
+        drawing.reorder([name for name in (args.order or "").split(",") if name.strip()])
         gcode = make_job(drawing, config.laser_max_s(),
                          lambda fraction: bar.update(round(100 * fraction) - bar.n))
     except DrawingError as exc:

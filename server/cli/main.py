@@ -119,6 +119,9 @@ def _import_options(commands: argparse._SubParsersAction[argparse.ArgumentParser
         "mode=line|fill|image, speed (mm/min), power and min_power (%%), passes, interval "
         "(mm), angle (deg), overscan (mm), bidirectional, dither=grayscale|threshold|"
         "floyd-steinberg|jarvis|stucki, enabled")
+    sub.add_argument("--order", metavar="NAME,NAME,...",
+                     help="layers cut first, in this order (default: engravings, then cuts "
+                     "from the innermost)")
     sub.add_argument("--material", metavar="NAME",
                      help="layer settings from the machine's material library, before --layer")
     sub.add_argument("--width-mm", type=float, help="an image's width (default: from its DPI)")

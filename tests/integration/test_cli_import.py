@@ -78,3 +78,14 @@ def test_a_material_from_the_machines_library_applies_before_layer_options(
                  "--layer", "#ff0000:passes=1"]) == 0
     gcode = out.read_text()
     assert gcode.count("; layer #ff0000") == 1 and " S900" in gcode and " S200" in gcode
+
+
+def test_order_puts_the_layers_named_first(tmp_path: Path) -> None:
+    out = tmp_path / "coaster.gcode"
+    assert main(["import", str(DATA / "three-colours.svg"), "-o", str(out),
+                 "--config", str(default_config(tmp_path)), "--order", "#ff0000,#008000"]) == 0
+    headers = [line.split()[2] for line in out.read_text().splitlines()
+               if line.startswith("; layer")]
+    assert headers == ["#ff0000:", "#008000:", "#0000ff:"]
+    assert main(["import", str(DATA / "three-colours.svg"), "-o", str(out),
+                 "--order", "#123456", "--config", str(default_config(tmp_path))]) == 1
