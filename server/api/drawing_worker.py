@@ -88,7 +88,7 @@ async def run(task: str, kwargs: dict[str, Any], on_progress: Callable[[float], 
     receiver, sender = context.Pipe(duplex=False)
     process = context.Process(target=_child, args=(sender, task, kwargs, memory_bytes),
                               daemon=True, name=f"motiond-import-{task}")
-    process.start()
+    await asyncio.to_thread(process.start)  # spawning and sending it the drawing take a while
     sender.close()
     loop = asyncio.get_running_loop()
     deadline = loop.time() + timeout_s

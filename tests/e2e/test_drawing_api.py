@@ -108,3 +108,23 @@ async def test_the_material_library_is_kept_in_the_data_folder(tmp_path: Path) -
         assert await rpc.call("material.list") == saved
         assert await rpc.call("material.delete", name="plywood") == {}
         assert (await rpc.error("material.delete", name="plywood"))["code"] == 44
+
+
+async def test_a_large_import_never_stalls_the_event_loop(tmp_path: Path) -> None:
+    from benchmarks.bench_import import large_svg
+
+    path = tmp_path / "jobs" / "large.svg"
+    path.parent.mkdir(exist_ok=True)
+    path.write_bytes(large_svg(paths=400))  # 20,000 segments
+    async with serving(api_config(tmp_path), RealClock()) as (app, address), \
+            client(address) as rpc:
+        monitor = app.kernel.loop_monitor
+        await asyncio.sleep(0.2)
+        monitor.reset()
+        drawing = await rpc.call("drawing.read", name="large.svg", file="large.svg")
+        points = sum(len(p) // 2 for layer in drawing["layers"] for p in layer["paths"])
+        assert 5000 < points <= 6000 + 2 * 400  # each path keeps its ends
+        made = await rpc.call("drawing.generate", name="large.svg", file="large.svg")
+        assert made["lines"] > 100_000
+        # the parsing ran in the worker; on the loop, only the replies' JSON (a few ms at most)
+        assert monitor.worst_cpu_stall_s < 0.01, monitor.worst_cpu_stall_s
