@@ -12,6 +12,7 @@ import io
 from pathlib import Path
 
 import numpy as np
+import pytest
 from PIL import Image
 from playwright.async_api import Page, expect
 
@@ -83,6 +84,11 @@ async def test_a_photo_dropped_in_the_ui_becomes_a_dithered_engrave(tmp_path: Pa
         await expect(page.locator("#drawing-status")).to_contain_text("40.0 × 30.0 mm")
         await _set(page, "image", "dither", "floyd-steinberg")
         await _set(page, "image", "power_pct", "60")
+        await page.locator("#drawing-width").fill("60")
+        await page.locator("#drawing-width").dispatch_event("change")
+        await expect(page.locator("#drawing-status")).to_contain_text("60.0 × 45.0 mm")
+        dither = page.locator("#drawing-layers tr[data-layer='image'] [data-key='dither']")
+        await expect(dither).to_have_value("floyd-steinberg")  # kept across the new size
         await shot(page, "drawing-image")
         await page.locator("#drawing-generate").click()
         await expect(page.locator("#toasts")).to_contain_text("Made portrait.gcode")
@@ -94,6 +100,8 @@ async def test_a_photo_dropped_in_the_ui_becomes_a_dithered_engrave(tmp_path: Pa
         await expect(page.locator("#job-fit")).to_have_text("Fits")
         gcode = (tmp_path / "jobs" / "portrait.gcode").read_text()
         assert {s for s in gcode.split() if s.startswith("S")} == {"S0", "S600"}
+        xs = [float(w[1:]) for w in gcode.split() if w.startswith("X")]
+        assert max(xs) == pytest.approx(60.0 + 2.0, abs=0.01)  # 60 mm wide, and the overscan
 
 
 async def test_layer_settings_saved_as_a_material_fill_the_next_drawing(tmp_path: Path) -> None:

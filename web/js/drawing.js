@@ -31,6 +31,7 @@ export class DrawingView {
     $("#drawing-cancel").addEventListener("click", () => this.dialog.close());
     $("#drawing-material").addEventListener("change", () => this.useMaterial($("#drawing-material").value));
     $("#drawing-material-save").addEventListener("click", () => this.saveMaterial());
+    $("#drawing-width").addEventListener("change", () => this.resize(Number($("#drawing-width").value)));
     this.materials = {};
     api.on("notify_drawing_progress", ({ name, task, fraction }) => {
       if (this.source?.name === name) this.status(`${task === "read" ? "Reading" : "Making the job"}… ${Math.round(100 * fraction)}%`);
@@ -49,6 +50,7 @@ export class DrawingView {
   async open(file) {
     this.source = { name: file.name, params: await this.sourceParams(file) };
     if (!this.source.params) return;
+    $("#drawing-width-field").hidden = true;
     $("#drawing-title").textContent = file.name;
     this.drawing = null;
     $("#drawing-layers").replaceChildren();
@@ -63,13 +65,38 @@ export class DrawingView {
       report(error);
       return;
     }
-    this.status(`${this.drawing.width_mm.toFixed(1)} × ${this.drawing.height_mm.toFixed(1)} mm, placed at the work origin`);
+    this.showSize();
     this.showWarnings(this.drawing.warnings);
     this.showLayers();
     await this.loadMaterials();
     $("#drawing-generate").disabled = false;
     await this.loadThumbnails();
     this.paint();
+  }
+
+  showSize() {
+    this.status(`${this.drawing.width_mm.toFixed(1)} × ${this.drawing.height_mm.toFixed(1)} mm, placed at the work origin`);
+    const image = this.drawing.layers.some((layer) => layer.image !== null);
+    $("#drawing-width-field").hidden = !image;
+    if (image) $("#drawing-width").value = this.drawing.width_mm.toFixed(1);
+  }
+
+  /** An image read again at another width (its height follows). */
+  async resize(widthMm) {
+    if (!(widthMm > 0)) return;
+    this.source.params.width_mm = widthMm;
+    try {
+      const drawing = await this.api.call("drawing.read", { name: this.source.name, ...this.source.params });
+      const settings = this.settings();
+      this.drawing = drawing;
+      for (const layer of drawing.layers) Object.assign(layer.settings, settings[layer.name] || {});
+      this.showSize();
+      this.showLayers();
+      await this.loadThumbnails();
+      this.paint();
+    } catch (error) {
+      report(error);
+    }
   }
 
   /** base64 in the call for a small file; a larger one goes to POST /upload first. */
@@ -259,7 +286,10 @@ export class DrawingView {
       const thumbnail = this.thumbnails?.get(layer.name);
       if (thumbnail) {
         const { min, max } = layer.bounds;
-        g.drawImage(thumbnail, toX(min[0]), toY(max[1]), (max[0] - min[0]) * scale, (max[1] - min[1]) * scale);
+        const [x, y, w, h] = [toX(min[0]), toY(max[1]), (max[0] - min[0]) * scale, (max[1] - min[1]) * scale];
+        g.drawImage(thumbnail, x, y, w, h);
+        g.strokeStyle = "#8c9aab";
+        g.strokeRect(x, y, w, h);
         continue;
       }
       const colour = visible(layer.name);
