@@ -2,7 +2,7 @@
 
     python -m benchmarks NAME [--quick] [--json]     # NAME: parser, planner, offline, streaming,
                                                      #       grbl, klipper, klipper-host, lines,
-                                                     #       idle
+                                                     #       idle, import
     python -m benchmarks klipper [--runs N] [--motiond-tree DIR] [--hosts klippy motiond]
     python -m benchmarks all [--quick] [--json]
     python -m benchmarks --list
@@ -41,6 +41,8 @@ BENCHMARKS: dict[str, tuple[str, str]] = {  # name: (module, one-line descriptio
               "host CPU per G-code line: the Klipper raster over TCP into motiond on the sim"),
     "idle": ("benchmarks.bench_idle",
              "CPU of an idle server: motiond on the sim, the Klipper backend's event loop"),
+    "import": ("benchmarks.bench_import",
+               "drawing to job: a 100,000-segment SVG and a 1,000 px photo, beside svgelements"),
 }
 
 

@@ -414,3 +414,11 @@ class Config:
     modules: tuple[ModuleSpec, ...]
     path: Path | None = None
 
+    def laser_max_s(self) -> float:
+        """The configured laser's S for full power (Grbl's $30; 1000 without a [laser]):
+        what an imported drawing's power in percent is scaled to."""
+        for spec in self.modules:
+            if spec.section == "laser":
+                return float(getattr(spec.config, "maximum_s_value", 1000.0))
+        return 1000.0
+

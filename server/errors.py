@@ -164,6 +164,11 @@ class SoftLimitError(CommandError):
 
 
 
+class DrawingError(MotiondError):
+    """A drawing (SVG, DXF, image) or its layer settings were refused by the import
+    (:mod:`server.cam`): the message names what and where (an element, a line, a size)."""
+
+
 class BackendFault(MotiondError):
     """The hardware below the backend failed in a way it can (a board shut down, a device
     gone): an alarm with its reason in one log line, not a bug's traceback."""

@@ -67,6 +67,11 @@ def jobs_dir(core: CoreConfig) -> Path:
     return data_dir(core) / "jobs"
 
 
+def materials_path(core: CoreConfig) -> Path:
+    """The material library of drawing imports (layer settings by name): in the data folder."""
+    return data_dir(core) / "materials.json"
+
+
 def settings_path(config: Config) -> Path:
     """Where ``$x=value`` settings persist: beside the config file, else in the data folder."""
     if config.path is not None:

@@ -119,6 +119,8 @@ class Methods:
         self.machine = api.kernel.machine
         self.toolpaths: OrderedDict[tuple[Any, ...], dict[str, Any]] = OrderedDict()
         self.toolpath_lock = asyncio.Lock()
+        self.drawing_lock = asyncio.Lock()  # one drawing import at a time
+        self.material_lock = asyncio.Lock()  # one change of the material library at a time
 
     async def call(self, connection: Connection, name: str, params: Any) -> Any:
         spec = self.table.get(name)

@@ -31,8 +31,10 @@ from typing import TYPE_CHECKING, Any
 
 from aiohttp import WSCloseCode, WSMsgType, web
 
+from server.api.drawings import DRAWING_METHODS
 from server.api.jobs import JOB_METHODS
 from server.api.jsonrpc import INTERNAL, INVALID_REQUEST, BadRequest, decode_request
+from server.api.materials import MATERIAL_METHODS
 from server.api.methods import CORE_METHODS, Methods, RpcError, command_error, compose
 from server.api.placement import PLACEMENT_METHODS
 from server.api.telemetry import Channel, Publisher, encode
@@ -177,7 +179,8 @@ class JsonApi:
         self.kernel: Kernel = transport.kernel
         self.http = transport.config
         self.publisher = Publisher(self.kernel)
-        table = compose(CORE_METHODS, JOB_METHODS, PLACEMENT_METHODS,
+        table = compose(CORE_METHODS, JOB_METHODS, PLACEMENT_METHODS, DRAWING_METHODS,
+                        MATERIAL_METHODS,
                         modules=self.kernel.api_methods.values())
         self.methods = Methods(self, table)
         self.connections: set[Connection] = set()

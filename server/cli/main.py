@@ -91,11 +91,38 @@ def build_parser() -> argparse.ArgumentParser:
             )
             sub.add_argument("--power", action="store_true",
                              help="grey by laser power (S) instead of colour by speed")
+    _import_options(commands)
     _fleet_options(commands)
     from server.service import add_parser as add_service_parser
 
     add_service_parser(commands)
     return parser
+
+
+def _import_options(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    sub = commands.add_parser(
+        "import", help="make a laser job from a drawing (SVG, DXF, PNG, JPEG)",
+        description="A drawing into G-code: one layer per colour (and per image), each cut "
+        "as a line, filled, or engraved. Needs the [cam] extra.")
+    sub.add_argument("file", type=Path, help="an .svg, .dxf, .png or .jpg file")
+    sub.add_argument("-o", "--output", type=Path, required=True, help="the G-code file")
+    sub.add_argument(
+        "--layer", action="append", default=[], metavar="NAME:key=value,...",
+        help="a layer's settings (repeatable): NAME a colour (#ff0000) or 'image'; keys "
+        "mode=line|fill|image, speed (mm/min), power and min_power (%%), passes, interval "
+        "(mm), angle (deg), overscan (mm), bidirectional, dither=grayscale|threshold|"
+        "floyd-steinberg|jarvis|stucki, enabled")
+    sub.add_argument("--order", metavar="NAME,NAME,...",
+                     help="layers cut first, in this order (default: engravings, then cuts "
+                     "from the innermost)")
+    sub.add_argument("--material", metavar="NAME",
+                     help="layer settings from the machine's material library, before --layer")
+    sub.add_argument("--width-mm", type=float, help="an image's width (default: from its DPI)")
+    sub.add_argument("--dpi", type=float, help="an image's resolution (default: its own, "
+                     "else 96)")
+    sub.add_argument("--json", action="store_true", help="print the layers as JSON")
+    sub.add_argument("--config", type=Path, default=argparse.SUPPRESS,
+                     help="machine config, for the laser's maximum S (default: embedded)")
 
 
 FLEET_EPILOG = """\
@@ -230,6 +257,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             from server.cli.offline import estimate_command
 
             return estimate_command(args, config)
+        if args.command == "import":
+            from server.cli.drawing import import_command
+
+            return import_command(args, config)
         if args.command == "render":
             from server.cli.offline import render_command
 

@@ -14,7 +14,7 @@ import sys
 from tests.conftest import REPO
 
 NAMES = ("parser", "planner", "offline", "streaming", "grbl", "klipper", "klipper-host", "lines",
-         "idle")
+         "idle", "import")
 
 
 def benchmarks(*args: str) -> subprocess.CompletedProcess[str]:

@@ -1,6 +1,8 @@
-// Jobs: upload (drag and drop or browse), the stored files, and the running job's progress.
+// Jobs: upload (drag and drop or browse; a drawing goes to the drawing view), the stored
+// files, and the running job's progress.
 
 import { pageToken } from "./api.js";
+import { isDrawing } from "./drawing.js";
 import { $, ICONS, bytes, confirmAction, duration, el, icon, report, toast, when } from "./util.js";
 
 const PAUSE_TEXT = (reason) => (!reason || reason === "hold" ? "Held: Continue resumes the job."
@@ -10,9 +12,10 @@ const STATE_LABELS = { running: "Running", paused: "Paused", done: "Done", abort
 
 export class JobsView {
   /** @param onSelect called with a file name to preview its toolpath */
-  constructor(api, onSelect) {
+  constructor(api, onSelect, onDrawing) {
     this.api = api;
     this.onSelect = onSelect;
+    this.onDrawing = onDrawing;
     this.files = [];
     this.selected = null;
     this.job = null;
@@ -122,6 +125,10 @@ export class JobsView {
 
   /** POST /upload?name=... with the file as the body, showing progress. */
   upload(file) {
+    if (isDrawing(file.name)) {
+      this.onDrawing(file);
+      return;
+    }
     const status = $("#upload-status");
     const token = pageToken();
     const url = `/upload?name=${encodeURIComponent(file.name)}${token ? `&token=${encodeURIComponent(token)}` : ""}`;

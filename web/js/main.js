@@ -3,6 +3,7 @@
 
 import { Api, apiUrl } from "./api.js";
 import { ConsoleView } from "./console.js";
+import { DrawingView } from "./drawing.js";
 import { Controls } from "./controls.js";
 import { JobsView } from "./jobs.js";
 import { PlacementView } from "./placement.js";
@@ -37,7 +38,8 @@ async function preview(name) {
   }
 }
 
-const jobs = new JobsView(api, preview);
+const drawings = new DrawingView(api, (name) => jobs.refresh().then(() => jobs.select(name)));
+const jobs = new JobsView(api, preview, (file) => drawings.open(file).catch(report));
 
 function showStatus(status) {
   statusView.update(status);
@@ -63,6 +65,7 @@ api.addEventListener("open", async () => {
     statusView.setInfo(info);
     controls.setInfo(info);
     toolpath.setMachine(info.axes);
+    drawings.setMachine(info.axes);
     plot.setMaxSpeed(Math.max(...info.axes.slice(0, 2).map((axis) => axis.max_rate_mm_min)) / 4);
     jobs.setControl(canControl);
     consoleView.info(`Connected to ${info.machine} (motiond ${info.version})`);
@@ -85,4 +88,4 @@ controls.update(null, false);
 api.connect();
 
 // For tests and the curious: the live objects.
-window.motiond = { api, toolpath, plot, jobs, controls, placement, console: consoleView };
+window.motiond = { api, toolpath, plot, jobs, controls, placement, drawings, console: consoleView };
