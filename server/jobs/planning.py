@@ -38,7 +38,7 @@ log = logging.getLogger("motiond.jobs")
 TIMING_GRACE_S = 0.2  # the fit waits this long for the time, which a small job has by then
 IN_THREAD_BYTES = 16_384  # a file this small is planned in a thread, in one pass (<10 ms)
 KEPT_PLANS = 4  # job plans kept for files whose plan may be asked again (bounded memory each)
-PLAN_NICE = 10  # the planning child yields the CPU to the server (and to the motion it runs)
+PLAN_NICE = 2  # the server (and the motion it runs) comes first, but a plan is not starved
 CONTEXT = multiprocessing.get_context("forkserver")
 CONTEXT.set_forkserver_preload(["server.jobs.clock", "server.jobs.planning"])
 T = TypeVar("T")
