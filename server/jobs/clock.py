@@ -4,9 +4,10 @@ A plan comes in two parts, each read from the job file by the offline pipeline f
 machine's real state (a copy of the live interpreter: position, work offsets, modal state;
 soft limits off): :func:`read_fit` finds the extent (:func:`server.offline.estimate.extent`,
 about half the work) and checks it against the travel (:func:`server.offline.fit.check_fit`),
-which is all a start needs; :func:`read_timing` plans the whole job
-(:func:`server.offline.estimate.estimate`) for its time. Both are blocking I/O and CPU: the
-server runs them in processes of their own (:mod:`server.jobs.planning`).
+which is all a start needs; :func:`read_plan` plans the whole job
+(:func:`server.offline.estimate.estimate`) for its time, and its extent too. Both are
+blocking I/O and CPU: the server runs them in processes of their own
+(:mod:`server.jobs.planning`).
 
 :class:`JobClock` reads the remaining time from that plan: the planned time of the blocks
 the step generator has not finished yet. Between block ends it advances with the motion time
@@ -86,15 +87,6 @@ def read_fit(
         lines = until(file_lines(handle, core.protocol.line_limit), stopped)
         stats = extent(lines, core, interpreter, count_start=False)  # the job's own extent
     return _plan(stats, core, placement)
-
-
-def read_timing(
-    path: Path, core: CoreConfig, interpreter: Interpreter, stopped: Callable[[], bool]
-) -> JobTiming:
-    """The time of ``path`` planned from ``interpreter``'s state, block by block as the
-    server plans it (the file is read as the plan goes: memory stays bounded whatever its
-    size). Raises as :func:`read_fit`."""
-    return read_plan(path, core, interpreter, stopped).timing  # type: ignore[return-value]
 
 
 def read_plan(

@@ -2,11 +2,12 @@
 
 Reading a big job through the pipeline is seconds of Python; in a thread it would hold the
 interpreter lock against the event loop (the operator's ``?`` took 12-30 ms during the plan
-of a 10 MB raster). So each part of a plan (:func:`~server.jobs.clock.read_fit`,
-:func:`~server.jobs.clock.read_timing`) runs in a child process forked from a ``forkserver``
+of a 10 MB raster). So a plan (:func:`~server.jobs.clock.read_plan`, and the fit alone,
+:func:`~server.jobs.clock.read_fit`) is read in a child process forked from a ``forkserver``
 that has the pipeline imported already (a fork costs milliseconds, not an interpreter's
-start-up), at a lower priority (``nice`` :data:`PLAN_NICE`) than the server, and sends its
-one result back through a pipe. A stop, an abort or the server's shutdown kills the child at
+start-up), and sends its one result back through a pipe. The children run at ordinary
+priority (``motiond serve``'s loop runs at real-time priority where allowed, and a niced plan
+starves on a busy host). A stop, an abort or the server's shutdown kills the child at
 once (:meth:`PlanProcess.cancel`); a child whose server is gone stops by itself within
 :data:`~server.jobs.reading.READ_LINES` lines. Memory in the child is bounded as the plan's is
 (the file is read as the plan goes).
@@ -24,21 +25,20 @@ import logging
 import multiprocessing
 import os
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Coroutine
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any, Generic, TypeVar
 
 from server.config import CoreConfig
 from server.gcode.interpreter import Interpreter
-from server.jobs.clock import JobPlan, JobTiming, read_fit, read_plan, read_timing
+from server.jobs.clock import JobPlan, read_fit, read_plan
 from server.jobs.reading import Stopped
 
 log = logging.getLogger("motiond.jobs")
 TIMING_GRACE_S = 0.2  # the fit waits this long for the time, which a small job has by then
 IN_THREAD_BYTES = 16_384  # a file this small is planned in a thread, in one pass (<10 ms)
 KEPT_PLANS = 4  # job plans kept for files whose plan may be asked again (bounded memory each)
-PLAN_NICE = 2  # the server (and the motion it runs) comes first, but a plan is not starved
 CONTEXT = multiprocessing.get_context("forkserver")
 CONTEXT.set_forkserver_preload(["server.jobs.clock", "server.jobs.planning"])
 T = TypeVar("T")
@@ -46,7 +46,7 @@ Reader = Callable[[Path, CoreConfig, Interpreter, Callable[[], bool]], T]
 
 
 class PlanProcess(Generic[T]):
-    """One part of a plan (``reader``: :func:`read_fit` or :func:`read_timing`) read in a
+    """A plan (``reader``: :func:`read_plan`, or :func:`read_fit` alone) read in a
     child process; :meth:`result` waits for it, :meth:`cancel` ends it at once."""
 
     def __init__(self, reader: Reader[T], path: Path, core: CoreConfig,
@@ -121,7 +121,6 @@ def _receive(connection: Connection) -> tuple[str, Any] | None:
 def _child(send: Connection, reader: Reader[Any], path: Path, core: CoreConfig,
            interpreter: Interpreter) -> None:
     """The planning process: read, send the result (or the error), exit."""
-    os.nice(PLAN_NICE)
     gc.disable()  # the pipeline makes no reference cycles (see server.cli.offline)
     parent = os.getppid()
     try:
@@ -139,10 +138,11 @@ class JobPlans:
     """The plans of one kernel's job files: the fit first, the time filled in when known.
 
     A file of at most :data:`IN_THREAD_BYTES` is planned whole in a thread (a few
-    milliseconds: less than a child's start). For a larger one, :meth:`plan` starts both
-    parts at once in two children (two cores: the fit, about half the work, comes first),
-    answers with the fit (and the time, if it comes within :data:`TIMING_GRACE_S`), and
-    fills in the plan's ``timing`` when it comes, calling ``on_timing(plan)``. The last
+    milliseconds: less than a child's start). For a larger one, :meth:`plan` reads the whole
+    plan in one child and the fit alone in another (about half the work: on a machine with
+    a core to spare it comes first), answers with the first fit (and the time, if it comes
+    within :data:`TIMING_GRACE_S`), and fills in the plan's ``timing`` when it comes,
+    calling ``on_timing(plan)``. The last
     :data:`KEPT_PLANS` plans are kept under their key (the file's size and time, the
     machine's state), so a job placed (the UI's preview) starts at once. :meth:`cancel` ends
     every plan being read (a stop, an abort).
@@ -152,7 +152,7 @@ class JobPlans:
         self._on_timing = on_timing
         self._reading: set[PlanProcess[Any]] = set()
         self._stops: set[threading.Event] = set()  # the small plans read in a thread
-        self._tasks: set[asyncio.Task[None]] = set()
+        self._tasks: set[asyncio.Task[Any]] = set()
         self._kept: dict[str, tuple[object, JobPlan]] = {}
 
     async def plan(self, path: Path, core: CoreConfig, interpreter: Interpreter,
@@ -185,37 +185,60 @@ class JobPlans:
 
     async def _in_processes(self, path: Path, core: CoreConfig,
                             interpreter: Interpreter) -> JobPlan:
-        timing = PlanProcess(read_timing, path, core, interpreter)
+        """The whole plan in one child and the fit alone in another: the fit answers from
+        whichever comes first (the fit's, on a machine with a core to spare)."""
+        whole = PlanProcess(read_plan, path, core, interpreter)
         fit = PlanProcess(read_fit, path, core, interpreter)
-        self._reading |= {timing, fit}
-        timing.start()
+        planned, fitted = self._own(self._read(whole)), self._own(self._read(fit))
         try:
-            plan = await fit.result()
+            await asyncio.wait({planned, fitted}, return_when=asyncio.FIRST_COMPLETED)
         except BaseException:
-            timing.cancel()
+            self.cancel_all(whole, fit)
             raise
-        finally:
-            self._reading.discard(fit)
+        if planned.done() or fitted.exception() is not None:
+            fit.cancel()
+            plan = await planned  # (raises what the reader raised)
+        else:
+            plan = fitted.result()
+            if plan is not None:
+                self._own(self._fill_in(path.name, plan, planned))
+                await asyncio.wait({planned}, timeout=TIMING_GRACE_S)  # a small job's time
         if plan is None:
-            timing.cancel()
+            whole.cancel()
             raise Stopped
-        task = asyncio.get_running_loop().create_task(self._fill_in(path.name, plan, timing))
-        self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
-        await asyncio.wait({task}, timeout=TIMING_GRACE_S)  # a small job's time comes with it
         return plan
 
-    async def _fill_in(self, name: str, plan: JobPlan, process: PlanProcess[JobTiming]) -> None:
+    async def _read(self, process: PlanProcess[JobPlan]) -> JobPlan | None:
+        self._reading.add(process)
         try:
-            plan.timing = await process.result()
-        except OSError as exc:
-            log.warning("the time of %s is not known: %s", name, exc.strerror)
+            return await process.result()
         finally:
             self._reading.discard(process)
-        if plan.timing is None:  # stopped: the next plan reads it again
+
+    def _own(self, work: Coroutine[Any, Any, T]) -> asyncio.Task[T]:
+        task = asyncio.get_running_loop().create_task(work)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+        return task
+
+    async def _fill_in(self, name: str, plan: JobPlan,
+                       planned: asyncio.Task[JobPlan | None]) -> None:
+        """The whole plan came: its time joins the plan answered with the fit."""
+        try:
+            whole = await planned
+        except OSError as exc:
+            log.warning("the time of %s is not known: %s", name, exc.strerror)
+            whole = None
+        if whole is None:  # stopped: the next plan reads it again
             self._kept = {name: kept for name, kept in self._kept.items() if kept[1] is not plan}
             return
+        plan.timing = whole.timing
         self._on_timing(plan)
+
+    @staticmethod
+    def cancel_all(*processes: PlanProcess[Any]) -> None:
+        for process in processes:
+            process.cancel()
 
     def cancel(self) -> None:
         """End every plan being read, at once (a stop, an abort, the shutdown)."""

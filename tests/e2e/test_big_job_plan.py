@@ -67,6 +67,14 @@ async def warm_up(reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
     assert await ask(reader, writer, b"$X\n") == "ok"
 
 
+async def progress(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> str:
+    """Smoothie's ``progress`` line of the job playing."""
+    writer.write(b"progress\n")
+    line = (await reader.readline()).decode()
+    assert await ask(reader, writer, b"") == "ok"
+    return line
+
+
 async def ask(reader: asyncio.StreamReader, writer: asyncio.StreamWriter, line: bytes) -> str:
     writer.write(line)
     while True:
@@ -86,12 +94,15 @@ async def test_a_big_job_is_planned_beside_a_prompt_server_fit_first(tmp_path: P
             cpu_before_s, started_s = cpu_s(pid), time.perf_counter()
             assert await ask(reader, writer, b"play big.nc\n") == "ok"
             ready_s, server_cpu_s = time.perf_counter() - started_s, cpu_s(pid) - cpu_before_s
-            writer.write(b"progress\n")
-            first_progress = (await reader.readline()).decode()
-            await reader.readline()  # its ok
-            await ask(reader, writer, b"abort\n")
+            first_progress = await progress(reader, writer)
+        for _ in range(600):  # the time is filled in when known
+            if "est time: -" not in (last_progress := await progress(reader, writer)):
+                break
+            await asyncio.sleep(0.1)
+        await ask(reader, writer, b"abort\n")
         writer.close()
     assert "est time: -" in first_progress, "the fit comes first, the time when known"
+    assert "est time: 00:" in last_progress, last_progress
     assert server_cpu_s < SERVER_CPU_SHARE * ready_s, (server_cpu_s, ready_s)
     assert probe["missed"] == 0 and probe["count"] > 20, probe
     assert probe["p99_ms"] < P99_MS and probe["max_ms"] < WORST_MS, probe
