@@ -107,6 +107,13 @@ class PlanProcess(Generic[T]):
             process.kill()
 
 
+def spare_core() -> bool:
+    """Whether the host has a core to spare for the fit alone (the load of the last minute
+    at least one below the cores): on a busy host a second child only takes CPU from the
+    whole plan, whose fit then comes as soon."""
+    return os.getloadavg()[0] <= (os.cpu_count() or 1) - 1
+
+
 def _receive(connection: Connection) -> tuple[str, Any] | None:
     """The child's one message, or None when it died first (in a thread)."""
     try:
@@ -139,13 +146,13 @@ class JobPlans:
 
     A file of at most :data:`IN_THREAD_BYTES` is planned whole in a thread (a few
     milliseconds: less than a child's start). For a larger one, :meth:`plan` reads the whole
-    plan in one child and the fit alone in another (about half the work: on a machine with
-    a core to spare it comes first), answers with the first fit (and the time, if it comes
-    within :data:`TIMING_GRACE_S`), and fills in the plan's ``timing`` when it comes,
-    calling ``on_timing(plan)``. The last
-    :data:`KEPT_PLANS` plans are kept under their key (the file's size and time, the
-    machine's state), so a job placed (the UI's preview) starts at once. :meth:`cancel` ends
-    every plan being read (a stop, an abort).
+    plan in one child and, with a core to spare (:func:`spare_core`), the fit alone in
+    another (about half the work: it comes first); it answers with the first fit (and the
+    time, if it comes within :data:`TIMING_GRACE_S`) and fills in the plan's ``timing``
+    when it comes, calling ``on_timing(plan)``. The last :data:`KEPT_PLANS` plans are kept
+    under their key (the file's size and time, the machine's state), so a job placed (the
+    UI's preview) starts at once. :meth:`cancel` ends every plan being read (a stop, an
+    abort).
     """
 
     def __init__(self, on_timing: Callable[[JobPlan], None]) -> None:
@@ -185,18 +192,19 @@ class JobPlans:
 
     async def _in_processes(self, path: Path, core: CoreConfig,
                             interpreter: Interpreter) -> JobPlan:
-        """The whole plan in one child and the fit alone in another: the fit answers from
-        whichever comes first (the fit's, on a machine with a core to spare)."""
+        """The whole plan in one child and, with a core to spare, the fit alone in another:
+        the fit answers from whichever comes first."""
         whole = PlanProcess(read_plan, path, core, interpreter)
-        fit = PlanProcess(read_fit, path, core, interpreter)
-        planned, fitted = self._own(self._read(whole)), self._own(self._read(fit))
+        planned = self._own(self._read(whole))
+        fit = PlanProcess(read_fit, path, core, interpreter) if spare_core() else None
+        fitted = planned if fit is None else self._own(self._read(fit))
         try:
             await asyncio.wait({planned, fitted}, return_when=asyncio.FIRST_COMPLETED)
         except BaseException:
             self.cancel_all(whole, fit)
             raise
         if planned.done() or fitted.exception() is not None:
-            fit.cancel()
+            self.cancel_all(fit)
             plan = await planned  # (raises what the reader raised)
         else:
             plan = fitted.result()
@@ -236,9 +244,10 @@ class JobPlans:
         self._on_timing(plan)
 
     @staticmethod
-    def cancel_all(*processes: PlanProcess[Any]) -> None:
+    def cancel_all(*processes: PlanProcess[Any] | None) -> None:
         for process in processes:
-            process.cancel()
+            if process is not None:
+                process.cancel()
 
     def cancel(self) -> None:
         """End every plan being read, at once (a stop, an abort, the shutdown)."""
