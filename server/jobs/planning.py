@@ -76,6 +76,7 @@ class PlanProcess(Generic[T]):
             await asyncio.shield(self._started)
             if self._cancelled:
                 return None
+            await _readable(self._receive)  # (no thread waits: the executor's are few)
             answer = await asyncio.to_thread(_receive, self._receive)
         finally:
             self.cancel()
@@ -112,6 +113,23 @@ def spare_core() -> bool:
     at least one below the cores): on a busy host a second child only takes CPU from the
     whole plan, whose fit then comes as soon."""
     return os.getloadavg()[0] <= (os.cpu_count() or 1) - 1
+
+
+async def _readable(connection: Connection) -> None:
+    """Until the child has written (or died: the end of the pipe is readable too)."""
+    loop = asyncio.get_running_loop()
+    ready: asyncio.Future[None] = loop.create_future()
+    descriptor = connection.fileno()
+
+    def wake() -> None:
+        if not ready.done():
+            ready.set_result(None)
+
+    loop.add_reader(descriptor, wake)
+    try:
+        await ready
+    finally:
+        loop.remove_reader(descriptor)
 
 
 def _receive(connection: Connection) -> tuple[str, Any] | None:
