@@ -2,7 +2,7 @@
 
     python -m benchmarks NAME [--quick] [--json]     # NAME: parser, planner, offline, streaming,
                                                      #       grbl, klipper, klipper-host, lines,
-                                                     #       idle, import
+                                                     #       idle, plan, fleet, import
     python -m benchmarks klipper [--runs N] [--motiond-tree DIR] [--hosts klippy motiond]
     python -m benchmarks all [--quick] [--json]
     python -m benchmarks --list
@@ -39,6 +39,10 @@ BENCHMARKS: dict[str, tuple[str, str]] = {  # name: (module, one-line descriptio
                      "Klipper backend's host half on a virtual clock: CPU at 20,000 segments/s"),
     "lines": ("benchmarks.bench_lines",
               "host CPU per G-code line: the Klipper raster over TCP into motiond on the sim"),
+    "plan": ("benchmarks.bench_plan",
+             "play of a 2-million-line raster: ready, timed, the operator's ? meanwhile"),
+    "fleet": ("benchmarks.bench_fleet",
+              "N motiond (default 50) on one mosquitto: idle CPU/RSS, staleness, fleet, job"),
     "idle": ("benchmarks.bench_idle",
              "CPU of an idle server: motiond on the sim, the Klipper backend's event loop"),
     "import": ("benchmarks.bench_import",
@@ -53,6 +57,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                         help="the benchmark to run, or all of them in turn")
     parser.add_argument("--list", action="store_true", help="list the benchmarks and exit")
     add_run_options(parser)
+    parser.add_argument("--machines", type=int, help="fleet: how many motiond (default 50)")
     add_options(parser)
     options = parser.parse_args(argv)
     if options.name is None and not options.list:
@@ -68,6 +73,10 @@ def runner(name: str, options: argparse.Namespace, header: bool) -> Callable[[],
         if header:
             print(f"\n== {name}: {description}\n")
         extra = options_of(options) if name == "klipper" else {}
+        if name == "plan":
+            extra = {"motiond_tree": options.motiond_tree}
+        if name == "fleet":
+            extra = {"machines": options.machines}
         if name == "lines":
             extra = {"runs": options.runs, "motiond_tree": options.motiond_tree}
         result: BenchResult = importlib.import_module(module).run(options.quick, **extra)

@@ -102,7 +102,8 @@ async def job_place(m: Methods, connection: Connection, params: NameParams) -> d
     travel = {name: [axis.min_mm, axis.max_mm]
               for name, axis in zip(core.axis_names, core.axes.values(), strict=True)}
     return {"name": params.name, **plan.fit.as_dict(core.axis_names), "travel_mm": travel,
-            "estimate_s": round(plan.duration_s, 1), **_placement(m)}
+            "estimate_s": None if plan.duration_s is None else round(plan.duration_s, 1),
+            **_placement(m)}
 
 
 @method("job.frame", NameParams, control=True)

@@ -17,7 +17,7 @@ line goes to the owner of the value it names.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from server.errors import CommandError, Error
 from server.gcode.modal import M_GROUPS, VALUE_LETTERS
@@ -127,6 +127,18 @@ class CodeTable:
     def __deepcopy__(self, memo: dict[int, object]) -> CodeTable:
         return self  # the machine's one table: a copied interpreter keeps reading it
 
+    def stand_ins(self) -> CodeTable:
+        """The same claims (groups, words, mux values), each read as doing nothing: what a
+        plan made in another process reads a job's module codes with, the modules staying
+        in the server. Their codes change no position and take no time of their own."""
+        table = CodeTable()
+        table._plain = {code: replace(spec, factory=_no_outputs)
+                        for code, spec in self._plain.items()}
+        table._mux = {code: (letter, {value: replace(spec, factory=_no_outputs)
+                                      for value, spec in owners.items()})
+                      for code, (letter, owners) in self._mux.items()}
+        return table
+
     def owns(self, code: int) -> bool:
         """Whether a module claims ``M<code>`` (in any of its mux values)."""
         return code in self._plain or code in self._mux
@@ -168,6 +180,10 @@ class CodeTable:
         for code, (letter, owners) in sorted(self._mux.items()):
             rows += [f"M{code} {letter}{v} [{s.owner}]" for v, s in sorted(owners.items())]
         return rows
+
+
+def _no_outputs(call: CodeCall) -> list[Output]:
+    return []
 
 
 def _any_owner(mux: tuple[str, dict[str, ModuleCode]] | None) -> ModuleCode | None:

@@ -6,8 +6,9 @@ executed, flow-controlled and error-checked exactly like streamed G-code; the fi
 refused stops the job with a message naming the line. A line answered downstream (a Grbl
 controller) is deferred by the dispatcher: the job sends on while it is in the controller's
 buffer and stops at the first answer that is an error. A job file is never held in memory
-whole: it is planned (time, extent, fit) by reading it through once in a thread before anything
-moves, then its lines are read again as they are sent.
+whole: it is planned by reading it through in processes of their own (:mod:`.planning`): its
+fit before anything moves, its time filled in when known; then its lines are read again as
+they are sent.
 """
 
 from __future__ import annotations
@@ -15,7 +16,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import threading
 from collections import deque
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
@@ -24,8 +24,9 @@ from typing import TYPE_CHECKING, Protocol
 
 from server.errors import CommandError, Error
 from server.gcode.parser import check_length
-from server.jobs.clock import JobClock, JobPlan, plan_job
-from server.jobs.reading import read_lines
+from server.jobs.clock import JobClock, JobPlan
+from server.jobs.planning import JobPlans
+from server.jobs.reading import Stopped, read_lines
 from server.jobs.store import JobStore
 from server.motion.moves import Action, ActionName
 from server.offline.stats import format_duration
@@ -44,7 +45,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("motiond.jobs")
 YIELD_AFTER_S = 0.0003  # the job feeder gives other tasks a turn at least this often
-KEPT_PLANS = 4  # job plans kept for files whose plan may be asked again (bounded memory each)
 
 
 class JobHost(Protocol):
@@ -109,8 +109,8 @@ class Jobs(JobStore):
         self._task: asyncio.Task[None] | None = None
         self._progress: JobProgress | None = None
         self._clock: JobClock | None = None
-        self._planning: set[threading.Event] = set()  # the plans being made for job.start
-        self._plans: dict[str, tuple[tuple[object, ...], JobPlan]] = {}  # see plan()
+        self._plan: JobPlan | None = None  # the current job's
+        self._plans = JobPlans(self._timed)
         kernel.events.subscribe(Event.ACTION, self._on_action)
         kernel.events.subscribe(Event.STOP, self._on_stop)
         dispatcher = kernel.dispatcher
@@ -163,10 +163,11 @@ class Jobs(JobStore):
         return self._progress
 
     async def plan(self, name: str) -> JobPlan:
-        """What the stored file ``name`` would do from the machine as it is now: time, extent
-        under the current placement, fit (read in a thread). The last :data:`KEPT_PLANS`
-        plans are kept while neither the file nor the machine's state changes, so a job
-        placed (``job.place``, the UI's preview) starts at once. Raises CommandError 44."""
+        """What the stored file ``name`` would do from the machine as it is now: extent under
+        the current placement and fit, its time filled in when known (see
+        :class:`~server.jobs.planning.JobPlans`: recent plans are kept while neither the
+        file nor the machine's state changes). Raises CommandError 44, or 45 when a stop
+        came while it was read."""
         path = self.path(name)
         interpreter = self.kernel.machine.new_interpreter(soft_limits=False, live=True)
         try:
@@ -175,30 +176,29 @@ class Jobs(JobStore):
             message = f"cannot read {path.name}: {exc.strerror}"
             raise CommandError(Error.FILE_ERROR, message) from exc
         key = (stat.st_size, stat.st_mtime_ns, interpreter.state_key())
-        kept = self._plans.get(path.name)
-        if kept is not None and kept[0] == key:
-            return kept[1]
-        plan = await self._make_plan(path, interpreter)
-        self._plans.pop(path.name, None)
-        self._plans[path.name] = (key, plan)
-        while len(self._plans) > KEPT_PLANS:
-            del self._plans[next(iter(self._plans))]
-        return plan
+        return await self._make_plan(path, interpreter, key, stat.st_size)
 
-    async def _make_plan(self, path: Path, interpreter: Interpreter) -> JobPlan:
-        stop = threading.Event()  # job.abort while the plan is made: it is dropped
-        self._planning.add(stop)
+    async def _make_plan(
+        self, path: Path, interpreter: Interpreter, key: object, size_bytes: int
+    ) -> JobPlan:
+        core = self.kernel.config.core
         try:
-            plan = await asyncio.to_thread(
-                plan_job, path, self.kernel.config.core.model_copy(deep=True), interpreter, stop)
+            return await self._plans.plan(path, core, interpreter, key, size_bytes)
         except OSError as exc:
             message = f"cannot read {path.name}: {exc.strerror}"
             raise CommandError(Error.FILE_ERROR, message) from exc
-        finally:
-            self._planning.discard(stop)
-        if plan is None:
-            raise CommandError(Error.BUSY, f"{path.name}: stopped while it was being checked")
-        return plan
+        except Stopped as exc:
+            message = f"{path.name}: stopped while it was being checked"
+            raise CommandError(Error.BUSY, message) from exc
+
+    def _timed(self, plan: JobPlan) -> None:
+        """A plan's time came: the job playing from it shows its estimate from now on."""
+        progress, clock = self._progress, self._clock
+        if plan is self._plan and progress is not None and self.active:
+            if clock is not None:
+                clock.timing = plan.timing
+            progress.estimate_s = plan.duration_s
+            self._announce()
 
     def _playable(self, name: str) -> Path:
         """A job starts only on an idle machine nobody else is using (every path: ``play``,
@@ -228,7 +228,7 @@ class Jobs(JobStore):
         if plan is not None and plan.placement != (interpreter.position, interpreter.wco()):
             raise CommandError(Error.BUSY, "the machine moved while the job was being checked")
         self._progress = JobProgress(path.name, "running", started_s=self.kernel.clock.now_s())
-        self._clock = None
+        self._clock, self._plan = None, plan
         if plan is not None:
             self._planned(self._progress, plan)
         source = _JobSource(f"job:{path.name}", ticket)
@@ -243,18 +243,16 @@ class Jobs(JobStore):
         progress = self._progress
         if progress is not None and progress.state in ("running", "paused"):
             progress.state, progress.remaining_s, progress.paused_for = "aborted", None, None
-        for stop in self._planning:
-            stop.set()
+        self._plans.cancel()
         self.kernel.machine.quickstop("job aborted")
         if self._task is not None:
             self._task.cancel()
         self._announce()
 
     def _on_stop(self, reason: str) -> None:
-        """A stop ends the checks being made (their thread stops reading at once); a job
+        """A stop ends the plans being read (their processes are killed at once); a job
         playing meets the stop at its next line (its ticket is void)."""
-        for stop in self._planning:
-            stop.set()
+        self._plans.cancel()
 
     def suspend(self) -> None:
         if self.running and self._progress is not None:
@@ -300,9 +298,8 @@ class Jobs(JobStore):
         return progress
 
     async def close(self) -> None:
-        """Stop the player task and the checks being made (shutdown)."""
-        for stop in self._planning:
-            stop.set()
+        """Stop the player task and the plans being read (shutdown)."""
+        await self._plans.close()
         if self._task is not None:
             self._task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -315,21 +312,25 @@ class Jobs(JobStore):
             core = self.kernel.config.core
             if plan is None:
                 interpreter = self.kernel.machine.new_interpreter(soft_limits=False, live=True)
-                plan = await asyncio.to_thread(plan_job, path, core.model_copy(deep=True),
-                                               interpreter)
-            assert plan is not None  # no stop event: the plan runs to its end
+                size = (await asyncio.to_thread(path.stat)).st_size
+                plan = self._plan = await self._make_plan(path, interpreter, object(), size)
             self._planned(progress, plan)
             if not plan.fit.fits:
                 self._fail(progress, plan.fit.describe())  # before any line: nothing moved
                 return
             machine = self.kernel.machine
-            self._clock = JobClock(plan, machine.stepgen.state, counts_blocks=machine.counts_blocks)
+            self._clock = JobClock(plan.timing, machine.stepgen.state,
+                                   counts_blocks=machine.counts_blocks)
             async with contextlib.aclosing(
                 read_lines(path, core.protocol.line_limit, _Percent())
             ) as lines:
                 await self._stream(lines, progress, source)
         except OSError as exc:
             self._fail(progress, f"cannot read {path.name}: {exc.strerror}")
+        except CommandError as exc:  # the plan: the file went, or a stop came
+            alarm = self.kernel.state is MachineState.ALARM
+            self._fail(progress, "line 1: stopped by an alarm while it was being checked"
+                       if alarm else f"error:{exc.code} {exc.message}")
 
     async def _stream(
         self, lines: AsyncIterator[str], progress: JobProgress, source: _JobSource
@@ -374,7 +375,7 @@ class Jobs(JobStore):
 
     def _planned(self, progress: JobProgress, plan: JobPlan) -> None:
         progress.fit = plan.fit.as_dict(self.kernel.config.core.axis_names)
-        progress.estimate_s = progress.remaining_s = plan.duration_s
+        progress.estimate_s = progress.remaining_s = plan.duration_s  # None until known
         progress.lines_total = plan.lines
 
     def _fail(self, progress: JobProgress, message: str) -> None:

@@ -1,8 +1,8 @@
 """Reading a job file as it plays: never whole, file I/O in threads, its plan stoppable.
 
 :func:`read_lines` gives the lines to the player :data:`READ_LINES` at a time, read in a thread;
-:func:`until` lets a plan read through the file (:func:`~server.jobs.clock.plan_job`)
-give up as soon as its ``stop`` event is set (the job was aborted). Memory is bounded by a
+:func:`until` lets a plan read through the file (:mod:`server.jobs.clock`) give up soon after
+it is no longer wanted. Memory is bounded by a
 batch of lines and the planner's window, whatever the file's size.
 """
 
@@ -10,15 +10,11 @@ from __future__ import annotations
 
 import asyncio
 import itertools
-import threading
-from collections.abc import AsyncGenerator, Iterator
+from collections.abc import AsyncGenerator, Callable, Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING, Protocol
+from typing import Protocol
 
 from server.offline.estimate import file_lines
-
-if TYPE_CHECKING:
-    pass
 
 READ_LINES = 1000  # a job file is read this many lines at a time (in a thread)
 
@@ -55,9 +51,10 @@ def _take(lines: Iterator[str], count: int) -> list[str]:
     return list(itertools.islice(lines, count))
 
 
-def until(lines: Iterator[str], stop: threading.Event) -> Iterator[str]:
-    """``lines``, raising :class:`Stopped` soon after ``stop`` is set."""
+def until(lines: Iterator[str], stopped: Callable[[], bool]) -> Iterator[str]:
+    """``lines``, raising :class:`Stopped` soon after ``stopped()`` becomes true (asked every
+    :data:`READ_LINES` lines)."""
     for number, line in enumerate(lines):
-        if number % READ_LINES == 0 and stop.is_set():
+        if number % READ_LINES == 0 and stopped():
             raise Stopped
         yield line

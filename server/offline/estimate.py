@@ -12,6 +12,7 @@ The figures summed are :class:`~server.offline.stats.JobStats`; the ``motiond es
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import replace
 from typing import TextIO
@@ -25,7 +26,7 @@ from server.machine.parts import interpreter_settings, planner_settings
 from server.motion.backend import Backend
 from server.motion.feed import offer
 from server.motion.moves import Action, Move, Output, Sync
-from server.motion.planner import Block, Planner
+from server.motion.planner import MIN_LENGTH_MM, Block, Planner
 from server.motion.stepgen import StepGenerator
 from server.offline.stats import JobStats
 
@@ -192,6 +193,38 @@ def estimate(
             stats.moves = planner.moves_appended
             stats.finish()
             return stats
+
+
+def extent(
+    lines: Iterable[str], core: CoreConfig, interpreter: Interpreter, *, count_start: bool = True
+) -> JobStats:
+    """The job's extent, lines read and first refused line, without planning (in about half
+    the time of :func:`estimate`: the bounding box needs no timing).
+
+    Every line is read and interpreted as :func:`estimate` reads it; a move joins the extent
+    when the planner would keep it (at least ``MIN_LENGTH_MM`` from the last one kept), so
+    the box is the one :func:`estimate` gives. Only the extent, ``lines`` and ``error`` are
+    filled in.
+    """
+    stats = JobStats(count_start=count_start)
+    execute, limit = interpreter.execute, core.protocol.line_limit
+    chain, number, dist, add = tuple(interpreter.position), 0, math.dist, stats.add_segment
+    try:
+        for number, text in enumerate(lines, 1):  # noqa: B007 - the last number counts
+            if 4 * len(text) > limit:  # only such a line may be too long
+                check_length(text, limit)  # error 11, as the server refuses it
+            for output in execute(parse_line(text)):
+                if type(output) is Move:
+                    target = tuple(output.target_mm)
+                    if dist(target, chain) >= MIN_LENGTH_MM:
+                        add(chain, target)
+                        chain = target
+    except CommandError as exc:
+        stats.error, stats.error_line = f"error:{exc.code} {exc.message}", number
+    finally:
+        stats.lines = number
+    stats.finish()
+    return stats
 
 
 def execute(

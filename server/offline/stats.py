@@ -61,7 +61,7 @@ class JobStats:
             self.rapid_mm += block.length_mm
         if block.cruise_mm_s > self.max_speed_mm_s:
             self.max_speed_mm_s = block.cruise_mm_s
-        self._add_point(block.start_mm, block.end_mm)
+        self.add_segment(block.start_mm, block.end_mm)
 
     def add_settled(self, settled: SettledBlocks) -> None:
         """:meth:`add` for many blocks at once, with numpy."""
@@ -113,7 +113,8 @@ class JobStats:
             kept = np.concatenate(self._marks)[1::2]
             self._marks, self._mark_count, self._stride = [kept], kept.shape[0], self._stride * 2
 
-    def _add_point(self, start: tuple[float, ...], end: tuple[float, ...]) -> None:
+    def add_segment(self, start: tuple[float, ...], end: tuple[float, ...]) -> None:
+        """A straight move from ``start`` to ``end`` (mm) joins the extent."""
         points = self._points
         if not self._axes:  # the first move: its start counts too (unless count_start is off)
             self._axes = len(start)

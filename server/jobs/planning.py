@@ -1,0 +1,282 @@
+"""A job's plan made in a process of its own: the server's event loop never waits for it.
+
+Reading a big job through the pipeline is seconds of Python; in a thread it would hold the
+interpreter lock against the event loop (the operator's ``?`` took 12-30 ms during the plan
+of a 10 MB raster). So a plan (:func:`~server.jobs.clock.read_plan`, and the fit alone,
+:func:`~server.jobs.clock.read_fit`) is read in a child process forked from a ``forkserver``
+that has the pipeline imported already (a fork costs milliseconds, not an interpreter's
+start-up), and sends its one result back through a pipe. The children run at ordinary
+priority (``motiond serve``'s loop runs at real-time priority where allowed, and a niced plan
+starves on a busy host). A stop, an abort or the server's shutdown kills the child at
+once (:meth:`PlanProcess.cancel`); a child whose server is gone stops by itself within
+:data:`~server.jobs.reading.READ_LINES` lines. Memory in the child is bounded as the plan's is
+(the file is read as the plan goes).
+
+The interpreter sent to the child is a copy whose module codes are stand-ins
+(:meth:`~server.gcode.codes.CodeTable.stand_ins`): a module's state stays in the server.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import copy
+import gc
+import logging
+import multiprocessing
+import os
+import threading
+from collections.abc import Callable, Coroutine
+from multiprocessing.connection import Connection
+from pathlib import Path
+from typing import Any, Generic, TypeVar
+
+from server.config import CoreConfig
+from server.gcode.interpreter import Interpreter
+from server.jobs.clock import JobPlan, read_fit, read_plan
+from server.jobs.reading import Stopped
+
+log = logging.getLogger("motiond.jobs")
+TIMING_GRACE_S = 0.2  # the fit waits this long for the time, which a small job has by then
+IN_THREAD_BYTES = 16_384  # a file this small is planned in a thread, in one pass (<10 ms)
+KEPT_PLANS = 4  # job plans kept for files whose plan may be asked again (bounded memory each)
+CONTEXT = multiprocessing.get_context("forkserver")
+CONTEXT.set_forkserver_preload(["server.jobs.clock", "server.jobs.planning"])
+T = TypeVar("T")
+Reader = Callable[[Path, CoreConfig, Interpreter, Callable[[], bool]], T]
+
+
+class PlanProcess(Generic[T]):
+    """A plan (``reader``: :func:`read_plan`, or :func:`read_fit` alone) read in a
+    child process; :meth:`result` waits for it, :meth:`cancel` ends it at once."""
+
+    def __init__(self, reader: Reader[T], path: Path, core: CoreConfig,
+                 interpreter: Interpreter) -> None:
+        """Nothing runs until :meth:`start`."""
+        portable = copy.copy(interpreter)  # the caller's own copy: only the codes change
+        portable.codes = interpreter.codes.stand_ins()
+        self._receive, send = CONTEXT.Pipe(duplex=False)
+        self._process = CONTEXT.Process(
+            target=_child, args=(send, reader, path, core, portable), daemon=True,
+            name=f"plan {path.name}")
+        self._send = send
+        self._cancelled = False
+        self._started: asyncio.Future[None] | None = None
+
+    def start(self) -> None:
+        """Start the child (in a thread: the first start launches the fork server)."""
+        if self._started is None:
+            self._started = asyncio.ensure_future(asyncio.to_thread(self._start))
+
+    async def result(self) -> T | None:
+        """The reader's result, or None when cancelled first. Raises what the reader raised
+        (OSError: the file cannot be read)."""
+        self.start()
+        assert self._started is not None
+        try:
+            await asyncio.shield(self._started)
+            if self._cancelled:
+                return None
+            await _readable(self._receive)  # (no thread waits: the executor's are few)
+            answer = await asyncio.to_thread(_receive, self._receive)
+        finally:
+            self.cancel()
+        if answer is None:
+            return None  # killed: cancelled, or it died
+        kind, value = answer
+        if kind == "error":
+            raise value
+        return value  # type: ignore[no-any-return]
+
+    def cancel(self) -> None:
+        """End the child at once (harmless when it has ended, or not started yet)."""
+        self._cancelled = True
+        if self._started is not None and not self._started.done():
+            self._started.add_done_callback(lambda _: self._kill())
+        else:
+            self._kill()
+
+    def _start(self) -> None:
+        try:
+            if not self._cancelled:
+                self._process.start()
+        finally:
+            self._send.close()  # the child holds its end: its death is the pipe's end
+
+    def _kill(self) -> None:
+        process = self._process
+        if process.pid is not None and process.exitcode is None:
+            process.kill()
+
+
+def spare_core() -> bool:
+    """Whether the host has a core to spare for the fit alone (the load of the last minute
+    at least one below the cores): on a busy host a second child only takes CPU from the
+    whole plan, whose fit then comes as soon."""
+    return os.getloadavg()[0] <= (os.cpu_count() or 1) - 1
+
+
+async def _readable(connection: Connection) -> None:
+    """Until the child has written (or died: the end of the pipe is readable too)."""
+    loop = asyncio.get_running_loop()
+    ready: asyncio.Future[None] = loop.create_future()
+    descriptor = connection.fileno()
+
+    def wake() -> None:
+        if not ready.done():
+            ready.set_result(None)
+
+    loop.add_reader(descriptor, wake)
+    try:
+        await ready
+    finally:
+        loop.remove_reader(descriptor)
+
+
+def _receive(connection: Connection) -> tuple[str, Any] | None:
+    """The child's one message, or None when it died first (in a thread)."""
+    try:
+        answer: tuple[str, Any] = connection.recv()
+        return answer
+    except EOFError:
+        return None
+    finally:
+        connection.close()
+
+
+def _child(send: Connection, reader: Reader[Any], path: Path, core: CoreConfig,
+           interpreter: Interpreter) -> None:
+    """The planning process: read, send the result (or the error), exit."""
+    gc.disable()  # the pipeline makes no reference cycles (see server.cli.offline)
+    parent = os.getppid()
+    try:
+        answer: tuple[str, Any] = ("ok", reader(path, core, interpreter,
+                                                lambda: os.getppid() != parent))
+    except Stopped:
+        return  # the server is gone
+    except Exception as exc:  # noqa: BLE001 - the server raises it where it waits
+        answer = ("error", exc)
+    send.send(answer)
+    send.close()
+
+
+class JobPlans:
+    """The plans of one kernel's job files: the fit first, the time filled in when known.
+
+    A file of at most :data:`IN_THREAD_BYTES` is planned whole in a thread (a few
+    milliseconds: less than a child's start). For a larger one, :meth:`plan` reads the whole
+    plan in one child and, with a core to spare (:func:`spare_core`), the fit alone in
+    another (about half the work: it comes first); it answers with the first fit (and the
+    time, if it comes within :data:`TIMING_GRACE_S`) and fills in the plan's ``timing``
+    when it comes, calling ``on_timing(plan)``. The last :data:`KEPT_PLANS` plans are kept
+    under their key (the file's size and time, the machine's state), so a job placed (the
+    UI's preview) starts at once. :meth:`cancel` ends every plan being read (a stop, an
+    abort).
+    """
+
+    def __init__(self, on_timing: Callable[[JobPlan], None]) -> None:
+        self._on_timing = on_timing
+        self._reading: set[PlanProcess[Any]] = set()
+        self._stops: set[threading.Event] = set()  # the small plans read in a thread
+        self._tasks: set[asyncio.Task[Any]] = set()
+        self._kept: dict[str, tuple[object, JobPlan]] = {}
+
+    async def plan(self, path: Path, core: CoreConfig, interpreter: Interpreter,
+                   key: object, size_bytes: int) -> JobPlan:
+        """The plan of ``path`` (``size_bytes`` long) from ``interpreter``'s state (a live
+        copy, soft limits off), once its fit is known. Raises OSError, and
+        :class:`~server.jobs.reading.Stopped` when cancelled first."""
+        kept = self._kept.get(path.name)
+        if kept is not None and kept[0] == key:
+            return kept[1]
+        if size_bytes <= IN_THREAD_BYTES:
+            plan = await self._in_thread(path, core, interpreter)
+        else:
+            plan = await self._in_processes(path, core, interpreter)
+        self._kept.pop(path.name, None)
+        self._kept[path.name] = (key, plan)
+        while len(self._kept) > KEPT_PLANS:
+            del self._kept[next(iter(self._kept))]
+        return plan
+
+    async def _in_thread(self, path: Path, core: CoreConfig,
+                         interpreter: Interpreter) -> JobPlan:
+        stop = threading.Event()
+        self._stops.add(stop)
+        try:
+            return await asyncio.to_thread(
+                read_plan, path, core.model_copy(deep=True), interpreter, stop.is_set)
+        finally:
+            self._stops.discard(stop)
+
+    async def _in_processes(self, path: Path, core: CoreConfig,
+                            interpreter: Interpreter) -> JobPlan:
+        """The whole plan in one child and, with a core to spare, the fit alone in another:
+        the fit answers from whichever comes first."""
+        whole = PlanProcess(read_plan, path, core, interpreter)
+        planned = self._own(self._read(whole))
+        fit = PlanProcess(read_fit, path, core, interpreter) if spare_core() else None
+        fitted = planned if fit is None else self._own(self._read(fit))
+        try:
+            await asyncio.wait({planned, fitted}, return_when=asyncio.FIRST_COMPLETED)
+        except BaseException:
+            self.cancel_all(whole, fit)
+            raise
+        if planned.done() or fitted.exception() is not None:
+            self.cancel_all(fit)
+            plan = await planned  # (raises what the reader raised)
+        else:
+            plan = fitted.result()
+            if plan is not None:
+                self._own(self._fill_in(path.name, plan, planned))
+                await asyncio.wait({planned}, timeout=TIMING_GRACE_S)  # a small job's time
+        if plan is None:
+            whole.cancel()
+            raise Stopped
+        return plan
+
+    async def _read(self, process: PlanProcess[JobPlan]) -> JobPlan | None:
+        self._reading.add(process)
+        try:
+            return await process.result()
+        finally:
+            self._reading.discard(process)
+
+    def _own(self, work: Coroutine[Any, Any, T]) -> asyncio.Task[T]:
+        task = asyncio.get_running_loop().create_task(work)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+        return task
+
+    async def _fill_in(self, name: str, plan: JobPlan,
+                       planned: asyncio.Task[JobPlan | None]) -> None:
+        """The whole plan came: its time joins the plan answered with the fit."""
+        try:
+            whole = await planned
+        except OSError as exc:
+            log.warning("the time of %s is not known: %s", name, exc.strerror)
+            whole = None
+        if whole is None:  # stopped: the next plan reads it again
+            self._kept = {name: kept for name, kept in self._kept.items() if kept[1] is not plan}
+            return
+        plan.timing = whole.timing
+        self._on_timing(plan)
+
+    @staticmethod
+    def cancel_all(*processes: PlanProcess[Any] | None) -> None:
+        for process in processes:
+            if process is not None:
+                process.cancel()
+
+    def cancel(self) -> None:
+        """End every plan being read, at once (a stop, an abort, the shutdown)."""
+        for process in self._reading:
+            process.cancel()
+        for stop in self._stops:
+            stop.set()
+
+    async def close(self) -> None:
+        """Cancel, and wait for the owned tasks to end."""
+        self.cancel()
+        if self._tasks:
+            await asyncio.wait(set(self._tasks), timeout=5.0)
+
