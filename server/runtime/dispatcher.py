@@ -79,8 +79,9 @@ class Source(Protocol):
     """Whoever sent a line: a connection or a job player.
 
     A source may also say ``soft_limit_alarms = False`` (a RepRap host's session): its line
-    with a target outside the travel is refused without Grbl's ALARM:2; and it may have a
-    ``busy_interval_s`` (a session), which M113 sets.
+    with a target outside the travel is refused without Grbl's ALARM:2; ``dwell_waits = True``
+    (a Grbl session): its ``G4`` is answered once the motion before it and the dwell have run;
+    and it may have a ``busy_interval_s`` (a session), which M113 sets.
     """
 
     name: str

@@ -209,6 +209,14 @@ class Session(LineAdmission, SessionOutput):
         the GRBL dialect; a RepRap host's line is refused alone (Marlin has no such alarm)."""
         return self.protocol.dialect is Dialect.GRBL
 
+    @property
+    def dwell_waits(self) -> bool:
+        """Whether this connection's ``G4`` is answered only once the motion before it and
+        the dwell have run: Grbl's ``mc_dwell`` syncs the buffer first, and senders use it as
+        "wait until the machine is done" (CNCjs's ``%wait``). A RepRap host waits with
+        ``M400``, Marlin's way; its ``G4`` is answered once queued."""
+        return self.protocol.dialect is Dialect.GRBL
+
     # -- logging in -------------------------------------------------------------------------
     async def _login(self, given: str) -> bytes:
         """``$AUTH=token``: this connection may control the machine from now on."""
