@@ -28,6 +28,7 @@ from server.kernel.loop_monitor import LoopMonitor
 from server.kernel.module import ApiHandler, ApiMethod, ApiParams, Module
 from server.kernel.status import build_status
 from server.machine.machine import Machine, SyncHandler
+from server.machine.settings import Setting
 from server.motion.moves import Action, Move, Position, SyncKind
 from server.motion.pieces import PowerOf
 from server.motion.stepgen import MotionState
@@ -178,6 +179,12 @@ class _Context:
 
     def add_feature(self, name: str) -> None:
         self._kernel.features.add(name)
+
+    def register_setting(self, number: int, description: str, read: Callable[[], float],
+                         write: Callable[[float], None], *, high: float) -> None:
+        setting = Setting(number, description, lambda core: read(),
+                          lambda core, value: write(value), high=high)
+        self._kernel.machine.settings.adopt(setting)
 
     def subscribe(self, event: str, callback: Callable[..., None]) -> None:
         self._kernel.events.subscribe(event, callback)

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from server.errors import ERROR_MEANINGS, Error
 
 GRBL_VERSION = "1.1h"
+UNLOCK_HINT = "[MSG:'$H'|'$X' to unlock]"  # Grbl's, after the banner of a reset in alarm
 MM_PER_INCH = 25.4
 
 # Grbl 1.1 status report mask ($10) bits.

@@ -387,7 +387,7 @@ async def test_the_boards_offsets_and_modes_are_adopted_and_settings_written_thr
                 assert " G55 " in (await client.command("$G"))[0]
                 assert await client.command("G0 X5 Y5") == ["ok"]  # work coordinates
                 assert await client.command("$110=42000") == ["ok"]  # written to both
-                assert (await client.command("$23=1"))[-1] == "error:3"  # the board's answer
+                assert (await client.command("$33=1"))[-1] == "error:3"  # the board's answer
             finally:
                 await client.close()
             await controller_settles_at(served, (15.0, 25.0, 0.0))

@@ -75,16 +75,84 @@ async def side_by_side(tmp_path: Path, scenario: Callable[[GrblClient], Awaitabl
 async def test_g4_is_answered_when_the_move_before_it_and_the_dwell_have_run(
         tmp_path: Path) -> None:
     """CNCjs's ``%wait`` (``G4 P0.5``) and probing macros rely on it: ``ok`` for ``G4`` means
-    the machine is done. 10 mm at 20 mm/s with 200 mm/s² takes 0.6 s, the dwell 0.3 s."""
+    the machine is done. 5 mm at 20 mm/s with 200 mm/s² takes 0.35 s, the dwell 0.2 s (short:
+    the rig runs at about 0.97 x real time, a drift of 3 % of the run)."""
     async def dwell_after_move(client: GrblClient) -> tuple[list[str], str, float]:
         loop = asyncio.get_running_loop()
-        assert await client.send("G1 X10 F1200") == ["ok"]
+        assert await client.send("G1 X5 F1200") == ["ok"]
         start_s = loop.time()
-        replies = await client.send("G4 P0.3")
+        replies = await client.send("G4 P0.2")
         elapsed_s = loop.time() - start_s
         return replies, (await client.report()).split("|")[0], elapsed_s
 
     board_run, ours = await side_by_side(tmp_path, dwell_after_move)
     assert ours[:2] == board_run[:2] == (["ok"], "<Idle")
-    assert board_run[2] > 0.8, "the board answered G4 after the move and the dwell"
+    assert board_run[2] > 0.5, "the board answered G4 after the move and the dwell"
     assert abs(ours[2] - board_run[2]) < 0.05, (ours[2], board_run[2])
+
+
+async def after_reset(client: GrblClient, listen_s: float = 3.0) -> list[str]:
+    """Ctrl-X, then the lines (status reports left out) up to Grbl's unlock message and those
+    within 0.2 s after it, or all within ``listen_s``."""
+    client.writer.write(b"\x18")
+    lines: list[str] = []
+    loop = asyncio.get_running_loop()
+    deadline_s = loop.time() + listen_s
+    with contextlib.suppress(TimeoutError):
+        while True:
+            async with asyncio.timeout_at(deadline_s):
+                if not (line := await client.line()).startswith("<"):
+                    lines.append(line)
+            if line.endswith("to unlock]"):
+                deadline_s = min(deadline_s, loop.time() + 0.2)
+    return lines
+
+
+async def setting_numbers(client: GrblClient) -> list[str]:
+    return [line.partition("=")[0] for line in await client.send("$$") if line != "ok"]
+
+
+async def test_settings_list_and_homing_settings_are_grbls(tmp_path: Path) -> None:
+    """``$$`` lists Grbl 1.1h's 34 settings; ``$23``-``$27`` take Grbl's values; ``$H`` with
+    homing disabled (``$22=0``) is ``error:5``."""
+    lines = ["$22=0", "$H", "$23=1", "$24=25", "$25=500", "$26=250", "$27=1", "$24=-1"]
+
+    async def settings(client: GrblClient) -> tuple[list[str], list[list[str]]]:
+        return await setting_numbers(client), [await client.send(line) for line in lines]
+
+    board_run, ours = await side_by_side(tmp_path, settings)
+    assert len(board_run[0]) == 34
+    assert ours == board_run
+
+
+async def test_a_reset_in_motion_is_alarm_3_the_banner_then_the_unlock_message(
+        tmp_path: Path) -> None:
+    async def reset_in_motion(client: GrblClient) -> list[str]:
+        await client.send("G1 X10 F1200")
+        await asyncio.sleep(0.2)
+        return (await after_reset(client))[:3]
+
+    board_run, ours = await side_by_side(tmp_path, reset_in_motion)
+    assert board_run == ["ALARM:3", "Grbl 1.1h ['$' for help]", "[MSG:'$H'|'$X' to unlock]"]
+    assert ours == board_run
+
+
+async def test_a_reset_during_homing_is_alarm_6_alone(tmp_path: Path) -> None:
+    """Real Grbl seeks its switches (none ever closes on the rig) until the Ctrl-X. It also
+    answers the cut ``$H`` with an ``ok`` right after the alarm (``mc_homing_cycle`` returns
+    into ``$H``'s status); motiond drops the line's reply, as for any line a reset cut: that
+    ``ok`` is left out of the comparison (a known difference, docs/senders.md)."""
+    async def reset_while_homing(client: GrblClient) -> list[str]:
+        assert await client.send("$22=1") == ["ok"]
+        client.writer.write(b"$H\n")
+        await asyncio.sleep(0.3)
+        return [line for line in await after_reset(client) if not line.startswith("[MSG:")
+                or "unlock" in line]
+
+    homing = {"endstops": {"axes": {axis: {"direction": "max", "switch_at_mm": 150}
+                                    for axis in "xyz"}}}
+    board_run, ours = await side_by_side(tmp_path, reset_while_homing, **homing)
+    assert board_run[1] == "ok"
+    del board_run[1]
+    assert board_run == ["ALARM:6", "Grbl 1.1h ['$' for help]", "[MSG:'$H'|'$X' to unlock]"]
+    assert ours == board_run
