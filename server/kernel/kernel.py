@@ -32,6 +32,7 @@ from server.machine.settings import Setting
 from server.motion.moves import Action, Move, Position, SyncKind
 from server.motion.pieces import PowerOf
 from server.motion.stepgen import MotionState
+from server.protocol.reports import format_lock
 from server.runtime.clock import Clock, on_grid_s
 from server.runtime.dispatcher import Dispatcher, Handler, SystemSource
 from server.runtime.events import Event, EventBus, MachineState
@@ -231,6 +232,7 @@ class Kernel:
             is_locked=lambda: self.status.state in LOCKED_STATES,
             is_busy=lambda: self.machine.busy or self.jobs.active,
             stops=self.status.ticket,
+            locked_by=self._locked_by,
         )
         self.dispatcher.set_gcode_handler(
             self.machine.handle_gcode, lambda line: self.machine.interpreter.classify(line)
@@ -281,6 +283,12 @@ class Kernel:
     @property
     def alarm_code(self) -> int:
         return self.status.alarm_code
+
+    def _locked_by(self) -> str:
+        """What locks G-code out, for a refused line: ``ALARM:40 (meaning)`` or ``Sleep``."""
+        if self.status.state is MachineState.ALARM:
+            return format_lock(self.status.alarm_code)
+        return str(self.status.state.value)
 
     @property
     def alarm_message(self) -> str:

@@ -133,6 +133,7 @@ class Session(LineAdmission, SessionOutput):
         self._epoch = 0  # counts the resets that dropped this connection's lines unanswered
         self._resetting = False  # this connection's own Ctrl-X is being acted on
         self._discarded = False  # the last stop dropped lines of this connection
+        self._host_untold = True
         self._queued_bytes = 0
         self._scheduler = StatusScheduler()
         self._status_bucket = TokenBucket(
