@@ -13,10 +13,11 @@ from typing import TYPE_CHECKING, Any
 from server.errors import ALARM_MEANINGS
 from server.motion.moves import MoveKind, ToolMode
 from server.motion.stepgen import HoldState, MotionState
-from server.protocol.reports import StatusSnapshot
+from server.protocol.reports import StatusSnapshot, sender_blocks
 from server.runtime.events import MachineState
 
 if TYPE_CHECKING:
+    from server.config import CoreConfig
     from server.kernel.kernel import Kernel
 
 CUTTING = frozenset({MoveKind.FEED, MoveKind.ARC, MoveKind.PROBE})
@@ -46,20 +47,28 @@ def snapshot(kernel: Kernel, rx_free_bytes: int) -> StatusSnapshot:
     accessories = "" if laser_held else {ToolMode.CW: "S", ToolMode.CCW: "C"}.get(tool.mode, "")
     accessories += "F" * tool.flood + "M" * tool.mist
     pins = "".join(module.report_pins() for module in kernel.modules.values())
+    capacity = machine.core.planner.max_blocks
     return StatusSnapshot(
         state=state_text(kernel),
-        machine_mm=machine.position_now_mm(),
+        machine_mm=on_step_grid(machine.position_now_mm(), machine.core),
         wco_mm=machine.interpreter.wco(),
         feed_mm_s=machine.speed_now_mm_s(),
         spindle_s=0.0 if laser_held else _spindle_s(
             motion.s_value if motion.moving else tool.s, tool.mode, motion),
-        planner_free_blocks=max(0, machine.core.planner.max_blocks - len(machine.planner)),
+        planner_free_blocks=sender_blocks(capacity - len(machine.planner), capacity),
         rx_free_bytes=rx_free_bytes,
         line_number=motion.line_number if motion.moving else None,
         pins="".join(sorted(set(pins), key="PXYZABCDHRS".find)),
         overrides=(machine.feed_override, machine.rapid_override, machine.spindle_override),
         accessories=accessories,
     )
+
+
+def on_step_grid(position_mm: tuple[float, ...], core: CoreConfig) -> tuple[float, ...]:
+    """A position as the steppers hold it: whole steps of each axis (a board reports its step
+    counts; between two ticks the step generator's own position lies between steps)."""
+    return tuple(round(value * axis.steps_per_mm) / axis.steps_per_mm
+                 for value, axis in zip(position_mm, core.axes.values(), strict=True))
 
 
 def _spindle_s(s_value: float, mode: ToolMode, motion: MotionState) -> float:

@@ -186,6 +186,17 @@ def format_settings(values: Mapping[int, float | int]) -> list[str]:
     return [f"${number}={_setting_value(values[number])}" for number in sorted(values)]
 
 
+GRBL_PLANNER_BLOCKS = 15  # what Grbl 1.1h's $I reports: its 16-block buffer less one
+
+
+def sender_blocks(free: int, capacity: int) -> int:
+    """Free planner blocks on the scale ``$I`` reports (Grbl's 15 for a deeper planner), so
+    ``Bf:`` shows the ``$I`` count exactly when the planner is empty and 0 when it is full:
+    what senders compare it with."""
+    shown = min(capacity, GRBL_PLANNER_BLOCKS)
+    return max(0, free) * shown // capacity if capacity > 0 else 0
+
+
 def format_help() -> str:
     """The ``$`` help line."""
     return "[HLP:$$ $# $G $I $N $x=val $Nx=line $J=line $SLP $C $X $H ~ ! ? ctrl-x]"

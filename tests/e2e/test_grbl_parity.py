@@ -156,3 +156,20 @@ async def test_a_reset_during_homing_is_alarm_6_alone(tmp_path: Path) -> None:
     del board_run[1]
     assert board_run == ["ALARM:6", "Grbl 1.1h ['$' for help]", "[MSG:'$H'|'$X' to unlock]"]
     assert ours == board_run
+
+
+async def test_build_info_buffer_and_position_reports_are_the_boards(tmp_path: Path) -> None:
+    """``$I``'s block count and ``Bf:`` agree with Grbl's (15 free: the planner is empty), and
+    ``MPos`` is on the step grid: X0.1234 at 250 steps/mm is 31 steps, 0.124 mm."""
+    async def reports(client: GrblClient) -> tuple[str, str, str]:
+        options = next(line for line in await client.send("$I") if line.startswith("[OPT:"))
+        assert await client.send("$10=3") == ["ok"]  # MPos and Bf:
+        await client.send("G1 X0.1234 F600")
+        fields = (await client.settle()).strip("<>").split("|")
+        buffer = next(field for field in fields if field.startswith("Bf:"))
+        position = next(field for field in fields if field.startswith("MPos:"))
+        return options.partition(",")[2], buffer, position
+
+    board_run, ours = await side_by_side(tmp_path, reports)
+    assert board_run == ("15,128]", "Bf:15,128", "MPos:0.124,0.000,0.000")
+    assert ours == board_run
