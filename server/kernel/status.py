@@ -11,13 +11,13 @@ import dataclasses
 from typing import TYPE_CHECKING, Any
 
 from server.errors import ALARM_MEANINGS
+from server.machine.parts import on_step_grid
 from server.motion.moves import MoveKind, ToolMode
 from server.motion.stepgen import HoldState, MotionState
 from server.protocol.reports import StatusSnapshot, sender_blocks
 from server.runtime.events import MachineState
 
 if TYPE_CHECKING:
-    from server.config import CoreConfig
     from server.kernel.kernel import Kernel
 
 CUTTING = frozenset({MoveKind.FEED, MoveKind.ARC, MoveKind.PROBE})
@@ -62,13 +62,6 @@ def snapshot(kernel: Kernel, rx_free_bytes: int) -> StatusSnapshot:
         overrides=(machine.feed_override, machine.rapid_override, machine.spindle_override),
         accessories=accessories,
     )
-
-
-def on_step_grid(position_mm: tuple[float, ...], core: CoreConfig) -> tuple[float, ...]:
-    """A position as the steppers hold it: whole steps of each axis (a board reports its step
-    counts; between two ticks the step generator's own position lies between steps)."""
-    return tuple(round(value * axis.steps_per_mm) / axis.steps_per_mm
-                 for value, axis in zip(position_mm, core.axes.values(), strict=True))
 
 
 def _spindle_s(s_value: float, mode: ToolMode, motion: MotionState) -> float:

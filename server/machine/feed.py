@@ -15,6 +15,7 @@ from collections.abc import Awaitable
 from typing import TYPE_CHECKING
 
 from server.errors import Alarm, CommandError, Error, SoftLimitError
+from server.machine.parts import on_step_grid
 from server.motion.feed import offer
 from server.motion.moves import Action, ActionName, Move, MoveKind, Output, Sync, SyncKind
 from server.runtime.events import MachineState
@@ -197,7 +198,7 @@ class GcodeFeed:
         self.interpreter.set_position(position)
         self.planner.set_position(position)
         self.interpreter.record_probe(position, success)
-        coords = ",".join(f"{v:.3f}" for v in position)
+        coords = ",".join(f"{v:.3f}" for v in on_step_grid(position, self.core))
         report = f"[PRB:{coords}:{int(success)}]"
         if not success and request.params.get("error_on_fail", True):
             self.status.alarm(5, "probe fail: the probe did not change state within the move")

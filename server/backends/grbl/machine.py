@@ -75,7 +75,8 @@ LOCAL_M_CODES = frozenset({105.0, 114.0, 115.0, 400.0, 999.0})
 STOPS = frozenset({SyncKind.HALT, SyncKind.QUICKSTOP})
 _STATES = {"Idle": MachineState.IDLE, "Run": MachineState.RUN, "Hold": MachineState.HOLD,
            "Jog": MachineState.JOG, "Home": MachineState.HOME, "Door": MachineState.DOOR,
-           "Sleep": MachineState.SLEEP, "Check": MachineState.CHECK}
+           "Sleep": MachineState.SLEEP, "Check": MachineState.CHECK,
+           "Tool": MachineState.HOLD}  # grblHAL's M6: held until a cycle start (~)
 _MOVING = frozenset({"Run", "Jog", "Home"})
 _STILL = frozenset({"Idle", "Alarm", "Check", "Sleep"})  # nothing will move without a command
 _OPTIONS = re.compile(r"^(\[OPT:[^,\]]*,\d+),\d+(.*)$")  # [OPT:flags,blocks,bytes...]
