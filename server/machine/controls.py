@@ -160,18 +160,19 @@ class RealtimeCommands:
         state = self.stepgen.state
         moving = state.moving and state.hold is not HoldState.STOPPED
         homing = self.status.state is MachineState.HOME
-        self._halt_motion()
-        self.set_overrides(100, 100, 100)
-        self.leave_check_mode()
-        self.interpreter.reset()
         why = ""
         if homing:
             why = "homing fail: reset during the homing cycle"
-            self.status.alarm(Alarm.HOMING_RESET, why, explain=False)
+            self.status.alarm(Alarm.HOMING_RESET, why, explain=False)  # (halts motion first)
         elif moving:
             why = "reset while in motion: position may be lost, re-home"
             self.status.alarm(Alarm.ABORT_CYCLE, why, explain=False)
-        else:
+        else:  # (halted once only: a second halt is a second Ctrl-X to a Grbl board)
+            self._halt_motion()
+        self.set_overrides(100, 100, 100)
+        self.leave_check_mode()
+        self.interpreter.reset()
+        if not why:
             self.status.stop("reset (Ctrl-X)")
             if self.status.state is not MachineState.ALARM:
                 self.status.set_state(MachineState.IDLE)

@@ -58,7 +58,7 @@ from server.motion.backend import Backend
 from server.motion.moves import Move, Output, Sync, SyncKind, ToolMode
 from server.motion.stepgen import HoldState
 from server.protocol.events import Realtime
-from server.protocol.reports import StatusSnapshot
+from server.protocol.reports import UNLOCK_HINT, StatusSnapshot
 from server.runtime.clock import Clock
 from server.runtime.dispatcher import Command, Dispatcher
 from server.runtime.events import EventBus, MachineState
@@ -325,7 +325,8 @@ class GrblMachine(Machine):
     def on_feedback(self, texts: list[str]) -> None:
         """Lines the board printed on its own: pushed to every client, cleaned and at a
         bounded rate (a summary line counts what was held back)."""
-        shown = [text for text in texts if not an_answer(text)]  # to a line a reset dropped
+        shown = [text for text in texts  # (an answer: to a line a reset dropped; the unlock
+                 if not an_answer(text) and text != UNLOCK_HINT]  # hint: motiond's, sent)
         for line in self._feedback.offer_lines(shown, self.clock.now_s()):
             self.status.push(line)
 
