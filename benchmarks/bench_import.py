@@ -56,7 +56,7 @@ def meerk40t_seconds(svg: bytes) -> float:
     import tempfile
     from pathlib import Path
 
-    from tests.support.meerk40t_venv import meerk40t_gcode
+    from tests.support.meerk40t import meerk40t_gcode
 
     empty = b'<svg xmlns="http://www.w3.org/2000/svg" width="10mm" height="10mm"/>'
     with tempfile.TemporaryDirectory(prefix="motiond-bench-") as folder:

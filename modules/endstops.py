@@ -81,15 +81,27 @@ class HomingFailed(Exception):
 
 
 class _Axis:
-    """One axis' switch and homing parameters, resolved against the machine."""
+    """One axis' switch and homing parameters, resolved against the machine (the direction
+    read when asked: Grbl's ``$23`` changes it)."""
 
     def __init__(self, name: str, index: int, cfg: AxisEndstop, min_mm: float,
                  max_mm: float) -> None:
         self.name, self.index, self.cfg = name, index, cfg
-        self.switch = f"{name.lower()}_{cfg.direction}"
-        self.sign = -1.0 if cfg.direction == "min" else 1.0  # towards the switch
-        self.home_mm = min_mm if cfg.direction == "min" else max_mm
+        self.min_mm, self.max_mm = min_mm, max_mm
         self.travel_mm = max_mm - min_mm
+
+    @property
+    def switch(self) -> str:
+        return f"{self.name.lower()}_{self.cfg.direction}"
+
+    @property
+    def sign(self) -> float:
+        """+1 or -1: the way towards the switch."""
+        return -1.0 if self.cfg.direction == "min" else 1.0
+
+    @property
+    def home_mm(self) -> float:
+        return self.min_mm if self.cfg.direction == "min" else self.max_mm
 
 
 class Endstops(Module):
@@ -115,6 +127,7 @@ class Endstops(Module):
             ctx.register_command(name, self._home_command, when_locked=True)
         ctx.register_sync(SyncKind.HOME, self._home_sync)
         ctx.add_feature("homing")
+        grbl_settings(ctx, self.config, self.axes)
         ctx.register_code(119, self._m119, query=True)
         ctx.subscribe(Event.STATE, self._on_state)
         ctx.subscribe(Event.MOTORS_DISABLE, self.forget_homing)
@@ -209,6 +222,8 @@ class Endstops(Module):
         return await self._home_axes(self._axes_named({names[i] for i in params["axes"]}))
 
     async def _home_axes(self, axes: list[_Axis]) -> list[str]:
+        if not self.ctx.core.machine.homing:
+            raise CommandError(Error.SETTING_DISABLED, "homing is disabled: $22=1 enables it")
         if self._state in (MachineState.IDLE, MachineState.RUN):
             await self.ctx.moves.wait_idle()  # a streamed G28.2 runs after the moves before it
         if self._state not in (MachineState.IDLE, MachineState.ALARM):
@@ -218,7 +233,8 @@ class Endstops(Module):
         try:
             await self.home(axes)
         except HomingFailed as exc:
-            self.ctx.alarm(str(exc), exc.code)
+            if self._state is not MachineState.ALARM:  # (a reset raised ALARM:6 itself)
+                self.ctx.alarm(str(exc), exc.code)
             raise CommandError(LOCKED, f"homing failed: ALARM:{exc.code}") from exc
         return [f"[MSG:Homed {''.join(axis.name for axis in axes)}]"]
 
@@ -326,3 +342,37 @@ class Endstops(Module):
     def status(self) -> dict[str, Any]:
         return {"homing": self.homing, "homed": sorted(self.homed),
                 "triggered": [axis.switch for axis in self.triggered()]}
+
+
+def grbl_settings(ctx: ModuleContext, config: EndstopsConfig, axes: list[_Axis]) -> None:
+    """Grbl's homing settings on this module's config: ``$23`` the axes homing towards minus
+    (a bit per axis, X first), ``$24`` the locate feed and ``$25`` the seek rate in mm/min,
+    ``$26`` the debounce in ms, ``$27`` the pull-off in mm; each written to every axis, read
+    as the slowest or smallest."""
+    cfgs = [axis.cfg for axis in axes]
+
+    def mask() -> float:
+        return float(sum(1 << axis.index for axis in axes if axis.cfg.direction == "min"))
+
+    def set_mask(value: float) -> None:
+        for axis in axes:
+            axis.cfg.direction = "min" if int(value) >> axis.index & 1 else "max"
+
+    def each(key: str, scale: float) -> tuple[Callable[[], float], Callable[[float], None]]:
+        def read() -> float:
+            return float(min(getattr(cfg, key) for cfg in cfgs)) * scale
+
+        def write(value: float) -> None:
+            for cfg in cfgs:
+                setattr(cfg, key, value / scale)
+        return read, write
+
+    def set_debounce(value: float) -> None:
+        config.debounce_s = int(value) / 1000.0
+
+    ctx.register_setting(23, "homing direction invert mask", mask, set_mask, high=255)
+    ctx.register_setting(24, "homing locate feed, mm/min", *each("feed_mm_s", 60.0), high=1e6)
+    ctx.register_setting(25, "homing seek rate, mm/min", *each("seek_mm_s", 60.0), high=1e6)
+    ctx.register_setting(26, "homing debounce, ms", lambda: round(config.debounce_s * 1000.0),
+                         set_debounce, high=5000)
+    ctx.register_setting(27, "homing pull-off, mm", *each("pull_off_mm", 1.0), high=100)

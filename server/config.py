@@ -33,6 +33,8 @@ class MachineSection(Strict):
     hold_on_disconnect: bool = False
     report_inches: bool = False
     status_report_mask: int = Field(1, ge=0, le=3)
+    homing: bool | None = Field(
+        None, description="Grbl $22: $H and G28.2 run only when on; unset: on with [endstops]")
 
 
 class AxisConfig(Strict):

@@ -102,6 +102,8 @@ def build_config(
         specs += _module_specs(label, section, body, modules_available, problems)
     if problems or core is None:
         raise ConfigError(problems)
+    if core.machine.homing is None:  # Grbl's $22: on where the machine has homing switches
+        core.machine.homing = any(spec.section == "endstops" for spec in specs)
     return Config(core, tuple(specs), path)
 
 

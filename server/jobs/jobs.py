@@ -367,9 +367,9 @@ class Jobs(JobStore):
         if self.kernel.state is MachineState.ALARM:
             self._fail(progress, f"line {progress.lines_done}: stopped by an alarm")
             return
+        self.progress()  # its times up to now, while it still counts as running
         progress.state, progress.percent = "done", 100.0
         progress.remaining_s = 0.0
-        self.progress()
         self.kernel.push(f"[MSG:job {progress.name} done in {format_duration(progress.elapsed_s)}]")
         self._announce()
 

@@ -15,7 +15,12 @@ from server.gcode.codes import CodeCall
 from server.gcode.parser import parse_line
 from server.motion.moves import Output, Sync, SyncKind
 from server.protocol.lines import OK_PREFIX
-from server.protocol.reports import format_build_info, format_help, format_settings
+from server.protocol.reports import (
+    format_build_info,
+    format_help,
+    format_settings,
+    sender_blocks,
+)
 from server.runtime.dispatcher import Command, Dispatcher, Handler
 from server.runtime.events import MachineState
 
@@ -110,7 +115,7 @@ class CoreCommands:
         core = self.kernel.config.core
         return format_build_info(
             f"{BANNER_VERSION}.motiond-{__version__}",
-            core.planner.max_blocks,
+            sender_blocks(core.planner.max_blocks, core.planner.max_blocks),
             core.protocol.rx_buffer_bytes,
         )
 

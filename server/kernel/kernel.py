@@ -28,9 +28,11 @@ from server.kernel.loop_monitor import LoopMonitor
 from server.kernel.module import ApiHandler, ApiMethod, ApiParams, Module
 from server.kernel.status import build_status
 from server.machine.machine import Machine, SyncHandler
+from server.machine.settings import Setting
 from server.motion.moves import Action, Move, Position, SyncKind
 from server.motion.pieces import PowerOf
 from server.motion.stepgen import MotionState
+from server.protocol.reports import format_lock
 from server.runtime.clock import Clock, on_grid_s
 from server.runtime.dispatcher import Dispatcher, Handler, SystemSource
 from server.runtime.events import Event, EventBus, MachineState
@@ -179,6 +181,12 @@ class _Context:
     def add_feature(self, name: str) -> None:
         self._kernel.features.add(name)
 
+    def register_setting(self, number: int, description: str, read: Callable[[], float],
+                         write: Callable[[float], None], *, high: float) -> None:
+        setting = Setting(number, description, lambda core: read(),
+                          lambda core, value: write(value), high=high)
+        self._kernel.machine.settings.adopt(setting)
+
     def subscribe(self, event: str, callback: Callable[..., None]) -> None:
         self._kernel.events.subscribe(event, callback)
 
@@ -224,6 +232,7 @@ class Kernel:
             is_locked=lambda: self.status.state in LOCKED_STATES,
             is_busy=lambda: self.machine.busy or self.jobs.active,
             stops=self.status.ticket,
+            locked_by=self._locked_by,
         )
         self.dispatcher.set_gcode_handler(
             self.machine.handle_gcode, lambda line: self.machine.interpreter.classify(line)
@@ -274,6 +283,12 @@ class Kernel:
     @property
     def alarm_code(self) -> int:
         return self.status.alarm_code
+
+    def _locked_by(self) -> str:
+        """What locks G-code out, for a refused line: ``ALARM:40 (meaning)`` or ``Sleep``."""
+        if self.status.state is MachineState.ALARM:
+            return format_lock(self.status.alarm_code)
+        return str(self.status.state.value)
 
     @property
     def alarm_message(self) -> str:

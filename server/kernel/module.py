@@ -252,6 +252,13 @@ class ModuleContext(Protocol):
         """Tell clients what this machine can do (``laser``, ``homing``): ``server.info``."""
         ...
 
+    def register_setting(self, number: int, description: str, read: Callable[[], float],
+                         write: Callable[[float], None], *, high: float) -> None:
+        """Own Grbl setting ``$number`` (``$23``-``$27``: homing): ``$$`` lists ``read()``,
+        ``$number=v`` calls ``write(v)`` once v is a number in 0..``high`` (a pydantic
+        ValidationError from ``write`` is ``error:3``); a saved value is applied now."""
+        ...
+
     def subscribe(self, event: str, callback: Callable[..., None]) -> None:
         """Call ``callback(*args)`` synchronously whenever the kernel emits ``event``."""
         ...

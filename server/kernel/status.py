@@ -11,9 +11,10 @@ import dataclasses
 from typing import TYPE_CHECKING, Any
 
 from server.errors import ALARM_MEANINGS
+from server.machine.parts import on_step_grid
 from server.motion.moves import MoveKind, ToolMode
 from server.motion.stepgen import HoldState, MotionState
-from server.protocol.reports import StatusSnapshot
+from server.protocol.reports import StatusSnapshot, sender_blocks
 from server.runtime.events import MachineState
 
 if TYPE_CHECKING:
@@ -46,14 +47,15 @@ def snapshot(kernel: Kernel, rx_free_bytes: int) -> StatusSnapshot:
     accessories = "" if laser_held else {ToolMode.CW: "S", ToolMode.CCW: "C"}.get(tool.mode, "")
     accessories += "F" * tool.flood + "M" * tool.mist
     pins = "".join(module.report_pins() for module in kernel.modules.values())
+    capacity = machine.core.planner.max_blocks
     return StatusSnapshot(
         state=state_text(kernel),
-        machine_mm=machine.position_now_mm(),
+        machine_mm=on_step_grid(machine.position_now_mm(), machine.core),
         wco_mm=machine.interpreter.wco(),
         feed_mm_s=machine.speed_now_mm_s(),
         spindle_s=0.0 if laser_held else _spindle_s(
             motion.s_value if motion.moving else tool.s, tool.mode, motion),
-        planner_free_blocks=max(0, machine.core.planner.max_blocks - len(machine.planner)),
+        planner_free_blocks=sender_blocks(capacity - len(machine.planner), capacity),
         rx_free_bytes=rx_free_bytes,
         line_number=motion.line_number if motion.moving else None,
         pins="".join(sorted(set(pins), key="PXYZABCDHRS".find)),

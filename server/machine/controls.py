@@ -18,6 +18,7 @@ from server.errors import Alarm
 from server.motion.moves import Position, ToolMode
 from server.motion.stepgen import HoldState
 from server.protocol.events import Realtime
+from server.protocol.reports import UNLOCK_HINT
 from server.runtime.events import Event, MachineState
 
 if TYPE_CHECKING:
@@ -153,22 +154,32 @@ class RealtimeCommands:
 
     def soft_reset(self) -> None:
         """Ctrl-X: stop at once, flush, keep the position; ALARM:3 if motion was interrupted
-        (not after a hold that had stopped, as Grbl); overrides back to 100 %."""
+        (not after a hold that had stopped, as Grbl), ALARM:6 alone during homing; overrides
+        back to 100 %. After an alarm, as Grbl: the alarm, the banner (each connection's
+        reset), then ``[MSG:'$H'|'$X' to unlock]``, then motiond's own reason."""
         state = self.stepgen.state
         moving = state.moving and state.hold is not HoldState.STOPPED
-        self._halt_motion()
+        homing = self.status.state is MachineState.HOME
+        why = ""
+        if homing:
+            why = "homing fail: reset during the homing cycle"
+            self.status.alarm(Alarm.HOMING_RESET, why, explain=False)  # (halts motion first)
+        elif moving:
+            why = "reset while in motion: position may be lost, re-home"
+            self.status.alarm(Alarm.ABORT_CYCLE, why, explain=False)
+        else:  # (halted once only: a second halt is a second Ctrl-X to a Grbl board)
+            self._halt_motion()
         self.set_overrides(100, 100, 100)
         self.leave_check_mode()
         self.interpreter.reset()
-        if moving:
-            self.status.alarm(
-                Alarm.ABORT_CYCLE, "reset while in motion: position may be lost, re-home"
-            )
-        else:
+        if not why:
             self.status.stop("reset (Ctrl-X)")
             if self.status.state is not MachineState.ALARM:
                 self.status.set_state(MachineState.IDLE)
         self.events.emit(Event.RESET)
+        if why:
+            self.status.push(UNLOCK_HINT)
+            self.status.push(f"[MSG:{why}]")
 
     def _halt_motion(self) -> None:
         """Alarm, M112, Ctrl-X: the hardware drops what it has queued, then :meth:`stop_now`;

@@ -15,8 +15,9 @@ from collections.abc import Awaitable
 from typing import TYPE_CHECKING
 
 from server.errors import Alarm, CommandError, Error, SoftLimitError
+from server.machine.parts import on_step_grid
 from server.motion.feed import offer
-from server.motion.moves import Action, Move, MoveKind, Output, Sync, SyncKind
+from server.motion.moves import Action, ActionName, Move, MoveKind, Output, Sync, SyncKind
 from server.runtime.events import MachineState
 
 if TYPE_CHECKING:
@@ -31,6 +32,12 @@ if TYPE_CHECKING:
 
 
 _RUN, _IDLE = MachineState.RUN, MachineState.IDLE  # (an enum member's look-up costs a call)
+_WAIT = Sync(SyncKind.WAIT)
+
+
+def _has_dwell(outputs: list[Output]) -> bool:
+    """Whether a line's outputs hold a ``G4`` dwell (it stops motion: never in a move)."""
+    return any(type(out) is Action and out.name == ActionName.DWELL for out in outputs)
 
 
 class GcodeFeed:
@@ -62,6 +69,8 @@ class GcodeFeed:
         outputs = self.interpret(command)
         if len(outputs) != 1 or type(outputs[0]) is not Move:  # (a probe is a Sync)
             self._arm_probe(outputs)
+            if _has_dwell(outputs) and getattr(command.source, "dwell_waits", False):
+                outputs.append(_WAIT)  # Grbl's G4: ok once the motion and the dwell have run
         epoch = self.epoch
         index = self._offer(outputs, 0)
         if index == len(outputs):
@@ -189,7 +198,7 @@ class GcodeFeed:
         self.interpreter.set_position(position)
         self.planner.set_position(position)
         self.interpreter.record_probe(position, success)
-        coords = ",".join(f"{v:.3f}" for v in position)
+        coords = ",".join(f"{v:.3f}" for v in on_step_grid(position, self.core))
         report = f"[PRB:{coords}:{int(success)}]"
         if not success and request.params.get("error_on_fail", True):
             self.status.alarm(5, "probe fail: the probe did not change state within the move")

@@ -32,3 +32,10 @@ def planner_settings(core: CoreConfig) -> PlannerSettings:
         max_planned_s=planner.max_planned_s,
         min_feed_mm_s=planner.min_feed_mm_s,
     )
+
+
+def on_step_grid(position_mm: tuple[float, ...], core: CoreConfig) -> tuple[float, ...]:
+    """A position as the steppers hold it: whole steps of each axis, as a board reports its
+    step counts (``MPos``, ``[PRB:]``); the step generator's own position lies between steps."""
+    return tuple(round(value * axis.steps_per_mm) / axis.steps_per_mm
+                 for value, axis in zip(position_mm, core.axes.values(), strict=True))

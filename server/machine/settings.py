@@ -99,7 +99,6 @@ def setting_table(core: CoreConfig) -> dict[int, Setting]:
         (5, 0, "limit pins invert"),
         (6, 0, "probe pin invert"),
         (21, 0, "hard limits"),
-        (22, 0, "homing cycle"),
         (30, 1000, "max spindle/laser S"),
         (31, 0, "min spindle/laser S"),
     ):
@@ -111,6 +110,9 @@ def setting_table(core: CoreConfig) -> dict[int, Setting]:
     )
     table[13] = Setting(13, "report inches", *_bool("machine", "report_inches"))
     table[20] = Setting(20, "soft limits", *_bool("machine", "soft_limits"))
+    table[22] = Setting(22, "homing cycle", *_bool("machine", "homing"))
+    for homing, (default, about, high) in HOMING_SETTINGS.items():
+        table[homing] = _stored(homing, default, about, high)
     table[32] = Setting(32, "laser mode", *_bool("machine", "laser_mode"))
     for index, _ in enumerate(core.axes):
         _axis_settings(table, index)
@@ -160,7 +162,29 @@ def _travel(index: int) -> Accessors:
     return read, write
 
 
-FLOAT_SETTINGS = frozenset({11, 12, 24, 25, 26, 27})
+def _stored(number: int, value: float, description: str, high: float) -> Setting:
+    """A setting kept for a part that is not configured (Grbl's homing settings without an
+    ``[endstops]`` section): listed and written as Grbl's, acting on nothing until a module
+    adopts it (:meth:`Settings.adopt`), which then takes the value."""
+    cell = [value]
+
+    def write(core: CoreConfig, new: float) -> None:
+        cell[0] = new
+
+    return Setting(number, description, lambda core: cell[0], write, high=high)
+
+
+# Grbl 1.1h's homing settings, with its defaults (defaults.h), until a module adopts them:
+# $23 direction invert mask, $24 locate feed mm/min, $25 seek rate mm/min, $26 debounce ms,
+# $27 pull-off mm.
+HOMING_SETTINGS: dict[int, tuple[float, str, float]] = {
+    23: (0, "homing direction invert mask", 255),
+    24: (25.0, "homing locate feed, mm/min", MAX_RATE_MM_MIN),
+    25: (500.0, "homing seek rate, mm/min", MAX_RATE_MM_MIN),
+    26: (250, "homing debounce, ms", 65535),
+    27: (1.0, "homing pull-off, mm", MAX_TRAVEL_MM),
+}
+FLOAT_SETTINGS = frozenset({11, 12, 24, 25, 27})
 
 
 def _typed(number: int, value: float) -> float | int:
@@ -183,12 +207,28 @@ class Settings:
         self.core = core
         self._is_idle, self._apply = is_idle, apply
         self.table = setting_table(self.core)
+        self._adopted: dict[int, float] = {}  # a module's settings: their config's values
         self.path = path
         self._config_values = {  # what the config says: only changes from it are saved
             number: setting.read(core) for number, setting in self.table.items()
         }
         if path is not None and path.exists():
             self._load(path)
+
+    def adopt(self, setting: Setting) -> None:
+        """A module's own setting in place of the stored one of that number (``$23``-``$27``:
+        the homing module's); a value saved or written before it was adopted carries over."""
+        number = setting.number
+        stored = self.table[number].read(self.core)
+        self._config_values[number] = setting.read(self.core)
+        self._adopted[number] = setting.read(self.core)
+        self.table[number] = setting
+        if stored != HOMING_SETTINGS.get(number, (stored,))[0]:
+            try:
+                self.set(number, stored)
+            except CommandError as exc:
+                log.warning("$%d: kept %g, not the saved %g: %s", number,
+                            self._config_values[number], stored, exc)
 
     def values(self) -> dict[int, float | int]:
         """Every setting's value; integer and on/off settings as ints (``$10=1``, not ``1.000``)."""
@@ -256,8 +296,14 @@ class Settings:
         steps/mm and travel must not change under a moving machine)."""
         if not self._is_idle():
             raise CommandError(Error.NOT_IDLE, "$RST=$ can only run while idle")
-        for setting in self.table.values():
-            if setting.write is not None:
+        for number, setting in self.table.items():
+            if setting.write is None:
+                continue
+            if number in self._adopted:
+                setting.write(self.core, self._adopted[number])
+            elif number in HOMING_SETTINGS:
+                setting.write(self.core, HOMING_SETTINGS[number][0])
+            else:
                 setting.write(self.core, setting.read(defaults))
         self._apply()
         if self.path is not None and self.path.exists():

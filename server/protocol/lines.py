@@ -38,7 +38,7 @@ from server.protocol.events import (
     LineRejected,
     ResendError,
 )
-from server.protocol.reports import GRBL_VERSION, format_reprap_error
+from server.protocol.reports import GRBL_VERSION, format_reprap_error, format_reprap_notices
 from server.protocol.scanner import ByteScanner
 
 GRBL_BANNER = f"Grbl {GRBL_VERSION} ['$' for help]"
@@ -126,6 +126,8 @@ class LineProtocol(ByteScanner):
             raise ValueError(f"{message[:5]} is only sent as a reply, never pushed")
         if "ok" in _MSG_FIELD.sub("", message):
             raise ValueError(f"a pushed line must not contain 'ok' outside [MSG:]: {message!r}")
+        if self.dialect is Dialect.REPRAP:
+            return _encode([message, *format_reprap_notices(message)])
         return _encode([message])
 
     # -- lines -------------------------------------------------------------------------------

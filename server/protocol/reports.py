@@ -20,9 +20,10 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
-from server.errors import ERROR_MEANINGS, Error
+from server.errors import ALARM_MEANINGS, ERROR_MEANINGS, Error
 
 GRBL_VERSION = "1.1h"
+UNLOCK_HINT = "[MSG:'$H'|'$X' to unlock]"  # Grbl's, after the banner of a reset in alarm
 MM_PER_INCH = 25.4
 
 # Grbl 1.1 status report mask ($10) bits.
@@ -43,7 +44,11 @@ REPRAP_RESEND_TEXT: dict[int, str] = {
 }
 # Errors after which a job cannot go on: OctoPrint stops the job on an ``Error:`` line. A target
 # outside the travel is not one: Marlin clamps it, and the host's next lines still run.
-REPRAP_FATAL_ERRORS = frozenset({Error.LOCKED_OUT, Error.AUTH_REQUIRED})
+# A line refused in alarm is not one: OctoPrint would send M112 and go offline on the first
+# click (Home, a jog); it gets ``echo:`` naming the alarm and M999, then ``ok``.
+REPRAP_FATAL_ERRORS = frozenset({Error.AUTH_REQUIRED})
+REPRAP_UNLOCK = "M999 to unlock"
+NOTIFY = "//action:notification "  # OctoPrint shows these (its bundled notification plugin)
 REPRAP_UNKNOWN_COMMAND_ERRORS = frozenset({Error.UNSUPPORTED, Error.UNKNOWN_COMMAND})
 
 
@@ -181,6 +186,17 @@ def format_settings(values: Mapping[int, float | int]) -> list[str]:
     return [f"${number}={_setting_value(values[number])}" for number in sorted(values)]
 
 
+GRBL_PLANNER_BLOCKS = 15  # what Grbl 1.1h's $I reports: its 16-block buffer less one
+
+
+def sender_blocks(free: int, capacity: int) -> int:
+    """Free planner blocks on the scale ``$I`` reports (Grbl's 15 for a deeper planner), so
+    ``Bf:`` shows the ``$I`` count exactly when the planner is empty and 0 when it is full:
+    what senders compare it with."""
+    shown = min(capacity, GRBL_PLANNER_BLOCKS)
+    return max(0, free) * shown // capacity if capacity > 0 else 0
+
+
 def format_help() -> str:
     """The ``$`` help line."""
     return "[HLP:$$ $# $G $I $N $x=val $Nx=line $J=line $SLP $C $X $H ~ ! ? ctrl-x]"
@@ -222,7 +238,9 @@ def format_reprap_error(code: int, message: str, last_line: int) -> list[str]:
     * 41/42: ``Error:checksum mismatch, Last Line: <last_line>`` (or ``Error:Line Number is not
       Last Line Number+1, Last Line: ..``), ``Resend: <last_line + 1>``, ``ok`` -- Marlin's
       exact lines; OctoPrint treats them as recoverable, printrun resends.
-    * 9 (alarm lock), 46 (not allowed): ``Error:<text> (code N)``, ``ok``.
+    * 46 (not allowed): ``Error:<text> (code N)``, ``ok``.
+    * 9 (alarm lock): ``//action:notification <text>``, ``echo:<text> (code 9)``, ``ok``:
+      OctoPrint shows the alarm and M999 and keeps the connection.
     * 20, 43 with a message: ``echo:Unknown command: "<message>"``, ``ok``, as Marlin.
     * anything else: ``echo:<text> (code N)``, ``ok``.
     """
@@ -231,9 +249,28 @@ def format_reprap_error(code: int, message: str, last_line: int) -> list[str]:
         return [error, f"Resend: {last_line + 1}", "ok"]
     if code in REPRAP_FATAL_ERRORS:
         return [f"Error:{_describe(code, message)}", "ok"]
+    if code == Error.LOCKED_OUT:
+        plain = _one_line(message or ERROR_MEANINGS.get(code, "Locked"))
+        return [f"{NOTIFY}{plain}", f"echo:{plain} (code {code})", "ok"]
     if code in REPRAP_UNKNOWN_COMMAND_ERRORS and message:
         return [f'echo:Unknown command: "{_one_line(message)}"', "ok"]
     return [f"echo:{_describe(code, message)}", "ok"]
+
+
+def format_lock(alarm_code: int) -> str:
+    """The alarm that locks G-code out, named for people: ``ALARM:9 (Homing fail: ...)``."""
+    meaning = ALARM_MEANINGS.get(alarm_code)
+    return f"ALARM:{alarm_code} ({meaning})" if meaning else f"ALARM:{alarm_code}"
+
+
+def format_reprap_notices(message: str) -> list[str]:
+    """What a RepRap host (OctoPrint) is told beside a pushed line: an alarm and an unlock as
+    ``//action:notification``, which OctoPrint shows its user; nothing for other lines."""
+    if message.startswith("ALARM:") and message[6:].isdigit():
+        return [f"{NOTIFY}{format_lock(int(message[6:]))}: {REPRAP_UNLOCK}"]
+    if message == "[MSG:Caution: Unlocked]":
+        return [f"{NOTIFY}Unlocked"]
+    return []
 
 
 def format_alarm(code: int) -> str:

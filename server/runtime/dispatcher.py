@@ -79,8 +79,9 @@ class Source(Protocol):
     """Whoever sent a line: a connection or a job player.
 
     A source may also say ``soft_limit_alarms = False`` (a RepRap host's session): its line
-    with a target outside the travel is refused without Grbl's ALARM:2; and it may have a
-    ``busy_interval_s`` (a session), which M113 sets.
+    with a target outside the travel is refused without Grbl's ALARM:2; ``dwell_waits = True``
+    (a Grbl session): its ``G4`` is answered once the motion before it and the dwell have run;
+    and it may have a ``busy_interval_s`` (a session), which M113 sets.
     """
 
     name: str
@@ -128,7 +129,8 @@ class _Entry:
 class Dispatcher:
     """Routes lines to handlers, one at a time, in order.
 
-    ``is_locked`` says whether the machine is locked out (ALARM, Sleep); ``is_busy`` whether
+    ``is_locked`` says whether the machine is locked out (ALARM, Sleep), ``locked_by`` what
+    locks it (``ALARM:40 (Halt ...)``: a refused line names it); ``is_busy`` whether
     queued motion is still running (the source that queued it owns the machine until then);
     ``stops`` the stop generation now (the tickets lines are checked against).
     """
@@ -138,7 +140,9 @@ class Dispatcher:
         is_locked: Callable[[], bool] = lambda: False,
         is_busy: Callable[[], bool] = lambda: False,
         stops: Callable[[], int] = lambda: 0,
+        locked_by: Callable[[], str] = lambda: "alarm",
     ) -> None:
+        self._locked_by = locked_by
         self._entries: defaultdict[str, _Entry] = defaultdict(_Entry)
         self._gcode: Handler | None = None
         self._classify: Classifier = lambda line: LineKind.EFFECT
@@ -294,9 +298,7 @@ class Dispatcher:
         kind = self._classify(line)
         self._check_source(source, query=kind is _QUERY)
         if kind is _EFFECT and self._is_locked():
-            raise CommandError(
-                Error.LOCKED_OUT, "G-code locked out during alarm: $X or M999 to unlock"
-            )
+            raise self._locked_out("G-code")
         if self._gcode is None:
             raise CommandError(Error.UNSUPPORTED, "no G-code interpreter")
         result = self._gcode(Command("G", text, "", source, line, defer, ticket))
@@ -316,13 +318,15 @@ class Dispatcher:
             raise CommandError(code, f"unknown command {name}")
         self._check_source(command.source, query=entry.query, job_control=name in self._immediate)
         if self._is_locked() and not entry.when_locked:
-            raise CommandError(
-                Error.LOCKED_OUT, f"{name} locked out during alarm: $X or M999 to unlock"
-            )
+            raise self._locked_out(name)
         messages: list[str] = []
         for handler in entry.handlers:
             messages += await _call(handler, command)
         return messages
+
+    def _locked_out(self, what: str) -> CommandError:
+        return CommandError(Error.LOCKED_OUT,
+                            f"{what} locked out during {self._locked_by()}: $X or M999 to unlock")
 
     def _check_source(self, source: Source, *, query: bool, job_control: bool = False) -> None:
         """Queries run for anyone; anything else needs control, and (but to suspend, resume

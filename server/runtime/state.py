@@ -68,8 +68,9 @@ class MachineStatus:
         """Send an unsolicited line (``ALARM:2``, ``[MSG:...]``) to every connection."""
         self.events.emit(Event.PUSH, message)
 
-    def alarm(self, code: int, message: str) -> None:
-        """Stop motion and tools at once, lock G-code out, tell everyone why."""
+    def alarm(self, code: int, message: str, *, explain: bool = True) -> None:
+        """Stop motion and tools at once, lock G-code out, tell everyone why (``explain``
+        False: the caller pushes the ``[MSG:]`` itself, after the banner of a reset)."""
         log.error("ALARM:%d %s", code, message)
         self.alarm_code, self.alarm_message = code, message
         self.stop_motion()
@@ -77,7 +78,8 @@ class MachineStatus:
         self.set_state(MachineState.ALARM)
         self.events.emit(Event.HALT, message)
         self.push(f"ALARM:{code}")
-        self.push(f"[MSG:{message}]")
+        if explain:
+            self.push(f"[MSG:{message}]")
 
     def clear_alarm(self) -> None:
         """``$X`` / ``M999``: unlock after an alarm."""

@@ -50,6 +50,7 @@ from server.protocol.events import (
     RealtimeReceived,
 )
 from server.protocol.http_sniff import HttpSniffer
+from server.runtime.events import MachineState
 from server.runtime.ratelimit import Allowance, TokenBucket
 
 if TYPE_CHECKING:
@@ -96,6 +97,7 @@ class LineAdmission:
     _closing: bool
     _discarded: bool  # the last stop dropped something this connection sent
     _feeding: bool  # a read is being fed in slices (feed)
+    _host_untold: bool  # a RepRap host, once recognised, is told of an alarm in force
     _replies: deque[tuple[int, asyncio.Future[bytes]]]
     _queued_bytes: int
     _scheduler: StatusScheduler
@@ -107,6 +109,7 @@ class LineAdmission:
 
     if TYPE_CHECKING:
         def _request_status(self) -> None: ...  # the session's output
+        def push(self, message: str) -> None: ...  # the session's output
         def end(self, reason: str) -> None: ...  # the session's lifecycle
 
     @property
@@ -298,6 +301,16 @@ class LineAdmission:
             self._queued_bytes += line_size(event)
         self._act_on_realtime(batch)
         self._lines_ready.set()
+        if self._host_untold and self.protocol.dialect is Dialect.REPRAP:
+            self._tell_host()
+
+    def _tell_host(self) -> None:
+        """A RepRap host just recognised (OctoPrint connecting) learns of an alarm in force:
+        the ``ALARM:N`` push, with the notification OctoPrint shows."""
+        self._host_untold = False
+        status = self._stops
+        if status.state is MachineState.ALARM:
+            self.push(f"ALARM:{status.alarm_code}")
 
     def _count_text(self, event: Event) -> None:
         """A line's bytes that look like realtime ones (UTF-8 text; ``!`` in a RepRap host's

@@ -134,6 +134,7 @@ class Session(LineAdmission, SessionOutput):
         self._resetting = False  # this connection's own Ctrl-X is being acted on
         self._discarded = False  # the last stop dropped lines of this connection
         self._feeding = False  # a read is being fed in slices
+        self._host_untold = True
         self._queued_bytes = 0
         self._scheduler = StatusScheduler()
         self._status_bucket = TokenBucket(
@@ -208,6 +209,14 @@ class Session(LineAdmission, SessionOutput):
     def soft_limit_alarms(self) -> bool:
         """Whether this connection's out-of-travel line alarms the machine: Grbl's ALARM:2 in
         the GRBL dialect; a RepRap host's line is refused alone (Marlin has no such alarm)."""
+        return self.protocol.dialect is Dialect.GRBL
+
+    @property
+    def dwell_waits(self) -> bool:
+        """Whether this connection's ``G4`` is answered only once the motion before it and
+        the dwell have run: Grbl's ``mc_dwell`` syncs the buffer first, and senders use it as
+        "wait until the machine is done" (CNCjs's ``%wait``). A RepRap host waits with
+        ``M400``, Marlin's way; its ``G4`` is answered once queued."""
         return self.protocol.dialect is Dialect.GRBL
 
     # -- logging in -------------------------------------------------------------------------

@@ -1,4 +1,5 @@
-"""The HTTP port: the web UI's static files, the line protocol over WebSocket at ``/ws``.
+"""The HTTP port: the web UI's static files, the line protocol over WebSocket at ``/ws``
+(and at ``/`` for a WebSocket upgrade, where FluidNC serves it; a plain ``GET /`` is the page).
 
 ``/ws`` speaks exactly what TCP speaks: one or more lines per text frame in (realtime bytes
 also UTF-8 encoded), one text frame per reply or pushed line out. Other routes (the JSON API,
@@ -184,6 +185,10 @@ class HttpTransport:
         return web.Response(text="ok\n", headers={"Cache-Control": "no-store"})
 
     async def _index(self, request: web.Request) -> web.StreamResponse:
+        """The web UI's page; a WebSocket upgrade on ``/`` is ``/ws`` (FluidNC and the ESP32
+        WebUIs serve their socket on the root, and senders such as MeerK40t connect there)."""
+        if request.headers.get("Upgrade", "").lower() == "websocket":
+            return await self._line_socket(request)
         return web.FileResponse(web_root() / "index.html")
 
     def origin_allowed(self, request: web.Request) -> bool:

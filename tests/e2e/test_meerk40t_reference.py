@@ -15,7 +15,7 @@ from server.cam.job import make_job, read_drawing
 from server.cam.model import layer_settings
 from server.offline.estimate import estimate
 from tests.conftest import make_config
-from tests.support.meerk40t_venv import meerk40t_gcode
+from tests.support.meerk40t import meerk40t_gcode
 
 DATA = Path(__file__).parents[1] / "data" / "cam"
 WORD = re.compile(r"([GMXYSF])(-?\d+(?:\.\d*)?)")

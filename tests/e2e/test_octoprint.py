@@ -36,6 +36,7 @@ LASER = {"minimum_power": 0.1, "maximum_power": 0.8, "maximum_s_value": 1000}
 TIMEOUTS_S: dict[str, float] = {"communication": 8.0}
 COMMUNICATION_TIMEOUT_S = TIMEOUTS_S["communication"]  # serial.timeout.communication
 CANCEL_SCRIPT = "M410\nM5\n"  # docs/octoprint.md's cancel script for a laser
+_SENT_M112 = re.compile(r"Send: (N\d+ )?M112")  # (the alarm's notification names M112)
 _PAUSE_EVENT = re.compile(r"event: PrintPaused \(Payload: .*?'position': \{[^}]*'x': ([-\d.]+)")
 
 
@@ -153,7 +154,7 @@ async def test_octoprint_connects_to_a_machine_in_alarm_and_its_unlock_button_un
         state = await run.api.state()
     assert still_locked, "a reconnect never clears an alarm"
     assert state == "Operational"
-    assert "Error:" not in run.serial and "M112" not in run.serial
+    assert "Error:" not in run.serial and not _SENT_M112.search(run.serial)
     assert re.search(r"Send: (N\d+ )?M999", run.serial), "the button sent M999"
 
 
@@ -243,3 +244,28 @@ async def test_octoprint_keeps_the_connection_through_a_long_move_and_a_refused_
     refused = [line for line in run.serial.splitlines() if "(code 40)" in line]
     assert refused and "Recv: echo:" in refused[0], "refused with echo:, not Error:"
     assert "Error:" not in run.serial
+
+
+async def test_octoprint_in_alarm_stays_connected_when_home_or_a_jog_is_clicked_and_shows_why(
+    octoprint: OctoPrint,
+) -> None:
+    """Home (``G28 X0 Y0``) and a jog (``G91`` first) as OctoPrint's Control tab posts them,
+    with the machine in alarm: each line is refused with ``echo:`` and ``ok`` (never
+    ``Error:``, on which OctoPrint sends M112 and goes offline), and OctoPrint's notification
+    list (its bundled plugin, shown in its sidebar) says which alarm and how to unlock."""
+    async with machine(octoprint, connect=False) as run:
+        run.app.kernel.machine.emergency_stop()  # ALARM:40, as after an M112
+        await run.api.connect()
+        await run.api.wait_state("Operational", 20)
+        await run.api.post("/api/printer/printhead", {"command": "home", "axes": ["x", "y"]})
+        await run.api.post("/api/printer/printhead", {"command": "jog", "x": 10})
+        await wait_for(lambda: run.serial.count("(code 9)") >= 2, 10, "both refused")
+        await asyncio.sleep(1.0)  # OctoPrint would be going offline by now
+        state = await run.api.state()
+        notices = (await run.api.get("/api/plugin/action_command_notification"))["notifications"]
+        still_locked = run.app.kernel.state is MachineState.ALARM
+    assert state == "Operational" and still_locked and run.machine_x == 0.0
+    assert not _SENT_M112.search(run.serial) and "Error:" not in run.serial
+    assert re.search(r"Send: (N\d+ )?G28", run.serial), "OctoPrint sent the Home click's G28"
+    messages = [notice["message"] for notice in notices]
+    assert any("ALARM:40" in text and "M999" in text for text in messages), messages

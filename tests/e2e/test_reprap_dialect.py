@@ -99,7 +99,10 @@ async def test_a_locked_machine_answers_a_hosts_connect_queries_and_unlocks() ->
     assert m105 == ["ok T:0.0 /0.0 B:0.0 /0.0"]
     assert m114[0].startswith("C: X:0.0000 Y:0.0000 Z:0.0000 E:0.0000") and m114[-1] == "ok"
     assert m400 == ["ok"]
-    assert move[0].startswith("Error:") and "code 9" in move[0], "an effect stays locked out"
+    # an effect stays locked out, answered so that OctoPrint keeps the connection and shows why
+    assert move[0].startswith("//action:notification ") and "ALARM:40" in move[0], move
+    assert move[1].startswith("echo:") and "M999" in move[1] and "(code 9)" in move[1]
+    assert move[2:] == ["ok"] and not any(line.startswith("Error:") for line in move)
     assert unlock[-1] == "ok" and state is MachineState.IDLE
 
 

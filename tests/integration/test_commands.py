@@ -89,7 +89,7 @@ async def test_help_build_info_and_version() -> None:
     async with running(make_config()) as app:
         help_, info, version = await submit_all(app, ["$", "$I", "version"])
         assert help_[0].startswith("[HLP:$$ $# $G $I $N")
-        assert info[0].startswith("[VER:1.1h.motiond") and info[1] == "[OPT:VL,4096,128]"
+        assert info[0].startswith("[VER:1.1h.motiond") and info[1] == "[OPT:VL,15,128]"
         assert version[0].startswith("Build version: motiond-")
 
 

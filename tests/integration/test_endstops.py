@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+from pathlib import Path
 from typing import Any
 
 import pytest
 
 from server.app import App
 from server.backends.sim import SimBackend
+from server.config import Config
 from server.errors import CommandError, ConfigError
 from server.kernel.status import snapshot
 from server.runtime.clock import VirtualClock
@@ -198,3 +200,31 @@ async def test_homing_is_kept_by_a_soft_limit_alarm_and_a_reset_at_rest() -> Non
         await submit_all(app, ["$X"])
         app.kernel.control.reset()
         assert homed(app) == ["X", "Y", "Z"]
+
+
+async def test_grbls_homing_settings_act_on_the_endstops_and_are_kept_across_a_restart(
+        tmp_path: Path) -> None:
+    """``$23``-``$27`` (Grbl 1.1h's homing settings) read and write the [endstops] section;
+    written values are saved and adopted again by the next start; ``$22=0`` refuses ``$H``."""
+    def config() -> Config:  # each start reads its config anew, in the same data folder
+        return make_config(endstops=endstops(), jobs={"data_dir": str(tmp_path)})
+
+    async with running(config()) as app:
+        listed = (await submit_all(app, ["$$"]))[0]
+        assert [line for line in listed if line[:4] in ("$22=", "$23=", "$24=", "$27=")] == [
+            "$22=1", "$23=3", "$24=120.000", "$27=1.000"]  # X, Y home to min; slowest; least
+        await submit_all(app, ["$24=90", "$25=1200", "$26=100", "$27=1.5", "$23=4"])
+        module = app.kernel.modules["endstops"]
+        axes = module.config.axes  # type: ignore[attr-defined]
+        assert {axis.feed_mm_s for axis in axes.values()} == {1.5}
+        assert {axis.seek_mm_s for axis in axes.values()} == {20.0}
+        assert {axis.pull_off_mm for axis in axes.values()} == {1.5}
+        assert [axes[name].direction for name in "xyz"] == ["max", "max", "min"]
+        assert module.config.debounce_s == 0.1  # type: ignore[attr-defined]
+        await submit_all(app, ["$22=0"])
+        with pytest.raises(CommandError) as refused:
+            await submit_all(app, ["$H"])
+        assert refused.value.code == 5
+    async with running(config()) as app:
+        values = app.kernel.machine.settings.values()
+        assert (values[22], values[23], values[24], values[26]) == (0, 4, 90.0, 100)

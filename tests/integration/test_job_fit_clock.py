@@ -142,3 +142,20 @@ async def test_m0_m1_and_m6_pause_the_job_until_resumed(
         await jobs._task  # noqa: SLF001
         assert progress(app).state == "done"
         assert app.kernel.machine.stepgen.state.position_mm[0] == 20.0
+
+
+async def test_a_finished_job_says_how_long_it_ran(tmp_path: Path) -> None:
+    """``[MSG:job NAME done in …]`` carries the job's real run time (it said 0.00s when no
+    client had asked for the progress while it ran). 50 mm at 10 mm/s: a little over 5 s."""
+    async with running(config_in(tmp_path)) as app:
+        pushed: list[str] = []
+        app.kernel.events.subscribe("push", pushed.append)
+        await app.kernel.jobs.save("line.nc", b"G21 G90\nG1 X50 F600\n")
+        await app.kernel.jobs.start("line.nc")
+        for _ in range(40):  # (not asking for the progress: that brought the time up to date)
+            await sleep(app, 0.5)
+            if done := [line for line in pushed if " done in " in line]:
+                break
+    assert len(done) == 1, pushed
+    seconds = float(done[0].rpartition(" done in ")[2].rstrip("s]"))
+    assert 5.0 <= seconds < 6.0, done

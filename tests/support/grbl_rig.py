@@ -113,7 +113,7 @@ class GrblClient:
                 return text
 
     async def banner(self) -> str:
-        while not (text := await self.line()).startswith("Grbl "):
+        while not (text := await self.line()).startswith(("Grbl ", "GrblHAL ")):
             pass
         return text
 

@@ -75,6 +75,27 @@ def test_answers_match_lines_in_order_with_the_lines_printed_before_them() -> No
                       Answered(third, ("[PRB:0.000,0.000,-2.000:1]",), None)]
 
 
+def test_grblhal_lines_end_crlf_and_an_errors_clearing_ok_answers_nothing() -> None:
+    """grblHAL's sticky errors (its rig: ``G1 X1e3\\r\\n`` is ``error:N`` then ``ok``, the
+    ``\\n`` clearing it; a ``$`` line needs an empty line of its own): the lines behind an
+    error are answered by their own replies."""
+    link = connected()
+    link.use_grblhal()
+    bad, data = link.send("G1X1e3")
+    assert data == b"G1X1e3\r\n"
+    good, _ = link.send("G0X1")
+    setting, data = link.send("$99=1")
+    assert data == b"$99=1\r\n\r\n"
+    query, _ = link.send("$22")
+    events = link.receive(b"error:36\r\nok\r\nok\r\nerror:53\r\nok\r\n$22=0\r\nok\r\nok\r\n")
+    assert events == [Answered(bad, (), 36), Answered(good, (), None),
+                      Answered(setting, (), 53), Answered(query, ("$22=0",), None)]
+    assert link.in_flight == 0 and link.used_bytes == 0
+    link.lost()
+    link.receive(BANNER)
+    assert link.send("G0X1")[1] == b"G0X1\n", "a board connected anew says what it is"
+
+
 def test_status_alarm_and_feedback_are_not_answers() -> None:
     link = connected()
     token, _ = link.send("G0X1")

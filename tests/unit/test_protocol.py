@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from server.errors import CommandError, Error
+from server.errors import ALARM_MEANINGS, CommandError, Error
 from server.protocol.events import (
     Dialect,
     FramedLine,
@@ -489,7 +489,10 @@ def test_a_last_message_starting_ok_is_the_ok_lines_suffix_marlins_m105() -> Non
          b'echo:Unknown command: "frobnicate"\r\nok\r\n'),
         (CommandError(22), b"echo:Undefined feed rate (code 22)\r\nok\r\n"),
         (CommandError(Error.INVALID_TARGET, "arc\nend"), b"echo:arc end (code 33)\r\nok\r\n"),
-        (CommandError(9), b"Error:G-code locked out during alarm or jog (code 9)\r\nok\r\n"),
+        (CommandError(9, "G-code locked out during ALARM:40 (Halt): $X or M999 to unlock"),
+         b"//action:notification G-code locked out during ALARM:40 (Halt): $X or M999 to unlock"
+         b"\r\necho:G-code locked out during ALARM:40 (Halt): $X or M999 to unlock (code 9)"
+         b"\r\nok\r\n"),  # OctoPrint keeps the connection and shows the notification
         (CommandError(Error.LINE_OVERFLOW, "too long"), b"echo:too long (code 11)\r\nok\r\n"),
         (CommandError(Error.SOFT_LIMIT, "X500 beyond 400"),
          b"echo:X500 beyond 400 (code 40)\r\nok\r\n"),  # Marlin clamps: no firmware fault
@@ -497,6 +500,14 @@ def test_a_last_message_starting_ok_is_the_ok_lines_suffix_marlins_m105() -> Non
 )
 def test_reprap_errors_are_worded_like_marlin(error: CommandError, expected: bytes) -> None:
     assert reprap().reply_error(error) == expected
+
+
+def test_a_reprap_host_is_notified_of_an_alarm_and_of_the_unlock() -> None:
+    assert reprap().push("ALARM:40").decode().splitlines() == [
+        "ALARM:40", "//action:notification ALARM:40 (" + ALARM_MEANINGS[40] + "): M999 to unlock"]
+    assert reprap().push("[MSG:Caution: Unlocked]").decode().splitlines() == [
+        "[MSG:Caution: Unlocked]", "//action:notification Unlocked"]
+    assert LineProtocol().push("ALARM:40") == b"ALARM:40\r\n"
 
 
 def test_reprap_error_replies_never_use_grbl_error_prefix_and_always_end_with_ok() -> None:

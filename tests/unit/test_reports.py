@@ -18,6 +18,7 @@ from server.protocol.reports import (
     format_reprap_error,
     format_settings,
     format_status,
+    sender_blocks,
 )
 
 IDLE = StatusSnapshot(
@@ -204,6 +205,12 @@ def test_help_is_grbl_1_1_help_line() -> None:
     assert (
         format_help() == "[HLP:$$ $# $G $I $N $x=val $Nx=line $J=line $SLP $C $X $H ~ ! ? ctrl-x]"
     )
+
+
+def test_free_blocks_are_on_grbls_scale_empty_only_when_the_planner_is() -> None:
+    assert sender_blocks(4096, 4096) == 15 and sender_blocks(4095, 4096) == 14
+    assert sender_blocks(0, 4096) == 0 and sender_blocks(272, 4096) == 0
+    assert sender_blocks(7, 8) == 7 and sender_blocks(-3, 8) == 0
 
 
 def test_build_info_has_version_and_options_with_buffer_sizes() -> None:

@@ -53,6 +53,9 @@ class LineDropped(Exception):
     """The controller will never answer this line (reset, restart or lost connection)."""
 
 
+GRBLHAL_FIRMWARE = "[FIRMWARE:grblHAL]"
+
+
 @dataclass(frozen=True, slots=True)
 class Handshake:
     """What the controller told about itself when it connected."""
@@ -62,6 +65,11 @@ class Handshake:
     settings: dict[int, float]
     offsets: tuple[str, ...]
     modal: tuple[str, ...]
+
+    @property
+    def grblhal(self) -> bool:
+        """The board is grblHAL (its ``$I`` says ``[FIRMWARE:grblHAL]``)."""
+        return GRBLHAL_FIRMWARE in self.build_info
 
     @property
     def axis_count(self) -> int | None:
@@ -217,6 +225,8 @@ class Controller:
         for query in ("$I", "$$", "$#", "$G"):
             answer = await asyncio.wait_for(await self._send(query), self.config.reply_timeout_s)
             replies.append(answer.messages if answer.error is None else ())
+            if query == "$I" and GRBLHAL_FIRMWARE in replies[0]:
+                self.link.use_grblhal()
         self.handshake = Handshake(banner, replies[0], parse_settings(replies[1]), replies[2],
                                    replies[3])
         options = parse_build_options(replies[0])

@@ -14,6 +14,14 @@ matches the controller's answers to the lines sent, in order:
   reset the controller empties its buffer and never answers them, so answers are ignored and
   nothing is sent until its banner arrives again.
 
+grblHAL (:meth:`Link.use_grblhal`, once its ``$I`` says ``[FIRMWARE:grblHAL]``) makes an error
+sticky: after ``error:N`` it answers every later G-code line with the same error, unexecuted,
+until an empty line. Each line is then sent ending ``\r\n``, which grblHAL takes as one line
+end; after a G-code error its ``\n`` is that empty line, so the error clears at once and the
+lines behind it run as on Grbl 1.1h. A ``$`` line's ``\n`` clears nothing (the rig shows it):
+it is followed by an empty line of its own. The clearing line's ``ok`` answers nothing: it is
+dropped.
+
 Nothing here does I/O or knows asyncio; the transport (``controller.py``) writes the bytes.
 Units: positions mm, feed mm/min as the controller reports it.
 """
@@ -81,6 +89,7 @@ LinkEvent = Answered | StatusReport | AlarmReport | Banner | Feedback
 class _InFlight:
     token: int
     size_bytes: int
+    clears: bool = False  # grblHAL: an empty line follows it (a $ line), whose ok comes next
     messages: list[str] = field(default_factory=list)
     message_bytes: int = 0
     dropped: int = 0  # lines printed for it beyond the bounds
@@ -115,6 +124,14 @@ class Link:
         self.dropped_lines = 0  # too long, or printed beyond the bounds of a line in flight
         self._discarding = False  # inside a line already too long: drop up to its end
         self._wco: tuple[float, ...] | None = None
+        self.line_end = b"\n"
+        self.sticky_errors = False  # grblHAL: an error sticks until an empty line
+        self._clearing = 0  # errors whose clearing empty line's ok is still to come
+
+    def use_grblhal(self) -> None:
+        """The controller is grblHAL: lines end ``\r\n`` (see the module docstring)."""
+        self.line_end = b"\r\n"
+        self.sticky_errors = True
 
     @property
     def wco_mm(self) -> tuple[float, ...] | None:
@@ -138,12 +155,13 @@ class Link:
 
     def send(self, text: str) -> tuple[int, bytes]:
         """Admit one line: its token (for :class:`Answered`) and the bytes to write."""
-        data = text.encode("ascii", "replace") + b"\n"
+        clears = self.sticky_errors and text.startswith("$")
+        data = text.encode("ascii", "replace") + self.line_end * (2 if clears else 1)
         if not self.fits(len(data)):
             raise RuntimeError("the controller's buffer has no room for this line")
         token = self._next_token
         self._next_token += 1
-        self._in_flight.append(_InFlight(token, len(data)))
+        self._in_flight.append(_InFlight(token, len(data), clears))
         self.used_bytes += len(data)
         return token, data
 
@@ -152,6 +170,7 @@ class Link:
         dropped = [line.token for line in self._in_flight]
         self._in_flight.clear()
         self.used_bytes = 0
+        self._clearing = 0
         self.awaiting_banner = True
         return dropped
 
@@ -159,6 +178,7 @@ class Link:
         """The connection is gone: every unanswered line is dropped, input discarded."""
         self._partial.clear()
         self._wco = None
+        self.line_end, self.sticky_errors = b"\n", False  # the next board says what it is
         return self.reset()
 
     # -- receiving --------------------------------------------------------------------------
@@ -214,10 +234,15 @@ class Link:
             return None
         return Feedback(text)
 
-    def _answer(self, text: str, error: int | None) -> LinkEvent:
+    def _answer(self, text: str, error: int | None) -> LinkEvent | None:
+        if self._clearing and error is None and not self.awaiting_banner:
+            self._clearing -= 1  # the ok of an errored line's own \n: grblHAL's clearing
+            return None
         if self.awaiting_banner or not self._in_flight:
             return Feedback(text)  # an answer to a line dropped by a reset
         line = self._in_flight.popleft()
+        if line.clears or (error is not None and self.sticky_errors):
+            self._clearing += 1
         self.used_bytes -= line.size_bytes
         return Answered(line.token, line.answered(), error)
 

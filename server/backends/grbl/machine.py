@@ -58,7 +58,7 @@ from server.motion.backend import Backend
 from server.motion.moves import Move, Output, Sync, SyncKind, ToolMode
 from server.motion.stepgen import HoldState
 from server.protocol.events import Realtime
-from server.protocol.reports import StatusSnapshot
+from server.protocol.reports import UNLOCK_HINT, StatusSnapshot
 from server.runtime.clock import Clock
 from server.runtime.dispatcher import Command, Dispatcher
 from server.runtime.events import EventBus, MachineState
@@ -75,7 +75,8 @@ LOCAL_M_CODES = frozenset({105.0, 114.0, 115.0, 400.0, 999.0})
 STOPS = frozenset({SyncKind.HALT, SyncKind.QUICKSTOP})
 _STATES = {"Idle": MachineState.IDLE, "Run": MachineState.RUN, "Hold": MachineState.HOLD,
            "Jog": MachineState.JOG, "Home": MachineState.HOME, "Door": MachineState.DOOR,
-           "Sleep": MachineState.SLEEP, "Check": MachineState.CHECK}
+           "Sleep": MachineState.SLEEP, "Check": MachineState.CHECK,
+           "Tool": MachineState.HOLD}  # grblHAL's M6: held until a cycle start (~)
 _MOVING = frozenset({"Run", "Jog", "Home"})
 _STILL = frozenset({"Idle", "Alarm", "Check", "Sleep"})  # nothing will move without a command
 _OPTIONS = re.compile(r"^(\[OPT:[^,\]]*,\d+),\d+(.*)$")  # [OPT:flags,blocks,bytes...]
@@ -324,7 +325,8 @@ class GrblMachine(Machine):
     def on_feedback(self, texts: list[str]) -> None:
         """Lines the board printed on its own: pushed to every client, cleaned and at a
         bounded rate (a summary line counts what was held back)."""
-        shown = [text for text in texts if not an_answer(text)]  # to a line a reset dropped
+        shown = [text for text in texts  # (an answer: to a line a reset dropped; the unlock
+                 if not an_answer(text) and text != UNLOCK_HINT]  # hint: motiond's, sent)
         for line in self._feedback.offer_lines(shown, self.clock.now_s()):
             self.status.push(line)
 
