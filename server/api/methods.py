@@ -286,8 +286,10 @@ async def _one_line(m: Methods, connection: Connection, line: str) -> dict[str, 
         else:
             if halts_at_once(text) and connection.can_control:
                 m.kernel.control.emergency_stop()
+                _REQUEST_TICKET.set(m.kernel.status.ticket())  # the stop's own line runs
             elif quickstops_at_once(text) and connection.can_control:
                 m.kernel.control.quickstop()
+                _REQUEST_TICKET.set(m.kernel.status.ticket())
             messages = await m.submit(connection, line)
     except CommandError as exc:
         return _refused(line, exc)

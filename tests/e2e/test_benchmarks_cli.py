@@ -14,6 +14,7 @@ import sys
 from tests.conftest import REPO
 
 NAMES = ("parser", "planner", "offline", "streaming", "grbl", "klipper", "klipper-host", "lines",
+         "plan", "fleet",
          "idle", "import")
 
 

@@ -216,7 +216,8 @@ async def test_a_ctrl_x_flushes_the_lines_written_right_behind_it_as_meerk40t_st
         await sender.until(lambda got: BANNER in got[mark:])
         await rig.assert_still(1.0, "after the reset")  # (an answer to the lines meanwhile)
     assert [line for line in sender.lines[mark:] if line] == [
-        "ALARM:3", "[MSG:reset while in motion: position may be lost, re-home]", BANNER]
+        "ALARM:3", BANNER, "[MSG:'$H'|'$X' to unlock]",
+        "[MSG:reset while in motion: position may be lost, re-home]"]  # Grbl's, then ours
 
 
 @pytest.mark.parametrize("comment", ["(outer contour, first pass)", "(激光切割外轮廓第一层)"],
