@@ -10,7 +10,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import re
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
+from contextlib import AbstractAsyncContextManager
 from pathlib import Path
 
 import pytest
@@ -52,12 +53,16 @@ def same_modes(board: str, interpreter: str) -> bool:
 
 
 @contextlib.asynccontextmanager
-async def fronted(tmp_path: Path, axes: str = "xyz") -> AsyncIterator[App]:
-    """motiond (grbl backend, TCP front) on a fresh Grbl board, its axes made fast."""
-    async with grbl_on_pty(tmp_path) as device:
+async def fronted(tmp_path: Path, axes: str = "xyz", *,
+                  on_pty: Callable[[Path], AbstractAsyncContextManager[str]] = grbl_on_pty,
+                  axis: dict[str, float] | None = None) -> AsyncIterator[App]:
+    """motiond (grbl backend, TCP front) on a fresh board (Grbl's, or what ``on_pty``
+    starts), its axes made fast (``axis``: each axis' config)."""
+    axis = axis or {"steps_per_mm": 80, "max_rate_mm_s": 100, "accel_mm_s2": 500,
+                    "max_mm": 300}
+    async with on_pty(tmp_path) as device:
         config = build_config({
-            "axes": {axis: {"steps_per_mm": 80, "max_rate_mm_s": 100, "accel_mm_s2": 500,
-                            "max_mm": 300} for axis in axes},
+            "axes": {name: dict(axis) for name in axes},
             "jobs": {"data_dir": str(tmp_path / "data")}, "tcp": {"port": 0},
             "backend": {"kind": "grbl", "serial": device, "status_hz": 20}}, "rig.toml")
         async with running(config, RealClock(), [TcpTransport]) as app:

@@ -19,44 +19,20 @@ import pytest
 
 from server.app import App
 from server.backends.grbl.machine import GrblMachine
-from server.config_loader import build_config
-from server.runtime.clock import RealClock
 from server.runtime.events import MachineState
-from server.transports.tcp import TcpTransport
-from tests.e2e.test_grbl_rig import until_report
-from tests.support.grbl_rig import GrblClient
-from tests.support.grblhal_rig import FAST_SETTINGS, grblhal_direct, grblhal_on_pty
-from tests.support.helpers import running
+from tests.e2e.test_grbl_rig import connect, until_report
+from tests.e2e.test_grbl_rig import fronted as grbl_fronted
+from tests.support.grbl_rig import FAST_SETTINGS, GrblClient
+from tests.support.grblhal_rig import grblhal_direct, grblhal_on_pty
 from tests.support.senders import CharCountingClient, wait_for
 
 pytestmark = pytest.mark.usefixtures("quick_thread_switches")
 
 
-@contextlib.asynccontextmanager
-async def fronted(tmp_path: Path) -> AsyncIterator[App]:
+def fronted(tmp_path: Path) -> contextlib.AbstractAsyncContextManager[App]:
     """motiond (grbl backend, TCP front) on a fresh grblHAL board, its axes made fast."""
-    async with grblhal_on_pty(tmp_path) as device:
-        config = build_config({
-            "axes": {axis: {"steps_per_mm": 250, "max_rate_mm_s": 300, "accel_mm_s2": 2000,
-                            "max_mm": 200} for axis in "xyz"},
-            "jobs": {"data_dir": str(tmp_path / "data")}, "tcp": {"port": 0},
-            "backend": {"kind": "grbl", "serial": device, "status_hz": 20}}, "rig.toml")
-        async with running(config, RealClock(), [TcpTransport]) as app:
-            machine = app.kernel.machine
-            assert isinstance(machine, GrblMachine)
-            await wait_for(lambda: machine.controller.ready, 20.0, "the board's handshake")
-            client = await connect(app)
-            try:
-                for setting in FAST_SETTINGS:
-                    assert (await client.send(setting))[-1] == "ok"
-            finally:
-                client.close()
-            yield app
-
-
-async def connect(app: App) -> GrblClient:
-    port: int = app.transports[0].port  # type: ignore[attr-defined]
-    return await GrblClient.connect(port)
+    return grbl_fronted(tmp_path, on_pty=grblhal_on_pty, axis={
+        "steps_per_mm": 250, "max_rate_mm_s": 300, "accel_mm_s2": 2000, "max_mm": 200})
 
 
 @contextlib.asynccontextmanager

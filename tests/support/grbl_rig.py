@@ -47,17 +47,18 @@ def _command(exe: Path) -> list[str]:
 
 
 @contextlib.asynccontextmanager
-async def grbl_on_pty(tmp_path: Path, name: str = "grbl") -> AsyncIterator[str]:
-    """A fresh Grbl board on a pseudo-terminal; yields the device path to open."""
-    exe = rig_executable()
-    eeprom = tmp_path / f"{name}-eeprom"
-    eeprom.mkdir()
+async def board_on_pty(command: Sequence[str], folder: Path, settle_s: float = 0.0
+                       ) -> AsyncIterator[str]:
+    """A fresh simulated board (``command``, run in ``folder``: its settings) on a
+    pseudo-terminal, given ``settle_s`` before its first input; yields the device to open."""
+    folder.mkdir()
     board, device = os.openpty()
     tty.setraw(device)
     process = await asyncio.create_subprocess_exec(
-        *_command(exe), stdin=board, stdout=board, stderr=subprocess.DEVNULL, cwd=eeprom)
+        *command, stdin=board, stdout=board, stderr=subprocess.DEVNULL, cwd=folder)
     os.close(board)
     try:
+        await asyncio.sleep(settle_s)
         yield os.ttyname(device)
     finally:
         await _stop(process)
@@ -65,21 +66,32 @@ async def grbl_on_pty(tmp_path: Path, name: str = "grbl") -> AsyncIterator[str]:
 
 
 @contextlib.asynccontextmanager
-async def grbl_direct(tmp_path: Path, name: str = "direct") -> AsyncIterator[GrblClient]:
-    """A fresh Grbl board on pipes, already past its banner."""
-    exe = rig_executable()
-    eeprom = tmp_path / f"{name}-eeprom"
-    eeprom.mkdir()
+async def board_direct(command: Sequence[str], folder: Path, settle_s: float = 0.0
+                       ) -> AsyncIterator[GrblClient]:
+    """A fresh simulated board on pipes, already past its banner and ``settle_s``."""
+    folder.mkdir()
     process = await asyncio.create_subprocess_exec(
-        *_command(exe), stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-        stderr=subprocess.DEVNULL, cwd=eeprom)
+        *command, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL, cwd=folder)
     assert process.stdin is not None and process.stdout is not None
     client = GrblClient(process.stdout, process.stdin)
     try:
         await client.banner()
+        await asyncio.sleep(settle_s)
         yield client
     finally:
         await _stop(process)
+
+
+def grbl_on_pty(tmp_path: Path, name: str = "grbl") -> contextlib.AbstractAsyncContextManager[str]:
+    """A fresh Grbl board (its EEPROM in a temporary folder) on a pseudo-terminal."""
+    return board_on_pty(_command(rig_executable()), tmp_path / f"{name}-eeprom")
+
+
+def grbl_direct(tmp_path: Path, name: str = "direct"
+                ) -> contextlib.AbstractAsyncContextManager[GrblClient]:
+    """A fresh Grbl board on pipes, already past its banner."""
+    return board_direct(_command(rig_executable()), tmp_path / f"{name}-eeprom")
 
 
 async def _stop(process: asyncio.subprocess.Process) -> None:
