@@ -17,8 +17,11 @@ it) that admits what the client sends. It:
   byte, toggles and override steps are folded into one change (:mod:`server.kernel.control`);
 * acts on realtime bytes at once (status, hold, resume, reset, overrides, jog cancel), even
   while lines wait for planner room, and on ``M112`` the moment its line arrives; an ``M410``
-  quickstop too (Marlin's emergency parser): motion stops, and the lines this connection queued
-  ahead of it are answered as flushed (``error:45``, one reply each) instead of running;
+  quickstop too (Marlin's emergency parser): each is a stop (:mod:`server.runtime.state`);
+* on any stop, from any path, drops what this connection sent before it: its queued lines are
+  refused where they would start (``error:45``, their ticket is void), its backlog and
+  partial line go at once; a reset drops its queued lines unanswered, then the banner, as
+  Grbl empties its receive buffer, and with them what followed the Ctrl-X in the same read;
 * queues complete lines, at most :data:`INBOUND_LINES` of them, for the session's executor;
 * keeps taking bytes while its line queue is full: they wait in a
   :class:`~server.sessions.backlog.Backlog` (``[protocol] backlog_bytes``) whose realtime bytes
