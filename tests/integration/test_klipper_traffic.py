@@ -74,8 +74,13 @@ async def test_a_100_mm_cruise_sends_runs_as_long_as_the_hold_back_and_each_in_t
         # the clock is polled every 0.4 s in motion, and the polls ride in the steps' blocks
         polls = [names for names in move_blocks if "get_clock" in names]
         assert len(polls) >= 2, move_blocks
-        alone = [names for names in polls if names == ["get_clock"]]
-        assert len(alone) <= 2, polls  # the first and last may come while nothing moves
+        # while steps flow (between the first and the last block with steps) the polls ride
+        # (one may miss its block when the loop is late on a loaded machine); before and after,
+        # nothing moves and a poll cannot ride (how many: the load decides)
+        with_steps = [i for i, names in enumerate(move_blocks) if "queue_step" in names]
+        flowing = move_blocks[with_steps[0]:with_steps[-1] + 1]
+        assert flowing.count(["get_clock"]) <= 1, polls
+        assert any("queue_step" in names for names in polls), polls
         # each run left at least the stall ride-through (lead - hold-back - flush, 130 ms)
         # ahead of its first step, half of it on a loaded machine
         ride_through_s = backend.lead_s - backend.hold_back_s - backend.flush_s
