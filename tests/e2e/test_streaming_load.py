@@ -20,6 +20,7 @@ import gc
 import socket
 import statistics
 import sys
+import threading
 import time
 from collections.abc import Iterator
 
@@ -113,17 +114,18 @@ async def test_30k_lines_character_counted_while_a_second_client_polls_at_10_hz(
         await poller.close()
 
 
-def _flood(port: int, payload: bytes, deadline_s: float) -> tuple[int, float | None]:
+def _flood(port: int, payload: bytes, deadline_s: float,
+           enough: threading.Event) -> tuple[int, float | None]:
     """Send ``payload`` over and over and never read (a thread: a client outside the server's
-    event loop). Returns (bytes sent, seconds until the server closed the connection, or None
-    if it was still open at the deadline)."""
+    event loop) until the deadline or ``enough``. Returns (bytes sent, seconds until the server
+    closed the connection, or None if it was still open at the end)."""
     sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # stop reading: soon full
     sent = 0
     started = time.monotonic()
     try:
         sock.connect((HOST, port))
-        while (left_s := deadline_s - (time.monotonic() - started)) > 0:
+        while (left_s := deadline_s - (time.monotonic() - started)) > 0 and not enough.is_set():
             sock.settimeout(left_s)
             try:
                 sock.sendall(payload)
@@ -173,7 +175,8 @@ async def _flood_and_stream(payload: bytes) -> tuple[int, float | None]:
         done = asyncio.Event()
         polling = asyncio.create_task(poller.run(10.0, done))
         app.kernel.loop_monitor.reset()
-        flood = asyncio.create_task(asyncio.to_thread(_flood, port, payload, 20.0))
+        enough = threading.Event()
+        flood = asyncio.create_task(asyncio.to_thread(_flood, port, payload, 20.0, enough))
         try:
             result = await streamer.stream(lines)
             await asyncio.wait_for(app.kernel.machine.wait_idle(), 30.0)
@@ -203,6 +206,7 @@ async def _flood_and_stream(payload: bytes) -> tuple[int, float | None]:
         await late.close()
         await streamer.close()
         await poller.close()
+        enough.set()  # the stream is over: a flood not closed by now is what the test sees
         return await flood
 
 
