@@ -94,6 +94,7 @@ class LineExecutor(NonModal):
         self._tool_length()
         self.wco = self.offsets.wco(self.modal.wcs, self.geo.z_axis)
         self.non_modal()
+        self.babystep()
         self.wco = self.offsets.wco(self.modal.wcs, self.geo.z_axis)
         self._motion()
         self._check_unused()
@@ -212,6 +213,7 @@ class LineExecutor(NonModal):
         other_command = any(
             c in AXIS_COMMANDS for k, c in words.groups.items() if k in ("non_modal", "tool_length")
         )
+        other_command = other_command or words.g("m_offset") is not None
         if not explicit and (not words.axes or other_command):
             return
         mode = self.modal.motion

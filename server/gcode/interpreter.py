@@ -23,7 +23,7 @@ few LinuxCNC/Smoothieware additions. Conventions worth knowing:
   until the dispatcher calls :meth:`Interpreter.set_position`; G28.2 leaves it unchanged.
 * Beyond Grbl: G59.1-G59.3 (``G10 P7..P9``), G90.1 absolute arc centres, G92.2/G92.3
   (LinuxCNC), G28.2 homing (Smoothieware), M6, M17/M18/M84, M112, M114, M400 (wait for
-  motion), M410 (quickstop), M999. Rotary axes
+  motion), M410 (quickstop), M999, M290 (babystep). Rotary axes
   A/B/C are in degrees and are not scaled by G20. ``$#`` lists G54-G59 only (as Grbl), G80 does
   not forbid axis words that a G10/G28/G30/G92 on the same line uses, and soft reset clears
   the G92 and tool length offsets (as Grbl) but keeps the stored coordinate systems.

@@ -49,6 +49,7 @@ M_GROUPS: dict[int, str] = {
     **dict.fromkeys((7, 8, 9), "coolant"),
     **dict.fromkeys((17, 18, 84), "motors"),
     **dict.fromkeys((112, 114, 400, 410, 999), "sync"),
+    290: "offset",  # babystep: takes the line's axis words (see LineExecutor.babystep)
 }
 # Commands that use axis words; two on one line are error 24 (G80 uses none).
 AXIS_COMMANDS = frozenset((G0, G1, G2, G3, *PROBES, 100, 280, 282, 300, 920, 431, 490))
@@ -185,7 +186,7 @@ def read_words(
         for name, code in block.groups.items()
         if not name.startswith("m_") and code in AXIS_COMMANDS
     ]
-    if len(commands) > 1:
+    if len(commands) + ("m_offset" in block.groups) > 1:
         raise CommandError(Error.AXIS_COMMAND_CONFLICT, "two commands on one line use axis words")
     return block
 

@@ -1,5 +1,6 @@
 """Grbl's non-modal group 0 for :class:`~server.gcode.executor.LineExecutor`: G10, G28/G30 (and the
-``.1`` stores), G28.2 homing, G53 and the G92 family.
+``.1`` stores), G28.2 homing, G53 and the G92 family; and M290, the babystep that shifts the
+G92 offset by an amount (Klipper's ``SET_GCODE_OFFSET Z_ADJUST``).
 
 G10 L2/L20 and G92 values are absolute (G90/G91 do not apply) and in program units. The G92
 family follows LinuxCNC: G92 sets the offset (and its saved copy), G92.1 clears both, G92.2
@@ -130,4 +131,27 @@ class NonModal:
             tlo = offsets.tlo_mm if i == z else 0.0
             g92[i] = self.position[i] - wcs[i] - tlo - self._scaled(i, value)
         offsets.g92 = offsets.g92_saved = tuple(g92)
+        self.axes_used = True
+
+    def babystep(self) -> None:
+        """M290 X Y Z (RepRapFirmware's and Marlin's babystep): the work offset of each named
+        axis grows by the amount (program units; G92's, so a soft reset clears it) and the
+        tool moves by it at once, in order with the moves queued before: the work position
+        reads the same and every later move is shifted. ``P0``: the offset only, the tool
+        stays (the next move that names the axis goes there), as Klipper's ``MOVE=0``."""
+        if self.words.g("m_offset") is None:
+            return
+        axes, move = self.words.axes, self.words.values.get("P", 1.0)
+        if not axes:
+            raise CommandError(Error.NO_AXIS_WORDS, "M290 needs axis words")
+        if move not in (0.0, 1.0):
+            raise CommandError(Error.UNSUPPORTED, f"M290 P{move:g}: P is 0 (offset only) or 1 (move)")
+        self.values_used.add("P")
+        g92, target = list(self.offsets.g92), list(self.position)
+        for i, value in axes.items():
+            g92[i] += self._scaled(i, value)
+            target[i] += self._scaled(i, value)
+        if move:
+            self.emit(tuple(target), MoveKind.RAPID, math.inf)  # (checked against the travel)
+        self.offsets.g92 = self.offsets.g92_saved = tuple(g92)
         self.axes_used = True
