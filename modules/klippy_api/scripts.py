@@ -166,7 +166,7 @@ class Scripts:
         elif isinstance(step, Message):
             self.hub.set_message(step.text)
         elif isinstance(step, GcodeOffset):
-            await _gcode_offset(ctx, step, self.hub.jog_feed_mm_min, ticket)
+            await _gcode_offset(ctx, step, ticket)
         elif step.action == "help":
             self.hub.output("\n".join(["// Available commands:",
                                        *(f"// {k}: {v}" for k, v in gcode.HELP.items())]))
@@ -184,17 +184,16 @@ class Scripts:
             control(ctx, step.action)
 
 
-async def _gcode_offset(ctx: ModuleContext, step: GcodeOffset, jog_feed_mm_min: float,
-                        ticket: int) -> None:
-    """Once the queued moves ran: optionally jog by the change, then ``G92`` so that the
-    work offset (``homing_origin``) is the one asked for."""
-    job = ctx.status().get("job") or {}
-    if job.get("state") in ("running", "paused"):  # never applied late, when it ends
-        raise CommandError(Error.BUSY, "SET_GCODE_OFFSET: a job is running")
-    await ctx.moves.wait_idle()
+async def _gcode_offset(ctx: ModuleContext, step: GcodeOffset, ticket: int) -> None:
+    """``SET_GCODE_OFFSET`` as motiond's babystep, ``M290``: the work offset
+    (``homing_origin``) changes by the difference and, with ``MOVE=1``, the head moves by it
+    (at the rapid rate; ``MOVE_SPEED`` is not used), in order with the queued moves. During
+    a job (running or paused) the line runs as part of it, before its next line: every
+    later move of the job is shifted, and the answer comes once it has run (a stop first:
+    error 45, never run). Otherwise it runs once the queued moves ran, answered after the
+    move. An absolute ``Z=`` is taken against the offset when the command arrives."""
     status = ctx.status()
-    wpos, wco = status["wpos"], status["wco"]
-    names = ctx.core.axis_names
+    wco, names = status["wco"], ctx.core.axis_names
     deltas: dict[str, float] = {}
     for axis in sorted(set(step.absolute) | set(step.adjust)):
         if axis not in names:
@@ -205,16 +204,13 @@ async def _gcode_offset(ctx: ModuleContext, step: GcodeOffset, jog_feed_mm_min: 
     if not deltas:
         return
     scale = 25.4 if status.get("modal", {}).get("units") == "in" else 1.0
-    if step.move:
-        speed_mm_min = 60.0 * (step.speed_mm_s or jog_feed_mm_min / 60.0)
-        words = " ".join(f"{axis}{delta:.4f}" for axis, delta in deltas.items())
-        await ctx.run_gcode(f"$J=G21 G91 {words} F{speed_mm_min:.0f}", ticket)
-        await ctx.moves.wait_idle()
-        stay = {axis: wpos[names.index(axis)] for axis in deltas}
-    else:
-        stay = {axis: wpos[names.index(axis)] - delta for axis, delta in deltas.items()}
-    await ctx.run_gcode("G92 " + " ".join(f"{a}{v / scale:.4f}" for a, v in stay.items()),
-                        ticket)
+    words = " ".join(f"{axis}{delta / scale:.6f}" for axis, delta in deltas.items())
+    line = f"M290 {words}" + ("" if step.move else " P0")
+    if await ctx.run_in_job(line, ticket) is not None:
+        return
+    await ctx.moves.wait_idle()
+    await ctx.run_gcode(line, ticket)
+    await ctx.moves.wait_idle()
 
 
 def control(ctx: ModuleContext, action: str) -> None:

@@ -145,7 +145,7 @@ class NonModal:
         if not axes:
             raise CommandError(Error.NO_AXIS_WORDS, "M290 needs axis words")
         if move not in (0.0, 1.0):
-            raise CommandError(Error.UNSUPPORTED, f"M290 P{move:g}: P is 0 (offset only) or 1 (move)")
+            raise CommandError(Error.UNSUPPORTED, f"M290 P{move:g}: P0 (offset only) or P1 (move)")
         self.values_used.add("P")
         g92, target = list(self.offsets.g92), list(self.position)
         for i, value in axes.items():

@@ -17,7 +17,7 @@ import asyncio
 import contextlib
 import logging
 from collections import deque
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Protocol
 from server.errors import CommandError, Error
 from server.gcode.parser import check_length
 from server.jobs.clock import JobClock, JobPlan
+from server.jobs.interjections import Interjections
 from server.jobs.planning import JobPlans
 from server.jobs.reading import Stopped, read_lines
 from server.jobs.store import JobStore
@@ -111,6 +112,7 @@ class Jobs(JobStore):
         self._clock: JobClock | None = None
         self._plan: JobPlan | None = None  # the current job's
         self._plans = JobPlans(self._timed)
+        self._interjections = Interjections()
         kernel.events.subscribe(Event.ACTION, self._on_action)
         kernel.events.subscribe(Event.STOP, self._on_stop)
         dispatcher = kernel.dispatcher
@@ -138,6 +140,15 @@ class Jobs(JobStore):
         """A job is running or paused (not yet done, failed or aborted)."""
         progress = self._progress
         return progress is not None and progress.state in ("running", "paused")
+
+    def interject(self, text: str, ticket: int) -> asyncio.Future[list[str] | None] | None:
+        """Run ``text`` as part of the running or paused job, before its next line, in order
+        with its motion (see :mod:`.interjections`); ``ticket``: the stop generation it was
+        asked in. None: no job plays (nothing queued). The future's ``None``: the job ended
+        first and the line did not run. Raises CommandError 45 when too many lines wait."""
+        if not (self.running and self.active):
+            return None
+        return self._interjections.add(text, ticket)
 
     async def start(self, name: str, ticket: int | None = None) -> JobProgress:
         """Check a stored file against the machine as it is now, then play it (``job.start``,
@@ -331,6 +342,8 @@ class Jobs(JobStore):
             alarm = self.kernel.state is MachineState.ALARM
             self._fail(progress, "line 1: stopped by an alarm while it was being checked"
                        if alarm else f"error:{exc.code} {exc.message}")
+        finally:
+            self._interjections.release()  # the job is over: what waits did not run
 
     async def _stream(
         self, lines: AsyncIterator[str], progress: JobProgress, source: _JobSource
@@ -340,10 +353,17 @@ class Jobs(JobStore):
         turn_s = loop.time()
         limit = self.kernel.config.core.protocol.line_limit
         pending: deque[tuple[int, asyncio.Future[list[str]]]] = deque()
+        interjections = self._interjections
+
+        def as_job(text: str, ticket: int) -> Awaitable[list[str]]:
+            return dispatcher.submit(text, source, ticket)
+
         number = 0
         async for line in lines:
             number += 1
             try:
+                if interjections:  # a requester's line, in the job's order (a baby-step)
+                    await interjections.run(as_job)
                 check_length(line, limit)  # error 11, as a stream refuses it
                 await dispatcher.submit(line, source, source.ticket, _deferring(pending, number))
                 await _settle(pending, wait=False)
@@ -359,6 +379,7 @@ class Jobs(JobStore):
                 await asyncio.sleep(0)
                 turn_s = loop.time()
         try:
+            await interjections.run(as_job)
             await _settle(pending, wait=True)
         except _LineFailed as failed:
             self._fail(progress, failed.text)

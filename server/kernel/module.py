@@ -210,6 +210,14 @@ class ModuleContext(Protocol):
         for before a stop is refused (error 45), never run after it."""
         ...
 
+    async def run_in_job(self, text: str, ticket: int) -> list[str] | None:
+        """Run one line as part of the running or paused job, before its next line, in order
+        with its motion (a baby-step: ``M290 Z0.05``); the answer comes once the line ran
+        (its messages) or was refused (:class:`~server.errors.CommandError`: 45 after a stop
+        since ``ticket``). None: no job plays, or it ended before the line's turn; nothing
+        ran (run it with :meth:`run_gcode`, under the same ticket)."""
+        ...
+
     async def start_job(self, name: str, ticket: int | None = None) -> None:
         """Check and play the stored job file ``name``, as the JSON API's ``job.start`` does;
         raises :class:`~server.errors.CommandError` (47 does not fit the travel from the
