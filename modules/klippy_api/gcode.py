@@ -13,8 +13,8 @@ as every other source. What is translated:
   (``[SAVE_GCODE_STATE] G91 G1 X10 F6000 [RESTORE_GCODE_STATE|G90]``): one ``$J=`` jog, which
   a hold or jog cancel stops and which leaves the modal state alone;
 - ``SET_GCODE_OFFSET [X|Y|Z=mm] [X|Y|Z_ADJUST=mm] [MOVE=1]``: the offset Klipper calls
-  ``homing_origin`` (motiond's work offset) set or adjusted with ``G92`` once the machine is
-  idle; with ``MOVE=1`` the head moves by the change first (a jog);
+  ``homing_origin`` (motiond's work offset) set or adjusted by the babystep ``M290`` (``P0``
+  without ``MOVE=1``), during a job as part of it (see ``scripts._gcode_offset``);
 - ``SET_PIN PIN=name VALUE=v``: a switch's own line (``M8``, ``M106 S..``), see
   :mod:`modules.klippy_api.outputs`;
 - ``M117 text`` sets ``display_status.message``; ``HELP`` lists the commands;

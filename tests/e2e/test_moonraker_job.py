@@ -1,6 +1,7 @@
 """A job through the real Moonraker as a Klipper user runs it: a jog in a pause answers at
-once, and the time left the front-ends compute (print time / progress - print time, as
-Mainsail's and Fluidd's "file" estimate) is motiond's planned time, not the file position's."""
+once, the time left the front-ends compute (print time / progress - print time, as
+Mainsail's and Fluidd's "file" estimate) is motiond's planned time, not the file position's,
+and the Z-offset buttons baby-step a running job."""
 
 from __future__ import annotations
 
@@ -12,12 +13,18 @@ import aiohttp
 import pytest
 
 from tests.e2e.test_moonraker import stack
+from tests.e2e.test_mqtt import mpos, tcp_report
 from tests.support.moonraker import Moonraker, MoonrakerError
 
 # Most lines first, most time last: the file position says 98 % where the time says 10 %.
 JOB = ("G90 G21\nG1 X0 Y0 F6000\n"
        + "".join(f"G1 X{(i % 2) * 0.5:g} Y{i * 0.25:g}\n" for i in range(200))
        + "G1 X200 F3000\nG1 X0\nG1 X200\n")
+
+
+# Z down to the focus, a row of cuts there (about 1.5 s), then up to Z-1 at the origin.
+FOCUSED = ("G90 G21\nG1 Z-2 F600\n" + "".join(f"G1 X{i} Y5 F1500\n" for i in range(1, 31))
+           + "G1 X0 Y0 Z-1\n")
 
 
 async def _upload_and_start(server: Moonraker, name: str, text: str) -> None:
@@ -63,3 +70,22 @@ async def _time_left_at(server: Moonraker, fraction: float) -> tuple[float, floa
             printed_s = status["print_stats"]["print_duration"]
             return printed_s / progress - printed_s, time.monotonic()
         await asyncio.sleep(0.05)
+
+
+async def test_the_z_offset_buttons_baby_step_a_running_job(tmp_path: Path) -> None:
+    async with stack(tmp_path) as (served, server, _socket):
+        await server.gcode("G28")
+        await _upload_and_start(server, "focused.gcode", FOCUSED)
+        await server.wait_for(lambda s: s["print_stats"]["state"] == "printing",
+                              print_stats=None)
+        await server.gcode("SET_GCODE_OFFSET Z_ADJUST=-0.05 MOVE=1")  # Mainsail's button
+        status = await server.query(print_stats=["state"], gcode_move=["homing_origin"])
+        assert status["print_stats"]["state"] == "printing", "applied while the job runs"
+        assert status["gcode_move"]["homing_origin"][2] == -0.05
+        await server.wait_for(lambda s: s["print_stats"]["state"] == "complete",
+                              timeout_s=15, print_stats=None)
+        where = mpos(await tcp_report(served.tcp_port))
+        status = await server.query(gcode_move=["homing_origin", "gcode_position"])
+    assert where == [0.0, 0.0, -1.05], "the job's later moves went 0.05 mm lower"
+    assert status["gcode_move"]["homing_origin"][2] == -0.05, "the offset stays after the job"
+    assert status["gcode_move"]["gcode_position"][2] == -1.0
