@@ -56,7 +56,7 @@ class Interjections:
     async def run(self, submit: Submit) -> None:
         """Run the waiting lines in order (the job's turn); each one's answer is set. A line
         interrupted (the job aborted while it waited for room) answers error 45: it may have
-        half run, so it is never offered again."""
+        taken effect in part (the interpreter read it), so it is never offered again."""
         while self._waiting:
             line = self._waiting.popleft()
             if line.answer.done():  # the requester gave up waiting
@@ -66,7 +66,7 @@ class Interjections:
             except CommandError as exc:
                 _answer(line, exc)
             except BaseException:
-                _answer(line, CommandError(Error.BUSY, "the job ended while the line ran"))
+                _answer(line, CommandError(Error.BUSY, "the job was stopped while the line ran"))
                 raise
             else:
                 _answer(line, messages)
