@@ -19,8 +19,9 @@ from __future__ import annotations
 
 import asyncio
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 from modules.klippy_api import gcode, outputs, wire
@@ -166,7 +167,7 @@ class Scripts:
         elif isinstance(step, Message):
             self.hub.set_message(step.text)
         elif isinstance(step, GcodeOffset):
-            await _gcode_offset(ctx, step, ticket)
+            await _gcode_offset(ctx, step, ticket, self.hub.output)
         elif step.action == "help":
             self.hub.output("\n".join(["// Available commands:",
                                        *(f"// {k}: {v}" for k, v in gcode.HELP.items())]))
@@ -184,16 +185,37 @@ class Scripts:
             control(ctx, step.action)
 
 
-async def _gcode_offset(ctx: ModuleContext, step: GcodeOffset, ticket: int) -> None:
+async def _gcode_offset(ctx: ModuleContext, step: GcodeOffset, ticket: int,
+                        output: Callable[[str], None]) -> None:
     """``SET_GCODE_OFFSET`` as motiond's babystep, ``M290``: the work offset
     (``homing_origin``) changes by the difference and, with ``MOVE=1``, the head moves by it
-    (at the rapid rate; ``MOVE_SPEED`` is not used), in order with the queued moves. During
-    a job (running or paused) the line runs as part of it, before its next line: every
-    later move of the job is shifted, and the answer comes once it has run (a stop first:
-    error 45, never run). Otherwise it runs once the queued moves ran, answered after the
-    move. An absolute ``Z=`` is taken against the offset when the command arrives."""
+    (at the rapid rate; ``MOVE_SPEED`` is not used), in order with the queued moves.
+
+    During a running job the line runs as part of it, before its next line: every later
+    move of the job is shifted, and the answer comes once it has run (a stop first: error
+    45, never run). A paused job holds its next line until Resume, so the answer comes at
+    once and the console says when the change ran, or why not. Otherwise the line runs once
+    the queued moves ran, answered after the move. An absolute ``Z=`` is taken against the
+    offset when the command arrives."""
     status = ctx.status()
-    wco, names = status["wco"], ctx.core.axis_names
+    line = _offset_line(status, ctx.core.axis_names, step)
+    if line is None:
+        return
+    answer = ctx.run_in_job(line, ticket)
+    if answer is not None and (status.get("job") or {}).get("state") == "paused":
+        output("// SET_GCODE_OFFSET: the job is paused; the offset applies when it resumes")
+        answer.add_done_callback(partial(_report_later, output))
+        return
+    if answer is not None and await answer is not None:
+        return
+    await ctx.moves.wait_idle()
+    await ctx.run_gcode(line, ticket)
+    await ctx.moves.wait_idle()
+
+
+def _offset_line(status: dict[str, Any], names: Sequence[str], step: GcodeOffset) -> str | None:
+    """The ``M290`` line that makes the offsets those ``step`` asks for (None: no axis)."""
+    wco = status["wco"]
     deltas: dict[str, float] = {}
     for axis in sorted(set(step.absolute) | set(step.adjust)):
         if axis not in names:
@@ -202,15 +224,24 @@ async def _gcode_offset(ctx: ModuleContext, step: GcodeOffset, ticket: int) -> N
         target = step.absolute.get(axis, wco[index]) + step.adjust.get(axis, 0.0)
         deltas[axis] = target - wco[index]
     if not deltas:
-        return
+        return None
     scale = 25.4 if status.get("modal", {}).get("units") == "in" else 1.0
     words = " ".join(f"{axis}{delta / scale:.6f}" for axis, delta in deltas.items())
-    line = f"M290 {words}" + ("" if step.move else " P0")
-    if await ctx.run_in_job(line, ticket) is not None:
+    return f"M290 {words}" + ("" if step.move else " P0")
+
+
+def _report_later(output: Callable[[str], None],
+                  answer: asyncio.Future[list[str] | None]) -> None:
+    """The console learns what became of an offset change queued in a pause."""
+    if answer.cancelled():
         return
-    await ctx.moves.wait_idle()
-    await ctx.run_gcode(line, ticket)
-    await ctx.moves.wait_idle()
+    failure = answer.exception()
+    if isinstance(failure, CommandError):
+        output(f"!! SET_GCODE_OFFSET not applied: {error_text(failure)}")
+    elif answer.result() is None:
+        output("!! SET_GCODE_OFFSET not applied: the job ended before it resumed")
+    else:
+        output("// SET_GCODE_OFFSET applied")
 
 
 def control(ctx: ModuleContext, action: str) -> None:

@@ -151,7 +151,10 @@ class NonModal:
         for i, value in axes.items():
             g92[i] += self._scaled(i, value)
             target[i] += self._scaled(i, value)
+        why = self.geo.outside(tuple(target)) if move else None
+        if why is not None:  # refused, as a jog is: a baby-step never alarms a running job
+            raise CommandError(Error.JOG_TRAVEL_EXCEEDED, f"M290 target exceeds the travel: {why}")
         if move:
-            self.emit(tuple(target), MoveKind.RAPID, math.inf)  # (checked against the travel)
+            self.emit(tuple(target), MoveKind.RAPID, math.inf)
         self.offsets.g92 = self.offsets.g92_saved = tuple(g92)
         self.axes_used = True

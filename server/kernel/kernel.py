@@ -151,9 +151,8 @@ class _Context:
     async def run_gcode(self, text: str, ticket: int | None = None) -> list[str]:
         return await self._kernel.dispatcher.submit(text, self._source, ticket)
 
-    async def run_in_job(self, text: str, ticket: int) -> list[str] | None:
-        answer = self._kernel.jobs.interject(text, ticket)
-        return None if answer is None else await answer
+    def run_in_job(self, text: str, ticket: int) -> asyncio.Future[list[str] | None] | None:
+        return self._kernel.jobs.interject(text, ticket)
 
     async def start_job(self, name: str, ticket: int | None = None) -> None:
         await self._kernel.jobs.start(name, ticket)

@@ -14,6 +14,7 @@ configured as ``[mymodule.NAME]`` with one instance per name. The module reads i
 
 from __future__ import annotations
 
+import asyncio
 import logging
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
@@ -210,12 +211,13 @@ class ModuleContext(Protocol):
         for before a stop is refused (error 45), never run after it."""
         ...
 
-    async def run_in_job(self, text: str, ticket: int) -> list[str] | None:
-        """Run one line as part of the running or paused job, before its next line, in order
-        with its motion (a baby-step: ``M290 Z0.05``); the answer comes once the line ran
-        (its messages) or was refused (:class:`~server.errors.CommandError`: 45 after a stop
-        since ``ticket``). None: no job plays, or it ended before the line's turn; nothing
-        ran (run it with :meth:`run_gcode`, under the same ticket)."""
+    def run_in_job(self, text: str, ticket: int) -> asyncio.Future[list[str] | None] | None:
+        """Queue one line to run as part of the running or paused job, before its next line,
+        in order with its motion (a baby-step: ``M290 Z0.05``); None when no job plays. The
+        future is the line's messages once it ran, a :class:`~server.errors.CommandError`
+        when it was refused (45 after a stop since ``ticket``), or None when the job ended
+        before its turn: nothing ran (run it with :meth:`run_gcode`, under the same ticket).
+        Raises CommandError 45 when too many lines wait."""
         ...
 
     async def start_job(self, name: str, ticket: int | None = None) -> None:

@@ -93,6 +93,20 @@ async def test_a_stop_voids_a_waiting_baby_step() -> None:
         assert app.kernel.machine.interpreter.offsets_report()[-3].startswith("[G92:0.000,0")
 
 
+async def test_a_baby_step_beyond_the_travel_is_refused_and_the_job_goes_on_unshifted() -> None:
+    async with running(make_config()) as app:
+        taken = recording(app)
+        await playing(app)
+        answer = app.kernel.jobs.interject("M290 Z60", app.kernel.status.ticket())
+        assert answer is not None
+        with pytest.raises(CommandError) as refused:
+            await answer
+        assert refused.value.code == 15
+        await app.kernel.jobs._task  # noqa: SLF001
+        assert app.kernel.jobs.progress().state == "done"  # type: ignore[union-attr]
+        assert taken == TARGETS
+
+
 async def test_a_paused_job_applies_the_baby_step_when_it_resumes() -> None:
     async with running(make_config()) as app:
         taken = recording(app)
@@ -125,3 +139,31 @@ async def test_set_gcode_offset_through_the_api_socket_shifts_the_running_job(
         app.kernel.jobs.abort()  # the rest of the job is not needed
     k = shifted_once_after(taken, DZ_MM)
     assert 1 < k < LINES
+
+
+async def test_in_a_pause_set_gcode_offset_answers_at_once_and_applies_at_resume(
+        tmp_path: Path) -> None:
+    async with served(tmp_path) as (app, socket), client(socket) as api:
+        await api.call("gcode/subscribe_output", response_template={"tag": "out"})
+        taken = recording(app)
+        await app.kernel.jobs.save("zigzag.nc", JOB.encode())
+        app.kernel.jobs.play("zigzag.nc")
+        await asyncio.sleep(0.3)
+        assert (await api.call("gcode/script", script="PAUSE"))["result"] == {}
+        answer = await asyncio.wait_for(
+            api.call("gcode/script", script="SET_GCODE_OFFSET Z_ADJUST=0.05 MOVE=1"), 1.0)
+        assert answer["result"] == {}, "answered at once, not at Resume"
+        await asyncio.sleep(0.3)
+        assert app.kernel.machine.interpreter.wco()[2] == 0.0, "not applied in the pause"
+        assert app.kernel.machine.stepgen.state.speed_mm_s == 0.0, "nothing moved"
+        assert (await api.call("gcode/script", script="RESUME"))["result"] == {}
+        for _ in range(100):
+            if app.kernel.machine.interpreter.wco()[2] == DZ_MM:
+                break
+            await asyncio.sleep(0.02)
+        await api.call("info")  # collects what was pushed meanwhile
+        app.kernel.jobs.abort()
+    said = [m["params"]["response"] for m in api.pushed if m.get("tag") == "out"]
+    assert said[:2] == ["// SET_GCODE_OFFSET: the job is paused; the offset applies when it "
+                        "resumes", "// SET_GCODE_OFFSET applied"], api.pushed
+    shifted_once_after(taken, DZ_MM)

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from server.errors import CommandError
+from server.errors import CommandError, SoftLimitError
 from server.gcode.interpreter import Interpreter, InterpreterSettings
 from server.gcode.parser import parse_line
 from server.motion.moves import Move, MoveKind, Output
@@ -80,8 +80,9 @@ def test_m290_refuses_what_it_cannot_mean(line: str, code: int) -> None:
     assert (interpreter.position, interpreter.wco()) == before
 
 
-def test_m290_beyond_the_travel_is_refused_and_changes_nothing() -> None:
+def test_m290_beyond_the_travel_is_refused_as_a_jog_is_without_an_alarm() -> None:
     interpreter = started()
-    with pytest.raises(CommandError):
+    with pytest.raises(CommandError) as refused:
         feed(interpreter, "M290 Z500")
-    assert interpreter.wco() == (0.0, 0.0, 0.0)
+    assert refused.value.code == 15 and not isinstance(refused.value, SoftLimitError)
+    assert interpreter.wco() == (0.0, 0.0, 0.0) and interpreter.position == (10.0, 0.0, -1.0)
