@@ -38,27 +38,23 @@ class Interjections:
     """The lines waiting for a job's next turn (bounded; one job's at a time)."""
 
     def __init__(self) -> None:
-        self._waiting: deque[_Line] = deque()
-
-    def __bool__(self) -> bool:
-        """Some line waits (the player checks this before each of its lines)."""
-        return bool(self._waiting)
+        self.waiting: deque[_Line] = deque()  # the player checks it before each of its lines
 
     def add(self, text: str, ticket: int) -> asyncio.Future[list[str] | None]:
         """Queue ``text`` for the job's next turn; raises CommandError 45 when
         :data:`PENDING_LINES` wait already."""
-        if len(self._waiting) >= PENDING_LINES:
+        if len(self.waiting) >= PENDING_LINES:
             raise CommandError(Error.BUSY, "too many lines wait for the job's next turn")
         answer: asyncio.Future[list[str] | None] = asyncio.get_running_loop().create_future()
-        self._waiting.append(_Line(text, ticket, answer))
+        self.waiting.append(_Line(text, ticket, answer))
         return answer
 
     async def run(self, submit: Submit) -> None:
         """Run the waiting lines in order (the job's turn); each one's answer is set. A line
         interrupted (the job aborted while it waited for room) answers error 45: it may have
         taken effect in part (the interpreter read it), so it is never offered again."""
-        while self._waiting:
-            line = self._waiting.popleft()
+        while self.waiting:
+            line = self.waiting.popleft()
             if line.answer.done():  # the requester gave up waiting
                 continue
             try:
@@ -73,8 +69,8 @@ class Interjections:
 
     def release(self) -> None:
         """The job ended: the lines still waiting did not run (their answer is ``None``)."""
-        while self._waiting:
-            line = self._waiting.popleft()
+        while self.waiting:
+            line = self.waiting.popleft()
             _answer(line, None)
 
 

@@ -354,6 +354,7 @@ class Jobs(JobStore):
         limit = self.kernel.config.core.protocol.line_limit
         pending: deque[tuple[int, asyncio.Future[list[str]]]] = deque()
         interjections = self._interjections
+        waiting = interjections.waiting  # (a deque's truth costs a fifth of a method's)
 
         def as_job(text: str, ticket: int) -> Awaitable[list[str]]:
             return dispatcher.submit(text, source, ticket)
@@ -362,7 +363,7 @@ class Jobs(JobStore):
         async for line in lines:
             number += 1
             try:
-                if interjections:  # a requester's line, in the job's order (a baby-step)
+                if waiting:  # a requester's line, in the job's order (a baby-step)
                     await interjections.run(as_job)
                 check_length(line, limit)  # error 11, as a stream refuses it
                 await dispatcher.submit(line, source, source.ticket, _deferring(pending, number))

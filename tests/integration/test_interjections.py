@@ -47,7 +47,7 @@ async def test_a_line_cut_short_by_the_job_stopping_is_refused_never_offered_aga
         await player
     with pytest.raises(CommandError, match="stopped while the line ran"):
         await answer
-    assert not interjections
+    assert not interjections.waiting
 
 
 async def test_the_waiting_lines_are_bounded() -> None:
