@@ -19,7 +19,7 @@ from tests.support.moonraker import Moonraker, MoonrakerError
 # Most lines first, most time last: the file position says 98 % where the time says 10 %.
 JOB = ("G90 G21\nG1 X0 Y0 F6000\n"
        + "".join(f"G1 X{(i % 2) * 0.5:g} Y{i * 0.25:g}\n" for i in range(200))
-       + "G1 X200 F3000\nG1 X0\nG1 X200\n")
+       + "G1 X100 F3000\nG1 X0\nG1 X100\n")
 
 
 # Z down to the focus, a row of cuts there (about 1.5 s), then up to Z-1 at the origin.

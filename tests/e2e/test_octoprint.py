@@ -32,8 +32,8 @@ from tests.support.senders import wait_for
 
 LASER = {"minimum_power": 0.1, "maximum_power": 0.8, "maximum_s_value": 1000}
 # OctoPrint's defaults but its communication timeout (30 s), shortened so that a move three
-# times as long takes 30 s, not 100: motiond's keep-alive (every 2 s) must hold it either way
-TIMEOUTS_S: dict[str, float] = {"communication": 8.0}
+# times as long takes 15 s, not 100: motiond's keep-alive (every 2 s) must hold it either way
+TIMEOUTS_S: dict[str, float] = {"communication": 5.0}
 COMMUNICATION_TIMEOUT_S = TIMEOUTS_S["communication"]  # serial.timeout.communication
 CANCEL_SCRIPT = "M410\nM5\n"  # docs/octoprint.md's cancel script for a laser
 _SENT_M112 = re.compile(r"Send: (N\d+ )?M112")  # (the alarm's notification names M112)
@@ -228,9 +228,9 @@ async def test_octoprint_keeps_the_connection_through_a_long_move_and_a_refused_
     octoprint: OctoPrint,
 ) -> None:
     async with machine(octoprint) as run:
-        # one move of 30 s (30 mm at 1 mm/s): with the moves back queued behind it, the
+        # one move of 17 s (17 mm at 1 mm/s): with the moves back queued behind it, the
         # planner is full and the ok of a line after them is held for the whole move
-        await run.api.terminal("G1 X30 F60", "G0 X500", "G1 X0 F3000", "G1 X5", "G1 X0",
+        await run.api.terminal("G1 X17 F60", "G0 X500", "G1 X0 F3000", "G1 X5", "G1 X0",
                                "G1 X5")
         await wait_for(lambda: run.moving, 5, "the long move")
         started_s = time.monotonic()
