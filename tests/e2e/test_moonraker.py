@@ -115,7 +115,7 @@ async def test_store_through_moonraker_then_print_pause_resume_and_cancel(tmp_pa
     async with stack(tmp_path) as (served, server, _):
         await server.gcode("G28")
         job = "G90 G21\nM4 S500\n" + "".join(
-            f"G1 X{10 + i % 2 * 40} Y{10 + i} F6000\n" for i in range(30)) + "M5\n"
+            f"G1 X{10 + i % 2 * 20} Y{10 + i} F6000\n" for i in range(30)) + "M5\n"
         form = aiohttp.FormData()
         form.add_field("file", job.encode(), filename="square.gcode")
         async with server.session.post(server.url + "/server/files/upload", data=form) as reply:
