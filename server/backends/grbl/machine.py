@@ -41,6 +41,7 @@ from server.backends.grbl.answers import (
     mixed_line_error,
     overrides_bytes,
 )
+from server.backends.grbl.babystep import babystep_lines, is_babystep
 from server.backends.grbl.controller import Controller, Handshake, LineDropped
 from server.backends.grbl.feedback import FeedbackGate, clean_reply
 from server.backends.grbl.journal import Sent, SentLines
@@ -111,6 +112,8 @@ class GrblMachine(Machine):
                  if letter == "M" and value in LOCAL_M_CODES]
         if len(words) > 1 and codes and not self.check_mode:
             raise mixed_line_error(max(codes))  # refused as the board refuses these codes, first
+        if is_babystep(line) and not self.check_mode:  # Grbl does not know M290
+            return await self._babystep(command, line)
         before = self.interpreter.save()
         outputs = self.interpret(command)
         syncs = [out for out in outputs if type(out) is Sync]
@@ -132,6 +135,32 @@ class GrblMachine(Machine):
             return await self._probe(command, sent)
         motion = any(isinstance(out, Move) for out in outputs)
         return await self.forward(compact(command.text), command, motion=motion, sent=sent)
+
+    async def _babystep(self, command: Command, line: Line) -> list[str]:
+        """``M290`` as :func:`~server.backends.grbl.babystep.babystep_lines`: read once every
+        line before is answered (motiond's state is then the board's), each line sent once the
+        one before is accepted, the reply their answers; a refusal undoes it (the journal)."""
+        epoch = self.epoch
+        await self.controller.answered_all()
+        if epoch != self.epoch:
+            raise CommandError(Error.BUSY, "not run: motion was reset while M290 waited")
+        before = self.interpreter.save()
+        self.interpret(command)
+        try:
+            texts = babystep_lines(line, self.interpreter)
+        except CommandError:
+            self.interpreter.restore(before)
+            raise
+        sent = self._sent.add(before, lambda: self.interpreter.execute(line))
+        alone, messages = replace(command, defer=None), []
+        try:
+            for text in texts:
+                messages += await self.forward(text, alone, motion=text.startswith("G53"))
+        except CommandError:
+            self._sent.refused(sent)
+            raise
+        self._sent.answered(sent)
+        return messages
 
     async def _probe(self, command: Command, sent: Sent) -> list[str]:
         """G38.x: the board probes; motiond waits for it (Grbl's parser does too), then takes
