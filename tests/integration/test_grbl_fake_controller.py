@@ -44,6 +44,7 @@ class FakeController:
         self.next_reports: list[bytes] = []  # answers to the next polls, before ``report``
         self.polls_answered = True
         self.noise = b""  # written before each report (a noisy line, a chatty board)
+        self.refused: dict[str, int] = {}  # lines it answers with error:N
 
     async def start(self) -> int:
         self.server = await asyncio.start_server(self._serve, "127.0.0.1", 0)
@@ -88,6 +89,8 @@ class FakeController:
             return b"[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]\r\nok\r\n"
         if line == "G0X3":
             return b"error:79\r\n"  # a grblHAL number Grbl 1.1 does not have
+        if line in self.refused:
+            return f"error:{self.refused[line]}\r\n".encode()
         return b"ok\r\n"
 
     def release(self) -> None:
@@ -292,3 +295,31 @@ async def test_stopping_motiond_mid_job_resets_the_board_so_its_tools_go_off(
             assert fake.lines[-1] == "<reset>"
         finally:
             await client.close()
+
+
+async def test_m290_is_sent_once_the_lines_before_are_answered_and_a_refusal_undoes_it(
+        tmp_path: Path) -> None:
+    """M290's lines are computed from motiond's state, the board's once every line before it
+    is answered; the board refusing the first (its move) refuses the M290: nothing more is
+    sent and motiond's interpreter is as before it."""
+    async with linked(tmp_path) as (fake, app):
+        machine = app.kernel.machine
+        assert isinstance(machine, GrblMachine)
+        client = await client_of(app)
+        try:
+            fake.holding = True
+            fake.refused = {"G53G0X5.5": 9}
+            client.writer.write(b"G0 X5\nM290 X0.5\n")
+            await wait_for(lambda: "G0X5" in fake.lines, 2.0, "the line at the board")
+            await asyncio.sleep(0.2)
+            assert fake.lines[-1] == "G0X5", "M290 waits for the answer to the line before"
+            before = machine.interpreter.save()
+            fake.release()
+            replies = [await client._line(5.0) for _ in range(3)]
+        finally:
+            await client.close()
+        assert [text for text in replies if not text.startswith("[MSG:")] == ["ok", "error:9"]
+        assert "[MSG:controller error:9 on G53G0X5.5]" in replies
+        assert fake.lines[-1] == "G53G0X5.5", "no G92 after the refused move"
+        assert machine.interpreter.save() == before and machine.interpreter.wco() == (0.0, 0.0)
+        assert machine.lines_undone == 1

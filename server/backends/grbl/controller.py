@@ -378,6 +378,13 @@ class Controller:
             self.motion_pending = True
         return future
 
+    async def answered_all(self) -> None:
+        """Until every line sent has been answered (or dropped by a reset or a lost
+        connection): then the board's parser state is what motiond's interpreter says."""
+        while self.link.in_flight and self._writer is not None:
+            self._room.clear()
+            await self._room.wait()
+
     async def _send(
         self, text: str, still_valid: Callable[[], bool] = lambda: True
     ) -> asyncio.Future[Answered]:

@@ -28,27 +28,24 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import re
 from collections.abc import Callable, Sequence
 from dataclasses import replace
+from functools import partial
 
 from server.backends.grbl.adopt import adopt_offsets, adopt_settings, adopt_space
 from server.backends.grbl.answers import (
-    FEED_BYTES,
-    SPINDLE_BYTES,
     an_answer,
     axes_of,
     controller_error,
+    front_buffer,
     mixed_line_error,
-    override_bytes,
+    overrides_bytes,
 )
+from server.backends.grbl.babystep import babystep_lines, is_babystep
 from server.backends.grbl.controller import Controller, Handshake, LineDropped
 from server.backends.grbl.feedback import FeedbackGate, clean_reply
 from server.backends.grbl.journal import Sent, SentLines
-from server.backends.grbl.link import (
-    Answered,
-    compact,
-)
+from server.backends.grbl.link import Answered, compact
 from server.backends.grbl.reports import ControllerStatus
 from server.config import Config
 from server.errors import ALARM_MEANINGS, Alarm, CommandError, Error
@@ -79,7 +76,6 @@ _STATES = {"Idle": MachineState.IDLE, "Run": MachineState.RUN, "Hold": MachineSt
            "Tool": MachineState.HOLD}  # grblHAL's M6: held until a cycle start (~)
 _MOVING = frozenset({"Run", "Jog", "Home"})
 _STILL = frozenset({"Idle", "Alarm", "Check", "Sleep"})  # nothing will move without a command
-_OPTIONS = re.compile(r"^(\[OPT:[^,\]]*,\d+),\d+(.*)$")  # [OPT:flags,blocks,bytes...]
 Edit = Callable[[list[str]], list[str]]
 
 
@@ -116,6 +112,8 @@ class GrblMachine(Machine):
                  if letter == "M" and value in LOCAL_M_CODES]
         if len(words) > 1 and codes and not self.check_mode:
             raise mixed_line_error(max(codes))  # refused as the board refuses these codes, first
+        if is_babystep(line) and not self.check_mode:  # Grbl does not know M290
+            return await self._babystep(command, line)
         before = self.interpreter.save()
         outputs = self.interpret(command)
         syncs = [out for out in outputs if type(out) is Sync]
@@ -137,6 +135,32 @@ class GrblMachine(Machine):
             return await self._probe(command, sent)
         motion = any(isinstance(out, Move) for out in outputs)
         return await self.forward(compact(command.text), command, motion=motion, sent=sent)
+
+    async def _babystep(self, command: Command, line: Line) -> list[str]:
+        """``M290`` as :func:`~server.backends.grbl.babystep.babystep_lines`: read once every
+        line before is answered (motiond's state is then the board's), each line sent once the
+        one before is accepted, the reply their answers; a refusal undoes it (the journal)."""
+        epoch = self.epoch
+        await self.controller.answered_all()
+        if epoch != self.epoch:
+            raise CommandError(Error.BUSY, "not run: motion was reset while M290 waited")
+        before = self.interpreter.save()
+        self.interpret(command)
+        try:
+            texts = babystep_lines(line, self.interpreter)
+        except CommandError:
+            self.interpreter.restore(before)
+            raise
+        sent = self._sent.add(before, lambda: self.interpreter.execute(line))
+        alone, messages = replace(command, defer=None), []
+        try:
+            for text in texts:
+                messages += await self.forward(text, alone, motion=text.startswith("G53"))
+        except CommandError:
+            self._sent.refused(sent)
+            raise
+        self._sent.answered(sent)
+        return messages
 
     async def _probe(self, command: Command, sent: Sent) -> list[str]:
         """G38.x: the board probes; motiond waits for it (Grbl's parser does too), then takes
@@ -217,7 +241,8 @@ class GrblMachine(Machine):
             if line.error is not None:
                 raise line.error
             return await self._interpreted(command, lambda: self.interpreter.execute(line))
-        edit = self._front_buffer if command.name == "$I" else None
+        edit = (partial(front_buffer, front_bytes=self.core.protocol.rx_buffer_bytes)
+                if command.name == "$I" else None)
         return await self.forward(compact(command.text), command, edit=edit)
 
     async def jog(self, command: Command, line: Line) -> None:
@@ -239,12 +264,6 @@ class GrblMachine(Machine):
         lines may have changed them)."""
         if not self.controller.requeried.is_set():
             await self.controller.requeried.wait()
-
-    def _front_buffer(self, messages: list[str]) -> list[str]:
-        """``[OPT:V,15,128]``: the receive buffer a sender fills is the front's."""
-        front = self.core.protocol.rx_buffer_bytes
-        return [_OPTIONS.sub(lambda m: f"{m.group(1)},{front}{m.group(2)}", text)
-                for text in messages]
 
     def register_commands(self, dispatcher: Dispatcher) -> None:
         for name in ("$X", "$H"):
@@ -390,13 +409,8 @@ class GrblMachine(Machine):
     ) -> None:
         """The API's override setter, as the realtime bytes Grbl knows (100 %, then ±10s and
         ±1s); the board's next report confirms them."""
-        for value, steps in ((feed, FEED_BYTES), (spindle, SPINDLE_BYTES)):
-            if value is not None:
-                for byte in override_bytes(max(10, min(200, value)), steps):
-                    self.controller.realtime(byte)
-        if rapid is not None:
-            self.controller.realtime({100: Realtime.RAPID_100, 50: Realtime.RAPID_50}.get(
-                rapid, Realtime.RAPID_25))
+        for byte in overrides_bytes(feed, rapid, spindle):
+            self.controller.realtime(byte)
         self.feed_override = self.feed_override if feed is None else max(10, min(200, feed))
         self.spindle_override = (
             self.spindle_override if spindle is None else max(10, min(200, spindle)))
