@@ -361,10 +361,11 @@ class Interpreter:
     def gc_report(self) -> str:
         """Grbl's ``$G`` line, e.g. ``[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]``.
 
-        F is shown in the current program units (in/min under G20)."""
+        F is in mm/min whatever G20/G21, in/min with ``$13=1``, as Grbl 1.1 reports it."""
         m = self._modal
         coolant = " ".join(c for c, on in (("M7", m.mist), ("M8", m.flood)) if on) or "M9"
-        feed = m.feed / MM_PER_INCH if m.inches and not m.inverse_time else m.feed
+        inches = self.settings.report_inches and not m.inverse_time
+        feed = m.feed / MM_PER_INCH if inches else m.feed
         return (
             f"[GC:{MOTION_NAMES[m.motion]} {_wcs_name(m.wcs)} G{m.plane} "
             f"G{20 if m.inches else 21} G{91 if m.incremental else 90} "

@@ -115,7 +115,7 @@ async def test_every_edge_line_gets_the_boards_own_reply_and_leaves_the_same_mod
         tmp_path: Path) -> None:
     """After each line the board's ``$G`` (direct), the front's ``$G`` and motiond's own
     interpreter agree: a line the board refuses changed nothing in motiond either."""
-    lines = edge_lines() + EXTRA_LINES
+    lines = edge_lines() + ["G20 G1 F10", "$G", "G21 G0"] + EXTRA_LINES  # $G's F: mm/min
 
     async def direct() -> tuple[list[tuple[str, str, str]], int]:
         async with grbl_direct(tmp_path) as board:

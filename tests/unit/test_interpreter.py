@@ -61,7 +61,7 @@ TABLE: dict[str, Case] = {
     "g90 after g91 is absolute again": Case(["G91 G0 X5", "G0 X5", "G90 G0 X1"], (1, 0, 0)),
     "axis words alone use the modal motion": Case(["G1 F100", "X5", "Y5"], (5, 5, 0)),
     "f on a g0 line sets the modal feed": Case(["G0 X1 F300"], gc=("G0", "F300")),
-    "f shows in in/min under g20": Case(["G1 F254", "G20"], gc=("F10 ",)),
+    "f shows in mm/min under g20, as grbl": Case(["G1 F254", "G20"], gc=("F254 ",)),
     "block delete lines are skipped": Case(["/G0 X10"], (0, 0, 0)),
     "comment lines do nothing": Case(["(just a comment)", "; another"], (0, 0, 0)),
     # coordinate systems
