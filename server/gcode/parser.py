@@ -17,10 +17,16 @@ quantity is a bad number format (error 2), on the fast path as on the general on
 
 from __future__ import annotations
 
+import math
 import re
+from collections.abc import Sequence
+from dataclasses import dataclass
 from functools import reduce
+from itertools import compress
 from math import hypot
 from operator import xor
+
+import numpy as np
 
 from server.errors import CommandError, Error
 
@@ -45,6 +51,15 @@ _UPPER, _LOWER = b"ABCDEFGHIJKLMNOPQRSTUVWXYZ", b"abcdefghijklmnopqrstuvwxyz"
 _NUMBERS_ONLY = bytes.maketrans(_UPPER + _LOWER + b"_\t\n\r\x0b\x0c", b" " * 52 + b"#" * 6)
 _TO_UPPER = bytes.maketrans(_LOWER, _UPPER)
 _NOT_LETTERS = bytes(code for code in range(256) if code not in _UPPER + _LOWER)
+
+# Byte classes of the batch path (see parse_plain): a number's characters, a letter, a line's
+# end; everything else (comments, checksums, tabs, "_", "%", "/", non-ASCII) is a stranger.
+_STRANGER, _LETTER_BYTE, _NUMBER_BYTE, _END = 0, 1, 2, 3
+_CLASS = np.zeros(256, np.uint8)
+_CLASS[np.frombuffer(_UPPER, np.uint8)] = _LETTER_BYTE
+_CLASS[np.frombuffer(b"0123456789.+-", np.uint8)] = _NUMBER_BYTE
+_CLASS[ord("\n")] = _END
+_ONLY_NUMBERS = bytes(code if _CLASS[code] == _NUMBER_BYTE else 32 for code in range(256))
 
 
 class Line:
@@ -130,6 +145,82 @@ def parse_line(text: str) -> Line:
                         _take_line_number(line)
                     return line
     return _parse_framed_or_commented(text)
+
+
+@dataclass(frozen=True, slots=True)
+class PlainLines:
+    """Many lines parsed at once by :func:`parse_plain`.
+
+    Attributes:
+        plain: per line, whether it is plain: it parses on :func:`parse_line`'s fast path
+            without a line number, so its :class:`Line` has no error, comment or checksum.
+        columns: per letter (upper-case), the value of that word on each plain line (NaN
+            where the line has no such word, and on every line that is not plain).
+    """
+
+    plain: np.ndarray
+    columns: dict[str, np.ndarray]
+
+
+def parse_plain(lines: Sequence[str]) -> PlainLines:
+    """Parse the plain lines among ``lines`` (each without its ending) at once, as
+    :func:`parse_line` parses them one by one (the same bytes through the same ``float``),
+    with a few numpy passes over them all instead of a dozen calls per line: what a job's
+    plan reads two million lines with. A line that is not plain is left for
+    :func:`parse_line` (which also finds its error)."""
+    count = len(lines)
+    compact = "\n".join(lines).encode("ascii", "replace").translate(_TO_UPPER, b" ")
+    chars = np.frombuffer(compact, np.uint8)
+    kinds = _CLASS[chars]
+    ends = np.flatnonzero(kinds == _END)
+    if ends.shape[0] != count - 1:  # a line with an ending of its own inside: none is plain
+        return PlainLines(np.zeros(count, bool), {})
+    line_of = np.zeros(chars.shape[0], np.int64)
+    line_of[ends] = 1
+    np.cumsum(line_of, out=line_of)
+    is_letter, is_number = kinds == _LETTER_BYTE, kinds == _NUMBER_BYTE
+    starts = is_number.copy()
+    starts[1:] &= ~is_number[:-1]
+    letter_lines, token_lines = line_of[is_letter], line_of[starts]
+    first = np.concatenate(([0], ends + 1))
+    plain = np.zeros(count, bool)
+    inside = first < chars.shape[0]
+    plain[inside] = is_letter[first[inside]]  # it begins with a letter (an empty line: not)
+    plain &= np.bincount(line_of[kinds == _STRANGER], minlength=count) == 0
+    plain &= np.bincount(letter_lines, minlength=count) == np.bincount(token_lines, minlength=count)
+    letters = chars[is_letter]
+    plain[letter_lines[letters == ord("N")]] = False  # a line number: the one-line path's
+    keep = plain[token_lines]
+    tokens = list(compress(compact.translate(_ONLY_NUMBERS).split(), keep))
+    values = _floats(tokens)
+    letters, owners = letters[plain[letter_lines]], token_lines[keep]  # a letter per number
+    plain[owners[~(np.abs(values) <= MAX_MAGNITUDE)]] = False  # NaN: a token float() refused
+    keys = np.sort(owners * 32 + (letters - ord("A")))
+    plain[keys[1:][keys[1:] == keys[:-1]] // 32] = False  # a repeated word
+    kept = plain[owners]
+    letters, owners, values = letters[kept], owners[kept], values[kept]
+    columns = {}
+    for code in np.unique(letters).tolist():
+        column = np.full(count, np.nan)
+        here = letters == code
+        column[owners[here]] = values[here]
+        columns[chr(code)] = column
+    return PlainLines(plain, columns)
+
+
+def _floats(tokens: list[bytes]) -> np.ndarray:
+    """Each number as ``float()`` reads it; NaN for one it refuses ("1.2.3", "+")."""
+    try:
+        return np.fromiter(map(float, tokens), np.float64, len(tokens))
+    except ValueError:
+        return np.array([_float_or_nan(token) for token in tokens], np.float64)
+
+
+def _float_or_nan(token: bytes) -> float:
+    try:
+        return float(token)
+    except ValueError:
+        return math.nan
 
 
 def too_long(text: str, limit_bytes: int) -> bool:

@@ -1,0 +1,209 @@
+"""Plain lines interpreted at once: a job's runs of ``G0``/``G1`` lines read as arrays.
+
+A raster job is millions of lines like ``G1 X12.3 Y4.5 S380``. Read one at a time (parse,
+interpret, a :class:`~server.motion.moves.Move` each) a line costs microseconds of Python; a
+job's plan reads them in runs instead: :func:`~server.gcode.parser.parse_plain` parses a
+chunk of lines at once, and :func:`plain_run` interprets a run of plain lines from the
+interpreter's state with numpy, under exactly the conditions of the interpreter's own fast
+path (:meth:`Interpreter._fast_line <server.gcode.interpreter.Interpreter>`: G0/G1, axis
+words, F, S; G90, G94, soft limits off). The first line it does not take, and every line
+that is not plain, is read by the one-line path (:func:`lines_read`), which also finds its
+error. A run gives the same moves, positions and modal state as its lines one by one (the
+same float operations, in the same order per line); :meth:`PlainRun.outputs` gives the very
+outputs the one-line path gives.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from server.gcode.modal import G0, G1, MM_PER_INCH, Geometry, ModalState
+from server.gcode.parser import check_length, parse_line, parse_plain
+from server.motion.moves import Action, ActionName, Move, MoveKind, Output, Position, ToolMode
+
+if TYPE_CHECKING:
+    from server.gcode.interpreter import Interpreter
+
+CHUNK_LINES = 4096  # lines parsed at once (bounded memory: a chunk and its arrays)
+_FEED, _RAPID = MoveKind.FEED, MoveKind.RAPID
+
+
+@dataclass(slots=True)
+class PlainRun:
+    """What a run of plain lines did.
+
+    Attributes:
+        count: how many lines of the run were read (the next one is the one-line path's).
+        moved: per line read, whether it made a move.
+        ends: where each move ends (machine mm), one row per line that moved.
+        feeds_mm_min: the feed of each line (mm/min); ``rapid`` per line: G0.
+        s: the modal S after each line; ``s_changed`` per line: it set a new S (an action).
+        tool_mode: the modal M3/M4/M5 (the same for the whole run).
+        position: the position after the run; ``motion``, ``feed_mm_min``, ``s``: the modal
+            state after it.
+    """
+
+    count: int
+    moved: np.ndarray
+    ends: np.ndarray
+    feeds_mm_min: np.ndarray
+    rapid: np.ndarray
+    s: np.ndarray
+    s_changed: np.ndarray
+    tool_mode: ToolMode
+    position: Position
+    motion: int
+    feed_mm_min: float
+    s_last: float
+
+    def outputs(self) -> list[Output]:
+        """The outputs of the run's lines, in order, as the one-line path gives them."""
+        mode, spindle, inf = self.tool_mode, ActionName.SPINDLE, math.inf
+        ends = iter(map(tuple, self.ends.tolist()))
+        outputs: list[Output] = []
+        for moved, changed, s, feed, rapid in zip(  # noqa: B905 - parallel columns
+                self.moved.tolist(), self.s_changed.tolist(), self.s.tolist(),
+                self.feeds_mm_min.tolist(), self.rapid.tolist()):
+            actions = [Action(spindle, {"mode": mode, "s": s})] if changed else []
+            if not moved:
+                outputs += actions
+            elif rapid:
+                outputs.append(Move(next(ends), inf, _RAPID, mode, s, None, actions))
+            else:
+                outputs.append(Move(next(ends), feed / 60.0, _FEED, mode, s, None, actions))
+        return outputs
+
+
+def plain_run(geo: Geometry, modal: ModalState, wco: Position, position: Position,
+              columns: dict[str, np.ndarray], count: int) -> PlainRun:
+    """Interpret a run of ``count`` plain lines (``columns``: each letter's values, NaN
+    where a line has none) from this state, up to the first line the interpreter's fast path
+    would not take. Pure: the caller commits the state (:meth:`Interpreter.execute_plain`)."""
+    if modal.inverse_time or modal.incremental or geo.settings.soft_limits:
+        count = 0  # (G91 adds up, soft limits check every end: the one-line path's)
+    g, f = columns.get("G"), columns.get("F")
+    has_g = _has(g, count)
+    motion = _filled(np.where(g == 0.0, G0, G1) if g is not None else None, has_g, modal.motion)
+    if f is not None:
+        f = f * MM_PER_INCH + 0.0 if modal.inches else f + 0.0
+    feeds = _filled(f, _has(f, count), modal.feed)
+    count = _taken(geo, columns, count, has_g, motion, feeds)
+    columns = {letter: values[:count] for letter, values in columns.items()}
+    has_g, motion, feeds = has_g[:count], motion[:count], feeds[:count]
+    owns = [_own(columns.get(name), geo.inch_scale[i] if modal.inches else None, wco[i], count)
+            for name, i in geo.axis_index.items()]
+    moved = np.zeros(count, bool)
+    for (own, has), start in zip(owns, position, strict=True):
+        ends = _filled(own, has, start)
+        moved |= ends != _before(ends, start)  # the end differs from the position (==)
+    rows = []
+    for (own, has), start in zip(owns, position, strict=True):
+        now = _before(_filled(own, has & moved, start), start)  # the last move's end
+        rows.append((now if own is None else np.where(has, own, now))[moved])
+    ends = np.stack(rows, axis=1) if rows else np.zeros((0, 0))
+    s, changed = columns.get("S"), np.zeros(count, bool)
+    if s is not None:
+        s, has_s = s + 0.0, ~np.isnan(s)
+        changed = has_s & (s != _before(_filled(s, has_s, modal.s), modal.s))
+    s_after = _filled(s, changed, modal.s)
+    last = count - 1
+    return PlainRun(
+        count, moved, ends, feeds, motion == G0, s_after, changed, modal.tool_mode,
+        tuple(ends[-1].tolist()) if ends.shape[0] else position,
+        int(motion[last]) if count else modal.motion,
+        float(feeds[last]) if count else modal.feed,
+        float(s_after[last]) if count else modal.s)
+
+
+def _taken(geo: Geometry, columns: dict[str, np.ndarray], count: int, has_g: np.ndarray,
+           motion: np.ndarray, feeds: np.ndarray) -> int:
+    """How many lines from the first the fast path takes: words G0/G1, axes, F >= 0,
+    S >= 0 only, a G0/G1 motion, and a feed for G1."""
+    refused = np.zeros(count, bool)
+    moving = has_g.copy()
+    for letter, values in columns.items():
+        if letter in geo.axis_index:
+            moving |= ~np.isnan(values[:count])
+        elif letter == "G":
+            refused |= has_g & (values[:count] != 0.0) & (values[:count] != 1.0)
+        elif letter in "FS":
+            refused |= values[:count] < 0.0
+        else:
+            refused |= ~np.isnan(values[:count])
+    refused |= (motion != G0) & (motion != G1)
+    refused |= (motion == G1) & moving & (feeds <= 0.0)
+    return int(np.argmax(refused)) if refused.any() else count
+
+
+def _has(values: np.ndarray | None, count: int) -> np.ndarray:
+    return np.zeros(count, bool) if values is None else ~np.isnan(values[:count])
+
+
+def _own(values: np.ndarray | None, scale: float | None, offset: float,
+         count: int) -> tuple[np.ndarray | None, np.ndarray]:
+    """An axis's target on each line that names it (as the fast path: mm + wco)."""
+    if values is None:
+        return None, np.zeros(count, bool)
+    mm = values * scale if scale is not None else values
+    return mm + offset, ~np.isnan(values)
+
+
+def _filled(values: np.ndarray | None, present: np.ndarray, start: float) -> np.ndarray:
+    """Per line, the value of the last line at or before it where ``present`` (``start``
+    before the first)."""
+    if values is None or not present.any():
+        return np.full(present.shape[0], start)
+    source = np.where(present, np.arange(present.shape[0]), -1)
+    np.maximum.accumulate(source, out=source)
+    return np.where(source >= 0, values[np.maximum(source, 0)], start)
+
+
+def _before(values: np.ndarray, start: float) -> np.ndarray:
+    """Per line, the value after the line before it (``start`` before the first)."""
+    shifted = np.empty_like(values)
+    shifted[:1] = start
+    shifted[1:] = values[:-1]
+    return shifted
+
+
+def lines_read(lines: Iterable[str], interpreter: Interpreter, limit_bytes: int,
+               where: list[int]) -> Iterator[PlainRun | list[Output]]:
+    """Read ``lines`` through ``interpreter``: a :class:`PlainRun` for each run of plain
+    lines, the outputs of each other line (the one-line path, which raises its
+    :class:`~server.errors.CommandError`); ``where[0]`` is the number of the last line read
+    (the refused one, on an error). A line over ``limit_bytes`` is refused (error 11)."""
+    lines = iter(lines)
+    execute, base = interpreter.execute, 0
+    while chunk := list(itertools.islice(lines, CHUNK_LINES)):
+        plain = parse_plain(chunk)
+        taken = plain.plain & (np.fromiter(map(len, chunk), np.int64, len(chunk)) * 4
+                               <= limit_bytes)
+        index = 0
+        while index < len(chunk):
+            if taken[index]:
+                stop = index + _run_length(taken[index:])
+                run = interpreter.execute_plain(plain.columns, index, stop)
+                if run.count:
+                    where[0] = base + index + run.count
+                    yield run
+                    index += run.count
+                    if index == stop:
+                        continue
+            text = chunk[index]
+            where[0] = base + index + 1
+            if 4 * len(text) > limit_bytes:  # only such a line may be too long
+                check_length(text, limit_bytes)
+            yield execute(parse_line(text))
+            index += 1
+        base += len(chunk)
+
+
+def _run_length(taken: np.ndarray) -> int:
+    """How many lines from the first are taken."""
+    return int(np.argmin(taken)) if not taken.all() else taken.shape[0]
