@@ -169,25 +169,25 @@ def parse_plain(lines: Sequence[str]) -> PlainLines:
     plan reads two million lines with. A line that is not plain is left for
     :func:`parse_line` (which also finds its error)."""
     count = len(lines)
-    compact = "\n".join(lines).encode("ascii", "replace").translate(_TO_UPPER, b" ")
+    compact = ("\n".join(lines) + "\n").encode("ascii", "replace").translate(_TO_UPPER, b" ")
     chars = np.frombuffer(compact, np.uint8)
     kinds = _CLASS[chars]
     ends = np.flatnonzero(kinds == _END)
-    if ends.shape[0] != count - 1:  # a line with an ending of its own inside: none is plain
+    if ends.shape[0] != count:  # a line with an ending of its own inside: none is plain
         return PlainLines(np.zeros(count, bool), {})
-    line_of = np.zeros(chars.shape[0], np.int64)
-    line_of[ends] = 1
-    np.cumsum(line_of, out=line_of)
+    first = np.empty(count, np.intp)  # where each line begins (each ends with its "\n")
+    first[:1], first[1:] = 0, ends[:-1] + 1
     is_letter, is_number = kinds == _LETTER_BYTE, kinds == _NUMBER_BYTE
     starts = is_number.copy()
     starts[1:] &= ~is_number[:-1]
-    letter_lines, token_lines = line_of[is_letter], line_of[starts]
-    first = np.concatenate(([0], ends + 1))
-    plain = np.zeros(count, bool)
-    inside = first < chars.shape[0]
-    plain[inside] = is_letter[first[inside]]  # it begins with a letter (an empty line: not)
-    plain &= np.bincount(line_of[kinds == _STRANGER], minlength=count) == 0
-    plain &= np.bincount(letter_lines, minlength=count) == np.bincount(token_lines, minlength=count)
+    letters_per_line = np.add.reduceat(is_letter, first, dtype=np.int32)
+    tokens_per_line = np.add.reduceat(starts, first, dtype=np.int32)
+    plain = is_letter[first]  # it begins with a letter (an empty line: not)
+    plain &= np.add.reduceat(kinds == _STRANGER, first, dtype=np.int32) == 0
+    plain &= letters_per_line == tokens_per_line
+    numbers = np.arange(count)
+    letter_lines = np.repeat(numbers, letters_per_line)
+    token_lines = np.repeat(numbers, tokens_per_line)
     letters = chars[is_letter]
     plain[letter_lines[letters == ord("N")]] = False  # a line number: the one-line path's
     keep = plain[token_lines]

@@ -31,7 +31,7 @@ if TYPE_CHECKING:
     from server.gcode.interpreter import Interpreter
 
 CHUNK_LINES = 4096  # lines parsed at once (bounded memory: a chunk and its arrays)
-_FEED, _RAPID = MoveKind.FEED, MoveKind.RAPID
+_KINDS = (MoveKind.FEED, MoveKind.RAPID)  # by "rapid", False or True
 
 
 @dataclass(slots=True)
@@ -64,19 +64,21 @@ class PlainRun:
 
     def outputs(self) -> list[Output]:
         """The outputs of the run's lines, in order, as the one-line path gives them."""
-        mode, spindle, inf = self.tool_mode, ActionName.SPINDLE, math.inf
-        ends = iter(map(tuple, self.ends.tolist()))
-        outputs: list[Output] = []
-        for moved, changed, s, feed, rapid in zip(  # noqa: B905 - parallel columns
-                self.moved.tolist(), self.s_changed.tolist(), self.s.tolist(),
-                self.feeds_mm_min.tolist(), self.rapid.tolist()):
-            actions = [Action(spindle, {"mode": mode, "s": s})] if changed else []
-            if not moved:
-                outputs += actions
-            elif rapid:
-                outputs.append(Move(next(ends), inf, _RAPID, mode, s, None, actions))
-            else:
-                outputs.append(Move(next(ends), feed / 60.0, _FEED, mode, s, None, actions))
+        mode, spindle, moved = self.tool_mode, ActionName.SPINDLE, self.moved.tolist()
+        s = self.s.tolist()
+        actions = [[Action(spindle, {"mode": mode, "s": value})] if changed else []
+                   for changed, value in zip(self.s_changed.tolist(), s)]  # noqa: B905
+        speeds = np.where(self.rapid, math.inf, self.feeds_mm_min / 60.0)[self.moved]
+        moves: list[Output] = list(map(
+            Move, map(tuple, self.ends.tolist()), speeds.tolist(),
+            map(_KINDS.__getitem__, self.rapid[self.moved].tolist()), itertools.repeat(mode),
+            itertools.compress(s, moved), itertools.repeat(None),
+            itertools.compress(actions, moved)))
+        if len(moves) == self.count:
+            return moves
+        made, outputs = iter(moves), list[Output]()  # a line without a move: its action
+        for line_moved, line_actions in zip(moved, actions):  # noqa: B905
+            outputs += [next(made)] if line_moved else line_actions
         return outputs
 
 
