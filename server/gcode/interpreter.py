@@ -53,7 +53,7 @@ from server.gcode.modal import (
     read_words,
 )
 from server.gcode.parser import Line
-from server.gcode.plain import PlainRun, plain_run
+from server.gcode.plain import PlainRun, plain_run, takes_runs
 from server.motion.moves import Action, ActionName, Move, MoveKind, Output, Position, ToolMode
 
 __all__ = ["Interpreter", "InterpreterSettings", "InterpreterState"]
@@ -148,6 +148,11 @@ class Interpreter:
         if outputs is None:
             outputs = self._general_line(line)
         return outputs
+
+    def takes_runs(self) -> bool:
+        """Whether :meth:`execute_plain` takes lines from this state (not under G91, G93 or
+        soft limits)."""
+        return takes_runs(self._geo, self._modal)
 
     def execute_plain(self, columns: dict[str, np.ndarray], start: int, stop: int) -> PlainRun:
         """Execute the plain lines ``start`` to ``stop`` of a chunk parsed by

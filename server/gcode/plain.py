@@ -31,6 +31,7 @@ if TYPE_CHECKING:
     from server.gcode.interpreter import Interpreter
 
 CHUNK_LINES = 4096  # lines parsed at once (bounded memory: a chunk and its arrays)
+MIN_RUN = 32  # fewer plain lines in a row are read one by one (a run costs ~30 lines)
 _KINDS = (MoveKind.FEED, MoveKind.RAPID)  # by "rapid", False or True
 
 
@@ -87,8 +88,8 @@ def plain_run(geo: Geometry, modal: ModalState, wco: Position, position: Positio
     """Interpret a run of ``count`` plain lines (``columns``: each letter's values, NaN
     where a line has none) from this state, up to the first line the interpreter's fast path
     would not take. Pure: the caller commits the state (:meth:`Interpreter.execute_plain`)."""
-    if modal.inverse_time or modal.incremental or geo.settings.soft_limits:
-        count = 0  # (G91 adds up, soft limits check every end: the one-line path's)
+    if not takes_runs(geo, modal):
+        count, columns = 0, {}
     g, f = columns.get("G"), columns.get("F")
     has_g = _has(g, count)
     motion = _filled(np.where(g == 0.0, G0, G1) if g is not None else None, has_g, modal.motion)
@@ -123,24 +124,38 @@ def plain_run(geo: Geometry, modal: ModalState, wco: Position, position: Positio
         float(s_after[last]) if count else modal.s)
 
 
+def takes_runs(geo: Geometry, modal: ModalState) -> bool:
+    """Whether runs are read from this state: not under G91 (it adds up), G93 or soft limits
+    (every end checked): the one-line path's."""
+    return not (modal.inverse_time or modal.incremental or geo.settings.soft_limits)
+
+
 def _taken(geo: Geometry, columns: dict[str, np.ndarray], count: int, has_g: np.ndarray,
            motion: np.ndarray, feeds: np.ndarray) -> int:
-    """How many lines from the first the fast path takes: words G0/G1, axes, F >= 0,
-    S >= 0 only, a G0/G1 motion, and a feed for G1."""
-    refused = np.zeros(count, bool)
+    """How many lines from the first the fast path takes: its words (:func:`words_taken`),
+    a G0/G1 motion, and a feed for G1."""
+    refused = ~words_taken(geo.axis_index, columns, count)
     moving = has_g.copy()
     for letter, values in columns.items():
         if letter in geo.axis_index:
             moving |= ~np.isnan(values[:count])
-        elif letter == "G":
-            refused |= has_g & (values[:count] != 0.0) & (values[:count] != 1.0)
-        elif letter in "FS":
-            refused |= values[:count] < 0.0
-        else:
-            refused |= ~np.isnan(values[:count])
     refused |= (motion != G0) & (motion != G1)
     refused |= (motion == G1) & moving & (feeds <= 0.0)
     return int(np.argmax(refused)) if refused.any() else count
+
+
+def words_taken(axes: Iterable[str], columns: dict[str, np.ndarray], count: int) -> np.ndarray:
+    """Per line, whether the fast path takes its words whatever the state: G0 or G1, axis
+    words, F >= 0 and S >= 0 only."""
+    taken = np.ones(count, bool)
+    for letter, values in columns.items():
+        if letter == "G":
+            taken &= np.isnan(values[:count]) | (values[:count] == 0.0) | (values[:count] == 1.0)
+        elif letter in ("F", "S"):
+            taken &= ~(values[:count] < 0.0)
+        elif letter not in axes:
+            taken &= np.isnan(values[:count])
+    return taken
 
 
 def _has(values: np.ndarray | None, count: int) -> np.ndarray:
@@ -180,32 +195,50 @@ def lines_read(lines: Iterable[str], interpreter: Interpreter, limit_bytes: int,
     lines, the outputs of each other line (the one-line path, which raises its
     :class:`~server.errors.CommandError`); ``where[0]`` is the number of the last line read
     (the refused one, on an error). A line over ``limit_bytes`` is refused (error 11)."""
-    lines = iter(lines)
-    execute, base = interpreter.execute, 0
+    lines, base = iter(lines), 0
+    axes = interpreter.settings.axis_names
     while chunk := list(itertools.islice(lines, CHUNK_LINES)):
+        if not interpreter.takes_runs():  # (G91 is seldom left: a chunk at a time)
+            yield from _one_by_one(chunk, 0, len(chunk), base, interpreter, limit_bytes, where)
+            base += len(chunk)
+            continue
         plain = parse_plain(chunk)
-        taken = plain.plain & (np.fromiter(map(len, chunk), np.int64, len(chunk)) * 4
-                               <= limit_bytes)
+        taken = plain.plain & words_taken(axes, plain.columns, len(chunk)) & (
+            np.fromiter(map(len, chunk), np.int64, len(chunk)) * 4 <= limit_bytes)
         index = 0
-        while index < len(chunk):
-            if taken[index]:
-                stop = index + _run_length(taken[index:])
+        for start, stop in _runs(taken):
+            yield from _one_by_one(chunk, index, start, base, interpreter, limit_bytes, where)
+            index = start
+            if not interpreter.takes_runs():  # (nor will it before a line that is not plain)
+                continue
+            while index < stop:
                 run = interpreter.execute_plain(plain.columns, index, stop)
+                where[0] = base + index + run.count
                 if run.count:
-                    where[0] = base + index + run.count
                     yield run
                     index += run.count
-                    if index == stop:
-                        continue
-            text = chunk[index]
-            where[0] = base + index + 1
-            if 4 * len(text) > limit_bytes:  # only such a line may be too long
-                check_length(text, limit_bytes)
-            yield execute(parse_line(text))
-            index += 1
+                if index < stop:  # the line the fast path did not take
+                    yield from _one_by_one(chunk, index, index + 1, base, interpreter,
+                                           limit_bytes, where)
+                    index += 1
+        yield from _one_by_one(chunk, index, len(chunk), base, interpreter, limit_bytes, where)
         base += len(chunk)
 
 
-def _run_length(taken: np.ndarray) -> int:
-    """How many lines from the first are taken."""
-    return int(np.argmin(taken)) if not taken.all() else taken.shape[0]
+def _one_by_one(chunk: list[str], start: int, stop: int, base: int, interpreter: Interpreter,
+                limit_bytes: int, where: list[int]) -> Iterator[list[Output]]:
+    """The outputs of lines ``start`` to ``stop`` of ``chunk``, each read alone."""
+    execute = interpreter.execute
+    for index in range(start, stop):
+        text = chunk[index]
+        where[0] = base + index + 1
+        if 4 * len(text) > limit_bytes:  # only such a line may be too long
+            check_length(text, limit_bytes)
+        yield execute(parse_line(text))
+
+
+def _runs(taken: np.ndarray) -> list[tuple[int, int]]:
+    """The runs of at least :data:`MIN_RUN` taken lines: (first, after the last)."""
+    edges = np.flatnonzero(np.diff(taken, prepend=False, append=False))
+    pairs = edges.reshape(-1, 2).tolist()
+    return [(start, stop) for start, stop in pairs if stop - start >= MIN_RUN]

@@ -211,28 +211,24 @@ def extent(
     """
     stats = JobStats(count_start=count_start)
     chain, where = tuple(interpreter.position), [0]
+    dist, add = math.dist, stats.add_segment
     try:
         for item in lines_read(lines, interpreter, core.protocol.line_limit, where):
             if isinstance(item, PlainRun):
                 chain = _run_extent(stats, chain, item.ends)
-            else:
-                for output in item:
-                    if type(output) is Move:
-                        chain = _move_extent(stats, chain, tuple(output.target_mm))
+                continue
+            for output in item:
+                if type(output) is Move:
+                    target = tuple(output.target_mm)
+                    if dist(target, chain) >= MIN_LENGTH_MM:
+                        add(chain, target)
+                        chain = target
     except CommandError as exc:
         stats.error, stats.error_line = f"error:{exc.code} {exc.message}", where[0]
     finally:
         stats.lines = where[0]
     stats.finish()
     return stats
-
-
-def _move_extent(stats: JobStats, chain: Position, target: Position) -> Position:
-    """A move to ``target`` joins the extent when the planner keeps it; the chain after it."""
-    if math.dist(target, chain) >= MIN_LENGTH_MM:
-        stats.add_segment(chain, target)
-        return target
-    return chain
 
 
 def _run_extent(stats: JobStats, chain: Position, ends: np.ndarray) -> Position:
@@ -244,8 +240,10 @@ def _run_extent(stats: JobStats, chain: Position, ends: np.ndarray) -> Position:
     if float(np.sqrt(np.min(np.einsum("ij,ij->i", steps, steps)))) >= 2 * MIN_LENGTH_MM:
         stats.add_path(chain, ends)
         return tuple(ends[-1].tolist())
-    for target in map(tuple, ends.tolist()):
-        chain = _move_extent(stats, chain, target)
+    for target in map(tuple, ends.tolist()):  # as extent() reads a move alone
+        if math.dist(target, chain) >= MIN_LENGTH_MM:
+            stats.add_segment(chain, target)
+            chain = target
     return chain
 
 

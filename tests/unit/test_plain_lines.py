@@ -139,6 +139,7 @@ def test_runs_give_the_outputs_and_state_of_the_lines_one_by_one(
     seed: int, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.setattr(plain, "CHUNK_LINES", 97)  # runs cut by chunks too
+    monkeypatch.setattr(plain, "MIN_RUN", 1 + seed % 3)  # and runs of a line or two
     lines = ["G21 G90 G94 M4 S0 F1000", *random_job(seed, 1500)]
     alone, together = interpreter(), interpreter()
     expected, error = one_by_one(lines, alone)
@@ -151,6 +152,7 @@ def test_runs_give_the_outputs_and_state_of_the_lines_one_by_one(
 
 @pytest.mark.parametrize("text", REFUSED)
 def test_a_refused_line_after_a_run_is_refused_at_its_number(text: str) -> None:
+    """(A run of 50 lines, then the refused one: both paths stop there.)"""
     lines = ["G21 G90 M4 G1 F600", *[f"X{i % 7} S{i % 3}" for i in range(50)], text, "X1"]
     expected, error = one_by_one(lines, interpreter())
     outputs, run_error, _ = in_runs(lines, interpreter())
@@ -164,12 +166,18 @@ def test_a_line_over_the_limit_is_refused_though_plain() -> None:
     assert run_error == (2, 11)
 
 
-def test_soft_limits_inverse_time_and_g91_leave_every_line_to_the_one_line_path() -> None:
-    lines = ["G1 F600 X1", "X2", "X3", "G91", "X1", "X1"]
-    outputs, _, runs = in_runs(lines, interpreter(soft_limits=True))
-    assert runs == 0 and repr(outputs) == repr(one_by_one(lines, interpreter(True))[0])
-    outputs, _, runs = in_runs(lines, interpreter())
-    assert runs == 1 and repr(outputs) == repr(one_by_one(lines, interpreter())[0])
+def test_soft_limits_inverse_time_and_g91_leave_every_line_to_the_one_line_path(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(plain, "MIN_RUN", 1)
+    lines = ["G1 F600 X1", "X2", "X3", "G91", "X1", "X1", "G90 G93", "G1 X5 F10", "X6 F20",
+             "G94 G1 F100 X7", "X8"]
+    outputs, error, runs = in_runs(lines, interpreter(soft_limits=True))
+    assert runs == 0 and error is None
+    assert repr(outputs) == repr(one_by_one(lines, interpreter(True))[0])
+    outputs, error, runs = in_runs(lines, interpreter())
+    assert runs == 2 and error is None  # the first three lines, and the last
+    assert repr(outputs) == repr(one_by_one(lines, interpreter())[0])
 
 
 @pytest.mark.parametrize("chunk_chars", [1, 7, 64, 1 << 16])
