@@ -150,8 +150,7 @@ class Interpreter:
         return outputs
 
     def takes_runs(self) -> bool:
-        """Whether :meth:`execute_plain` takes lines from this state (not under G91, G93 or
-        soft limits)."""
+        """Whether :meth:`execute_plain` takes lines from this state (not under G91 or G93)."""
         return takes_runs(self._geo, self._modal)
 
     def execute_plain(self, columns: dict[str, np.ndarray], start: int, stop: int) -> PlainRun:

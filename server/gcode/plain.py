@@ -6,11 +6,12 @@ job's plan reads them in runs instead: :func:`~server.gcode.parser.parse_plain` 
 chunk of lines at once, and :func:`plain_run` interprets a run of plain lines from the
 interpreter's state with numpy, under exactly the conditions of the interpreter's own fast
 path (:meth:`Interpreter._fast_line <server.gcode.interpreter.Interpreter>`: G0/G1, axis
-words, F, S; G90, G94, soft limits off). The first line it does not take, and every line
-that is not plain, is read by the one-line path (:func:`lines_read`), which also finds its
-error. A run gives the same moves, positions and modal state as its lines one by one (the
-same float operations, in the same order per line); :meth:`PlainRun.outputs` gives the very
-outputs the one-line path gives.
+words, F, S; G90, G94; with soft limits, every end inside the travel). The first line it
+does not take, every line that is not plain and every run shorter than :data:`MIN_RUN` are
+read by the one-line path (:func:`lines_read`), which also finds the errors. A run gives the
+same moves, positions and modal state as its lines one by one (the same float operations,
+in the same order per line); :meth:`PlainRun.outputs` gives the very outputs the one-line
+path gives.
 """
 
 from __future__ import annotations
@@ -101,6 +102,8 @@ def plain_run(geo: Geometry, modal: ModalState, wco: Position, position: Positio
     has_g, motion, feeds = has_g[:count], motion[:count], feeds[:count]
     owns = [_own(columns.get(name), geo.inch_scale[i] if modal.inches else None, wco[i], count)
             for name, i in geo.axis_index.items()]
+    if geo.settings.soft_limits and (inside := _inside(geo, owns, position, count)) < count:
+        return plain_run(geo, modal, wco, position, columns, inside)  # up to the line outside
     moved = np.zeros(count, bool)
     for (own, has), start in zip(owns, position, strict=True):
         ends = _filled(own, has, start)
@@ -125,9 +128,21 @@ def plain_run(geo: Geometry, modal: ModalState, wco: Position, position: Positio
 
 
 def takes_runs(geo: Geometry, modal: ModalState) -> bool:
-    """Whether runs are read from this state: not under G91 (it adds up), G93 or soft limits
-    (every end checked): the one-line path's."""
-    return not (modal.inverse_time or modal.incremental or geo.settings.soft_limits)
+    """Whether runs are read from this state: not under G91 (it adds up) or G93."""
+    return not (modal.inverse_time or modal.incremental)
+
+
+def _inside(geo: Geometry, owns: list[tuple[np.ndarray | None, np.ndarray]],
+            position: Position, count: int) -> int:
+    """How many lines from the first end inside the travel (a line with axis words: its
+    end, as :meth:`Geometry.inside`), with soft limits on."""
+    outside, named = np.zeros(count, bool), np.zeros(count, bool)
+    for (own, has), start, low, high in zip(owns, position, geo.low, geo.high, strict=True):
+        ends = _filled(own, has, start)
+        outside |= ~((low <= ends) & (ends <= high))
+        named |= has
+    outside &= named
+    return int(np.argmax(outside)) if outside.any() else count
 
 
 def _taken(geo: Geometry, columns: dict[str, np.ndarray], count: int, has_g: np.ndarray,

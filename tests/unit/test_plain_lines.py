@@ -141,10 +141,12 @@ def test_runs_give_the_outputs_and_state_of_the_lines_one_by_one(
     monkeypatch.setattr(plain, "CHUNK_LINES", 97)  # runs cut by chunks too
     monkeypatch.setattr(plain, "MIN_RUN", 1 + seed % 3)  # and runs of a line or two
     lines = ["G21 G90 G94 M4 S0 F1000", *random_job(seed, 1500)]
-    alone, together = interpreter(), interpreter()
+    limits = seed % 2 == 1  # soft limits: G91 drifts out of the travel in some
+    alone, together = interpreter(limits), interpreter(limits)
     expected, error = one_by_one(lines, alone)
     outputs, run_error, runs = in_runs(lines, together)
-    assert runs > 10, "the runs were taken"
+    assert runs > (3 if limits else 10), "the runs were taken"
+    assert (error is not None) == limits  # (out of the travel within 700 lines)
     assert run_error == error
     assert repr(outputs) == repr(expected)  # (repr: -0.0 is not 0.0)
     assert repr(together.save()) == repr(alone.save())
@@ -166,18 +168,27 @@ def test_a_line_over_the_limit_is_refused_though_plain() -> None:
     assert run_error == (2, 11)
 
 
-def test_soft_limits_inverse_time_and_g91_leave_every_line_to_the_one_line_path(
+def test_inverse_time_and_g91_leave_every_line_to_the_one_line_path(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     monkeypatch.setattr(plain, "MIN_RUN", 1)
     lines = ["G1 F600 X1", "X2", "X3", "G91", "X1", "X1", "G90 G93", "G1 X5 F10", "X6 F20",
              "G94 G1 F100 X7", "X8"]
-    outputs, error, runs = in_runs(lines, interpreter(soft_limits=True))
-    assert runs == 0 and error is None
-    assert repr(outputs) == repr(one_by_one(lines, interpreter(True))[0])
     outputs, error, runs = in_runs(lines, interpreter())
     assert runs == 2 and error is None  # the first three lines, and the last
     assert repr(outputs) == repr(one_by_one(lines, interpreter())[0])
+
+
+@pytest.mark.parametrize("outside", ["X1e4", "Y-10000.5", "Z10001"])
+def test_with_soft_limits_a_run_ends_before_the_line_outside_the_travel(
+    outside: str, monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(plain, "MIN_RUN", 1)
+    lines = ["G1 F600 X1", "X2 Y3", "X9999.9", outside.replace("e4", "0000.001"), "X1"]
+    expected, error = one_by_one(lines, interpreter(soft_limits=True))
+    outputs, run_error, runs = in_runs(lines, interpreter(soft_limits=True))
+    assert runs == 1 and error is not None and run_error == error == (4, error[1])
+    assert repr(outputs) == repr(expected)
 
 
 @pytest.mark.parametrize("chunk_chars", [1, 7, 64, 1 << 16])
