@@ -177,35 +177,46 @@ def parse_plain(lines: Sequence[str]) -> PlainLines:
         return PlainLines(np.zeros(count, bool), {})
     first = np.empty(count, np.intp)  # where each line begins (each ends with its "\n")
     first[:1], first[1:] = 0, ends[:-1] + 1
-    is_letter, is_number = kinds == _LETTER_BYTE, kinds == _NUMBER_BYTE
-    starts = is_number.copy()
-    starts[1:] &= ~is_number[:-1]
-    letters_per_line = np.add.reduceat(is_letter, first, dtype=np.int32)
-    tokens_per_line = np.add.reduceat(starts, first, dtype=np.int32)
-    plain = is_letter[first]  # it begins with a letter (an empty line: not)
-    plain &= np.add.reduceat(kinds == _STRANGER, first, dtype=np.int32) == 0
-    plain &= letters_per_line == tokens_per_line
-    numbers = np.arange(count)
-    letter_lines = np.repeat(numbers, letters_per_line)
-    token_lines = np.repeat(numbers, tokens_per_line)
+    is_letter = kinds == _LETTER_BYTE
+    starts = kinds == _NUMBER_BYTE
+    starts[1:] &= kinds[:-1] != _NUMBER_BYTE  # where a number begins
+    plain, letter_lines, token_lines = _shapes(kinds, is_letter, starts, first)
     letters = chars[is_letter]
     plain[letter_lines[letters == ord("N")]] = False  # a line number: the one-line path's
     keep = plain[token_lines]
-    tokens = list(compress(compact.translate(_ONLY_NUMBERS).split(), keep))
-    values = _floats(tokens)
+    values = _floats(list(compress(compact.translate(_ONLY_NUMBERS).split(), keep)))
     letters, owners = letters[plain[letter_lines]], token_lines[keep]  # a letter per number
     plain[owners[~(np.abs(values) <= MAX_MAGNITUDE)]] = False  # NaN: a token float() refused
     keys = np.sort(owners * 32 + (letters - ord("A")))
     plain[keys[1:][keys[1:] == keys[:-1]] // 32] = False  # a repeated word
     kept = plain[owners]
-    letters, owners, values = letters[kept], owners[kept], values[kept]
+    return PlainLines(plain, _columns(letters[kept], owners[kept], values[kept], count))
+
+
+def _shapes(kinds: np.ndarray, is_letter: np.ndarray, starts: np.ndarray,
+            first: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which lines have the shape of a plain one (a letter first, no stranger, as many
+    numbers as letters: a letter then a number, each time), and the line of every letter and
+    every number."""
+    letters_per_line = np.add.reduceat(is_letter, first, dtype=np.int32)
+    numbers_per_line = np.add.reduceat(starts, first, dtype=np.int32)
+    plain = is_letter[first]  # (an empty line: its ending first)
+    plain &= np.add.reduceat(kinds == _STRANGER, first, dtype=np.int32) == 0
+    plain &= letters_per_line == numbers_per_line
+    lines = np.arange(first.shape[0])
+    return plain, np.repeat(lines, letters_per_line), np.repeat(lines, numbers_per_line)
+
+
+def _columns(letters: np.ndarray, owners: np.ndarray, values: np.ndarray,
+             count: int) -> dict[str, np.ndarray]:
+    """Per letter, its value on each line (``owners``), NaN on the others."""
     columns = {}
     for code in np.unique(letters).tolist():
         column = np.full(count, np.nan)
         here = letters == code
         column[owners[here]] = values[here]
         columns[chr(code)] = column
-    return PlainLines(plain, columns)
+    return columns
 
 
 def _floats(tokens: list[bytes]) -> np.ndarray:

@@ -47,8 +47,8 @@ class PlainRun:
         feeds_mm_min: the feed of each line (mm/min); ``rapid`` per line: G0.
         s: the modal S after each line; ``s_changed`` per line: it set a new S (an action).
         tool_mode: the modal M3/M4/M5 (the same for the whole run).
-        position: the position after the run; ``motion``, ``feed_mm_min``, ``s``: the modal
-            state after it.
+        position: the position after the run; ``motion``, ``feed_mm_min``, ``s_last``: the
+            modal state after it.
     """
 
     count: int
@@ -99,25 +99,13 @@ def plain_run(geo: Geometry, modal: ModalState, wco: Position, position: Positio
     feeds = _filled(f, _has(f, count), modal.feed)
     count = _taken(geo, columns, count, has_g, motion, feeds)
     columns = {letter: values[:count] for letter, values in columns.items()}
-    has_g, motion, feeds = has_g[:count], motion[:count], feeds[:count]
+    motion, feeds = motion[:count], feeds[:count]
     owns = [_own(columns.get(name), geo.inch_scale[i] if modal.inches else None, wco[i], count)
             for name, i in geo.axis_index.items()]
     if geo.settings.soft_limits and (inside := _inside(geo, owns, position, count)) < count:
         return plain_run(geo, modal, wco, position, columns, inside)  # up to the line outside
-    moved = np.zeros(count, bool)
-    for (own, has), start in zip(owns, position, strict=True):
-        ends = _filled(own, has, start)
-        moved |= ends != _before(ends, start)  # the end differs from the position (==)
-    rows = []
-    for (own, has), start in zip(owns, position, strict=True):
-        now = _before(_filled(own, has & moved, start), start)  # the last move's end
-        rows.append((now if own is None else np.where(has, own, now))[moved])
-    ends = np.stack(rows, axis=1) if rows else np.zeros((0, 0))
-    s, changed = columns.get("S"), np.zeros(count, bool)
-    if s is not None:
-        s, has_s = s + 0.0, ~np.isnan(s)
-        changed = has_s & (s != _before(_filled(s, has_s, modal.s), modal.s))
-    s_after = _filled(s, changed, modal.s)
+    moved, ends = _moves(owns, position, count)
+    s_after, changed = _spindle(columns.get("S"), modal.s, count)
     last = count - 1
     return PlainRun(
         count, moved, ends, feeds, motion == G0, s_after, changed, modal.tool_mode,
@@ -125,6 +113,32 @@ def plain_run(geo: Geometry, modal: ModalState, wco: Position, position: Positio
         int(motion[last]) if count else modal.motion,
         float(feeds[last]) if count else modal.feed,
         float(s_after[last]) if count else modal.s)
+
+
+def _moves(owns: list[tuple[np.ndarray | None, np.ndarray]], position: Position,
+           count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Which lines move (their end differs from the position, as ``==`` says) and where each
+    move ends: an axis the line names at its word, any other where the last move left it
+    (the position, not the last word: ``X-0`` at ``X0`` moves nothing and leaves ``0.0``)."""
+    moved = np.zeros(count, bool)
+    for (own, has), start in zip(owns, position, strict=True):
+        ends = _filled(own, has, start)
+        moved |= ends != _before(ends, start)
+    rows = []
+    for (own, has), start in zip(owns, position, strict=True):
+        now = _before(_filled(own, has & moved, start), start)
+        rows.append((now if own is None else np.where(has, own, now))[moved])
+    return moved, np.stack(rows, axis=1)
+
+
+def _spindle(s: np.ndarray | None, modal_s: float,
+             count: int) -> tuple[np.ndarray, np.ndarray]:
+    """The modal S after each line, and which lines change it (an action each)."""
+    if s is None:
+        return np.full(count, modal_s), np.zeros(count, bool)
+    s, has_s = s + 0.0, ~np.isnan(s)
+    changed = has_s & (s != _before(_filled(s, has_s, modal_s), modal_s))
+    return _filled(s, changed, modal_s), changed
 
 
 def takes_runs(geo: Geometry, modal: ModalState) -> bool:
