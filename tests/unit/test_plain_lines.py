@@ -201,28 +201,6 @@ def test_file_chunks_give_every_line_and_cut_the_long_ones(chunk_chars: int) -> 
                      f"last {long}"[:11]]
 
 
-def test_the_plan_reads_plain_lines_in_runs_not_one_by_one(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    """The finding: a 2-million-line raster took 16 s to plan, a dozen calls per line."""
-    core = make_config().core
-    lines = ["G21 G90 M4 G1 F6000", *[f"G1 X{i % 1000 * 0.1:.1f} Y{i // 1000 * 0.1:.1f} "
-                                      f"S{i % 17}" for i in range(20_000)]]
-    calls = [0]
-    one_line = plain.parse_line
-
-    def counted(text: str) -> object:
-        calls[0] += 1
-        return one_line(text)
-
-    monkeypatch.setattr(plain, "parse_line", counted)
-    monkeypatch.setattr(parser, "parse_line", counted)
-    fit = extent(lines, core, machine(core))
-    timed = estimate(lines, core, interpreter=machine(core))
-    assert calls[0] <= 2, "only the line that is not plain is read alone"
-    assert fit.lines == timed.lines == len(lines)
-
-
 def machine(core: CoreConfig) -> Interpreter:
     """The interpreter a job's plan reads with: the machine's, soft limits off."""
     made = Interpreter(replace(interpreter_settings(core), soft_limits=False))
