@@ -4,7 +4,9 @@ raster (about 45 MB) on a real ``motiond`` over TCP.
 * ready: from ``play big.nc`` to its answer (the job checked against the travel and started);
 * timed: until ``progress`` shows the job's estimated time (the whole plan);
 * the operator's ``?`` meanwhile, from another process every 10 ms (p50, p99, worst);
-* SIGTERM during the check: how long until the server has exited.
+* SIGTERM during the check: how long until the server has exited;
+* in one process of its own, as a planning process reads it: the CPU of the fit alone and of
+  the whole plan, and that process's peak memory.
 
 Run it on this tree and, side by side, on another (``--motiond-tree DIR``, e.g. a checkout
 of the previous commit): ``python -m benchmarks plan [--quick] [--motiond-tree DIR]``
@@ -18,6 +20,7 @@ import asyncio
 import os
 import random
 import signal
+import subprocess
 import sys
 import tempfile
 import time
@@ -122,6 +125,38 @@ async def sigterm_during_check(tree: Path, data_dir: Path) -> float:
     return time.perf_counter() - sent_s
 
 
+IN_PROCESS = """
+import gc, resource, sys, time
+from dataclasses import replace
+from pathlib import Path
+from server.config_loader import load_config
+from server.gcode.interpreter import Interpreter
+from server.jobs.clock import read_fit, read_plan
+from server.machine.parts import interpreter_settings
+core = load_config(Path(sys.argv[1])).core
+gc.disable()  # as in a planning process
+for reader in (read_fit, read_plan):
+    interpreter = Interpreter(replace(interpreter_settings(core), soft_limits=False))
+    interpreter.set_position((0.0,) * len(interpreter.position))
+    started = time.process_time()
+    reader(Path(sys.argv[2]), core, interpreter, lambda: False)
+    print(time.process_time() - started)
+print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+"""
+
+
+def in_process(tree: Path, data_dir: Path, job: Path) -> tuple[float, float, float]:
+    """CPU seconds of the fit alone and of the whole plan, and peak memory (MB), read in a
+    process of their own as a planning process reads them."""
+    config = data_dir.parent / "machine.toml"
+    config.write_text(AXES_TOML)
+    done = subprocess.run([sys.executable, "-c", IN_PROCESS, str(config), str(job)],
+                          cwd=tree, env={**os.environ, "PYTHONPATH": str(tree)},
+                          capture_output=True, text=True, check=True, timeout=TIMED_WITHIN_S)
+    fit_s, plan_s, memory_mb = map(float, done.stdout.split())
+    return fit_s, plan_s, memory_mb
+
+
 def run(quick: bool, motiond_tree: Path | None = None) -> BenchResult:
     result = BenchResult("plan", quick)
     count = QUICK_LINES if quick else LINES
@@ -134,17 +169,22 @@ def run(quick: bool, motiond_tree: Path | None = None) -> BenchResult:
         size_mb = job.stat().st_size / 1e6
         print(f"{count:,}-line raster, {size_mb:.1f} MB")
         print(f"{'tree':12} {'ready s':>8} {'timed s':>8} {'? p50 ms':>9} {'? p99 ms':>9} "
-              f"{'? max ms':>9} {'SIGTERM s':>10}")
+              f"{'? max ms':>9} {'SIGTERM s':>10} {'fit CPU s':>10} {'plan CPU s':>11} "
+              f"{'plan MB':>8}  load")
         for name, tree in trees:
+            load = os.getloadavg()[0]
             figures = asyncio.run(measure(tree.resolve(), data_dir))
             exit_s = asyncio.run(sigterm_during_check(tree.resolve(), data_dir))
+            fit_s, plan_s, memory_mb = in_process(tree.resolve(), data_dir, job)
             print(f"{name:12} {figures['ready_s']:8.2f} {figures['timed_s']:8.2f} "
                   f"{figures['p50_ms']:9.2f} {figures['p99_ms']:9.2f} {figures['max_ms']:9.2f} "
-                  f"{exit_s:10.2f}")
+                  f"{exit_s:10.2f} {fit_s:10.2f} {plan_s:11.2f} {memory_mb:8.1f}  {load:.1f}")
             result.add(name, str(tree), lines=(count, "lines"), size=(size_mb, "MB"),
                        ready=(figures["ready_s"], "s"), timed=(figures["timed_s"], "s"),
                        p50=(figures["p50_ms"], "ms"), p99=(figures["p99_ms"], "ms"),
-                       worst=(figures["max_ms"], "ms"), sigterm_exit=(exit_s, "s"))
+                       worst=(figures["max_ms"], "ms"), sigterm_exit=(exit_s, "s"),
+                       fit_cpu=(fit_s, "s"), plan_cpu=(plan_s, "s"),
+                       plan_memory=(memory_mb, "MB"), load=(load, ""))
     return result
 
 

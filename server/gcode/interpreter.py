@@ -35,6 +35,8 @@ import enum
 import math
 from typing import Any
 
+import numpy as np
+
 from server.errors import CommandError, Error
 from server.gcode.codes import CodeTable
 from server.gcode.executor import LineExecutor
@@ -51,6 +53,7 @@ from server.gcode.modal import (
     read_words,
 )
 from server.gcode.parser import Line
+from server.gcode.plain import PlainRun, plain_run, takes_runs
 from server.motion.moves import Action, ActionName, Move, MoveKind, Output, Position, ToolMode
 
 __all__ = ["Interpreter", "InterpreterSettings", "InterpreterState"]
@@ -145,6 +148,24 @@ class Interpreter:
         if outputs is None:
             outputs = self._general_line(line)
         return outputs
+
+    def takes_runs(self) -> bool:
+        """Whether :meth:`execute_plain` takes lines from this state (not under G91 or G93)."""
+        return takes_runs(self._geo, self._modal)
+
+    def execute_plain(self, columns: dict[str, np.ndarray], start: int, stop: int) -> PlainRun:
+        """Execute the plain lines ``start`` to ``stop`` of a chunk parsed by
+        :func:`~server.gcode.parser.parse_plain` (its ``columns``) at once, up to the first
+        one the one-line fast path would not take (see :mod:`server.gcode.plain`): the same
+        moves and state as :meth:`execute` of each."""
+        run = plain_run(self._geo, self._modal, self._wco, self.position,
+                        {letter: values[start:stop] for letter, values in columns.items()},
+                        stop - start)
+        if run.count:
+            modal = self._modal
+            modal.motion, modal.feed, modal.s = run.motion, run.feed_mm_min, run.s_last
+            self.position = run.position
+        return run
 
     def classify(self, line: Line) -> LineKind:
         """What ``line`` may do (see :class:`LineKind`); unknown words count as effects.

@@ -17,10 +17,16 @@ quantity is a bad number format (error 2), on the fast path as on the general on
 
 from __future__ import annotations
 
+import math
 import re
+from collections.abc import Sequence
+from dataclasses import dataclass
 from functools import reduce
+from itertools import compress
 from math import hypot
 from operator import xor
+
+import numpy as np
 
 from server.errors import CommandError, Error
 
@@ -45,6 +51,15 @@ _UPPER, _LOWER = b"ABCDEFGHIJKLMNOPQRSTUVWXYZ", b"abcdefghijklmnopqrstuvwxyz"
 _NUMBERS_ONLY = bytes.maketrans(_UPPER + _LOWER + b"_\t\n\r\x0b\x0c", b" " * 52 + b"#" * 6)
 _TO_UPPER = bytes.maketrans(_LOWER, _UPPER)
 _NOT_LETTERS = bytes(code for code in range(256) if code not in _UPPER + _LOWER)
+
+# Byte classes of the batch path (see parse_plain): a number's characters, a letter, a line's
+# end; everything else (comments, checksums, tabs, "_", "%", "/", non-ASCII) is a stranger.
+_STRANGER, _LETTER_BYTE, _NUMBER_BYTE, _END = 0, 1, 2, 3
+_CLASS = np.zeros(256, np.uint8)
+_CLASS[np.frombuffer(_UPPER, np.uint8)] = _LETTER_BYTE
+_CLASS[np.frombuffer(b"0123456789.+-", np.uint8)] = _NUMBER_BYTE
+_CLASS[ord("\n")] = _END
+_ONLY_NUMBERS = bytes(code if _CLASS[code] == _NUMBER_BYTE else 32 for code in range(256))
 
 
 class Line:
@@ -130,6 +145,93 @@ def parse_line(text: str) -> Line:
                         _take_line_number(line)
                     return line
     return _parse_framed_or_commented(text)
+
+
+@dataclass(frozen=True, slots=True)
+class PlainLines:
+    """Many lines parsed at once by :func:`parse_plain`.
+
+    Attributes:
+        plain: per line, whether it is plain: it parses on :func:`parse_line`'s fast path
+            without a line number, so its :class:`Line` has no error, comment or checksum.
+        columns: per letter (upper-case), the value of that word on each plain line (NaN
+            where the line has no such word, and on every line that is not plain).
+    """
+
+    plain: np.ndarray
+    columns: dict[str, np.ndarray]
+
+
+def parse_plain(lines: Sequence[str]) -> PlainLines:
+    """Parse the plain lines among ``lines`` (each without its ending) at once, as
+    :func:`parse_line` parses them one by one (the same bytes through the same ``float``),
+    with a few numpy passes over them all instead of a dozen calls per line: what a job's
+    plan reads two million lines with. A line that is not plain is left for
+    :func:`parse_line` (which also finds its error)."""
+    count = len(lines)
+    compact = ("\n".join(lines) + "\n").encode("ascii", "replace").translate(_TO_UPPER, b" ")
+    chars = np.frombuffer(compact, np.uint8)
+    kinds = _CLASS[chars]
+    ends = np.flatnonzero(kinds == _END)
+    if ends.shape[0] != count:  # a line with an ending of its own inside: none is plain
+        return PlainLines(np.zeros(count, bool), {})
+    first = np.empty(count, np.intp)  # where each line begins (each ends with its "\n")
+    first[:1], first[1:] = 0, ends[:-1] + 1
+    is_letter = kinds == _LETTER_BYTE
+    starts = kinds == _NUMBER_BYTE
+    starts[1:] &= kinds[:-1] != _NUMBER_BYTE  # where a number begins
+    plain, letter_lines, token_lines = _shapes(kinds, is_letter, starts, first)
+    letters = chars[is_letter]
+    plain[letter_lines[letters == ord("N")]] = False  # a line number: the one-line path's
+    keep = plain[token_lines]
+    values = _floats(list(compress(compact.translate(_ONLY_NUMBERS).split(), keep)))
+    letters, owners = letters[plain[letter_lines]], token_lines[keep]  # a letter per number
+    plain[owners[~(np.abs(values) <= MAX_MAGNITUDE)]] = False  # NaN: a token float() refused
+    keys = np.sort(owners * 32 + (letters - ord("A")))
+    plain[keys[1:][keys[1:] == keys[:-1]] // 32] = False  # a repeated word
+    kept = plain[owners]
+    return PlainLines(plain, _columns(letters[kept], owners[kept], values[kept], count))
+
+
+def _shapes(kinds: np.ndarray, is_letter: np.ndarray, starts: np.ndarray,
+            first: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which lines have the shape of a plain one (a letter first, no stranger, as many
+    numbers as letters: a letter then a number, each time), and the line of every letter and
+    every number."""
+    letters_per_line = np.add.reduceat(is_letter, first, dtype=np.int32)
+    numbers_per_line = np.add.reduceat(starts, first, dtype=np.int32)
+    plain = is_letter[first]  # (an empty line: its ending first)
+    plain &= np.add.reduceat(kinds == _STRANGER, first, dtype=np.int32) == 0
+    plain &= letters_per_line == numbers_per_line
+    lines = np.arange(first.shape[0])
+    return plain, np.repeat(lines, letters_per_line), np.repeat(lines, numbers_per_line)
+
+
+def _columns(letters: np.ndarray, owners: np.ndarray, values: np.ndarray,
+             count: int) -> dict[str, np.ndarray]:
+    """Per letter, its value on each line (``owners``), NaN on the others."""
+    columns = {}
+    for code in np.unique(letters).tolist():
+        column = np.full(count, np.nan)
+        here = letters == code
+        column[owners[here]] = values[here]
+        columns[chr(code)] = column
+    return columns
+
+
+def _floats(tokens: list[bytes]) -> np.ndarray:
+    """Each number as ``float()`` reads it; NaN for one it refuses ("1.2.3", "+")."""
+    try:
+        return np.fromiter(map(float, tokens), np.float64, len(tokens))
+    except ValueError:
+        return np.array([_float_or_nan(token) for token in tokens], np.float64)
+
+
+def _float_or_nan(token: bytes) -> float:
+    try:
+        return float(token)
+    except ValueError:
+        return math.nan
 
 
 def too_long(text: str, limit_bytes: int) -> bool:

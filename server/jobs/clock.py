@@ -3,11 +3,11 @@
 A plan comes in two parts, each read from the job file by the offline pipeline from the
 machine's real state (a copy of the live interpreter: position, work offsets, modal state;
 soft limits off): :func:`read_fit` finds the extent (:func:`server.offline.estimate.extent`,
-about half the work) and checks it against the travel (:func:`server.offline.fit.check_fit`),
-which is all a start needs; :func:`read_plan` plans the whole job
-(:func:`server.offline.estimate.estimate`) for its time, and its extent too. Both are
-blocking I/O and CPU: the server runs them in processes of their own
-(:mod:`server.jobs.planning`).
+about a quarter of the work) and checks it against the travel
+(:func:`server.offline.fit.check_fit`), which is all a start needs; :func:`read_plan`
+plans the whole job (:func:`server.offline.estimate.estimate`) for its time, and its
+extent too. Both are blocking I/O and CPU: the server runs them in processes of their
+own (:mod:`server.jobs.planning`).
 
 :class:`JobClock` reads the remaining time from that plan: the planned time of the blocks
 the step generator has not finished yet. Between block ends it advances with the motion time
@@ -30,7 +30,7 @@ from server.config import CoreConfig
 from server.gcode.interpreter import Interpreter
 from server.jobs.reading import until
 from server.motion.stepgen import MotionState
-from server.offline.estimate import estimate, extent, file_lines
+from server.offline.estimate import estimate, extent, file_chunks
 from server.offline.fit import Fit, check_fit
 from server.offline.stats import JobStats
 
@@ -84,7 +84,7 @@ def read_fit(
     :class:`~server.jobs.reading.Stopped` soon after ``stopped()`` becomes true."""
     placement = (tuple(interpreter.position), tuple(interpreter.wco()))
     with path.open(errors="replace") as handle:
-        lines = until(file_lines(handle, core.protocol.line_limit), stopped)
+        lines = until(file_chunks(handle, core.protocol.line_limit), stopped)
         stats = extent(lines, core, interpreter, count_start=False)  # the job's own extent
     return _plan(stats, core, placement)
 
@@ -96,7 +96,7 @@ def read_plan(
     :func:`read_fit`."""
     placement = (tuple(interpreter.position), tuple(interpreter.wco()))
     with path.open(errors="replace") as handle:
-        lines = until(file_lines(handle, core.protocol.line_limit), stopped)
+        lines = until(file_chunks(handle, core.protocol.line_limit), stopped)
         stats = estimate(lines, core, None, interpreter, timeline=True, count_start=False)
     plan = _plan(stats, core, placement)
     plan.timing = JobTiming(stats.duration_s, stats.timeline(), stats.timeline_stride)

@@ -8,9 +8,9 @@ that has the pipeline imported already (a fork costs milliseconds, not an interp
 start-up), and sends its one result back through a pipe. The children run at ordinary
 priority (``motiond serve``'s loop runs at real-time priority where allowed, and a niced plan
 starves on a busy host). A stop, an abort or the server's shutdown kills the child at
-once (:meth:`PlanProcess.cancel`); a child whose server is gone stops by itself within
-:data:`~server.jobs.reading.READ_LINES` lines. Memory in the child is bounded as the plan's is
-(the file is read as the plan goes).
+once (:meth:`PlanProcess.cancel`); a child whose server is gone stops by itself within a
+chunk of the file (:data:`~server.offline.estimate.READ_CHUNK_CHARS`). Memory in the child
+is bounded as the plan's is (the file is read as the plan goes).
 
 The interpreter sent to the child is a copy whose module codes are stand-ins
 (:meth:`~server.gcode.codes.CodeTable.stand_ins`): a module's state stays in the server.
@@ -108,13 +108,6 @@ class PlanProcess(Generic[T]):
             process.kill()
 
 
-def spare_core() -> bool:
-    """Whether the host has a core to spare for the fit alone (the load of the last minute
-    at least one below the cores): on a busy host a second child only takes CPU from the
-    whole plan, whose fit then comes as soon."""
-    return os.getloadavg()[0] <= (os.cpu_count() or 1) - 1
-
-
 async def _readable(connection: Connection) -> None:
     """Until the child has written (or died: the end of the pipe is readable too)."""
     loop = asyncio.get_running_loop()
@@ -164,13 +157,13 @@ class JobPlans:
 
     A file of at most :data:`IN_THREAD_BYTES` is planned whole in a thread (a few
     milliseconds: less than a child's start). For a larger one, :meth:`plan` reads the whole
-    plan in one child and, with a core to spare (:func:`spare_core`), the fit alone in
-    another (about half the work: it comes first); it answers with the first fit (and the
-    time, if it comes within :data:`TIMING_GRACE_S`) and fills in the plan's ``timing``
-    when it comes, calling ``on_timing(plan)``. The last :data:`KEPT_PLANS` plans are kept
-    under their key (the file's size and time, the machine's state), so a job placed (the
-    UI's preview) starts at once. :meth:`cancel` ends every plan being read (a stop, an
-    abort).
+    plan in one child and the fit alone in another (about a quarter of the work: it comes
+    first, and on a busy host delays the time by no more than its share); it answers with
+    the first fit (and the time, if it comes within :data:`TIMING_GRACE_S`) and fills in
+    the plan's ``timing`` when it comes, calling ``on_timing(plan)``. The last
+    :data:`KEPT_PLANS` plans are kept under their key (the file's size and time, the
+    machine's state), so a job placed (the UI's preview) starts at once. :meth:`cancel`
+    ends every plan being read (a stop, an abort).
     """
 
     def __init__(self, on_timing: Callable[[JobPlan], None]) -> None:
@@ -210,12 +203,12 @@ class JobPlans:
 
     async def _in_processes(self, path: Path, core: CoreConfig,
                             interpreter: Interpreter) -> JobPlan:
-        """The whole plan in one child and, with a core to spare, the fit alone in another:
-        the fit answers from whichever comes first."""
+        """The whole plan in one child and the fit alone in another: the fit answers from
+        whichever comes first."""
         whole = PlanProcess(read_plan, path, core, interpreter)
         planned = self._own(self._read(whole))
-        fit = PlanProcess(read_fit, path, core, interpreter) if spare_core() else None
-        fitted = planned if fit is None else self._own(self._read(fit))
+        fit = PlanProcess(read_fit, path, core, interpreter)
+        fitted = self._own(self._read(fit))
         try:
             await asyncio.wait({planned, fitted}, return_when=asyncio.FIRST_COMPLETED)
         except BaseException:

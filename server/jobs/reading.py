@@ -2,7 +2,7 @@
 
 :func:`read_lines` gives the lines to the player :data:`READ_LINES` at a time, read in a thread;
 :func:`until` lets a plan read through the file (:mod:`server.jobs.clock`) give up soon after
-it is no longer wanted. Memory is bounded by a
+it is no longer wanted (within a chunk of the file). Memory is bounded by a
 batch of lines and the planner's window, whatever the file's size.
 """
 
@@ -51,10 +51,10 @@ def _take(lines: Iterator[str], count: int) -> list[str]:
     return list(itertools.islice(lines, count))
 
 
-def until(lines: Iterator[str], stopped: Callable[[], bool]) -> Iterator[str]:
-    """``lines``, raising :class:`Stopped` soon after ``stopped()`` becomes true (asked every
-    :data:`READ_LINES` lines)."""
-    for number, line in enumerate(lines):
-        if number % READ_LINES == 0 and stopped():
+def until(chunks: Iterator[list[str]], stopped: Callable[[], bool]) -> Iterator[str]:
+    """The lines of ``chunks`` (:func:`~server.offline.estimate.file_chunks`), raising
+    :class:`Stopped` soon after ``stopped()`` becomes true (asked before every chunk)."""
+    for chunk in chunks:
+        if stopped():
             raise Stopped
-        yield line
+        yield from chunk

@@ -89,6 +89,14 @@ class PlannerIntake:
             inverse = 1.0 / length if length >= MIN_LENGTH_MM else 0.0
             dx, dy, dz = delta
             unit: tuple[float, ...] = (dx * inverse, dy * inverse, dz * inverse)
+        elif len(start) == 2:  # a laser's XY, the same
+            x0, y0 = start
+            x1, y1 = target
+            delta = (x1 - x0, y1 - y0)
+            length = math.hypot(*delta)
+            inverse = 1.0 / length if length >= MIN_LENGTH_MM else 0.0
+            dx, dy = delta
+            unit = (dx * inverse, dy * inverse)
         else:
             delta = list(map(sub, target, start))
             length = math.hypot(*delta)

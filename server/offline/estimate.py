@@ -12,26 +12,29 @@ The figures summed are :class:`~server.offline.stats.JobStats`; the ``motiond es
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import replace
 from typing import TextIO
 
+import numpy as np
+
 from server.backends.null import NullBackend
 from server.config import CoreConfig
 from server.errors import CommandError
 from server.gcode.interpreter import Interpreter
-from server.gcode.parser import check_length, parse_line
+from server.gcode.plain import PlainRun, lines_read
 from server.machine.parts import interpreter_settings, planner_settings
 from server.motion.backend import Backend
 from server.motion.feed import offer
-from server.motion.moves import Action, Move, Output, Sync
+from server.motion.moves import Action, Move, Output, Position, Sync
 from server.motion.planner import MIN_LENGTH_MM, Block, Planner
 from server.motion.stepgen import StepGenerator
 from server.offline.stats import JobStats
 
 OFFLINE_SYNC_BLOCKS = 1024  # no event loop to keep: fewer, larger syncs (the same plan)
-SKIP_CHUNK_CHARS = 1 << 16
+READ_CHUNK_CHARS = 1 << 16  # a job file is read this many characters at a time
 
 
 class _Listener:
@@ -68,41 +71,41 @@ class _Feeder:
         settings = replace(planner_settings(core), sync_blocks=OFFLINE_SYNC_BLOCKS)
         self.planner = Planner(settings, interpreter.position)  # the job starts where it is
         self.stats = stats
-        self._lines = enumerate(lines, 1)
-        self._line_limit = core.protocol.line_limit
+        self._where = [0]  # the number of the last line read
+        self._read = lines_read(lines, interpreter, core.protocol.line_limit, self._where)
         self._on_line = on_line
-        self._waiting: list[Output] = []  # outputs of the current line not yet queued
+        self._waiting: list[Output] = []  # outputs read not yet queued
         self.done = False
 
     def refill(self) -> None:
-        """Queue outputs until the planner is full (reading one line ahead) or the job ends."""
+        """Queue outputs until the planner is full (reading ahead a line, or a run of plain
+        lines) or the job ends."""
         if self._waiting:
             self._waiting = self._queue(self._waiting)
             if self._waiting:
                 return
         if self.done:  # the end of the job, or a refused line: read no further
             return
-        planner, stats, on_line = self.planner, self.stats, self._on_line
-        execute, is_full, append = self.interpreter.execute, planner.is_full, planner.append
-        limit, number, full = self._line_limit, stats.lines, is_full()
+        planner, on_line, where = self.planner, self._on_line, self._where
+        is_full, append = planner.is_full, planner.append
+        full = is_full()
         try:
-            for number, text in self._lines:  # noqa: B007 - the last number counts
+            for item in self._read:
                 if on_line is not None:
-                    on_line(number)
-                if 4 * len(text) > limit:  # only such a line may be too long
-                    check_length(text, limit)  # error 11, as the server refuses it
-                outputs = execute(parse_line(text))
-                if len(outputs) == 1 and type(outputs[0]) is Move and not full:
-                    full = append(outputs[0])  # the common line: offer() of one move, inline
-                elif outputs:
-                    self._waiting = self._queue(outputs)
+                    on_line(where[0])
+                outputs = item.outputs() if isinstance(item, PlainRun) else item
+                index, count = 0, len(outputs)
+                if count == 1 and not full and type(outputs[0]) is Move:
+                    full, index = append(outputs[0]), 1  # the common line: offer(), inline
+                if index < count:
+                    self._waiting = self._queue(outputs[index:] if index else outputs)
                     if self._waiting:
                         return
                     full = is_full()
         except CommandError as exc:
-            stats.error, stats.error_line = f"error:{exc.code} {exc.message}", number
+            self.stats.error, self.stats.error_line = f"error:{exc.code} {exc.message}", where[0]
         finally:
-            stats.lines = number
+            self.stats.lines = where[0]
         self.done = True
 
     def _queue(self, outputs: list[Output]) -> list[Output]:
@@ -198,33 +201,50 @@ def estimate(
 def extent(
     lines: Iterable[str], core: CoreConfig, interpreter: Interpreter, *, count_start: bool = True
 ) -> JobStats:
-    """The job's extent, lines read and first refused line, without planning (in about half
+    """The job's extent, lines read and first refused line, without planning (a fraction of
     the time of :func:`estimate`: the bounding box needs no timing).
 
-    Every line is read and interpreted as :func:`estimate` reads it; a move joins the extent
-    when the planner would keep it (at least ``MIN_LENGTH_MM`` from the last one kept), so
-    the box is the one :func:`estimate` gives. Only the extent, ``lines`` and ``error`` are
-    filled in.
+    Every line is read and interpreted as :func:`estimate` reads it (runs of plain lines at
+    once, :func:`~server.gcode.plain.lines_read`); a move joins the extent when the planner
+    would keep it (at least ``MIN_LENGTH_MM`` from the last one kept), so the box is the one
+    :func:`estimate` gives. Only the extent, ``lines`` and ``error`` are filled in.
     """
     stats = JobStats(count_start=count_start)
-    execute, limit = interpreter.execute, core.protocol.line_limit
-    chain, number, dist, add = tuple(interpreter.position), 0, math.dist, stats.add_segment
+    chain, where = tuple(interpreter.position), [0]
+    dist, add = math.dist, stats.add_segment
     try:
-        for number, text in enumerate(lines, 1):  # noqa: B007 - the last number counts
-            if 4 * len(text) > limit:  # only such a line may be too long
-                check_length(text, limit)  # error 11, as the server refuses it
-            for output in execute(parse_line(text)):
+        for item in lines_read(lines, interpreter, core.protocol.line_limit, where):
+            if isinstance(item, PlainRun):
+                chain = _run_extent(stats, chain, item.ends)
+                continue
+            for output in item:
                 if type(output) is Move:
                     target = tuple(output.target_mm)
                     if dist(target, chain) >= MIN_LENGTH_MM:
                         add(chain, target)
                         chain = target
     except CommandError as exc:
-        stats.error, stats.error_line = f"error:{exc.code} {exc.message}", number
+        stats.error, stats.error_line = f"error:{exc.code} {exc.message}", where[0]
     finally:
-        stats.lines = number
+        stats.lines = where[0]
     stats.finish()
     return stats
+
+
+def _run_extent(stats: JobStats, chain: Position, ends: np.ndarray) -> Position:
+    """The moves of a plain run (``ends``, a row each) join the extent: at once when each is
+    clearly longer than ``MIN_LENGTH_MM`` (the planner keeps them all), else one by one."""
+    if not ends.shape[0]:
+        return chain
+    steps = np.diff(ends, axis=0, prepend=np.asarray([chain]))
+    if float(np.sqrt(np.min(np.einsum("ij,ij->i", steps, steps)))) >= 2 * MIN_LENGTH_MM:
+        stats.add_path(chain, ends)
+        return tuple(ends[-1].tolist())
+    for target in map(tuple, ends.tolist()):  # as extent() reads a move alone
+        if math.dist(target, chain) >= MIN_LENGTH_MM:
+            stats.add_segment(chain, target)
+            chain = target
+    return chain
 
 
 def execute(
@@ -257,17 +277,32 @@ def execute(
 
 
 def file_lines(handle: TextIO, limit_chars: int) -> Iterator[str]:
+    """The lines of :func:`file_chunks`, one at a time."""
+    return itertools.chain.from_iterable(file_chunks(handle, limit_chars))
+
+
+def file_chunks(handle: TextIO, limit_chars: int,
+                chunk_chars: int = READ_CHUNK_CHARS) -> Iterator[list[str]]:
     """The lines of a text file opened with universal newlines (``\\n``, ``\\r``, ``\\r\\n``),
-    without their endings, read in small pieces: no single call holds the GIL for long, and a
-    line longer than ``limit_chars`` comes out cut to ``limit_chars + 1`` characters (enough
-    for the line-length check to refuse it) while the rest of it is skipped, never held."""
-    while line := handle.readline(limit_chars + 2):  # room for the ending and one more
-        if line.endswith("\n"):
-            yield line[:-1]
-        elif len(line) <= limit_chars:
-            yield line  # the last line, without an ending
-        else:
-            rest = line
-            while rest and not rest.endswith("\n"):
-                rest = handle.readline(SKIP_CHUNK_CHARS)
-            yield line[: limit_chars + 1]
+    without their endings, a list at a time, read ``chunk_chars`` at a time: no single call
+    holds the GIL for long, and a line longer than ``limit_chars`` comes out cut to
+    ``limit_chars + 1`` characters (enough for the line-length check to refuse it) while the
+    rest of it is skipped, never held."""
+    cut, carry, skipping = limit_chars + 1, "", False
+    while block := handle.read(chunk_chars):
+        if skipping:  # the rest of a line too long
+            end = block.find("\n")
+            if end < 0:
+                continue
+            block, skipping = block[end + 1 :], False
+        lines = (carry + block).split("\n")
+        carry = lines.pop()
+        if len(carry) > cut:
+            lines.append(carry[:cut])
+            carry, skipping = "", True
+        if lines and max(map(len, lines)) > cut:
+            lines = [line[:cut] for line in lines]
+        if lines:
+            yield lines
+    if carry:
+        yield [carry]

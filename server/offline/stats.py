@@ -123,12 +123,23 @@ class JobStats:
         if len(points) >= BBOX_BATCH * self._axes:
             self.finish()
 
+    def add_path(self, start: tuple[float, ...], ends: np.ndarray) -> None:
+        """Straight moves from ``start`` through each row of ``ends`` (mm) join the extent:
+        :meth:`add_segment` of each, at once."""
+        if not self._axes:
+            self.add_segment(start, tuple(ends[0].tolist()))
+        self.finish()
+        self._fold(ends)
+
     def finish(self) -> None:
         """Fold the collected end points into the bounding box (done in batches, with numpy)."""
         if not self._points:
             return
         points = np.fromiter(self._points, np.float64, len(self._points)).reshape(-1, self._axes)
         self._points.clear()
+        self._fold(points)
+
+    def _fold(self, points: np.ndarray) -> None:
         low, high = points.min(axis=0).tolist(), points.max(axis=0).tolist()
         if self.bbox_min_mm:
             low = [min(a, b) for a, b in zip(low, self.bbox_min_mm, strict=True)]

@@ -108,7 +108,7 @@ async def test_a_big_job_is_planned_beside_a_prompt_server(tmp_path: Path) -> No
 
 async def test_a_stop_or_sigterm_ends_the_plan_at_once(tmp_path: Path) -> None:
     async with motiond(tmp_path) as served:
-        write_raster(served.jobs_dir / "big.nc", LINES * 4)
+        write_raster(served.jobs_dir / "big.nc", LINES * 8)  # (its plan: 4 s of CPU here)
         pid = served.process.pid
         reader, writer = await asyncio.open_connection("127.0.0.1", served.tcp_port)
         await reader.readline()

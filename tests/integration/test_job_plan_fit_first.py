@@ -25,7 +25,6 @@ def write_short_segments(path: Path, count: int) -> None:
 async def test_the_fit_answers_first_and_the_time_is_filled_in(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr(planning, "spare_core", lambda: True)  # as on a quiet host
     monkeypatch.setattr(planning, "TIMING_GRACE_S", 0.0)  # the fit answers as it comes
     async with running(make_config(jobs={"data_dir": str(tmp_path)})) as app:
         jobs = app.kernel.jobs

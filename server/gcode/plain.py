@@ -1,0 +1,273 @@
+"""Plain lines interpreted at once: a job's runs of ``G0``/``G1`` lines read as arrays.
+
+A raster job is millions of lines like ``G1 X12.3 Y4.5 S380``. Read one at a time (parse,
+interpret, a :class:`~server.motion.moves.Move` each) a line costs microseconds of Python; a
+job's plan reads them in runs instead: :func:`~server.gcode.parser.parse_plain` parses a
+chunk of lines at once, and :func:`plain_run` interprets a run of plain lines from the
+interpreter's state with numpy, under exactly the conditions of the interpreter's own fast
+path (:meth:`Interpreter._fast_line <server.gcode.interpreter.Interpreter>`: G0/G1, axis
+words, F, S; G90, G94; with soft limits, every end inside the travel). The first line it
+does not take, every line that is not plain and every run shorter than :data:`MIN_RUN` are
+read by the one-line path (:func:`lines_read`), which also finds the errors. A run gives the
+same moves, positions and modal state as its lines one by one (the same float operations,
+in the same order per line); :meth:`PlainRun.outputs` gives the very outputs the one-line
+path gives.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from server.gcode.modal import G0, G1, MM_PER_INCH, Geometry, ModalState
+from server.gcode.parser import check_length, parse_line, parse_plain
+from server.motion.moves import Action, ActionName, Move, MoveKind, Output, Position, ToolMode
+
+if TYPE_CHECKING:
+    from server.gcode.interpreter import Interpreter
+
+CHUNK_LINES = 4096  # lines parsed at once (bounded memory: a chunk and its arrays)
+MIN_RUN = 32  # fewer plain lines in a row are read one by one (a run costs ~30 lines)
+_KINDS = (MoveKind.FEED, MoveKind.RAPID)  # by "rapid", False or True
+
+
+@dataclass(slots=True)
+class PlainRun:
+    """What a run of plain lines did.
+
+    Attributes:
+        count: how many lines of the run were read (the next one is the one-line path's).
+        moved: per line read, whether it made a move.
+        ends: where each move ends (machine mm), one row per line that moved.
+        feeds_mm_min: the feed of each line (mm/min); ``rapid`` per line: G0.
+        s: the modal S after each line; ``s_changed`` per line: it set a new S (an action).
+        tool_mode: the modal M3/M4/M5 (the same for the whole run).
+        position: the position after the run; ``motion``, ``feed_mm_min``, ``s_last``: the
+            modal state after it.
+    """
+
+    count: int
+    moved: np.ndarray
+    ends: np.ndarray
+    feeds_mm_min: np.ndarray
+    rapid: np.ndarray
+    s: np.ndarray
+    s_changed: np.ndarray
+    tool_mode: ToolMode
+    position: Position
+    motion: int
+    feed_mm_min: float
+    s_last: float
+
+    def outputs(self) -> list[Output]:
+        """The outputs of the run's lines, in order, as the one-line path gives them."""
+        mode, spindle, moved = self.tool_mode, ActionName.SPINDLE, self.moved.tolist()
+        s = self.s.tolist()
+        actions = [[Action(spindle, {"mode": mode, "s": value})] if changed else []
+                   for changed, value in zip(self.s_changed.tolist(), s)]  # noqa: B905
+        speeds = np.where(self.rapid, math.inf, self.feeds_mm_min / 60.0)[self.moved]
+        moves: list[Output] = list(map(
+            Move, map(tuple, self.ends.tolist()), speeds.tolist(),
+            map(_KINDS.__getitem__, self.rapid[self.moved].tolist()), itertools.repeat(mode),
+            itertools.compress(s, moved), itertools.repeat(None),
+            itertools.compress(actions, moved)))
+        if len(moves) == self.count:
+            return moves
+        made, outputs = iter(moves), list[Output]()  # a line without a move: its action
+        for line_moved, line_actions in zip(moved, actions):  # noqa: B905
+            outputs += [next(made)] if line_moved else line_actions
+        return outputs
+
+
+def plain_run(geo: Geometry, modal: ModalState, wco: Position, position: Position,
+              columns: dict[str, np.ndarray], count: int) -> PlainRun:
+    """Interpret a run of ``count`` plain lines (``columns``: each letter's values, NaN
+    where a line has none) from this state, up to the first line the interpreter's fast path
+    would not take. Pure: the caller commits the state (:meth:`Interpreter.execute_plain`)."""
+    if not takes_runs(geo, modal):
+        count, columns = 0, {}
+    g, f = columns.get("G"), columns.get("F")
+    has_g = _has(g, count)
+    motion = _filled(np.where(g == 0.0, G0, G1) if g is not None else None, has_g, modal.motion)
+    if f is not None:
+        f = f * MM_PER_INCH + 0.0 if modal.inches else f + 0.0
+    feeds = _filled(f, _has(f, count), modal.feed)
+    count = _taken(geo, columns, count, has_g, motion, feeds)
+    columns = {letter: values[:count] for letter, values in columns.items()}
+    motion, feeds = motion[:count], feeds[:count]
+    owns = [_own(columns.get(name), geo.inch_scale[i] if modal.inches else None, wco[i], count)
+            for name, i in geo.axis_index.items()]
+    if geo.settings.soft_limits and (inside := _inside(geo, owns, position, count)) < count:
+        return plain_run(geo, modal, wco, position, columns, inside)  # up to the line outside
+    moved, ends = _moves(owns, position, count)
+    s_after, changed = _spindle(columns.get("S"), modal.s, count)
+    last = count - 1
+    return PlainRun(
+        count, moved, ends, feeds, motion == G0, s_after, changed, modal.tool_mode,
+        tuple(ends[-1].tolist()) if ends.shape[0] else position,
+        int(motion[last]) if count else modal.motion,
+        float(feeds[last]) if count else modal.feed,
+        float(s_after[last]) if count else modal.s)
+
+
+def _moves(owns: list[tuple[np.ndarray | None, np.ndarray]], position: Position,
+           count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Which lines move (their end differs from the position, as ``==`` says) and where each
+    move ends: an axis the line names at its word, any other where the last move left it
+    (the position, not the last word: ``X-0`` at ``X0`` moves nothing and leaves ``0.0``)."""
+    moved = np.zeros(count, bool)
+    for (own, has), start in zip(owns, position, strict=True):
+        ends = _filled(own, has, start)
+        moved |= ends != _before(ends, start)
+    rows = []
+    for (own, has), start in zip(owns, position, strict=True):
+        now = _before(_filled(own, has & moved, start), start)
+        rows.append((now if own is None else np.where(has, own, now))[moved])
+    return moved, np.stack(rows, axis=1)
+
+
+def _spindle(s: np.ndarray | None, modal_s: float,
+             count: int) -> tuple[np.ndarray, np.ndarray]:
+    """The modal S after each line, and which lines change it (an action each)."""
+    if s is None:
+        return np.full(count, modal_s), np.zeros(count, bool)
+    s, has_s = s + 0.0, ~np.isnan(s)
+    changed = has_s & (s != _before(_filled(s, has_s, modal_s), modal_s))
+    return _filled(s, changed, modal_s), changed
+
+
+def takes_runs(geo: Geometry, modal: ModalState) -> bool:
+    """Whether runs are read from this state: not under G91 (it adds up) or G93."""
+    return not (modal.inverse_time or modal.incremental)
+
+
+def _inside(geo: Geometry, owns: list[tuple[np.ndarray | None, np.ndarray]],
+            position: Position, count: int) -> int:
+    """How many lines from the first end inside the travel (a line with axis words: its
+    end, as :meth:`Geometry.inside`), with soft limits on."""
+    outside, named = np.zeros(count, bool), np.zeros(count, bool)
+    for (own, has), start, low, high in zip(owns, position, geo.low, geo.high, strict=True):
+        ends = _filled(own, has, start)
+        outside |= ~((low <= ends) & (ends <= high))
+        named |= has
+    outside &= named
+    return int(np.argmax(outside)) if outside.any() else count
+
+
+def _taken(geo: Geometry, columns: dict[str, np.ndarray], count: int, has_g: np.ndarray,
+           motion: np.ndarray, feeds: np.ndarray) -> int:
+    """How many lines from the first the fast path takes: its words (:func:`words_taken`),
+    a G0/G1 motion, and a feed for G1."""
+    refused = ~words_taken(geo.axis_index, columns, count)
+    moving = has_g.copy()
+    for letter, values in columns.items():
+        if letter in geo.axis_index:
+            moving |= ~np.isnan(values[:count])
+    refused |= (motion != G0) & (motion != G1)
+    refused |= (motion == G1) & moving & (feeds <= 0.0)
+    return int(np.argmax(refused)) if refused.any() else count
+
+
+def words_taken(axes: Iterable[str], columns: dict[str, np.ndarray], count: int) -> np.ndarray:
+    """Per line, whether the fast path takes its words whatever the state: G0 or G1, axis
+    words, F >= 0 and S >= 0 only."""
+    taken = np.ones(count, bool)
+    for letter, values in columns.items():
+        if letter == "G":
+            taken &= np.isnan(values[:count]) | (values[:count] == 0.0) | (values[:count] == 1.0)
+        elif letter in ("F", "S"):
+            taken &= ~(values[:count] < 0.0)
+        elif letter not in axes:
+            taken &= np.isnan(values[:count])
+    return taken
+
+
+def _has(values: np.ndarray | None, count: int) -> np.ndarray:
+    return np.zeros(count, bool) if values is None else ~np.isnan(values[:count])
+
+
+def _own(values: np.ndarray | None, scale: float | None, offset: float,
+         count: int) -> tuple[np.ndarray | None, np.ndarray]:
+    """An axis's target on each line that names it (as the fast path: mm + wco)."""
+    if values is None:
+        return None, np.zeros(count, bool)
+    mm = values * scale if scale is not None else values
+    return mm + offset, ~np.isnan(values)
+
+
+def _filled(values: np.ndarray | None, present: np.ndarray, start: float) -> np.ndarray:
+    """Per line, the value of the last line at or before it where ``present`` (``start``
+    before the first)."""
+    if values is None or not present.any():
+        return np.full(present.shape[0], start)
+    source = np.where(present, np.arange(present.shape[0]), -1)
+    np.maximum.accumulate(source, out=source)
+    return np.where(source >= 0, values[np.maximum(source, 0)], start)
+
+
+def _before(values: np.ndarray, start: float) -> np.ndarray:
+    """Per line, the value after the line before it (``start`` before the first)."""
+    shifted = np.empty_like(values)
+    shifted[:1] = start
+    shifted[1:] = values[:-1]
+    return shifted
+
+
+def lines_read(lines: Iterable[str], interpreter: Interpreter, limit_bytes: int,
+               where: list[int]) -> Iterator[PlainRun | list[Output]]:
+    """Read ``lines`` through ``interpreter``: a :class:`PlainRun` for each run of plain
+    lines, the outputs of each other line (the one-line path, which raises its
+    :class:`~server.errors.CommandError`); ``where[0]`` is the number of the last line read
+    (the refused one, on an error). A line over ``limit_bytes`` is refused (error 11)."""
+    lines, base = iter(lines), 0
+    axes = interpreter.settings.axis_names
+    while chunk := list(itertools.islice(lines, CHUNK_LINES)):
+        if not interpreter.takes_runs():  # (G91 is seldom left: a chunk at a time)
+            yield from _one_by_one(chunk, 0, len(chunk), base, interpreter, limit_bytes, where)
+            base += len(chunk)
+            continue
+        plain = parse_plain(chunk)
+        taken = plain.plain & words_taken(axes, plain.columns, len(chunk)) & (
+            np.fromiter(map(len, chunk), np.int64, len(chunk)) * 4 <= limit_bytes)
+        index = 0
+        for start, stop in _runs(taken):
+            yield from _one_by_one(chunk, index, start, base, interpreter, limit_bytes, where)
+            index = start
+            if not interpreter.takes_runs():  # (nor will it before a line that is not plain)
+                continue
+            while index < stop:
+                run = interpreter.execute_plain(plain.columns, index, stop)
+                where[0] = base + index + run.count
+                if run.count:
+                    yield run
+                    index += run.count
+                if index < stop:  # the line the fast path did not take
+                    yield from _one_by_one(chunk, index, index + 1, base, interpreter,
+                                           limit_bytes, where)
+                    index += 1
+        yield from _one_by_one(chunk, index, len(chunk), base, interpreter, limit_bytes, where)
+        base += len(chunk)
+
+
+def _one_by_one(chunk: list[str], start: int, stop: int, base: int, interpreter: Interpreter,
+                limit_bytes: int, where: list[int]) -> Iterator[list[Output]]:
+    """The outputs of lines ``start`` to ``stop`` of ``chunk``, each read alone."""
+    execute = interpreter.execute
+    for index in range(start, stop):
+        text = chunk[index]
+        where[0] = base + index + 1
+        if 4 * len(text) > limit_bytes:  # only such a line may be too long
+            check_length(text, limit_bytes)
+        yield execute(parse_line(text))
+
+
+def _runs(taken: np.ndarray) -> list[tuple[int, int]]:
+    """The runs of at least :data:`MIN_RUN` taken lines: (first, after the last)."""
+    edges = np.flatnonzero(np.diff(taken, prepend=False, append=False))
+    pairs = edges.reshape(-1, 2).tolist()
+    return [(start, stop) for start, stop in pairs if stop - start >= MIN_RUN]
