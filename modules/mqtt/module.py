@@ -28,6 +28,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import importlib.util
+import math
 import ssl
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -72,6 +73,7 @@ class Mqtt(Module):
             ctx, self._reply, allowed=config.allow_control,
             max_lines=config.max_lines_per_message, max_payload_bytes=config.max_payload_bytes)
         self.published_status: dict[str, Any] | None = None
+        self._published_s = -math.inf  # the event loop's time of the last status queued
         self._wake = asyncio.Event()
         self._job: tuple[str, float, str] | None = None  # name, started_s, state
         self.link: Link | None = None  # once running (aiomqtt is imported then)
@@ -118,16 +120,23 @@ class Mqtt(Module):
 
     # -- status ---------------------------------------------------------------------------
     async def _sample(self) -> None:
-        """Publish the status when it changes: at most ``status_hz``; while the machine is
-        busy at that rate, else soon after an event (and at least every ``IDLE_LOOK_S``)."""
+        """Publish the status when it changes, at most ``status_hz`` times a second: a change
+        goes out as soon as the last publication is a period old (so a machine that stops
+        shows it within one period of its last report), looked for every period while the
+        machine is busy, else soon after an event (and at least every ``IDLE_LOOK_S``). A
+        look that finds nothing new costs no period of deafness."""
         period_s = 1.0 / self.config.status_hz
+        loop = asyncio.get_running_loop()
         while True:
+            wait_s = self._published_s + period_s - loop.time()
+            if wait_s > 0.0:
+                await asyncio.sleep(wait_s)
             self._wake.clear()
-            busy = self._offer_status()
-            await asyncio.sleep(period_s)
-            if not busy and not self._wake.is_set():
+            if self._offer_status():
+                await asyncio.sleep(period_s)
+            elif not self._wake.is_set():
                 with contextlib.suppress(TimeoutError):  # not wait_for: see modules.mqtt.link
-                    async with asyncio.timeout(max(0.0, IDLE_LOOK_S - period_s)):
+                    async with asyncio.timeout(IDLE_LOOK_S):
                         await self._wake.wait()
 
     def _offer_status(self, force: bool = False) -> bool:
@@ -136,6 +145,7 @@ class Mqtt(Module):
         payload = status_payload(snapshot, self.machine)
         if force or payload != self.published_status:
             self.published_status = payload
+            self._published_s = asyncio.get_running_loop().time()
             self.outbox.put_status(Outgoing(self.topics.status, encode(payload), retain=True))
         job = snapshot.get("job") or {}
         return bool(snapshot.get("moving")) or snapshot.get("state") not in _QUIET_STATES or (
