@@ -325,7 +325,7 @@ class SamplingContext:
         self.wakers.append(handler)
 
     def status(self) -> dict[str, Any]:
-        return {"state": self.state, "moving": False}
+        return {"state": self.state, "moving": self.state == "Run"}
 
     def emit(self) -> None:
         for handler in self.wakers:
@@ -343,12 +343,8 @@ async def test_a_change_after_a_quiet_look_is_published_at_once_not_a_period_lat
 
     monkeypatch.setattr(module, "IDLE_LOOK_S", 1.5)
     ctx = SamplingContext()
-    mqtt = module.Mqtt(ctx, module.MqttConfig(url="mqtt://x", status_hz=1))  # type: ignore[arg-type]
+    published, task = sampling(ctx, status_hz=1)
     loop = asyncio.get_running_loop()
-    published: list[tuple[float, str]] = []
-    mqtt.outbox.put_status = lambda message: published.append(  # type: ignore[method-assign]
-        (loop.time(), json.loads(message.payload)["state"]))
-    task = asyncio.create_task(mqtt._sample())
     await asyncio.sleep(1.8)  # the Idle published at once; a quiet look at 1.5 s
     ctx.state = "Alarm"
     changed_s = loop.time()
@@ -357,3 +353,37 @@ async def test_a_change_after_a_quiet_look_is_published_at_once_not_a_period_lat
     task.cancel()
     assert [state for _, state in published] == ["Idle", "Alarm"]
     assert published[1][0] - changed_s < 0.3  # the old sampler: 0.7 s (deaf until 2.5 s)
+
+
+def sampling(ctx: SamplingContext, status_hz: float) -> tuple[list[tuple[float, str]],
+                                                             asyncio.Task[None]]:
+    """The ``[mqtt]`` module's status sampler running on ``ctx``: what it publishes (the
+    event loop's time, the state), and its task."""
+    import modules.mqtt.module as module
+
+    mqtt = module.Mqtt(ctx, module.MqttConfig(url="mqtt://x", status_hz=status_hz))  # type: ignore[arg-type]
+    loop = asyncio.get_running_loop()
+    published: list[tuple[float, str]] = []
+    mqtt.outbox.put_status = lambda message: published.append(  # type: ignore[method-assign]
+        (loop.time(), json.loads(message.payload)["state"]))
+    return published, asyncio.create_task(mqtt._sample())
+
+
+async def test_the_end_of_a_move_is_published_at_once_not_a_period_after_its_start() -> None:
+    """A short move (a G0 through the broker): its Run was published, and its Idle waited a
+    whole period behind it (``status_hz`` 2: 0.5 s, most of the fleet's staleness). A change
+    of state now waits only ``STATE_GAP_S``; other changes still wait their period."""
+    ctx = SamplingContext()
+    published, task = sampling(ctx, status_hz=1)
+    loop = asyncio.get_running_loop()
+    await asyncio.sleep(1.1)  # Idle published, a period ago
+    ctx.state = "Run"
+    ctx.emit()
+    await asyncio.sleep(0.05)
+    ctx.state = "Idle"
+    stopped_s = loop.time()
+    ctx.emit()
+    await asyncio.sleep(0.4)
+    task.cancel()
+    assert [state for _, state in published] == ["Idle", "Run", "Idle"]
+    assert published[2][0] - stopped_s < 0.3  # the old sampler: 0.95 s (a period after Run)
