@@ -7,7 +7,8 @@ A transport creates a :class:`Session`, feeds it bytes (or WebSocket text) and d
   once (``M112`` the moment its line arrives), complete lines queued (bounded), bytes beyond
   that held in a bounded backlog whose realtime bytes still act at once;
 * this module: its lifecycle, logging in, and the executor, which runs the queued lines one at
-  a time through the dispatcher;
+  a time through the dispatcher: in the read that brought them while none waits (their
+  replies leave in one write), else in its own task;
 * its output, :class:`~server.sessions.output.SessionOutput`: exactly one ``ok`` or
   ``error:N`` per line, in order (deferred replies included), rate-limited status reports,
   pushes, all bounded.
