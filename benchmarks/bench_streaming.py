@@ -4,8 +4,9 @@
    asyncio server that answers ``ok`` to every line, then to motiond in check mode (``$C``:
    every line parsed and interpreted, nothing moves) on each event loop (asyncio's, and
    uvloop's when installed), in the same run. Prints lines/s and the ratio to the bare server
-   (target: motiond >= 0.3x), and the event loop's worst stall while streaming (goal: under
-   2 ms), with the part of it this process spent running (the rest is the OS running others).
+   (target: motiond >= 0.6x, issue 41), and the event loop's worst stall while streaming
+   (goal: under 2 ms), with the part of it this process spent running (the rest is the OS
+   running others).
 2. Real-time raster at 20,000 segments/s on each event loop while a second client asks ``?``
    at 100 Hz: worst stall, ``?`` round trip p50/p99/max, garbage collections per second.
 3. Real-time raster at rising feeds: the fastest sustained rate (target: 10,000 segments/s).
@@ -48,6 +49,7 @@ from server.runtime.events import Event, MachineState  # noqa: E402
 from server.transports.tcp import TcpTransport  # noqa: E402
 
 RASTER_FILE = "laser-raster-tree.nc"
+TARGET_RATIO = 0.6  # check-mode streaming against the bare server (issue 41)
 
 # -- 1. throughput against a bare server -----------------------------------------------------------
 async def bare_ok_server(per_line: bool) -> asyncio.Server:
@@ -166,8 +168,9 @@ def summarise_check(result: BenchResult, check: CheckRuns, bare_rate: float, rep
     ratio = best["lines"] / best["elapsed_s"] / bare_rate
     stall_s = max(run["stall_s"] for run in check.runs)
     cpu_stall_s = max(run["cpu_stall_s"] for run in check.runs)
-    print(f"   {check.loop}: ratio to bare (ok per line) {ratio:.2f}x (target >= 0.30x) "
-          f"{'OK' if ratio >= 0.3 else 'BELOW TARGET'}; worst stall while streaming "
+    print(f"   {check.loop}: ratio to bare (ok per line) {ratio:.2f}x "
+          f"(target >= {TARGET_RATIO:.2f}x) "
+          f"{'OK' if ratio >= TARGET_RATIO else 'BELOW TARGET'}; worst stall while streaming "
           + " / ".join(f"{run['stall_s'] * 1000:.2f}" for run in check.runs)
           + " ms, own work " + " / ".join(f"{run['cpu_stall_s'] * 1000:.2f}" for run in check.runs)
           + f" ms (goal < 2 ms); idle for 1 s before: {check.idle_stall_s * 1000:.2f} ms; "

@@ -28,6 +28,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import importlib.util
+import math
 import ssl
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -50,6 +51,20 @@ _WAKE_EVENTS = (Event.STATE, Event.HALT, Event.CLEAR_HALT, Event.HOLD, Event.HOL
                 Event.RESUME, Event.OVERRIDE, Event.ACTION, Event.PROGRAM_END, Event.JOB)
 _JOB_ENDS = frozenset({"done", "failed", "aborted"})
 _QUIET_STATES = frozenset({"Idle", "Alarm", "Sleep", "Check"})
+STATE_GAP_S = 0.1  # a change of state is published at most this often (others: status_hz)
+
+
+def _state_of(payload: dict[str, Any]) -> tuple[Any, ...]:
+    """The machine's state, its alarm and its job's state (not the job's progress)."""
+    job = payload.get("job")
+    return payload.get("state"), payload.get("alarm"), job.get("state") if job else None
+
+
+def _busy(snapshot: dict[str, Any]) -> bool:
+    """Whether the machine is busy: its status will change without an event."""
+    job = snapshot.get("job") or {}
+    return bool(snapshot.get("moving")) or snapshot.get("state") not in _QUIET_STATES or (
+        job.get("state") in ("running", "paused"))
 
 
 class Mqtt(Module):
@@ -72,6 +87,7 @@ class Mqtt(Module):
             ctx, self._reply, allowed=config.allow_control,
             max_lines=config.max_lines_per_message, max_payload_bytes=config.max_payload_bytes)
         self.published_status: dict[str, Any] | None = None
+        self._published_s = -math.inf  # the event loop's time of the last status queued
         self._wake = asyncio.Event()
         self._job: tuple[str, float, str] | None = None  # name, started_s, state
         self.link: Link | None = None  # once running (aiomqtt is imported then)
@@ -118,32 +134,54 @@ class Mqtt(Module):
 
     # -- status ---------------------------------------------------------------------------
     async def _sample(self) -> None:
-        """Publish the status when it changes: at most ``status_hz``; while the machine is
-        busy at that rate, else soon after an event (and at least every ``IDLE_LOOK_S``)."""
+        """Publish the status when it changes: a change of state (Idle, Run, Hold, Alarm, a
+        job's) at most every ``STATE_GAP_S`` (so the end of a move shows at once, not a
+        period after the report that it began), any other change at most ``status_hz``
+        times a second. The status is looked at every period while the machine is busy (and
+        after an event, at most every ``STATE_GAP_S``), at once after an event while it is
+        not, and at least every ``IDLE_LOOK_S``; a change that must wait its turn is looked
+        at afresh when it comes."""
         period_s = 1.0 / self.config.status_hz
+        loop = asyncio.get_running_loop()
         while True:
             self._wake.clear()
-            busy = self._offer_status()
-            await asyncio.sleep(period_s)
-            if not busy and not self._wake.is_set():
-                with contextlib.suppress(TimeoutError):  # not wait_for: see modules.mqtt.link
-                    async with asyncio.timeout(max(0.0, IDLE_LOOK_S - period_s)):
-                        await self._wake.wait()
+            snapshot = self.ctx.status()
+            payload = status_payload(snapshot, self.machine)
+            due_s = self._due_s(payload, period_s)
+            if due_s is not None and due_s <= loop.time():
+                self._publish(payload)
+                due_s = None
+            if due_s is not None:
+                await asyncio.sleep(due_s - loop.time())
+            elif _busy(snapshot):  # (events come fast then: at most one look a STATE_GAP_S)
+                await asyncio.sleep(min(period_s, STATE_GAP_S))
+                await self._woken(max(0.0, period_s - STATE_GAP_S))
+            else:
+                await self._woken(IDLE_LOOK_S)
 
-    def _offer_status(self, force: bool = False) -> bool:
-        """Queue the status if it changed; whether the machine is busy (it will change)."""
-        snapshot = self.ctx.status()
-        payload = status_payload(snapshot, self.machine)
-        if force or payload != self.published_status:
-            self.published_status = payload
-            self.outbox.put_status(Outgoing(self.topics.status, encode(payload), retain=True))
-        job = snapshot.get("job") or {}
-        return bool(snapshot.get("moving")) or snapshot.get("state") not in _QUIET_STATES or (
-            job.get("state") in ("running", "paused"))
+    def _due_s(self, payload: dict[str, Any], period_s: float) -> float | None:
+        """When ``payload`` may be published (the event loop's time), or None: unchanged."""
+        published = self.published_status
+        if payload == published:
+            return None
+        state_changed = published is None or _state_of(payload) != _state_of(published)
+        return self._published_s + (min(period_s, STATE_GAP_S) if state_changed else period_s)
+
+    async def _woken(self, timeout_s: float) -> None:
+        """Until an event wakes the sampler, for at most ``timeout_s``."""
+        if not self._wake.is_set():
+            with contextlib.suppress(TimeoutError):  # not wait_for: see modules.mqtt.link
+                async with asyncio.timeout(timeout_s):
+                    await self._wake.wait()
+
+    def _publish(self, payload: dict[str, Any]) -> None:
+        self.published_status = payload
+        self._published_s = asyncio.get_running_loop().time()
+        self.outbox.put_status(Outgoing(self.topics.status, encode(payload), retain=True))
 
     def _greeting(self) -> list[Outgoing]:
         """What a new connection publishes first (then the status, fresh)."""
-        self._offer_status(force=True)
+        self._publish(status_payload(self.ctx.status(), self.machine))
         if not self.config.homeassistant:
             return []
         device = Device(self.node_id, self.machine, __version__)

@@ -228,7 +228,8 @@ class Dispatcher:
             return self._route(text, stripped, named, source, None, ticket)
         if not self._turn.free:
             return self._in_turn(text, stripped, named, source, ticket, defer)
-        self._check_ticket(ticket)
+        if ticket != self.stops():  # (_check_ticket, without its call for every line)
+            self._check_ticket(ticket)
         self._turn.taken = True
         try:
             outcome = self._route(text, stripped, named, source, defer, ticket)
@@ -296,7 +297,8 @@ class Dispatcher:
         if not line.letters:
             return []
         kind = self._classify(line)
-        self._check_source(source, query=kind is _QUERY)
+        if kind is not _QUERY and (source is not self._owner or not source.can_control):
+            self._check_source(source, query=False)  # (the owner's next line: nothing to check)
         if kind is _EFFECT and self._is_locked():
             raise self._locked_out("G-code")
         if self._gcode is None:

@@ -114,6 +114,7 @@ class LineAdmission:
         def _request_status(self) -> None: ...  # the session's output
         def push(self, message: str) -> None: ...  # the session's output
         def end(self, reason: str) -> None: ...  # the session's lifecycle
+        def _lines_arrived(self) -> None: ...  # the session's executor: run them
 
     @property
     def backlog_full(self) -> bool:
@@ -172,10 +173,14 @@ class LineAdmission:
             if not first and gone is not None and gone():
                 return
             first = False
-            size = affordable(data, SLICE_COST)
-            piece, data = data[:size], data[size:]
+            cost = realtime_cost(data)
+            if cost <= SLICE_COST:  # (the common read: no slicing, counted once)
+                piece, data = data, b""
+            else:
+                size = affordable(data, SLICE_COST)
+                piece, data = data[:size], data[size:]
+                cost = realtime_cost(piece)
             self._feeding = bool(data)  # more of this read waits behind this slice
-            cost = realtime_cost(piece)
             if not self.can_control:
                 await self.pace_input(len(piece))
             if self._realtime_wait_s() > 0.0:
@@ -303,9 +308,10 @@ class LineAdmission:
             self._lines.append((stops.stops, event))
             self._queued_bytes += line_size(event)
         self._act_on_realtime(batch)
-        self._lines_ready.set()
         if self._host_untold and self.protocol.dialect is Dialect.REPRAP:
             self._tell_host()
+        if self._lines:
+            self._lines_arrived()
 
     def _tell_host(self) -> None:
         """A RepRap host just recognised (OctoPrint connecting) learns of an alarm in force:

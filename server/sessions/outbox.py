@@ -40,8 +40,12 @@ class BoundedQueue(Generic[Item]):
             return False
         self._items.append(item)
         self._size += size
-        self._ready.set()
+        self._wake()
         return True
+
+    def _wake(self) -> None:
+        """An item was queued: wake the writer."""
+        self._ready.set()
 
     async def wait(self) -> bool:
         """Wait for an item; False once closed (after an overflow, at once) and drained."""

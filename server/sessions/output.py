@@ -21,6 +21,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from server.errors import CommandError, Error
@@ -42,12 +43,47 @@ STATUS_BURST = 5
 
 
 class Outbox(BoundedQueue[bytes]):
-    """What one line-protocol client is sent, bounded in bytes, drained as one chunk."""
+    """What one line-protocol client is sent, bounded in bytes, drained as one chunk.
+
+    A transport that can write without waiting sets :attr:`write_now`: what is queued is then
+    written at once by :meth:`flush` (the session flushes after the lines of a read, so their
+    replies leave in one write, in the same loop turn), or in the next loop turn for what
+    nobody flushes; only when ``write_now`` declines (the client is behind: the transport
+    still holds unsent bytes) does the writer task drain it, in order, as without it."""
+
+    write_now: Callable[[bytes], bool] | None = None  # True: written; False: not now
+    _flush_soon = False  # a flush is due (scheduled, or promised by whoever called batch())
 
     async def get(self) -> bytes | None:
         """Everything queued so far as one chunk, or None once closed."""
         chunks = await self.get_all()
         return None if chunks is None else b"".join(chunks)
+
+    def batch(self) -> None:
+        """What is put from now on waits for the caller's :meth:`flush` (call it in a
+        ``finally``), so a run of puts leaves in one write with no loop turn of its own."""
+        self._flush_soon = True
+
+    def flush(self) -> None:
+        """Write what is queued now through :attr:`write_now`, else wake the writer task."""
+        self._flush_soon = False
+        items = self._items
+        if not items:
+            return
+        write_now = self.write_now
+        if write_now is not None and not self.overflowed and write_now(
+                items[0] if len(items) == 1 else b"".join(items)):
+            items.clear()
+            self._size = 0
+            return
+        self._ready.set()
+
+    def _wake(self) -> None:
+        if self.write_now is None:
+            self._ready.set()
+        elif not self._flush_soon:  # once per loop turn, unless flushed before
+            self._flush_soon = True
+            asyncio.get_running_loop().call_soon(self.flush)
 
 
 class SessionOutput:

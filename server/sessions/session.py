@@ -7,7 +7,8 @@ A transport creates a :class:`Session`, feeds it bytes (or WebSocket text) and d
   once (``M112`` the moment its line arrives), complete lines queued (bounded), bytes beyond
   that held in a bounded backlog whose realtime bytes still act at once;
 * this module: its lifecycle, logging in, and the executor, which runs the queued lines one at
-  a time through the dispatcher;
+  a time through the dispatcher: in the read that brought them while none waits (their
+  replies leave in one write), else in its own task;
 * its output, :class:`~server.sessions.output.SessionOutput`: exactly one ``ok`` or
   ``error:N`` per line, in order (deferred replies included), rate-limited status reports,
   pushes, all bounded.
@@ -67,6 +68,9 @@ if TYPE_CHECKING:
 
     # a line's reply (a future: answered downstream later), or the wait for it
     Reply: TypeAlias = bytes | asyncio.Future[bytes] | Awaitable[bytes | asyncio.Future[bytes]]
+    # a line begun that must wait: the line, its connection's epoch, the wait for its reply
+    Waiting: TypeAlias = tuple[
+        LineReceived | LineRejected, int, Awaitable[bytes | asyncio.Future[bytes]]]
 
 log = logging.getLogger("motiond.session")
 _AUTH = re.compile(r"^\s*\$AUTH=(.*)$", re.I)
@@ -134,6 +138,13 @@ class Session(LineAdmission, SessionOutput):
         self._resetting = False  # this connection's own Ctrl-X is being acted on
         self._discarded = False  # the last stop dropped lines of this connection
         self._feeding = False  # a read is being fed in slices
+        self._executor_idle = False  # the executor waits for lines: they may run in the read
+        self._running = False  # lines are running (_run_lines): not again from inside one
+        self._waiting: Waiting | None = None  # a line begun in the read, for the executor
+        self._deferred: list[asyncio.Future[list[str]]] = []  # a line's answers-to-come
+        self._defer = self._deferred.append
+        self._begin = kernel.dispatcher.begin
+        self._ok = self.protocol.reply_ok()  # (the same bytes for every plain line)
         self._host_untold = True
         self._queued_bytes = 0
         self._scheduler = StatusScheduler()
@@ -245,45 +256,114 @@ class Session(LineAdmission, SessionOutput):
 
     # -- executing lines --------------------------------------------------------------------
     async def _executor(self) -> None:
-        """The queued lines in order, each to its end before the next. A line that needs no
-        wait (most of a raster) runs without a task switch or a future of its own; the lines
-        of a read run in one pass and their replies leave in one write."""
-        now_s = time.monotonic  # the loop's clock (asyncio's loop.time(), without its frame)
-        lines, replies, backlog = self._lines, self._replies, self._backlog
+        """The queued lines in order, each to its end before the next. Lines that need no wait
+        (most of a raster) run in one pass (:meth:`_run_lines`), with no task switch or future
+        of their own, often already inside the read that brought them (:meth:`_lines_arrived`);
+        this task takes over where a line must wait, and gives the loop a turn between passes."""
+        lines, now_s = self._lines, time.monotonic  # (the loop's clock, without its frame)
         turn_s = now_s()
-        while not self._closing:
-            if not lines:
-                self._lines_ready.clear()
-                await self._lines_ready.wait()
-                turn_s = now_s()
-                continue
-            ticket, event = lines.popleft()
-            epoch = self._epoch
-            if backlog and len(lines) < INBOUND_LINES // 2:
-                self._refill()
-            reply = self._execute(event, ticket)
-            if not isinstance(reply, (bytes, asyncio.Future)):  # (a tuple: no union built per line)
-                self._arm_busy()  # the line waits (room in the planner, a sync request)
-                try:
-                    reply = await reply
-                finally:
-                    self._disarm_busy()
-            if epoch == self._epoch:  # (else a reset dropped it: no reply, as from Grbl)
-                queued = self._queued_bytes - line_size(event)
-                self._queued_bytes = queued if queued > 0 else 0
-                if not replies and isinstance(reply, bytes):  # (what _answer does first)
-                    self.outbox.put(reply)
-                else:
-                    self._answer(reply, epoch)
-            while len(replies) >= INBOUND_LINES and not self._closing:
-                self._replies_room.clear()
-                await self._replies_room.wait()
-            if self._ending is not None:
+        try:
+            while not self._closing:
+                if not lines and self._waiting is None:
+                    self._lines_ready.clear()
+                    self._executor_idle = True
+                    try:
+                        await self._lines_ready.wait()
+                    finally:
+                        self._executor_idle = False
+                    turn_s = now_s()
+                    continue
+                waiting, self._waiting = self._waiting, None
+                if waiting is None:
+                    self.outbox.batch()
+                    try:
+                        waiting = self._run_lines(turn_s + YIELD_AFTER_S)
+                    finally:
+                        self.outbox.flush()
+                if waiting is not None:
+                    await self._finish(*waiting)
+                while len(self._replies) >= INBOUND_LINES and not self._closing:
+                    self._replies_room.clear()
+                    await self._replies_room.wait()
+                if self._ending is not None:
+                    self.end(self._ending)
+                    return
+                if now_s() - turn_s > YIELD_AFTER_S:  # lines that never wait must not hog
+                    await asyncio.sleep(0)
+                    turn_s = now_s()
+        finally:  # a line begun in a read holds the dispatcher's turn: it runs to its end
+            waiting, self._waiting = self._waiting, None
+            if waiting is not None:
+                await self._finish(*waiting)
+
+    def _lines_arrived(self) -> None:
+        """Lines were queued: run them now, in the read that brought them, when the executor
+        is idle (nothing before them runs or waits), so their replies leave in one write with
+        no task switch; else, or for what is left (a line that must wait, more than a turn's
+        worth), the executor task is woken."""
+        if (self._executor_idle and not self._lines_ready.is_set() and not self._running
+                and not self._closing):  # (once woken, the executor runs what follows)
+            self.outbox.batch()
+            try:
+                self._waiting = self._run_lines(time.monotonic() + YIELD_AFTER_S)
+            finally:
+                self.outbox.flush()
+            if self._ending is not None and self._waiting is None:
                 self.end(self._ending)
                 return
-            if now_s() - turn_s > YIELD_AFTER_S:  # lines that never wait must not hog
-                await asyncio.sleep(0)
-                turn_s = now_s()
+            if not self._lines and self._waiting is None:
+                return
+        self._lines_ready.set()
+
+    def _run_lines(self, until_s: float) -> Waiting | None:
+        """Run queued lines in order while each is answered at once, until ``until_s`` (the
+        loop's clock) or the reply queue is full: the line that must wait, begun (it holds the
+        dispatcher's turn: the caller awaits it at once), or None."""
+        lines, replies, backlog = self._lines, self._replies, self._backlog
+        now_s = time.monotonic  # the loop's clock (asyncio's loop.time(), without its frame)
+        put = self.outbox.put
+        self._running = True
+        try:
+            while lines and not self._closing and self._ending is None:
+                ticket, event = lines.popleft()
+                epoch = self._epoch
+                if backlog and len(lines) < INBOUND_LINES // 2:
+                    self._refill()
+                reply = self._execute(event, ticket)
+                if type(reply) is bytes and not replies and epoch == self._epoch:
+                    queued = self._queued_bytes - line_size(event)  # (_answered, inlined)
+                    self._queued_bytes = queued if queued > 0 else 0
+                    put(reply)
+                elif isinstance(reply, (bytes, asyncio.Future)):  # (no union built per line)
+                    self._answered(event, epoch, reply)
+                else:
+                    return event, epoch, reply
+                if len(replies) >= INBOUND_LINES or now_s() > until_s:
+                    break
+            return None
+        finally:
+            self._running = False
+
+    async def _finish(self, event: LineReceived | LineRejected, epoch: int,
+                      outcome: Awaitable[bytes | asyncio.Future[bytes]]) -> None:
+        """Wait for a line's reply (room in the planner, a sync request), then answer it."""
+        self._arm_busy()
+        try:
+            reply = await outcome
+        finally:
+            self._disarm_busy()
+        self._answered(event, epoch, reply)
+
+    def _answered(self, event: LineReceived | LineRejected, epoch: int,
+                  reply: bytes | asyncio.Future[bytes]) -> None:
+        if epoch != self._epoch:  # a reset dropped it: no reply, as from Grbl
+            return
+        queued = self._queued_bytes - line_size(event)
+        self._queued_bytes = queued if queued > 0 else 0
+        if not self._replies and isinstance(reply, bytes):  # (what _answer does first)
+            self.outbox.put(reply)
+        else:
+            self._answer(reply, epoch)
 
     def _arm_busy(self) -> None:
         """RepRap hosts: ``echo:busy: processing`` every 2 s while this line's ok is held."""
@@ -317,16 +397,23 @@ class Session(LineAdmission, SessionOutput):
             return self._refuse("log in first")
         if not self.may_observe:
             return self._refuse("log in with $AUTH=")
-        deferred: list[asyncio.Future[list[str]]] = []
+        collected = self._deferred  # (one list and its append for every line: taken when used)
         try:
-            outcome = self.kernel.dispatcher.begin(
-                event.text, self, ticket, defer=deferred.append)
+            outcome = self._begin(event.text, self, ticket, self._defer)
         except Exception as exc:  # noqa: BLE001 - answered (CommandError) or alarmed
+            collected.clear()
             return self._failed(event, exc)
+        if type(outcome) is list and not outcome and not collected:
+            return self._ok
         if isinstance(outcome, list):
-            return self._replied(outcome, deferred) if outcome or deferred else (
-                self.protocol.reply_ok())
-        return self._awaited(event, outcome, deferred)
+            deferred = collected.copy()
+            collected.clear()
+            return self._replied(outcome, deferred)
+        # the line waits, and may defer its answer meanwhile: it keeps the list, the next
+        # line gets a new one
+        self._deferred = []
+        self._defer = self._deferred.append
+        return self._awaited(event, outcome, collected)
 
     async def _awaited(self, event: LineReceived, outcome: Awaitable[list[str]],
                        deferred: list[asyncio.Future[list[str]]]) -> bytes | asyncio.Future[bytes]:

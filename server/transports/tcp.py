@@ -152,6 +152,7 @@ async def serve_stream(
     session ends with the reason given.
     """
     session.outbox.on_overflow = writer.transport.abort
+    session.outbox.write_now = _writes_now(writer.transport)
     session.start()
     writer_task = asyncio.create_task(_write_loop(session, writer))
     received_bytes = 0
@@ -190,6 +191,19 @@ async def serve_stream(
         with contextlib.suppress(Exception):
             async with asyncio.timeout(1.0):
                 await writer.wait_closed()
+
+
+def _writes_now(transport: asyncio.WriteTransport) -> Callable[[bytes], bool]:
+    """Write at once while the transport holds nothing unsent (so its buffer stays bounded by
+    one write; a client that falls behind is left to the writer task and the outbox's bound)."""
+
+    def write_now(data: bytes) -> bool:
+        if transport.is_closing() or transport.get_write_buffer_size():
+            return False
+        transport.write(data)
+        return True
+
+    return write_now
 
 
 async def _finish_writing(writer_task: asyncio.Task[None]) -> None:

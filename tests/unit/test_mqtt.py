@@ -310,3 +310,80 @@ async def test_a_retained_command_is_refused_once_and_never_run() -> None:
     assert replies[0]["error"]["reason"] == "retained"
     assert "retain flag" in replies[0]["error"]["message"]
     assert ctx.calls == ["G0 X5"]
+
+
+class SamplingContext:
+    """What the status sampler of ``[mqtt]`` uses of its module context: the machine's status
+    (``state`` set by the test) and the events that wake it."""
+
+    def __init__(self) -> None:
+        self.core = SimpleNamespace(machine=SimpleNamespace(name="m"))
+        self.state = "Idle"
+        self.wakers: list[Any] = []
+
+    def subscribe(self, event: Any, handler: Any) -> None:
+        self.wakers.append(handler)
+
+    def status(self) -> dict[str, Any]:
+        return {"state": self.state, "moving": self.state == "Run"}
+
+    def emit(self) -> None:
+        for handler in self.wakers:
+            handler(None)
+
+
+async def test_a_change_after_a_quiet_look_is_published_at_once_not_a_period_later(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The fleet's staleness: a look that found nothing new (the idle machine's look every
+    ``IDLE_LOOK_S``) left the sampler deaf for a whole period, so a change right after it
+    waited up to a period to be published, and the next one a period more (fifty machines:
+    worst 1.08 s at ``status_hz`` 2). Only a publication starts a period."""
+    import modules.mqtt.module as module
+
+    monkeypatch.setattr(module, "IDLE_LOOK_S", 1.5)
+    ctx = SamplingContext()
+    published, task = sampling(ctx, status_hz=1)
+    loop = asyncio.get_running_loop()
+    await asyncio.sleep(1.8)  # the Idle published at once; a quiet look at 1.5 s
+    ctx.state = "Alarm"
+    changed_s = loop.time()
+    ctx.emit()
+    await asyncio.sleep(0.6)
+    task.cancel()
+    assert [state for _, state in published] == ["Idle", "Alarm"]
+    assert published[1][0] - changed_s < 0.3  # the old sampler: 0.7 s (deaf until 2.5 s)
+
+
+def sampling(ctx: SamplingContext, status_hz: float) -> tuple[list[tuple[float, str]],
+                                                             asyncio.Task[None]]:
+    """The ``[mqtt]`` module's status sampler running on ``ctx``: what it publishes (the
+    event loop's time, the state), and its task."""
+    import modules.mqtt.module as module
+
+    mqtt = module.Mqtt(ctx, module.MqttConfig(url="mqtt://x", status_hz=status_hz))  # type: ignore[arg-type]
+    loop = asyncio.get_running_loop()
+    published: list[tuple[float, str]] = []
+    mqtt.outbox.put_status = lambda message: published.append(  # type: ignore[method-assign]
+        (loop.time(), json.loads(message.payload)["state"]))
+    return published, asyncio.create_task(mqtt._sample())
+
+
+async def test_the_end_of_a_move_is_published_at_once_not_a_period_after_its_start() -> None:
+    """A short move (a G0 through the broker): its Run was published, and its Idle waited a
+    whole period behind it (``status_hz`` 2: 0.5 s, most of the fleet's staleness). A change
+    of state now waits only ``STATE_GAP_S``; other changes still wait their period."""
+    ctx = SamplingContext()
+    published, task = sampling(ctx, status_hz=1)
+    loop = asyncio.get_running_loop()
+    await asyncio.sleep(1.1)  # Idle published, a period ago
+    ctx.state = "Run"
+    ctx.emit()
+    await asyncio.sleep(0.05)
+    ctx.state = "Idle"
+    stopped_s = loop.time()
+    ctx.emit()
+    await asyncio.sleep(0.4)
+    task.cancel()
+    assert [state for _, state in published] == ["Idle", "Run", "Idle"]
+    assert published[2][0] - stopped_s < 0.3  # the old sampler: 0.95 s (a period after Run)
