@@ -10,9 +10,9 @@ configured by someone else is refused (:class:`KlipperFault`); one still configu
 (:meth:`Mcu.restart`, as Klipper's host does for its ``restart_method``) and connected afresh.
 :meth:`Mcu.watch` samples the clock every ``poll_s`` (``BUSY_POLL_S`` while :attr:`Mcu.busy`:
 steps queued or an output on) and, one request at a time (never back to back), checks
-``get_config`` every ``CONFIG_EVERY`` polls: about 14 bytes a second to an idle MCU (klippy
-sends 6); to a busy one each poll waits up to ``RIDE_S`` to join a block of steps (as klippy's
-do), about 3 bytes a second then; silence for ``timeout_s`` (no block acknowledged), a restart, a
+``get_config`` every ``CONFIG_EVERY`` polls: about 6.8 bytes a second to an idle MCU (klippy
+sends 6-7; every poll wakes the process, and its answer again); to a busy one each poll waits
+up to ``RIDE_S`` to join a block of steps (as klippy's do), about 3 bytes a second then; silence for ``timeout_s`` (no block acknowledged), a restart, a
 clock that jumps ahead, a foreign configuration or a link fault raise :class:`KlipperFault`, a
 shutdown (ours from :meth:`emergency_stop`, or the firmware's own) :class:`McuShutdown`. A
 restart is told from the firmware's evidence, never from the host's timing: ``starting`` (sent
@@ -52,10 +52,12 @@ CLOCK_SETTLE_S = 5.0
 RATE_PROBE_S = 0.15
 RATE_TOLERANCE = 0.05  # a round trip's jitter over RATE_PROBE_S stays well inside this
 RESET_SETTLE_S = 0.015  # klippy's pause after ``reset`` before it lets the port go
-POLL_S = 0.5  # a 6-byte get_clock block: 12 bytes/s; a clock set back by more than this is
-# caught at the next reading (behind the last one)
-BUSY_POLL_S = 0.4  # while steps are queued or an output is on (15 bytes/s)
-CONFIG_EVERY = 8  # get_config once every 8 polls (4 s idle, 3.2 s busy)
+POLL_S = 1.0  # idle, a 6-byte get_clock block: 6 bytes/s, as klippy's (every 0.98 s); a clock
+# set back by more than this is caught at the next reading (behind the last one)
+BUSY_POLL_S = 0.4  # while steps are queued or an output is on (the polls ride in their blocks):
+# a board that goes wrong mid-cut (its clock back or ahead, its configuration lost) is caught
+# as soon as this
+CONFIG_EVERY = 8  # get_config once every 8 polls (8 s idle, 3.2 s busy)
 RIDE_S = 0.15  # while busy, a poll waits this long at most to join a block of steps (5 bytes)
 JUMP_S = 0.05  # a clock reading this far outside its round trip's window is looked into
 BEHIND_LIMIT_S = 1.0  # a clock that stays behind the fit this long: the fit starts over
