@@ -14,11 +14,12 @@ steps queued or an output on) and, one request at a time (never back to back), c
 sends 6-7; every poll wakes the process, and its answer again); to a busy one each poll waits
 up to ``RIDE_S`` to join a block of steps (as klippy's do), about 3 bytes a second then;
 silence for ``timeout_s`` (no block acknowledged), a restart, a clock that jumps ahead, a
-foreign configuration or a link fault raise :class:`KlipperFault`, a shutdown (ours from :meth:`emergency_stop`, or the firmware's own) :class:`McuShutdown`. A
-restart is told from the firmware's evidence, never from the host's timing: ``starting`` (sent
-at every boot), ``get_config`` unconfigured, a sequence number never sent (:mod:`.window`), or a
-clock that went back, checked against its 64-bit ``get_uptime``; a host stall widens a reading's
-round trip and leaves it inside, and a reading behind the fit is left out of it.
+foreign configuration or a link fault raise :class:`KlipperFault`, a shutdown (ours from
+:meth:`emergency_stop`, or the firmware's own) :class:`McuShutdown`. A restart is told from
+the firmware's evidence, never from the host's timing: ``starting`` (sent at every boot),
+``get_config`` unconfigured, a sequence number never sent (:mod:`.window`), or a clock that
+went back, checked against its 64-bit ``get_uptime``; a host stall widens a reading's round
+trip and leaves it inside, and a reading behind the fit is left out of it.
 After a shutdown :meth:`stopped_positions` reads where each stepper stopped (``clear_shutdown``
 then ``stepper_get_position``) and shuts the board down again until it is restarted.
 """
