@@ -12,7 +12,9 @@ configured by someone else is refused (:class:`KlipperFault`); one still configu
 steps queued or an output on) and, one request at a time (never back to back), checks
 ``get_config`` every ``CONFIG_EVERY`` polls: about 6.8 bytes a second to an idle MCU (klippy
 sends 6-7; every poll wakes the process, and its answer again); to a busy one each poll waits
-up to ``RIDE_S`` to join a block of steps (as klippy's do), about 3 bytes a second then;
+up to ``RIDE_S`` to join a block of steps (as klippy's do), about 3 bytes a second then, and
+only one in ``TIMED_EVERY`` is timed (its answer read as it arrives, into the fit): the others
+are read at the link's next drain, checked against the fit and noted (:meth:`sample_clock`);
 silence for ``timeout_s`` (no block acknowledged), a restart, a clock that jumps ahead, a
 foreign configuration or a link fault raise :class:`KlipperFault`, a shutdown (ours from
 :meth:`emergency_stop`, or the firmware's own) :class:`McuShutdown`. A restart is told from
