@@ -19,19 +19,14 @@ import pytest
 
 from tests.support.stop_rig import (
     BANNER,
+    STOP_AFTER_S,
     KlippyClient,
     LineClient,
     Rig,
     assert_a_reset_boards_modes,
+    slow_to_check_job,
     stop_rig,
 )
-
-CHECK_LINES = 100_000  # a fit check of about 2 s here (see test_one_stop.big_job)
-STOP_AFTER_S = 0.4
-
-
-def big_job() -> str:
-    return "G21 G90\nM3 S1000\n" + "G1 X1 Y1 F600\nG1 X1.5 Y1.5\n" * (CHECK_LINES // 2)
 
 
 async def firmware_restart(api: KlippyClient) -> None:
@@ -45,7 +40,7 @@ async def firmware_restart(api: KlippyClient) -> None:
 async def test_a_print_whose_start_is_being_checked_never_starts_after_a_stop(
         tmp_path: Path, stop: str) -> None:
     async with stop_rig(tmp_path, klippy=True) as rig, rig.klippy() as api:
-        rig.write_job("big.gcode", big_job())
+        rig.write_job("big.gcode", slow_to_check_job())
         operator = await rig.tcp()
         start = await api.send("gcode/script", script="SDCARD_PRINT_FILE FILENAME=big.gcode")
         await asyncio.sleep(STOP_AFTER_S)

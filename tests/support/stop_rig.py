@@ -31,6 +31,16 @@ from tests.support.klippy_client import KlippyClient
 from tests.support.senders import wait_for
 
 BANNER = "Grbl 1.1h ['$' for help]"
+# A job whose fit check takes about 2 s here, so that a stop 0.4 s after its start lands during
+# the check: 100,000 relative moves (G91: read one line at a time, as the plan's batch path
+# takes only absolute runs; 1.4 MB of absolute moves is checked in a fraction of a second).
+CHECK_LINES = 100_000
+STOP_AFTER_S = 0.4
+
+
+def slow_to_check_job() -> str:
+    return "G21 G91\nM3 S1000\n" + "G1 X0.5 Y0.5 F600\nG1 X-0.5 Y-0.5\n" * (CHECK_LINES // 2)
+
 LASER_PIN = "laser"
 
 
