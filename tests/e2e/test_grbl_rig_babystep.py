@@ -22,18 +22,23 @@ _NUMBERS = re.compile(r"-?\d+\.\d+")
 
 async def board_state(client: GrblClient, machine: GrblMachine) -> list[float]:
     """The board's G92 offset (its ``$#``), MPos and WCO (a ``?`` with WCO in it, after two
-    more of the board's own reports: Grbl sends WCO in the first after an offset changed),
-    one list, once it is still (Grbl answers ``$#`` only then)."""
+    more of the board's own reports: Grbl sends WCO in the first after an offset changed, and
+    until its reports agree with its ``$#``), one list, once it is still (Grbl answers ``$#``
+    only then)."""
     polls = machine.controller.status_polls
     await wait_for(lambda: machine.controller.status_polls >= polls + 2, 5.0, "two polls")
-    for _ in range(40):
+    state: list[float] = []  # (no report with WCO at all: the comparison fails)
+    for _ in range(40):  # (a loaded machine: the report with the new WCO may come later)
         report = await client.settle()
-        if "|WCO:" in report:
+        if "|WCO:" not in report:
+            continue
+        g92 = next(text for text in await client.send("$#") if text.startswith("[G92:"))
+        fields = dict(field.split(":", 1) for field in report.strip("<>").split("|")[1:])
+        state = [float(v) for text in (g92, fields["MPos"], fields["WCO"])
+                 for v in _NUMBERS.findall(text)]
+        if state[6:] == state[:3]:  # G54 is zero here: the board's WCO is its G92
             break
-    g92 = next(text for text in await client.send("$#") if text.startswith("[G92:"))
-    fields = dict(field.split(":", 1) for field in report.strip("<>").split("|")[1:])
-    return [float(v) for text in (g92, fields["MPos"], fields["WCO"])
-            for v in _NUMBERS.findall(text)]
+    return state
 
 
 def ours(machine: GrblMachine) -> list[float]:
