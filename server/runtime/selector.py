@@ -7,8 +7,7 @@ that rounding alone made the step generator's tick and every timer up to a milli
 on top of the loop's own work (the streaming benchmark's stall: about 1.2 ms).
 
 :class:`FineEpollSelector` waits on the epoll descriptor itself with ``select()``, whose
-timeout is in microseconds, then collects the ready events with a zero-timeout ``epoll_wait``
-(only when ``select()`` saw some: a timer's wake-up makes one system call, not two):
+timeout is in microseconds, then collects the ready events with a zero-timeout ``epoll_wait``:
 epoll still watches every descriptor (no ``FD_SETSIZE`` limit on connections); ``select()``
 only ever sees the one epoll descriptor. Should that descriptor be numbered beyond what
 ``select()`` takes, it falls back to epoll's own millisecond waits.
@@ -29,9 +28,7 @@ class FineEpollSelector(selectors.EpollSelector):
     def select(self, timeout: float | None = None) -> list[tuple[selectors.SelectorKey, int]]:
         epoll_fd = self.fileno()
         if timeout is not None and timeout > 0.0 and epoll_fd < FD_SETSIZE:
-            ready, _, _ = select.select([epoll_fd], [], [], timeout)  # an event or the time
-            if not ready:  # a timer's time came with nothing ready: no epoll_wait to ask
-                return []
+            select.select([epoll_fd], [], [], timeout)  # until an event or the exact time
             timeout = 0.0
         return super().select(timeout)
 

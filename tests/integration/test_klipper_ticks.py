@@ -183,8 +183,8 @@ async def test_a_board_shutdown_mid_cruise_is_read_within_the_longest_sample_gap
 async def test_an_idle_server_wakes_only_for_its_periodic_jobs_on_one_grid(
         mcu: VirtualMcu) -> None:
     """Quiet and idle (the steps done, no command for a second): the event loop's timers wake
-    it once a second, for the MCU's clock poll, the loop monitor and the kernel's second
-    together (main: twice), plus the reads of each answer."""
+    it twice a second, for the MCU's clock poll, the loop monitor and the kernel's second
+    together (main: about 7 times, each on its own), plus the reads of each answer."""
     async with klipper_machine(mcu, lead_time_s=LEAD_S) as app:
         await submit_all(app, ["G1 X5 F6000"])
         await app.kernel.machine.wait_idle()
@@ -206,8 +206,8 @@ async def test_an_idle_server_wakes_only_for_its_periodic_jobs_on_one_grid(
             await asyncio.sleep(3.0)
         finally:
             selector.select = select
-        assert by_timer[0] / 3.0 <= 1.7, f"{by_timer[0] / 3.0:.1f} timer wake-ups/s (main: 2.3)"
-        assert wakes[0] / 3.0 <= 3.5, f"{wakes[0] / 3.0:.1f} wake-ups/s (main: 4.7)"
+        assert by_timer[0] / 3.0 <= 3.0, f"{by_timer[0] / 3.0:.1f} timer wake-ups/s (main: 7)"
+        assert wakes[0] / 3.0 <= 8.0, f"{wakes[0] / 3.0:.1f} wake-ups/s (main: 9.5)"
 
 
 async def until(condition: Callable[[], bool], limit_s: float) -> float:

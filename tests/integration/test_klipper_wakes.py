@@ -200,39 +200,3 @@ async def test_a_board_slower_than_its_wire_has_its_acknowledgements_read_as_the
     assert calls.get("_on_refill", 0) >= 1, calls
     assert calls.get("_on_readable", 0) >= 1, f"read as they came: {calls}"
     assert blocks >= 8 and not link._slow, "the window moved: back to one read a window"
-
-
-async def test_mid_cut_two_clock_polls_in_three_are_read_at_the_samples_and_fit_none(
-        mcu: VirtualMcu, monkeypatch: pytest.MonkeyPatch) -> None:
-    """#41: while the ticks run, a clock poll's answer read as it arrives costs two wake-ups
-    (its first bytes, then the rest of its block). Only one poll in ``TIMED_EVERY`` is timed
-    so (the fit's readings, 1.2 s apart); the others only check the clock, their answers read
-    at the next drain, and noted, not fitted."""
-    async with klipper_machine(mcu, laser=LASER) as app:
-        backend = app.kernel.machine.backend
-        assert isinstance(backend, KlipperBackend) and backend.mcu is not None
-        sync = backend.mcu.clock
-        assert sync is not None
-        fitted, noted = [0], [0]
-        add_sample, note = sync.add_sample, getattr(sync, "note", lambda _: None)
-
-        def fit(sent_s: float, received_s: float, clock64: int) -> None:
-            fitted[0] += 1
-            add_sample(sent_s, received_s, clock64)
-
-        def just_note(clock64: int) -> None:
-            noted[0] += 1
-            note(clock64)
-
-        monkeypatch.setattr(sync, "add_sample", fit)
-        monkeypatch.setattr(sync, "note", just_note, raising=False)  # (main has none)
-        await submit_all(app, ["M3 S800", "G1 X100 F2000"])  # 3 s of cutting
-        await asyncio.sleep(0.6)  # polls every BUSY_POLL_S from here
-        deliveries = Deliveries(backend.mcu.link)
-        fitted[0] = noted[0] = 0
-        await asyncio.sleep(2.0)
-        clocks = [in_sample for name, in_sample, _ in deliveries.seen if name == "clock"]
-        assert len(clocks) >= 4, clocks  # 5 polls, 0.4 s apart
-        assert sum(clocks) >= 2, f"untimed answers read at the samples: {clocks}"
-        assert 1 <= fitted[0] <= 2 and noted[0] >= 2, (fitted, noted)
-        assert backend.mcu.link.window.retransmits == 0

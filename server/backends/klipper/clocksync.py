@@ -51,11 +51,6 @@ class ClockSync:
             delta -= 1 << 32
         return self._last_clock + delta
 
-    def note(self, clock64: int) -> None:
-        """A reading whose round trip is unknown: not fitted, but the latest clock read (a
-        clock that goes back is judged against it, and 32-bit readings unwrap near it)."""
-        self._last_clock = max(self._last_clock, clock64)
-
     def add_sample(self, sent_s: float, received_s: float, clock64: int) -> None:
         """One ``get_clock`` round trip; refits the map."""
         rtt_s = max(received_s - sent_s, 1e-7)

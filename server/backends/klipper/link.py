@@ -79,7 +79,6 @@ class Link(LinkReader):
         self._keep: deque[bool] = deque()  # per queued message: a request's (never dropped)
         self._out = bytearray()
         self._waiters: list[tuple[str, Match, asyncio.Future[Params]]] = []
-        self._untimed: set[asyncio.Future[Params]] = set()  # answers read at the next drain
         self._rider: _Rider | None = None  # a request waiting for company (one at a time)
         self._timer: asyncio.TimerHandle | None = None
         self._timer_deadline_s = 0.0  # when the armed timer fires
@@ -137,21 +136,15 @@ class Link(LinkReader):
         return dropped
 
     async def request(self, message: bytes, response: str, timeout_s: float,
-                      match: Match = lambda _: True, ride_s: float = 0.0,
-                      timed: bool = True) -> Params:
+                      match: Match = lambda _: True, ride_s: float = 0.0) -> Params:
         """Send ``message`` and wait for the first ``response`` that ``match``es; its
         ``#sent_s`` is when ``message`` left. With ``ride_s``, ``message`` waits that long at
         most for other messages to leave and joins their first block (``timeout_s`` counts
-        from when it may have left at the latest). ``timed``: the answer is read as it
-        arrives (its ``#received_s`` then measures the round trip); else, while the owner
-        samples, it is read with the link's next drain (a sample, the retransmission timer's):
-        no wake-up of its own, its ``#received_s`` as late as that."""
+        from when it may have left at the latest)."""
         assert self._loop is not None
         future: asyncio.Future[Params] = self._loop.create_future()
         waiter = (response, match, future)
         self._waiters.append(waiter)
-        if not timed:
-            self._untimed.add(future)
         rider = None
         sent_s = time.monotonic()
         if ride_s > 0.0 and self._rider is None and not self.closed:
@@ -163,7 +156,6 @@ class Link(LinkReader):
             # its patience starts when it leaves: a rider waits up to ride_s for company
             params = await asyncio.wait_for(future, timeout_s + (ride_s if rider else 0.0))
         finally:
-            self._untimed.discard(future)
             if waiter in self._waiters:
                 self._waiters.remove(waiter)
             if rider is not None and rider is self._rider:  # never left (a timeout, a close)

@@ -14,8 +14,7 @@ read there, in one non-blocking drain, and not on every block that arrives: each
 the process costs CPU, and an MCU's faults are acted on at the next sample anyway. The event
 loop watches the device only while something must be read at once: a request's answer awaited
 once the request has left (a clock reading's arrival time is its measurement; a poll waiting
-to ride along is not watched for, nor an untimed request's, read at the next drain), or no
-samples (:meth:`LinkReader.rest`: an idle board's
+to ride along is not watched for), or no samples (:meth:`LinkReader.rest`: an idle board's
 shutdown or restart is read at once). Every timer that judges the link (retransmission, the
 acknowledgement timeout) drains it first. Messages waiting for room in the window while the
 owner samples are not a reason to read every acknowledgement as it comes (a wake-up each, and
@@ -78,7 +77,6 @@ class LinkReader:
     _reader: BlockReader
     _queue: deque[bytes]
     _waiters: list[tuple[str, Match, asyncio.Future[Params]]]
-    _untimed: set[asyncio.Future[Params]]
     _rider: _Rider | None
     _fd: int | None
     _loop: asyncio.AbstractEventLoop | None
@@ -145,8 +143,7 @@ class LinkReader:
 
     def _wants_reader(self) -> bool:
         """Whether something must be read as it arrives (see the module docstring)."""
-        answer_due = self._rider is None and any(  # a rider has not left yet
-            future not in self._untimed for _, _, future in self._waiters)
+        answer_due = bool(self._waiters) and self._rider is None  # a rider has not left yet
         waiting = bool(self._queue) and self._slow  # acks as they come from a slow board
         return not self.sampling or self._backlog or answer_due or waiting
 

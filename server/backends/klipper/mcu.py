@@ -10,18 +10,15 @@ configured by someone else is refused (:class:`KlipperFault`); one still configu
 (:meth:`Mcu.restart`, as Klipper's host does for its ``restart_method``) and connected afresh.
 :meth:`Mcu.watch` samples the clock every ``poll_s`` (``BUSY_POLL_S`` while :attr:`Mcu.busy`:
 steps queued or an output on) and, one request at a time (never back to back), checks
-``get_config`` every ``CONFIG_EVERY`` polls: about 6.8 bytes a second to an idle MCU (klippy
-sends 6-7; every poll wakes the process, and its answer again); to a busy one each poll waits
-up to ``RIDE_S`` to join a block of steps (as klippy's do), about 3 bytes a second then, and
-only one in ``TIMED_EVERY`` is timed (its answer read as it arrives, into the fit): the others
-are read at the link's next drain, checked against the fit and noted (:meth:`sample_clock`);
-silence for ``timeout_s`` (no block acknowledged), a restart, a clock that jumps ahead, a
-foreign configuration or a link fault raise :class:`KlipperFault`, a shutdown (ours from
-:meth:`emergency_stop`, or the firmware's own) :class:`McuShutdown`. A restart is told from
-the firmware's evidence, never from the host's timing: ``starting`` (sent at every boot),
-``get_config`` unconfigured, a sequence number never sent (:mod:`.window`), or a clock that
-went back, checked against its 64-bit ``get_uptime``; a host stall widens a reading's round
-trip and leaves it inside, and a reading behind the fit is left out of it.
+``get_config`` every ``CONFIG_EVERY`` polls: about 14 bytes a second to an idle MCU (klippy
+sends 6); to a busy one each poll waits up to ``RIDE_S`` to join a block of steps (as klippy's
+do), about 3 bytes a second then; silence for ``timeout_s`` (no block acknowledged), a restart, a
+clock that jumps ahead, a foreign configuration or a link fault raise :class:`KlipperFault`, a
+shutdown (ours from :meth:`emergency_stop`, or the firmware's own) :class:`McuShutdown`. A
+restart is told from the firmware's evidence, never from the host's timing: ``starting`` (sent
+at every boot), ``get_config`` unconfigured, a sequence number never sent (:mod:`.window`), or a
+clock that went back, checked against its 64-bit ``get_uptime``; a host stall widens a reading's
+round trip and leaves it inside, and a reading behind the fit is left out of it.
 After a shutdown :meth:`stopped_positions` reads where each stepper stopped (``clear_shutdown``
 then ``stepper_get_position``) and shuts the board down again until it is restarted.
 """
@@ -55,15 +52,10 @@ CLOCK_SETTLE_S = 5.0
 RATE_PROBE_S = 0.15
 RATE_TOLERANCE = 0.05  # a round trip's jitter over RATE_PROBE_S stays well inside this
 RESET_SETTLE_S = 0.015  # klippy's pause after ``reset`` before it lets the port go
-POLL_S = 1.0  # idle, a 6-byte get_clock block: 6 bytes/s, as klippy's (every 0.98 s); a clock
-# set back by more than this is caught at the next reading (behind the last one)
-BUSY_POLL_S = 0.4  # while steps are queued or an output is on (the polls ride in their blocks):
-# a board that goes wrong mid-cut (its clock back or ahead, its configuration lost) is caught
-# as soon as this
-CONFIG_EVERY = 8  # get_config once every 8 polls (8 s idle, 3.2 s busy)
-TIMED_EVERY = 3  # while busy, one clock poll in 3 is timed (the fit's, 1.2 s apart, as klippy's
-# every second); the others only check the clock, their answers read at the link's next drain
-# (no wake-ups of their own: 2 of a poll's 3)
+POLL_S = 0.5  # a 6-byte get_clock block: 12 bytes/s; a clock set back by more than this is
+# caught at the next reading (behind the last one)
+BUSY_POLL_S = 0.4  # while steps are queued or an output is on (15 bytes/s)
+CONFIG_EVERY = 8  # get_config once every 8 polls (4 s idle, 3.2 s busy)
 RIDE_S = 0.15  # while busy, a poll waits this long at most to join a block of steps (5 bytes)
 JUMP_S = 0.05  # a clock reading this far outside its round trip's window is looked into
 BEHIND_LIMIT_S = 1.0  # a clock that stays behind the fit this long: the fit starts over
@@ -176,11 +168,10 @@ class Mcu:
         await self._configure()
 
     async def _ask(self, name: str, response: str, match: Callable[[Params], bool] = lambda _: True,
-                   timeout_s: float | None = None, ride_s: float = 0.0, timed: bool = True,
-                   **params: Any) -> Params:
+                   timeout_s: float | None = None, ride_s: float = 0.0, **params: Any) -> Params:
         try:
             return await self.link.request(self.dictionary.encode(name, **params), response,
-                                           timeout_s or self.timeout_s, match, ride_s, timed)
+                                           timeout_s or self.timeout_s, match, ride_s)
         except TimeoutError as exc:
             raise KlipperFault(f"the MCU on {self.path} does not answer {name}") from exc
 
@@ -226,11 +217,9 @@ class Mcu:
             if time.monotonic() > deadline:
                 raise KlipperFault(f"the MCU's clock runs at {rate:.1%} of its CLOCK_FREQ")
 
-    async def sample_clock(self, timed: bool = True) -> None:
-        """A ``get_clock`` reading into the fit; untimed (read at the link's next drain, its
-        round trip unknown), only checked against the fit: a clock gone back or far ahead."""
+    async def sample_clock(self) -> None:
         assert self.clock is not None
-        reply = await self._ask("get_clock", "clock", ride_s=self._ride_s(), timed=timed)
+        reply = await self._ask("get_clock", "clock", ride_s=self._ride_s())
         sent, received = reply["#sent_s"], reply["#received_s"]
         clock = self.clock.extend(reply["clock"])
         if self.clock.synced:
@@ -239,10 +228,7 @@ class Mcu:
                 return  # not a reading of the clock the fit follows
             if abs(off_s) <= JUMP_S:
                 self._behind_since_s = None
-        if timed:
-            self.clock.add_sample(sent, received, clock)
-        else:
-            self.clock.note(clock)
+        self.clock.add_sample(sent, received, clock)
 
     async def _still_running(self, off_s: float, received_s: float) -> bool:
         """A clock reading far off its window: the firmware's own 64-bit uptime says whether
@@ -333,11 +319,11 @@ class Mcu:
         return RIDE_S if self.busy else 0.0
 
     async def _poll(self) -> None:
-        await self.sample_clock(timed=not self.busy or self._polls % TIMED_EVERY == 0)
+        await self.sample_clock()
         self._polls += 1
         if self._polls % CONFIG_EVERY:
             return
-        config = await self._ask("get_config", "config", ride_s=self._ride_s(), timed=False)
+        config = await self._ask("get_config", "config", ride_s=self._ride_s())
         if config["is_shutdown"]:
             raise self.shutdown or McuShutdown("the MCU shut down: reason unknown", None,
                                                self.stopping)
