@@ -206,8 +206,11 @@ async def _gcode_offset(ctx: ModuleContext, step: GcodeOffset, ticket: int,
         output("// SET_GCODE_OFFSET: the job is paused; the offset applies when it resumes")
         answer.add_done_callback(partial(_report_later, output))
         return
-    if answer is not None and await answer is not None:
-        return
+    if answer is not None:
+        if await answer is not None:
+            return
+        if (ctx.status().get("job") or {}).get("state") != "done":  # aborted or failed first
+            raise CommandError(Error.BUSY, "SET_GCODE_OFFSET not applied: the job ended first")
     await ctx.moves.wait_idle()
     await ctx.run_gcode(line, ticket)
     await ctx.moves.wait_idle()
