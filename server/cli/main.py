@@ -370,8 +370,16 @@ def serve(args: argparse.Namespace, config: Config) -> int:
               f"127.0.0.1", file=sys.stderr)
         return 1
     factory = loop_factory(getattr(args, "loop", "auto"), config.core.stepgen.realtime_priority)
-    with asyncio.Runner(loop_factory=factory) as runner:
-        return runner.run(_serve(config))
+    try:
+        with asyncio.Runner(loop_factory=factory) as runner:
+            return runner.run(_serve(config))
+    except ExceptionGroup as group:  # a port another program holds, a device that is gone
+        refused, other = group.split(OSError)
+        if other is not None or refused is None:
+            raise
+        for error in refused.exceptions:
+            print(f"motiond cannot start: {error}", file=sys.stderr)
+        return 1
 
 
 def _no_open_door(config: Config) -> None:

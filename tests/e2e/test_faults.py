@@ -1,5 +1,5 @@
 """Faults with a defined outcome: a failing backend alarms and the server keeps answering;
-SIGTERM mid-job stops motion, turns tools off and exits cleanly."""
+SIGTERM mid-job stops motion, turns tools off and exits cleanly; a port in use is a clear error."""
 
 from __future__ import annotations
 
@@ -77,3 +77,19 @@ def test_sigterm_mid_job_stops_and_exits_cleanly_within_two_seconds() -> None:
         assert time.monotonic() - started < 2.0
     rest = process.stderr.read()
     assert "Traceback" not in rest and "stopped" in rest
+
+
+def test_a_port_another_program_holds_is_one_clear_line_and_exit_1() -> None:
+    with socket.socket() as holder:
+        holder.bind(("127.0.0.1", 0))
+        holder.listen()
+        port = holder.getsockname()[1]
+        done = subprocess.run(
+            [sys.executable, "-m", "server.cli", "--host", "127.0.0.1", "--tcp-port", str(port),
+             "--http-port", "0", "--log-level", "warning"],
+            cwd=REPO, env={**os.environ, "PYTHONUNBUFFERED": "1"}, capture_output=True,
+            text=True, timeout=30)
+    assert done.returncode == 1
+    assert "Traceback" not in done.stderr
+    assert f"motiond cannot start: [Errno 98] error while attempting to bind on address " \
+           f"('127.0.0.1', {port}): address already in use" in done.stderr

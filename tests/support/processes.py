@@ -78,18 +78,32 @@ async def motiond(tmp_path: Path, extra_toml: str = "", *, args: Sequence[str] =
         data_dir = home / ".local" / "share" / "motiond"  # platformdirs' user data folder
     config = tmp_path / f"{name}.toml"
     config.write_text(axes_toml + extra_toml)
-    tcp_port, http_port = free_port(), free_port()
-    log_file = (tmp_path / f"{name}.log").open("ab")  # its warnings, for a failing test
-    process = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "server.cli", "--config", str(config), "--host", "127.0.0.1",
-        "--tcp-port", str(tcp_port), "--http-port", str(http_port), "--log-level", "warning",
-        *args,
-        cwd=REPO, env=environment, stdout=asyncio.subprocess.DEVNULL, stderr=log_file,
-    )
-    log_file.close()
+    log_path = tmp_path / f"{name}.log"  # its warnings, for a failing test
+    for attempt in range(3):
+        tcp_port, http_port = free_port(), free_port()
+        logged = log_path.stat().st_size if log_path.exists() else 0
+        with log_path.open("ab") as log_file:
+            process = await asyncio.create_subprocess_exec(
+                sys.executable, "-m", "server.cli", "--config", str(config),
+                "--host", "127.0.0.1", "--tcp-port", str(tcp_port),
+                "--http-port", str(http_port), "--log-level", "warning", *args,
+                cwd=REPO, env=environment, stdout=asyncio.subprocess.DEVNULL, stderr=log_file,
+            )
+        try:
+            await _wait_listening(tcp_port, process)
+            await _wait_listening(http_port, process)
+            break
+        except RuntimeError as exc:
+            said = log_path.read_bytes()[logged:].decode(errors="replace")
+            # A free port is free only until another program's connection takes it (five
+            # machines dialling the broker at once): take two others.
+            if "address already in use" in said and attempt < 2:
+                continue
+            raise RuntimeError(f"{exc}: {said[-2000:]}") from None
+        except BaseException:
+            await stop_process(process)
+            raise
     try:
-        await _wait_listening(tcp_port, process)
-        await _wait_listening(http_port, process)
         yield Served(process, tcp_port, http_port, data_dir)
     finally:
         await stop_process(process)
