@@ -209,7 +209,8 @@ async def _gcode_offset(ctx: ModuleContext, step: GcodeOffset, ticket: int,
     if answer is not None:
         if await answer is not None:
             return
-        if (ctx.status().get("job") or {}).get("state") != "done":  # aborted or failed first
+        if (ctx.status().get("job") or {}).get("state") != "done":  # failed first (an abort
+            # is a stop: the ticket would refuse it too, with a vaguer message)
             raise CommandError(Error.BUSY, "SET_GCODE_OFFSET not applied: the job ended first")
     await ctx.moves.wait_idle()
     await ctx.run_gcode(line, ticket)

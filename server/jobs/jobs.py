@@ -249,13 +249,15 @@ class Jobs(JobStore):
         )
         self._announce()
 
-    def abort(self) -> None:
-        """Stop the job and all motion at once; tools off."""
+    def abort(self, reason: str = "job aborted") -> None:
+        """Stop the job and all motion at once; tools off. A stop: what anyone asked for
+        before it is void (a baby-step waiting for the job, a script between its lines)."""
         progress = self._progress
         if progress is not None and progress.state in ("running", "paused"):
             progress.state, progress.remaining_s, progress.paused_for = "aborted", None, None
         self._plans.cancel()
-        self.kernel.machine.quickstop("job aborted")
+        self.kernel.machine.quickstop(reason)
+        self.kernel.status.stop(reason)
         if self._task is not None:
             self._task.cancel()
         self._announce()

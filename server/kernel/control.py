@@ -116,10 +116,10 @@ class MachineControl:
         """M410: stop at once, flush the queue, tools off, no alarm; a running job ends;
         a stop (what anyone queued before it is dropped)."""
         if self.jobs.active:
-            self.jobs.abort()
+            self.jobs.abort("quickstop (M410)")
         else:
             self.machine.quickstop()
-        self.machine.status.stop("quickstop (M410)")
+            self.machine.status.stop("quickstop (M410)")
 
     def emergency_stop(self) -> None:
         """M112: ALARM:40, motion stopped and tools off until ``$X`` or M999."""

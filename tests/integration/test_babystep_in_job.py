@@ -13,7 +13,7 @@ from server.app import App
 from server.errors import CommandError
 from tests.conftest import make_config
 from tests.integration.test_klippy_api_socket import client, served
-from tests.support.helpers import running
+from tests.support.helpers import SOURCE, running
 
 Target = tuple[float, float, float]
 LINES = 40
@@ -91,6 +91,21 @@ async def test_a_stop_voids_a_waiting_baby_step() -> None:
             assert outcome is None, "the job ended before its turn: it did not run"
         assert app.kernel.machine.interpreter.wco()[2] == 0.0
         assert app.kernel.machine.interpreter.offsets_report()[-3].startswith("[G92:0.000,0")
+
+
+async def test_a_job_abort_is_a_stop_and_a_baby_step_asked_before_it_never_runs() -> None:
+    async with running(make_config()) as app:
+        await playing(app)
+        ticket = app.kernel.status.ticket()
+        answer = app.kernel.jobs.interject("M290 Z0.05", ticket)
+        assert answer is not None
+        app.kernel.control.cancel_job()  # the UI's Stop, CANCEL_PRINT, Smoothie's abort
+        assert not app.kernel.status.still_valid(ticket), "an abort voids what came before"
+        assert await answer is None, "the job ended before its turn"
+        with pytest.raises(CommandError) as refused:  # as SET_GCODE_OFFSET then runs it
+            await app.kernel.dispatcher.submit("M290 Z0.05", SOURCE, ticket)
+        assert refused.value.code == 45
+        assert app.kernel.machine.interpreter.wco()[2] == 0.0
 
 
 async def test_a_baby_step_beyond_the_travel_is_refused_and_the_job_goes_on_unshifted() -> None:
