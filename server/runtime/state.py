@@ -6,9 +6,10 @@ object; every change is an event on the bus (``state``, ``halt``, ``clear_halt``
 alarm stops motion first (the ``stop_motion`` hook, the pipeline's), then tells everyone why.
 
 **The one stop mechanism.** Every stop (Ctrl-X, M112 in any dialect, an alarm, Klipper's
-``emergency_stop``, ``machine.reset``, M410) goes through :meth:`MachineStatus.stop`, which
-counts it in :attr:`MachineStatus.stops` (the stop generation) and emits ``stop``. Whatever is
-requested carries the generation it was requested in (:meth:`MachineStatus.ticket`), and
+``emergency_stop``, ``machine.reset``, M410, a job's abort) goes through
+:meth:`MachineStatus.stop`, which counts it in :attr:`MachineStatus.stops` (the stop
+generation) and emits ``stop``. Whatever is requested carries the generation it was requested
+in (:meth:`MachineStatus.ticket`), and
 whoever is about to start it checks the ticket (:meth:`MachineStatus.still_valid`): a request
 made before a stop never starts after it, wherever it waited (a connection's queue, the
 dispatcher's turn, a job's fit check, a deferred jog). Queues that hold requests also listen
