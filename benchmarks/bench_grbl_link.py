@@ -19,7 +19,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
-import socket
 import sys
 import tempfile
 import time
@@ -40,6 +39,7 @@ from server.backends.grbl.machine import GrblMachine  # noqa: E402
 from server.config_loader import build_config  # noqa: E402
 from server.runtime.clock import RealClock  # noqa: E402
 from server.transports.tcp import TcpTransport  # noqa: E402
+from tests.support.processes import free_port  # noqa: E402
 
 RASTER_FILE = "laser-raster-tree.nc"
 REPO = Path(__file__).resolve().parent.parent
@@ -53,12 +53,6 @@ def controller_toml(data_dir: Path) -> str:
                                                 AXES.items()) for name in "xyz")
     return (f"[machine]\nsoft_limits = false\n{axes}[jobs]\ndata_dir = '{data_dir}'\n"
             "[http]\nenabled = false\n")
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind((HOST, 0))
-        return int(probe.getsockname()[1])
 
 
 @contextlib.asynccontextmanager

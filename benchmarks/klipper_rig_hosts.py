@@ -198,7 +198,7 @@ class Motiond:
     @classmethod
     async def spawn(cls, config_text: str, workdir: Path, source: Path) -> Self:
         """``python -m server.cli`` of ``source`` on ``config_text``, on a free TCP port."""
-        from benchmarks.bench_grbl_link import free_port  # noqa: PLC0415
+        from tests.support.processes import free_port  # noqa: PLC0415
 
         config = workdir / "motiond.toml"
         config.write_text(config_text)

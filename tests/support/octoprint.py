@@ -15,7 +15,6 @@ import asyncio
 import http.client
 import os
 import secrets
-import socket
 import subprocess
 import sys
 import time
@@ -26,6 +25,7 @@ from typing import Any
 import aiohttp
 
 from tests.conftest import REPO
+from tests.support.processes import free_port
 
 VERSION = "1.11.8"
 VENV = REPO / "build" / f"octoprint-{VERSION}"
@@ -46,12 +46,6 @@ def ensure_venv() -> Path:
         subprocess.run([str(VENV / "bin" / "pip"), "install", "-q", f"OctoPrint=={VERSION}"],
                        check=True)
     return EXECUTABLE
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
 
 
 class OctoPrint:
