@@ -84,6 +84,20 @@ class PlainRun:
         return outputs
 
 
+    def moves(self) -> tuple[list[Move], np.ndarray, np.ndarray]:
+        """The run's moves without their follow actions (the S changes; a line that only
+        changed S gives nothing): what a plan's time and extent depend on, at a fraction of
+        :meth:`outputs`' cost; with their feeds (mm/s) and whether each is a rapid (their
+        targets are :attr:`ends`, a row each)."""
+        moved = self.moved
+        rapid = self.rapid[moved]
+        speeds = np.where(self.rapid, math.inf, self.feeds_mm_min / 60.0)[moved]
+        moves = list(map(Move, map(tuple, self.ends.tolist()), speeds.tolist(),
+                         map(_KINDS.__getitem__, rapid.tolist()),
+                         itertools.repeat(self.tool_mode), self.s[moved].tolist()))
+        return moves, speeds, rapid
+
+
 def plain_run(geo: Geometry, modal: ModalState, wco: Position, position: Position,
               columns: dict[str, np.ndarray], count: int) -> PlainRun:
     """Interpret a run of ``count`` plain lines (``columns``: each letter's values, NaN

@@ -186,6 +186,12 @@ class BlockColumns:
         self.tail += 1
         return self.tail - self._synced >= self.sync_every
 
+    def push_rows(self, rows: FloatArray) -> bool:
+        """:meth:`push` each row of ``rows`` (a column's ``input_rows`` values each), at once."""
+        self._staged += rows.ravel().tolist()
+        self.tail += rows.shape[0]
+        return self.tail - self._synced >= self.sync_every
+
     def push_front(self, values: tuple[float, ...]) -> int:
         """Put a column given by its ``input_rows`` values before the head; return its index."""
         self.sync()

@@ -16,7 +16,7 @@ import itertools
 import math
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import replace
-from typing import TextIO
+from typing import TextIO, cast
 
 import numpy as np
 
@@ -33,6 +33,8 @@ from server.motion.planner import MIN_LENGTH_MM, Block, Planner
 from server.motion.stepgen import StepGenerator
 from server.offline.stats import JobStats
 
+Run = tuple[np.ndarray, np.ndarray, np.ndarray]
+"""A plain run's moves as arrays: their targets (a row each), feeds (mm/s), rapid or not."""
 OFFLINE_SYNC_BLOCKS = 1024  # no event loop to keep: fewer, larger syncs (the same plan)
 READ_CHUNK_CHARS = 1 << 16  # a job file is read this many characters at a time
 
@@ -75,13 +77,14 @@ class _Feeder:
         self._read = lines_read(lines, interpreter, core.protocol.line_limit, self._where)
         self._on_line = on_line
         self._waiting: list[Output] = []  # outputs read not yet queued
+        self._waiting_run: Run | None = None  # their arrays, when they are a run's moves
         self.done = False
 
     def refill(self) -> None:
         """Queue outputs until the planner is full (reading ahead a line, or a run of plain
         lines) or the job ends."""
         if self._waiting:
-            self._waiting = self._queue(self._waiting)
+            self._waiting = self._queue(self._waiting, self._waiting_run)
             if self._waiting:
                 return
         if self.done:  # the end of the job, or a refused line: read no further
@@ -93,7 +96,15 @@ class _Feeder:
             for item in self._read:
                 if on_line is not None:
                     on_line(where[0])
-                outputs = item.outputs() if isinstance(item, PlainRun) else item
+                if isinstance(item, PlainRun):  # (a plan needs no follow action)
+                    moves, feeds_mm_s, rapid = item.moves()
+                    self._waiting = self._queue(list[Output](moves),
+                                                (item.ends, feeds_mm_s, rapid))
+                    if self._waiting:
+                        return
+                    full = is_full()
+                    continue
+                outputs = item
                 index, count = 0, len(outputs)
                 if count == 1 and not full and type(outputs[0]) is Move:
                     full, index = append(outputs[0]), 1  # the common line: offer(), inline
@@ -108,9 +119,19 @@ class _Feeder:
             self.stats.lines = where[0]
         self.done = True
 
-    def _queue(self, outputs: list[Output]) -> list[Output]:
+    def _queue(self, outputs: list[Output], run: Run | None = None) -> list[Output]:
         """Offer ``outputs`` as the live machine does (:func:`~server.motion.feed.offer`) until
-        the planner is full; return those left over. Sync requests need no machine here."""
+        the planner is full; return those left over. Sync requests need no machine here.
+        A run's moves (``run``: their targets, feeds and kinds) are appended at once
+        (:meth:`~server.motion.planner.Planner.append_run`: the same blocks)."""
+        self._waiting_run = None
+        if run is not None:
+            moves = cast("list[Move]", outputs)  # (a run's: every output is a move)
+            taken = 0 if self.planner.is_full() else self.planner.append_run(moves, *run)
+            if taken < len(outputs):
+                self._waiting_run = (run[0][taken:], run[1][taken:], run[2][taken:])
+                return outputs[taken:]
+            return []
         index = 0
         while index < len(outputs):
             index = offer(self.planner, outputs, index)

@@ -629,3 +629,43 @@ def test_a_plan_made_before_more_appends_does_not_settle_the_head_exit() -> None
     planner.plan()
     head = planner.pop()
     assert head is not None and head.exit_mm_s == pytest.approx(100.0)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_run_appended_at_once_plans_the_blocks_of_its_moves_one_by_one(seed: int) -> None:
+    """:meth:`Planner.append_run` (a job's plain lines, planned) against :meth:`append`: the
+    same blocks, rows and geometry to the bit, through full windows, rapids, feeds of 0, a
+    move shorter than MIN_LENGTH_MM and actions pending before the run."""
+    rng = random.Random(seed)
+    settings = PlannerSettings(max_rate_mm_s=(500.0, 500.0, 50.0),
+                               accel_mm_s2=(1000.0, 1000.0, 100.0), max_blocks=40,
+                               sync_blocks=16)
+    here, moves = (0.0, 0.0, 0.0), []
+    for index in range(1500):
+        step = MIN_LENGTH_MM / 2 if index == 700 else rng.choice([0.1, 0.37, 2.0, 25.0])
+        here = (here[0] + step * rng.choice([1, -1]), here[1] + rng.choice([0.0, step]),
+                here[2] + (step if index % 97 == 0 else 0.0))
+        moves.append(Move(here, rng.choice([0.0, 20.0, 100.0, 400.0]),
+                          MoveKind.RAPID if rng.random() < 0.1 else MoveKind.FEED))
+    ends = np.asarray([move.target_mm for move in moves])
+    feeds = np.asarray([move.feed_mm_s for move in moves])
+    rapid = np.asarray([move.kind is MoveKind.RAPID for move in moves])
+    taken_by = {}
+    for at_once in (False, True):
+        planner = Planner(settings, (0.0, 0.0, 0.0))
+        planner.append_action(Action("switch", {"on": True}))
+        popped, index = [], 0
+        while index < len(moves):
+            if at_once:
+                index += planner.append_run(moves[index:], ends[index:], feeds[index:],
+                                            rapid[index:])
+            else:
+                while index < len(moves) and not planner.append(moves[index]):
+                    index += 1
+                index += 1 if index < len(moves) else 0
+            settled = planner.pop_settled()
+            popped.append((settled.rows.tobytes(), settled.geometry) if settled else None)
+        popped += [(block.entry_mm_s, block.exit_mm_s, block.move) for block in run(planner)]
+        taken_by[at_once] = (popped, planner.moves_appended, planner.position_mm)
+    assert len(taken_by[True][0]) > 1500 / 40
+    assert taken_by[True] == taken_by[False]
