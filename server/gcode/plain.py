@@ -10,8 +10,9 @@ words, F, S; G90, G94; with soft limits, every end inside the travel). The first
 does not take, every line that is not plain and every run shorter than :data:`MIN_RUN` are
 read by the one-line path (:func:`lines_read`), which also finds the errors. A run gives the
 same moves, positions and modal state as its lines one by one (the same float operations,
-in the same order per line); :meth:`PlainRun.outputs` gives the very outputs the one-line
-path gives.
+in the same order per line); :meth:`PlainRun.moves` gives the very moves the one-line path
+gives, without their follow actions (a line's new S, a spindle action the move carries: the
+S is the move's own ``s_value`` too), which a plan's time and extent do not depend on.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ import numpy as np
 
 from server.gcode.modal import G0, G1, MM_PER_INCH, Geometry, ModalState
 from server.gcode.parser import check_length, parse_line, parse_plain
-from server.motion.moves import Action, ActionName, Move, MoveKind, Output, Position, ToolMode
+from server.motion.moves import Move, MoveKind, Output, Position, ToolMode
 
 if TYPE_CHECKING:
     from server.gcode.interpreter import Interpreter
@@ -45,7 +46,7 @@ class PlainRun:
         moved: per line read, whether it made a move.
         ends: where each move ends (machine mm), one row per line that moved.
         feeds_mm_min: the feed of each line (mm/min); ``rapid`` per line: G0.
-        s: the modal S after each line; ``s_changed`` per line: it set a new S (an action).
+        s: the modal S after each line.
         tool_mode: the modal M3/M4/M5 (the same for the whole run).
         position: the position after the run; ``motion``, ``feed_mm_min``, ``s_last``: the
             modal state after it.
@@ -57,38 +58,16 @@ class PlainRun:
     feeds_mm_min: np.ndarray
     rapid: np.ndarray
     s: np.ndarray
-    s_changed: np.ndarray
     tool_mode: ToolMode
     position: Position
     motion: int
     feed_mm_min: float
     s_last: float
 
-    def outputs(self) -> list[Output]:
-        """The outputs of the run's lines, in order, as the one-line path gives them."""
-        mode, spindle, moved = self.tool_mode, ActionName.SPINDLE, self.moved.tolist()
-        s = self.s.tolist()
-        actions = [[Action(spindle, {"mode": mode, "s": value})] if changed else []
-                   for changed, value in zip(self.s_changed.tolist(), s)]  # noqa: B905
-        speeds = np.where(self.rapid, math.inf, self.feeds_mm_min / 60.0)[self.moved]
-        moves: list[Output] = list(map(
-            Move, map(tuple, self.ends.tolist()), speeds.tolist(),
-            map(_KINDS.__getitem__, self.rapid[self.moved].tolist()), itertools.repeat(mode),
-            itertools.compress(s, moved), itertools.repeat(None),
-            itertools.compress(actions, moved)))
-        if len(moves) == self.count:
-            return moves
-        made, outputs = iter(moves), list[Output]()  # a line without a move: its action
-        for line_moved, line_actions in zip(moved, actions):  # noqa: B905
-            outputs += [next(made)] if line_moved else line_actions
-        return outputs
-
-
     def moves(self) -> tuple[list[Move], np.ndarray, np.ndarray]:
         """The run's moves without their follow actions (the S changes; a line that only
-        changed S gives nothing): what a plan's time and extent depend on, at a fraction of
-        :meth:`outputs`' cost; with their feeds (mm/s) and whether each is a rapid (their
-        targets are :attr:`ends`, a row each)."""
+        changed S gives nothing): what a plan's time and extent depend on; with their feeds
+        (mm/s) and whether each is a rapid (their targets are :attr:`ends`, a row each)."""
         moved = self.moved
         rapid = self.rapid[moved]
         speeds = np.where(self.rapid, math.inf, self.feeds_mm_min / 60.0)[moved]
@@ -119,10 +98,10 @@ def plain_run(geo: Geometry, modal: ModalState, wco: Position, position: Positio
     if geo.settings.soft_limits and (inside := _inside(geo, owns, position, count)) < count:
         return plain_run(geo, modal, wco, position, columns, inside)  # up to the line outside
     moved, ends = _moves(owns, position, count)
-    s_after, changed = _spindle(columns.get("S"), modal.s, count)
+    s_after = _spindle(columns.get("S"), modal.s, count)
     last = count - 1
     return PlainRun(
-        count, moved, ends, feeds, motion == G0, s_after, changed, modal.tool_mode,
+        count, moved, ends, feeds, motion == G0, s_after, modal.tool_mode,
         tuple(ends[-1].tolist()) if ends.shape[0] else position,
         int(motion[last]) if count else modal.motion,
         float(feeds[last]) if count else modal.feed,
@@ -145,14 +124,14 @@ def _moves(owns: list[tuple[np.ndarray | None, np.ndarray]], position: Position,
     return moved, np.stack(rows, axis=1)
 
 
-def _spindle(s: np.ndarray | None, modal_s: float,
-             count: int) -> tuple[np.ndarray, np.ndarray]:
-    """The modal S after each line, and which lines change it (an action each)."""
+def _spindle(s: np.ndarray | None, modal_s: float, count: int) -> np.ndarray:
+    """The modal S after each line: a line's S where it changes it (``S-0`` after ``S0``
+    changes nothing: the S stays ``0.0``)."""
     if s is None:
-        return np.full(count, modal_s), np.zeros(count, bool)
+        return np.full(count, modal_s)
     s, has_s = s + 0.0, ~np.isnan(s)
     changed = has_s & (s != _before(_filled(s, has_s, modal_s), modal_s))
-    return _filled(s, changed, modal_s), changed
+    return _filled(s, changed, modal_s)
 
 
 def takes_runs(geo: Geometry, modal: ModalState) -> bool:
