@@ -1,8 +1,9 @@
 """Fewer wake-ups (issue #41): while the owner samples, a block's retransmission timeout due
 shortly before the owner's next sample is judged at that sample, not by a timer of its own (a
 wake-up of the process per block sent, which only found the acknowledgement); a lost block is
-still resent there, the deferral is bounded (``JUDGE_DEFER_MAX_S``), and a rest judges on the
-timeout again. On the virtual MCU, over its pty."""
+still resent there, the deferral is bounded (``JUDGE_DEFER_MAX_S``), and a rest or a message
+sent first (the emergency stop) judges on the timeout again. On the virtual MCU, over its
+pty."""
 
 from __future__ import annotations
 
@@ -122,5 +123,19 @@ async def test_a_rest_judges_on_the_timeout_again(
     deadline_s = send_one(link, encode)
     link.sample_due(deadline_s + 0.04)
     link.rest()  # no sample comes after all (the ticks sleep)
+    await sleep_until(deadline_s + 0.02)
+    assert timers.calls >= 1 and link.window.retransmits == 1, "resent on its timeout"
+
+
+async def test_a_message_sent_first_is_judged_on_its_timeout(
+        board: tuple[VirtualMcu, Link, Dictionary], monkeypatch: pytest.MonkeyPatch) -> None:
+    mcu, link, encode = board
+    timers = Timers(monkeypatch)
+    # a sample announced, as while motion runs, within the bound after the block's timeout
+    link.sample_due(time.monotonic() + link.window.rto_s + 0.03)
+    mcu.drop_blocks = 1
+    link.send_first(encode.encode("update_digital_out", oid=0, value=0))  # as emergency_stop
+    deadline_s = link.window.deadline_s()
+    assert deadline_s is not None
     await sleep_until(deadline_s + 0.02)
     assert timers.calls >= 1 and link.window.retransmits == 1, "resent on its timeout"

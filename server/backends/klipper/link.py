@@ -20,7 +20,8 @@ sample comes at most ``JUDGE_DEFER_MAX_S`` after the oldest block's timeout
 (:meth:`Link.sample_due`), the sample judges it (resends it if it is still unacknowledged)
 and the timer waits for it, instead of a wake-up of the process that only finds the
 acknowledgement (one per block sent: a third of the wake-ups of a long move at a 0.2 s lead).
-A lost block is resent that much later at most; a rest judges on the timeout again.
+A lost block is resent that much later at most; a rest, or an emergency stop sent first,
+judges on the timeout again.
 
 This module is the writing side: queueing, packing blocks, requests (riding ones too),
 retransmission and the acknowledgement timeout. Reading the device (when: at the owner's
@@ -143,6 +144,7 @@ class Link(LinkReader):
         self._keep.clear()
         if self.closed:
             return dropped
+        self._sample_due_s = None  # its timeout judged on time, not at the next sample
         self._new_block(message, time.monotonic())
         self.send(*kept, keep=True)
         self._arm_timer()
