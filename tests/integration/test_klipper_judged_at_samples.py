@@ -137,5 +137,6 @@ async def test_a_message_sent_first_is_judged_on_its_timeout(
     link.send_first(encode.encode("update_digital_out", oid=0, value=0))  # as emergency_stop
     deadline_s = link.window.deadline_s()
     assert deadline_s is not None
+    link.sample_due(deadline_s + 0.03)  # the next tick's announcement changes nothing
     await sleep_until(deadline_s + 0.02)
     assert timers.calls >= 1 and link.window.retransmits == 1, "resent on its timeout"

@@ -20,8 +20,8 @@ sample comes at most ``JUDGE_DEFER_MAX_S`` after the oldest block's timeout
 (:meth:`Link.sample_due`), the sample judges it (resends it if it is still unacknowledged)
 and the timer waits for it, instead of a wake-up of the process that only finds the
 acknowledgement (one per block sent: a third of the wake-ups of a long move at a 0.2 s lead).
-A lost block is resent that much later at most; a rest, or an emergency stop sent first,
-judges on the timeout again.
+A lost block is resent that much later at most; a rest judges on the timeout again, and so
+does everything in flight with an emergency stop sent first, until all is acknowledged.
 
 This module is the writing side: queueing, packing blocks, requests (riding ones too),
 retransmission and the acknowledgement timeout. Reading the device (when: at the owner's
@@ -115,6 +115,7 @@ class Link(LinkReader):
         self._slow = False  # a refill found nothing acknowledged: read acks as they arrive
         self.refills = 0  # of those, the window's refills (for tests)
         self._sample_due_s: float | None = None  # the owner's next sample, as it said
+        self._sent_first = False  # a message sent first is in flight: judged on time
 
     def open(self) -> None:
         self._loop = asyncio.get_running_loop()
@@ -144,7 +145,7 @@ class Link(LinkReader):
         self._keep.clear()
         if self.closed:
             return dropped
-        self._sample_due_s = None  # its timeout judged on time, not at the next sample
+        self._sent_first = True  # its timeouts judged on time until the window is clear
         self._new_block(message, time.monotonic())
         self.send(*kept, keep=True)
         self._arm_timer()
@@ -231,9 +232,11 @@ class Link(LinkReader):
         deadline = self.window.deadline_s()
         if deadline is not None and self.ack_timeout_s is not None:
             deadline = min(deadline, self._progress_s + self.ack_timeout_s)
+        if deadline is None:
+            self._sent_first = False
         due_s = self._sample_due_s
         if (deadline is not None and due_s is not None and self.sampling
-                and deadline < due_s <= deadline + JUDGE_DEFER_MAX_S):
+                and not self._sent_first and deadline < due_s <= deadline + JUDGE_DEFER_MAX_S):
             deadline = due_s + JUDGE_SLACK_S
         if self.closed or self._loop is None:
             deadline = None
