@@ -15,7 +15,10 @@ counts the bytes. Reported:
 First, the rig benchmark's raster and circles (:mod:`.klipper_rig_jobs`, F6000, the laser on at
 a constant S) through the same parts without the line path, ticking when the backend asks (as
 the server does): the CPU per block of the per-block work (the planner's pops, the step
-generator, the pieces, the backend's samples).
+generator, the pieces, the backend's samples). Then the same jobs (and the long moves) with
+the process asleep ``COLD_GAP_S`` before each tick, as the server sleeps between its sparse
+ticks: the same work, from cold caches (on the shared 2-core VM it costs several times as
+much: why each wake-up of the server is worth removing, more than the Python it runs).
 
 Run: ``python -m benchmarks klipper-host [--quick] [--json]`` (``klipper`` measures the real
 firmware against Klipper's own host: :mod:`benchmarks.bench_klipper`).
@@ -40,6 +43,7 @@ from benchmarks.klipper_rig_hosts import (
 )
 from benchmarks.klipper_rig_jobs import LASER, SPEED_MM_S, Job
 from benchmarks.klipper_rig_jobs import circles as rig_circles
+from benchmarks.klipper_rig_jobs import long_moves as rig_long_moves
 from benchmarks.klipper_rig_jobs import raster as rig_raster
 from server.backends.klipper.backend import KlipperBackend
 from server.backends.klipper.clocksync import ClockSync
@@ -86,6 +90,9 @@ class WireCount:
 
     def sample(self) -> None:
         """The backend's tick reads the device here: there is none."""
+
+    def sample_due(self, when_s: float) -> None:
+        """When the next sample comes: no timeout to judge there."""
 
 
 class BenchMcu:
@@ -161,9 +168,10 @@ def rig_moves(job: Job) -> list[Move]:
     return moves
 
 
-def execute(motion_s: float, job: Job | None = None) -> tuple[float, float, OfflineBackend]:
+def execute(motion_s: float, job: Job | None = None,
+            pause_s: float = 0.0) -> tuple[float, float, OfflineBackend]:
     """CPU seconds and seconds of motion for a raster of ``motion_s`` seconds (or a rig job,
-    ``job``, repeated for about ``motion_s`` seconds)."""
+    ``job``, repeated for about ``motion_s`` seconds); ``pause_s``: asleep before each tick."""
     core = machine() if job is None else rig_machine()
     backend = OfflineBackend(core, record=True)
     backend.mcu, backend.ready = BenchMcu(), True  # type: ignore[assignment]
@@ -195,6 +203,8 @@ def execute(motion_s: float, job: Job | None = None) -> tuple[float, float, Offl
         # the rig's jobs tick as the server's ticks do: when the backend needs a sample
         now_s = now_s + stepgen.tick_s if job is None else stepgen.next_tick_s(now_s, now_s)
         backend.now_s = now_s
+        if pause_s:
+            time.sleep(pause_s)  # not CPU: process_time counts only the work
         stepgen.tick(now_s)
     backend.segments = len(all_moves)  # type: ignore[attr-defined]
     return time.process_time() - started, stepgen.state.motion_time_s, backend
@@ -215,9 +225,29 @@ def rig_jobs(result: BenchResult, quick: bool) -> None:
                    cpu_per_motion_s=(cpu_s / motion_s, "s/s"))
 
 
+COLD_GAP_S = 0.065  # the server's tick gap on a cruise at a 0.2 s lead
+
+
+def cold_ticks(result: BenchResult, quick: bool) -> None:
+    """The rig's jobs ticked back to back, then ``COLD_GAP_S`` apart: CPU per second of
+    motion of the same work, and the ratio (the cost of waking cold)."""
+    scale = 1 if quick else 2
+    for job in (rig_long_moves(count=2 * scale), rig_circles(turns=scale)):
+        warm_s, motion_s, _ = min((execute(0.0, job) for _ in range(2)), key=lambda r: r[0])
+        cold_s = execute(0.0, job, COLD_GAP_S)[0]
+        print(f"rig {job.name:10} ticks back to back {warm_s / motion_s:.4f} s/s, "
+              f"{COLD_GAP_S * 1e3:.0f} ms apart {cold_s / motion_s:.4f} s/s "
+              f"({cold_s / warm_s:.1f}x)")
+        result.add("klipper", f"rig {job.name} cold ticks",
+                   warm_cpu_per_motion_s=(warm_s / motion_s, "s/s"),
+                   cold_cpu_per_motion_s=(cold_s / motion_s, "s/s"),
+                   cold_over_warm=(cold_s / warm_s, "x"))
+
+
 def run(quick: bool) -> BenchResult:
     result = BenchResult("klipper-host", quick)
     rig_jobs(result, quick)
+    cold_ticks(result, quick)
     cpu_s, motion_s, backend = execute(1.0 if quick else 4.0)
     wire = backend.mcu.link  # type: ignore[union-attr]
     assert isinstance(wire, WireCount)

@@ -58,7 +58,18 @@ def test_a_wait_under_a_millisecond_is_not_rounded_up_to_one(
     chosen.register(pair[0], selectors.EVENT_READ)
     assert chosen.select(0.0003) == []
     assert waits == [0.0003], "select() waited the exact time"
-    assert spy.timeouts == [0], "and epoll only collected what was ready, without waiting"
+    assert spy.timeouts == [], "and timed out: nothing to collect, no epoll_wait (a syscall)"
+    chosen.close()
+
+
+def test_what_woke_the_wait_is_collected_from_epoll_without_waiting(
+    monkeypatch: pytest.MonkeyPatch, pair: tuple[socket.socket, socket.socket]
+) -> None:
+    chosen, spy, waits = spied(monkeypatch)
+    key = chosen.register(pair[0], selectors.EVENT_READ)
+    pair[1].send(b"x")
+    assert chosen.select(5.0) == [(key, selectors.EVENT_READ)]
+    assert spy.timeouts == [0], "epoll only collected what was ready"
     chosen.close()
 
 

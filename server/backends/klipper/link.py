@@ -14,6 +14,15 @@ block left unacknowledged that long (a board that is silent, sends garbage, or f
 without acknowledging ours) is reported once and nothing more is read, but an emergency stop
 can still be written before :meth:`Link.close`. Either way the link is dead and must be replaced.
 
+While the owner samples, the blocks a sample sends are acknowledged long before their
+retransmission timeout (25 ms at least) and read at the next sample: when the owner says that
+sample comes at most ``JUDGE_DEFER_MAX_S`` after the oldest block's timeout
+(:meth:`Link.sample_due`), the sample judges it (resends it if it is still unacknowledged)
+and the timer waits for it, instead of a wake-up of the process that only finds the
+acknowledgement (one per block sent: a third of the wake-ups of a long move at a 0.2 s lead).
+A lost block is resent that much later at most; a rest judges on the timeout again, and so
+does everything in flight with an emergency stop sent first, until all is acknowledged.
+
 This module is the writing side: queueing, packing blocks, requests (riding ones too),
 retransmission and the acknowledgement timeout. Reading the device (when: at the owner's
 samples, or as data arrives while something must be read at once; and handing on what
@@ -37,6 +46,10 @@ from server.backends.klipper.link_reader import BITS_PER_BYTE, LinkReader, Match
 from server.backends.klipper.window import SendWindow
 
 MessageHandler = Callable[[str, Params, float], None]
+JUDGE_DEFER_MAX_S = 0.05
+"""The most the judging of a block's retransmission timeout waits for the owner's next sample
+(a lost block's resend comes that much later at most: 75 ms after it left instead of 25)."""
+JUDGE_SLACK_S = 0.002  # the timer of a deferred judgement comes this much after the sample
 
 
 class _Rider:
@@ -101,6 +114,8 @@ class Link(LinkReader):
         self._refill: asyncio.TimerHandle | None = None  # the drain when the window is acked
         self._slow = False  # a refill found nothing acknowledged: read acks as they arrive
         self.refills = 0  # of those, the window's refills (for tests)
+        self._sample_due_s: float | None = None  # the owner's next sample, as it said
+        self._sent_first = False  # a message sent first is in flight: judged on time
 
     def open(self) -> None:
         self._loop = asyncio.get_running_loop()
@@ -130,6 +145,7 @@ class Link(LinkReader):
         self._keep.clear()
         if self.closed:
             return dropped
+        self._sent_first = True  # its timeouts judged on time until the window is clear
         self._new_block(message, time.monotonic())
         self.send(*kept, keep=True)
         self._arm_timer()
@@ -203,12 +219,25 @@ class Link(LinkReader):
         self._arm_timer()
         self._watch()  # messages left waiting for room: acknowledgements read as they come
 
+    def sample_due(self, when_s: float) -> None:
+        """The owner's next sample comes at ``when_s`` (at the latest, unless its ticks rest):
+        a timeout due shortly before it is judged there (see the module docstring)."""
+        self._sample_due_s = when_s
+        self._arm_timer()
+
     def _arm_timer(self) -> None:
         """One timer, at the earliest deadline: kept while that deadline stands (blocks sent
-        behind the oldest one in flight do not move it)."""
+        behind the oldest one in flight do not move it); while the owner samples, at its next
+        sample if that comes within ``JUDGE_DEFER_MAX_S`` after the deadline."""
         deadline = self.window.deadline_s()
         if deadline is not None and self.ack_timeout_s is not None:
             deadline = min(deadline, self._progress_s + self.ack_timeout_s)
+        if deadline is None:
+            self._sent_first = False
+        due_s = self._sample_due_s
+        if (deadline is not None and due_s is not None and self.sampling
+                and not self._sent_first and deadline < due_s <= deadline + JUDGE_DEFER_MAX_S):
+            deadline = due_s + JUDGE_SLACK_S
         if self.closed or self._loop is None:
             deadline = None
         if self._timer is not None:
@@ -227,7 +256,12 @@ class Link(LinkReader):
             self._drain()
             if self.closed or self.failed or self._timer is not None:
                 return  # judged (or re-armed by what was read) already
-        if self._unacknowledged(time.monotonic()):
+        self._judge()
+
+    def _judge(self) -> None:
+        """The acknowledgement timeout and the retransmission timeout, if passed, acted on;
+        the timer armed for the next deadline."""
+        if self.closed or self.failed or self._unacknowledged(time.monotonic()):
             return
         for block in self.window.on_timer(time.monotonic()):
             self._write(block)

@@ -93,6 +93,7 @@ class LinkReader:
     _refill: asyncio.TimerHandle | None
     _slow: bool
     refills: int
+    _sample_due_s: float | None
 
     if TYPE_CHECKING:  # the writing side's (.link)
         def _pump(self) -> None: ...
@@ -101,17 +102,24 @@ class LinkReader:
         def _unacknowledged(self, now_s: float) -> bool: ...
         def _fail(self, reason: str) -> None: ...
         def _fail_waiters(self, reason: str) -> None: ...
+        def _judge(self) -> None: ...
 
     def sample(self) -> None:
-        """The owner's tick: read what the device holds, then watch it only while something
-        must be read at once (see the module docstring)."""
+        """The owner's tick: read what the device holds, judge the timeouts passed (the timer
+        may have waited for this sample: see :mod:`.link`), then watch the device only while
+        something must be read at once (see the module docstring)."""
         self.sampling = True
+        self._sample_due_s = None  # until the owner says when the next one comes
         self._drain()
+        self._judge()
         self._watch()
 
     def rest(self) -> None:
-        """The owner stops sampling: the event loop reads the device as data arrives."""
+        """The owner stops sampling: the event loop reads the device as data arrives (and the
+        timeouts are judged when they pass)."""
         self.sampling = False
+        self._sample_due_s = None
+        self._judge()
         self._watch()
 
     def _watch(self) -> None:
