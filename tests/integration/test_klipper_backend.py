@@ -136,9 +136,16 @@ async def test_the_fitted_clock_maps_host_time_to_mcu_ticks(mcu: VirtualMcu) -> 
             after = time.monotonic()
             predicted = sync.clock_at(0.5 * (before + after))
             errors.append(abs(predicted - actual) / mcu.clock_hz - 0.5 * (after - before))
-        # a pty and a thread on a shared 2-core machine: the bound is the link's, not the fit's
-        print("clock errors us", sorted(round(e * 1e6, 1) for e in errors))
-        assert float(np.median(errors)) < 400e-6  # 258 us seen on a slow 2-core CI machine
+        # The fit can know the clock no better than the windows it is made of: the board read
+        # its clock somewhere between a poll's sending and its answer. The polls of an idle
+        # machine come after 0.5 s asleep, and on this shared VM the cold wake-ups of the
+        # virtual MCU's thread and of the loop make their round trips 0.25-1.9 ms (the start's
+        # back-to-back burst: 0.1 ms), so the bound is half the recent round trips, 400 us at
+        # the least (258 us seen on a slow 2-core CI machine); a wrong fit is off by far more.
+        recent_rtt_s = float(np.median([rtt for _, _, rtt in sync._samples][-4:]))  # noqa: SLF001
+        print("clock errors us", sorted(round(e * 1e6, 1) for e in errors),
+              f"recent round trips {recent_rtt_s * 1e6:.0f} us")
+        assert float(np.median(errors)) < max(400e-6, 0.5 * recent_rtt_s + 100e-6)
         assert abs(sync.freq_hz / mcu.rate - 1) < 300e-6
 
 
