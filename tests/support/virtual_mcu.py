@@ -245,13 +245,16 @@ class VirtualMcu:
         self.expected_seq += 1
         self.blocks_received += 1
         pos, resets = msgproto.MESSAGE_HEADER_SIZE, self.resets
-        names: list[str] = []
-        self.block_messages.append(names)
+        messages: list[tuple[str, dict[str, Any]]] = []
         while pos < len(block) - msgproto.MESSAGE_TRAILER_SIZE:
             fmt = self.parser.messages_by_id[block[pos]]
             params, pos = fmt.parse(block, pos)
-            names.append(fmt.name)
-            self._command(fmt.name, params)
+            messages.append((fmt.name, params))
+        # recorded whole before the first response leaves (a test reading it on a reply sees
+        # the block it came in)
+        self.block_messages.append([name for name, _ in messages])
+        for name, params in messages:
+            self._command(name, params)
         if self.resets == resets:  # acked after its responses, as src/command.c does (a
             self._send_block(b"")  # reset reboots first)
 
