@@ -15,6 +15,7 @@ import pytest
 
 from server.backends.klipper.dictionary import Dictionary
 from server.backends.klipper.link import JUDGE_DEFER_MAX_S, Link
+from tests.support.klipper_machine import configured_link
 from tests.support.virtual_mcu import VirtualMcu
 
 
@@ -36,22 +37,10 @@ class Timers:
 async def board() -> AsyncIterator[tuple[VirtualMcu, Link, Dictionary]]:
     """A configured virtual MCU and a link to it whose owner samples."""
     mcu = VirtualMcu(baud=250000).start()
-    link = Link(mcu.path, 250000, lambda name, params, _: None, lambda reason: None)
-    link.open()
     try:
-        link.dictionary = encode = Dictionary.from_compressed(mcu.blob)
-        link.send(encode.encode("allocate_oids", count=1),
-                  encode.encode("config_digital_out", oid=0, pin="PA8", value=0,
-                                default_value=0, max_duration=0),
-                  encode.encode("finalize_config", crc=1))
-        for _ in range(200):
-            if mcu.configured and not link.window.inflight:
-                break
-            await asyncio.sleep(0.01)
-        link.sample()
-        yield mcu, link, encode
+        async with configured_link(mcu) as (link, encode):
+            yield mcu, link, encode
     finally:
-        link.close()
         mcu.stop()
 
 

@@ -14,11 +14,10 @@ import pytest
 
 from server.backends.klipper import mcu as mcu_module
 from server.backends.klipper.backend import KlipperBackend
-from server.backends.klipper.dictionary import Dictionary
 from server.backends.klipper.link import Link
 from tests.integration.test_klipper_faults import wait_for_alarm
 from tests.support.helpers import submit_all
-from tests.support.klipper_machine import klipper_machine
+from tests.support.klipper_machine import configured_link, klipper_machine
 from tests.support.virtual_mcu import VirtualMcu
 
 LASER = {"pin": "PA8"}
@@ -139,19 +138,7 @@ async def burst(mcu: VirtualMcu, monkeypatch: pytest.MonkeyPatch,
             original(link)
 
         monkeypatch.setattr(Link, name, counted)
-    link = Link(mcu.path, 250000, lambda name, params, _: None, lambda reason: None)
-    link.open()
-    try:
-        link.dictionary = encode = Dictionary.from_compressed(mcu.blob)
-        link.send(encode.encode("allocate_oids", count=1),
-                  encode.encode("config_digital_out", oid=0, pin="PA8", value=0,
-                                default_value=0, max_duration=0),
-                  encode.encode("finalize_config", crc=1))
-        for _ in range(200):
-            if mcu.configured and not link.window.inflight:
-                break
-            await asyncio.sleep(0.01)
-        link.sample()
+    async with configured_link(mcu) as (link, encode):
         first_block = link.window.next_seq
         calls.clear()
         link.send(*[encode.encode("update_digital_out", oid=0, value=k % 2)
@@ -164,8 +151,6 @@ async def burst(mcu: VirtualMcu, monkeypatch: pytest.MonkeyPatch,
         updates = [p["value"] for _, name, p in mcu.commands if name == "update_digital_out"]
         assert updates == [k % 2 for k in range(count)], "every message once, in order"
         return link, calls, link.window.next_seq - first_block
-    finally:
-        link.close()
 
 
 async def test_messages_waiting_for_room_leave_at_one_read_a_window_not_one_an_ack(

@@ -10,6 +10,8 @@ from typing import Any
 
 from server.app import App, TransportFactory
 from server.backends.klipper.backend import KlipperBackend
+from server.backends.klipper.dictionary import Dictionary
+from server.backends.klipper.link import Link
 from server.runtime import realtime
 from server.runtime.clock import RealClock
 from tests.conftest import make_config
@@ -71,3 +73,25 @@ async def _configured(app: App) -> App:
         await asyncio.sleep(0.01)
     assert backend.ready, backend.fault
     return app
+
+
+@contextlib.asynccontextmanager
+async def configured_link(mcu: VirtualMcu) -> AsyncIterator[tuple[Link, Dictionary]]:
+    """A link to ``mcu`` whose owner samples, the board configured (one digital output, oid 0
+    on PA8) and every block acknowledged; closed when the block ends."""
+    link = Link(mcu.path, 250000, lambda name, params, _: None, lambda reason: None)
+    link.open()
+    try:
+        link.dictionary = encode = Dictionary.from_compressed(mcu.blob)
+        link.send(encode.encode("allocate_oids", count=1),
+                  encode.encode("config_digital_out", oid=0, pin="PA8", value=0,
+                                default_value=0, max_duration=0),
+                  encode.encode("finalize_config", crc=1))
+        for _ in range(200):
+            if mcu.configured and not link.window.inflight:
+                break
+            await asyncio.sleep(0.01)
+        link.sample()
+        yield link, encode
+    finally:
+        link.close()
