@@ -93,25 +93,19 @@ async def test_a_lost_block_is_resent_by_the_sample_that_judges_it(
     assert not link.window.inflight and updates(mcu) == 1
 
 
-async def test_a_sample_due_long_after_the_timeout_does_not_delay_it(
-        board: tuple[VirtualMcu, Link, Dictionary], monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize("then", ["a sample due beyond the bound", "a rest"])
+async def test_a_timeout_no_sample_comes_for_within_the_bound_is_judged_on_time(
+        board: tuple[VirtualMcu, Link, Dictionary], monkeypatch: pytest.MonkeyPatch,
+        then: str) -> None:
     mcu, link, encode = board
     timers = Timers(monkeypatch)
     mcu.drop_blocks = 1
     deadline_s = send_one(link, encode)
-    link.sample_due(deadline_s + JUDGE_DEFER_MAX_S + 0.05)  # beyond the bound
-    await sleep_until(deadline_s + 0.02)
-    assert timers.calls >= 1 and link.window.retransmits == 1, "resent on its timeout"
-
-
-async def test_a_rest_judges_on_the_timeout_again(
-        board: tuple[VirtualMcu, Link, Dictionary], monkeypatch: pytest.MonkeyPatch) -> None:
-    mcu, link, encode = board
-    timers = Timers(monkeypatch)
-    mcu.drop_blocks = 1
-    deadline_s = send_one(link, encode)
-    link.sample_due(deadline_s + 0.04)
-    link.rest()  # no sample comes after all (the ticks sleep)
+    if then == "a rest":
+        link.sample_due(deadline_s + 0.04)
+        link.rest()  # no sample comes after all (the ticks sleep)
+    else:
+        link.sample_due(deadline_s + JUDGE_DEFER_MAX_S + 0.05)
     await sleep_until(deadline_s + 0.02)
     assert timers.calls >= 1 and link.window.retransmits == 1, "resent on its timeout"
 
