@@ -8,10 +8,9 @@ on top of the loop's own work (the streaming benchmark's stall: about 1.2 ms).
 
 :class:`FineEpollSelector` waits on the epoll descriptor itself with ``select()``, whose
 timeout is in microseconds, then collects the ready events with a zero-timeout ``epoll_wait``
-(not when ``select()`` timed out: nothing was ready, and most wake-ups of a ticking loop are
-timers, so that call would be a system call for nothing): epoll still watches every
-descriptor (no ``FD_SETSIZE`` limit on connections); ``select()`` only ever sees the one epoll
-descriptor. Should that descriptor be numbered beyond what
+(only when ``select()`` saw some: a timer's wake-up makes one system call, not two):
+epoll still watches every descriptor (no ``FD_SETSIZE`` limit on connections); ``select()``
+only ever sees the one epoll descriptor. Should that descriptor be numbered beyond what
 ``select()`` takes, it falls back to epoll's own millisecond waits.
 """
 
@@ -30,8 +29,9 @@ class FineEpollSelector(selectors.EpollSelector):
     def select(self, timeout: float | None = None) -> list[tuple[selectors.SelectorKey, int]]:
         epoll_fd = self.fileno()
         if timeout is not None and timeout > 0.0 and epoll_fd < FD_SETSIZE:
-            if not select.select([epoll_fd], [], [], timeout)[0]:  # until an event or the time
-                return []  # timed out: no event (one that comes now is collected next turn)
+            ready, _, _ = select.select([epoll_fd], [], [], timeout)  # an event or the time
+            if not ready:  # a timer's time came with nothing ready: no epoll_wait to ask
+                return []
             timeout = 0.0
         return super().select(timeout)
 
