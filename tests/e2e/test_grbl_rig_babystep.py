@@ -28,8 +28,9 @@ async def board_state(client: GrblClient, machine: GrblMachine) -> list[float]:
     polls = machine.controller.status_polls
     await wait_for(lambda: machine.controller.status_polls >= polls + 2, 5.0, "two polls")
     state: list[float] = []  # (no report with WCO at all: the comparison fails)
+    await client.settle()
     for _ in range(40):  # (a loaded machine: the report with the new WCO may come later)
-        report = await client.settle()
+        report = await client.report()
         if "|WCO:" not in report:
             continue
         g92 = next(text for text in await client.send("$#") if text.startswith("[G92:"))

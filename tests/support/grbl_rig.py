@@ -161,14 +161,21 @@ class GrblClient:
         raise TimeoutError("no status report")
 
     async def settle(self, timeout_s: float = 30.0) -> str:
-        """Poll until Idle or Alarm; the last report."""
+        """Poll until two reports in a row say Idle or Alarm; the last report.
+
+        One is not enough: Grbl starts the cycle of a line it has answered only when its
+        serial buffer runs dry, and the same pass reports first, so a ``?`` sent just after
+        ``ok`` can say Idle with the block still queued (``Bf:14``)."""
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout_s
+        at_rest = 0
         while True:
             report = await self.report()
-            if report.startswith(("<Idle", "<Alarm")) or loop.time() > deadline:
+            at_rest = at_rest + 1 if report.startswith(("<Idle", "<Alarm")) else 0
+            if at_rest == 2 or loop.time() > deadline:
                 return report
-            await asyncio.sleep(0.02)
+            if not at_rest:
+                await asyncio.sleep(0.02)
 
     async def each(self, lines: Sequence[str]) -> list[tuple[str, ...]]:
         """Every line sent alone, waiting for the machine to settle after it."""
