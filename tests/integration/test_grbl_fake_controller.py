@@ -1,6 +1,7 @@
 """The grbl backend against a scripted controller over TCP (FluidNC and grblHAL offer Grbl on a
 socket): what a motiond controller never does — stay silent until Ctrl-X, report a bigger
-receive buffer in ``Bf:``, answer an error number outside Grbl 1.1's table, restart by itself.
+receive buffer in ``Bf:``, answer an error number outside Grbl 1.1's table, restart by itself,
+run on after a ``!`` (grblHAL's rig does, now and then, right after a resume).
 """
 
 from __future__ import annotations
@@ -45,6 +46,7 @@ class FakeController:
         self.polls_answered = True
         self.noise = b""  # written before each report (a noisy line, a chatty board)
         self.refused: dict[str, int] = {}  # lines it answers with error:N
+        self.realtime = bytearray()  # the '!' and '~' it received, in order
 
     async def start(self) -> int:
         self.server = await asyncio.start_server(self._serve, "127.0.0.1", 0)
@@ -66,6 +68,8 @@ class FakeController:
                 if not self.mute_next_reset:
                     writer.write(BANNER)
                 self.mute_next_reset = False
+            self.realtime += bytes(b for b in pending if b in b"!~")
+            pending = pending.replace(b"!", b"").replace(b"~", b"")
             if b"?" in pending:
                 pending = pending.replace(b"?", b"")
                 if self.polls_answered:
@@ -295,6 +299,31 @@ async def test_stopping_motiond_mid_job_resets_the_board_so_its_tools_go_off(
             assert fake.lines[-1] == "<reset>"
         finally:
             await client.close()
+
+
+async def test_a_hold_the_board_did_not_take_is_sent_again_and_only_then(
+        tmp_path: Path) -> None:
+    """The board reports Run after ``!`` (it dropped it): motiond sends ``!`` again after the
+    second poll still says so, and no more once it holds; after ``~`` a report of Run is
+    what was asked."""
+    async with linked(tmp_path) as (fake, app):
+        machine = app.kernel.machine
+        assert isinstance(machine, GrblMachine)
+        fake.report = b"<Run|MPos:1.000,0.000|Bf:14,255|FS:600,0>\r\n"
+        client = await client_of(app)
+        try:
+            client.writer.write(b"!")
+            await wait_for(lambda: fake.realtime == b"!!", 2.0, "the hold sent again")
+            polls = machine.controller.status_polls
+            fake.report = b"<Hold:0|MPos:1.000,0.000|Bf:14,255|FS:0,0>\r\n"
+            await wait_for(lambda: machine.controller.status_polls >= polls + 4, 2.0, "polls")
+            client.writer.write(b"~")
+            fake.report = b"<Run|MPos:1.000,0.000|Bf:14,255|FS:600,0>\r\n"
+            polls = machine.controller.status_polls
+            await wait_for(lambda: machine.controller.status_polls >= polls + 6, 2.0, "polls")
+        finally:
+            await client.close()
+    assert fake.realtime == b"!!~"
 
 
 async def test_m290_is_sent_once_the_lines_before_are_answered_and_a_refusal_undoes_it(

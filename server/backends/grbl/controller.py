@@ -44,6 +44,7 @@ log = logging.getLogger("motiond.grbl")
 READ_BYTES = 1024  # per loop iteration: a burst from a chatty board must not hold up clients
 RESET = 0x18
 STATUS = 0x3F
+HOLD, RESUME = 0x21, 0x7E
 _STILL = frozenset({"Idle", "Alarm", "Check", "Sleep"})  # nothing moves without a command
 SUMMARY_PERIOD_S = 10.0  # at most one warning this often about a noisy board
 POLLS_REMEMBERED = 32  # '?' sent and not yet answered by a report (Grbl may merge some)
@@ -127,6 +128,7 @@ class Controller:
         self.motion_pending = False  # a motion line sent, not yet seen completed by the board
         self._motion_lines = 0  # motion lines sent on this connection (a generation count)
         self._polls: deque[tuple[int, bool]] = deque(maxlen=POLLS_REMEMBERED)
+        self._hold_poll: int | None = None  # polls sent by the last '!' the board has not held
         # After a reset the board runs its start-up lines ($N0, $N1): its modes and offsets are
         # asked again before any other line (clear while they are being asked).
         self.requeried = asyncio.Event()
@@ -316,11 +318,24 @@ class Controller:
     def _status(self, status: ControllerStatus) -> None:
         self.status = status
         poll = self._polls.popleft() if self._polls else None
+        self._watch_hold(status.base_state)
         if (status.base_state in _STILL and poll == (self._motion_lines, True)
                 and self.link.in_flight == 0):
             self.motion_pending = False
         self._adopt_buffer(status)
         self.listener.on_status(status)
+
+    def _watch_hold(self, state: str) -> None:
+        """A hold the board did not take is sent again (see ``realtime``). Judged on the
+        second poll after it: the board may report before it acts on the ``!`` read with the
+        first one."""
+        if self._hold_poll is None:
+            return
+        if state != "Run":
+            self._hold_poll = None
+        elif self.status_polls - len(self._polls) >= self._hold_poll + 2:
+            log.warning("controller at %s still runs after '!': sent again", self.where)
+            self.realtime(HOLD)
 
     def _adopt_buffer(self, status: ControllerStatus) -> None:
         """The receive buffer from ``Bf:`` (free bytes while idle with nothing in flight): the
@@ -411,9 +426,15 @@ class Controller:
         return future
 
     def realtime(self, byte: int) -> None:
-        """A realtime byte (``?``, ``!``, ``~``, overrides...), written at once."""
+        """A realtime byte (``?``, ``!``, ``~``, overrides...), written at once. A ``!`` is
+        written again while the reports to the second poll after it still say Run: a hold must
+        hold, and grblHAL has been seen to drop one sent just after it resumed."""
         if self._writer is not None:
             self._writer.write(bytes((byte,)))
+        if byte == HOLD:
+            self._hold_poll = self.status_polls
+        elif byte in (RESUME, RESET):
+            self._hold_poll = None
 
     def reset(self) -> None:
         """Ctrl-X: the controller stops and empties its buffer; unanswered lines are dropped."""
@@ -446,6 +467,7 @@ class Controller:
         """A reset or a lost connection: the board's buffer is empty, earlier polls moot."""
         self.motion_pending = False
         self._polls.clear()
+        self._hold_poll = None
 
     def _fail(self, tokens: list[int] | tuple[int, ...], reason: str) -> None:
         for token in tokens:
