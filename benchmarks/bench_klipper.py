@@ -93,8 +93,8 @@ class Figures:
 
 
 async def run_host(host: str, job_list: list[Job], runs: int, workdir: Path,
-                   tree: Path, lead_time_s: float | None, rig_pause_ms: float
-                   ) -> tuple[Rig, list[Window]]:
+                   tree: Path, lead_time_s: float | None, rig_pause_ms: float,
+                   feed: str = "stream") -> tuple[Rig, list[Window]]:
     windows: list[Window] = []
     async with klipper_rig(workdir, host, rig_pause_ms) as rig:
         starter = Klippy.start(rig, workdir) if host == "klippy" else \
@@ -111,7 +111,7 @@ async def run_host(host: str, job_list: list[Job], runs: int, workdir: Path,
                         if job.idle_s:
                             await asyncio.sleep(job.idle_s)
                         else:
-                            await driver.run(job.lines(host), job.end)
+                            await feed_job(driver, job, host, feed)
                     except (RuntimeError, TimeoutError) as error:  # a lagging rig: say so
                         failure = str(error)[:300]
                     ended = time.monotonic_ns()
@@ -127,6 +127,14 @@ async def run_host(host: str, job_list: list[Job], runs: int, workdir: Path,
                                   "left out", file=sys.stderr)
                             return rig, windows
         return rig, windows
+
+
+async def feed_job(driver: Klippy | Motiond, job: Job, host: str, feed: str) -> None:
+    """klippy: one script; motiond: streamed by a sender, or played as a stored job."""
+    if feed == "job" and isinstance(driver, Motiond):
+        await driver.play(job.lines(host), job.end)
+    else:
+        await driver.run(job.lines(host), job.end)
 
 
 def cycle_of(sync: np.ndarray, host_ns: int) -> int:
@@ -299,8 +307,8 @@ def report(result: BenchResult, figures: dict[str, dict[str, list[Figures]]]) ->
 
 async def measure(quick: bool, runs: int, tree: Path, hosts: Sequence[str],
                   logs: Path | None = None, lead_time_s: float | None = None,
-                  rig_pause_ms: float = 0.0, job_names: Sequence[str] = JOBS
-                  ) -> dict[str, dict[str, list[Figures]]]:
+                  rig_pause_ms: float = 0.0, job_names: Sequence[str] = JOBS,
+                  feed: str = "stream") -> dict[str, dict[str, list[Figures]]]:
     job_list = [job for job in jobs(quick) if job.name.split()[0] in job_names]
     figures: dict[str, dict[str, list[Figures]]] = {}
     with tempfile.TemporaryDirectory(prefix="motiond-bench-klipper-") as name:
@@ -308,7 +316,7 @@ async def measure(quick: bool, runs: int, tree: Path, hosts: Sequence[str],
             workdir = (logs or Path(name)) / host
             workdir.mkdir(parents=True, exist_ok=True)
             rig, windows = await run_host(host, job_list, runs, workdir, tree, lead_time_s,
-                                          rig_pause_ms)
+                                          rig_pause_ms, feed)
             by_job: dict[str, list[Figures]] = {job.name: [] for job in job_list}
             for window, fig in zip(windows, analyse(rig, windows), strict=True):
                 by_job[window.job.name].append(fig)
@@ -319,17 +327,18 @@ async def measure(quick: bool, runs: int, tree: Path, hosts: Sequence[str],
 def run(quick: bool, runs: int | None = None, motiond_tree: Path | None = None,
         hosts: Sequence[str] = HOSTS, logs: Path | None = None,
         lead_time_s: float | None = None, rig_pause_ms: float = 0.0,
-        job_names: Sequence[str] = JOBS) -> BenchResult:
+        job_names: Sequence[str] = JOBS, feed: str = "stream") -> BenchResult:
     result = BenchResult("klipper", quick)
     runs = runs or (1 if quick else 3)
     tree = (motiond_tree or REPO).resolve()
     print(f"stock Klipper firmware (klipper-avr rig), {runs} run(s) per job and host; "
           f"motiond from {tree}" + (f" (lead_time_s {lead_time_s})" if lead_time_s else "")
           + f"; commanded {SPEED_MM_S:.0f} mm/s"
+          + ("; motiond plays each job stored" if feed == "job" else "")
           + (f"; the rig paused {rig_pause_ms:g} ms every {PAUSE_EVERY_S:g} s"
              if rig_pause_ms else ""))
     report(result, asyncio.run(measure(quick, runs, tree, hosts, logs, lead_time_s,
-                                       rig_pause_ms, job_names)))
+                                       rig_pause_ms, job_names, feed)))
     return result
 
 

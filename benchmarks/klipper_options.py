@@ -26,9 +26,14 @@ def add_options(parser: argparse.ArgumentParser) -> None:
                         help="klipper: which jobs to run (long: the long moves)")
     parser.add_argument("--rig-pause-ms", type=float, default=0.0, help="klipper: stop the "
                         "rig's simulator this long every 1.5 s (a loaded host's lag)")
+    parser.add_argument("--feed", choices=("stream", "job"), default="stream", help="klipper: "
+                        "how motiond gets each job: streamed by a sender over TCP (character "
+                        "counting), or stored and started with 'play' (as klippy gets the "
+                        "whole job)")
 
 
 def options_of(options: Any) -> dict[str, Any]:
     return {"runs": options.runs, "motiond_tree": options.motiond_tree, "hosts": options.hosts,
             "logs": options.logs, "lead_time_s": options.lead_time_s,
-            "rig_pause_ms": options.rig_pause_ms, "job_names": options.jobs}
+            "rig_pause_ms": options.rig_pause_ms, "job_names": options.jobs,
+            "feed": options.feed}

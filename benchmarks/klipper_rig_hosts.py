@@ -42,17 +42,39 @@ SQUARE_CORNER_MM_S = math.sqrt(JUNCTION_DEVIATION_MM * ACCEL_MM_S2 / (math.sqrt(
 LASER_S_MAX = 1000
 RT_PRIORITY = 10  # motiond's [stepgen] realtime_priority default
 POLL_S = 0.1
+CLOCK_TICKS_HZ = os.sysconf("SC_CLK_TCK")
 PAUSE_EVERY_S = 1.5  # --rig-pause-ms: how often the simulator is stopped
 RUN_LIMIT_S = 60.0  # a job (a few seconds of motion) not done in this long has failed
 
 
 def cpu_ns(pid: int) -> int:
-    """Run time of every thread of a process so far (ns, the scheduler's own count)."""
+    """Run time so far of every thread of a process and of every process it started (live:
+    the scheduler's own count in ns; ended and reaped: their parent's ``cutime`` + ``cstime``,
+    in clock ticks): motiond's job plans run in children of its forkserver."""
     total = 0
-    for task in Path(f"/proc/{pid}/task").iterdir():
+    for process in (pid, *_descendants(pid)):
         with contextlib.suppress(OSError):
-            total += int((task / "schedstat").read_text().split()[0])
+            for task in Path(f"/proc/{process}/task").iterdir():
+                with contextlib.suppress(OSError):
+                    total += int((task / "schedstat").read_text().split()[0])
+            fields = Path(f"/proc/{process}/stat").read_text().rpartition(")")[2].split()
+            total += (int(fields[13]) + int(fields[14])) * 1_000_000_000 // CLOCK_TICKS_HZ
     return total
+
+
+def _descendants(pid: int) -> list[int]:
+    parents: dict[int, list[int]] = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            with contextlib.suppress(OSError):
+                ppid = int((entry / "stat").read_text().rpartition(")")[2].split()[1])
+                parents.setdefault(ppid, []).append(int(entry.name))
+    found, todo = [], [pid]
+    while todo:
+        children = parents.get(todo.pop(), [])
+        found += children
+        todo += children
+    return found
 
 
 @dataclass
@@ -253,6 +275,31 @@ class Motiond:
                 pass
         writer.close()
         await self.wait_ready(rig)
+
+    async def play(self, lines: list[str], end_mm: tuple[float, float]) -> None:
+        """The lines as a stored job, started with ``play`` (a print from Mainsail's file
+        list, klippy's virtual SD card: the host has the whole job, as klippy's script);
+        back when the job's end message came and motiond is idle at ``end_mm``."""
+        jobs = self.workdir / "data" / "jobs"
+        jobs.mkdir(parents=True, exist_ok=True)
+        (jobs / "job.nc").write_text("\n".join(["G21 G90 G94", *lines]) + "\n")
+        reader, writer = await asyncio.open_connection("127.0.0.1", self.port)
+        try:
+            writer.write(b"play job.nc\n")
+            deadline = time.monotonic() + RUN_LIMIT_S
+            while not (line := await asyncio.wait_for(reader.readline(), RUN_LIMIT_S)
+                       ).startswith(b"[MSG:job job.nc done"):
+                if line.startswith((b"error", b"ALARM", b"[MSG:job job.nc stopped")):
+                    raise RuntimeError(f"motiond: {line.decode().strip()}")
+                if time.monotonic() > deadline:
+                    raise TimeoutError("the job did not end")
+        finally:
+            writer.close()
+        want = f"MPos:{end_mm[0]:.3f},{end_mm[1]:.3f}|"
+        while not ((report := await self.status()).startswith("<Idle") and want in report):
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"motiond not idle at {want}: {report}")
+            await asyncio.sleep(POLL_S)
 
     async def run(self, lines: list[str], end_mm: tuple[float, float]) -> None:
         """Stream the lines and ``M400`` (answered when the moves are done, as klippy's run is:
