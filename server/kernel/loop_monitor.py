@@ -40,7 +40,7 @@ class LoopMonitor:
 
     def __init__(self, period_s: float = 0.001, gc_pacer: GcPacer | None = None,
                  is_quiet: Callable[[], bool] = lambda: False,
-                 quiet_period_s: float = 0.5) -> None:
+                 quiet_period_s: float = 1.0) -> None:
         self.period_s = period_s
         self.quiet_period_s = quiet_period_s
         self.is_quiet = is_quiet
