@@ -23,6 +23,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
 
+from server.backends.grbl.holdwatch import HoldWatch, Verdict
 from server.backends.grbl.link import (
     DEFAULT_BUFFER_BYTES,
     AlarmReport,
@@ -128,7 +129,7 @@ class Controller:
         self.motion_pending = False  # a motion line sent, not yet seen completed by the board
         self._motion_lines = 0  # motion lines sent on this connection (a generation count)
         self._polls: deque[tuple[int, bool]] = deque(maxlen=POLLS_REMEMBERED)
-        self._hold_poll: int | None = None  # polls sent by the last '!' the board has not held
+        self._hold = HoldWatch()  # a '!' the board has not yet been seen to take
         # After a reset the board runs its start-up lines ($N0, $N1): its modes and offsets are
         # asked again before any other line (clear while they are being asked).
         self.requeried = asyncio.Event()
@@ -326,16 +327,16 @@ class Controller:
         self.listener.on_status(status)
 
     def _watch_hold(self, state: str) -> None:
-        """A hold the board did not take is sent again (see ``realtime``). Judged on the
-        second poll after it: the board may report before it acts on the ``!`` read with the
-        first one."""
-        if self._hold_poll is None:
-            return
-        if state != "Run":
-            self._hold_poll = None
-        elif self.status_polls - len(self._polls) >= self._hold_poll + 2:
+        """A hold the board did not take is sent again (:mod:`.holdwatch`)."""
+        verdict = self._hold.report(state, self.status_polls - len(self._polls))
+        if verdict is Verdict.RESEND:
             log.warning("controller at %s still runs after '!': sent again", self.where)
-            self.realtime(HOLD)
+            if self._writer is not None:
+                self._writer.write(bytes((HOLD,)))
+            self._hold.asked(self.status_polls, again=True)
+        elif verdict is Verdict.GIVE_UP:
+            log.error("controller at %s does not hold: '!' sent %d times", self.where,
+                      self._hold.resends)
 
     def _adopt_buffer(self, status: ControllerStatus) -> None:
         """The receive buffer from ``Bf:`` (free bytes while idle with nothing in flight): the
@@ -426,15 +427,14 @@ class Controller:
         return future
 
     def realtime(self, byte: int) -> None:
-        """A realtime byte (``?``, ``!``, ``~``, overrides...), written at once. A ``!`` is
-        written again while the reports to the second poll after it still say Run: a hold must
-        hold, and grblHAL has been seen to drop one sent just after it resumed."""
+        """A realtime byte (``?``, ``!``, ``~``, overrides...), written at once; a ``!`` is
+        watched until the board holds (:mod:`.holdwatch`)."""
         if self._writer is not None:
             self._writer.write(bytes((byte,)))
         if byte == HOLD:
-            self._hold_poll = self.status_polls
+            self._hold.asked(self.status_polls)
         elif byte in (RESUME, RESET):
-            self._hold_poll = None
+            self._hold.clear()
 
     def reset(self) -> None:
         """Ctrl-X: the controller stops and empties its buffer; unanswered lines are dropped."""
@@ -467,7 +467,7 @@ class Controller:
         """A reset or a lost connection: the board's buffer is empty, earlier polls moot."""
         self.motion_pending = False
         self._polls.clear()
-        self._hold_poll = None
+        self._hold.clear()
 
     def _fail(self, tokens: list[int] | tuple[int, ...], reason: str) -> None:
         for token in tokens:
