@@ -123,3 +123,29 @@ async def test_a_message_sent_first_is_judged_on_its_timeout(
     link.sample_due(deadline_s + 0.03)  # the next tick's announcement changes nothing
     await sleep_until(deadline_s + 0.02)
     assert timers.calls >= 1 and link.window.retransmits == 1, "resent on its timeout"
+
+
+async def test_a_resend_is_judged_on_its_timeout_so_two_losses_in_a_row_are_not_late(
+        board: tuple[VirtualMcu, Link, Dictionary], monkeypatch: pytest.MonkeyPatch) -> None:
+    """The first loss waits for the sample; its resend, lost too, is resent on its own
+    timeout, not another deferral later (two deferrals made the steps it carried late: the
+    firmware shut down, "Stepper too far in past")."""
+    mcu, link, encode = board
+    timers = Timers(monkeypatch)
+    mcu.drop_blocks = 2  # the block and its first resend
+    deadline_s = send_one(link, encode)
+    link.sample_due(deadline_s + 0.02)
+    await sleep_until(deadline_s + 0.015)
+    link.sample()
+    assert link.window.retransmits == 1 and link.window.recovering
+    resend_deadline_s = link.window.deadline_s()
+    assert resend_deadline_s is not None
+    link.sample_due(resend_deadline_s + 0.03)  # the next sample, within the bound after it
+    await sleep_until(resend_deadline_s + 0.02)
+    assert timers.calls >= 1 and link.window.retransmits == 2, "resent on its own timeout"
+    for _ in range(100):
+        await asyncio.sleep(0.01)
+        link.sample()
+        if not link.window.inflight:
+            break
+    assert not link.window.inflight and not link.window.recovering and updates(mcu) == 1

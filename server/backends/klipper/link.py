@@ -21,7 +21,8 @@ sample comes at most ``JUDGE_DEFER_MAX_S`` after the oldest block's timeout
 and the timer waits for it, instead of a wake-up of the process that only finds the
 acknowledgement (one per block sent: a third of the wake-ups of a long move at a 0.2 s lead).
 A lost block is resent that much later at most; a rest judges on the timeout again, and so
-does everything in flight with an emergency stop sent first, until all is acknowledged.
+does everything in flight with an emergency stop sent first, until all is acknowledged, and a
+resend (a second loss is resent on time: two in a row were late for their steps).
 
 This module is the writing side: queueing, packing blocks, requests (riding ones too),
 retransmission and the acknowledgement timeout. Reading the device (when: at the owner's
@@ -236,7 +237,8 @@ class Link(LinkReader):
             self._sent_first = False
         due_s = self._sample_due_s
         if (deadline is not None and due_s is not None and self.sampling
-                and not self._sent_first and deadline < due_s <= deadline + JUDGE_DEFER_MAX_S):
+                and not self._sent_first and not self.window.recovering
+                and deadline < due_s <= deadline + JUDGE_DEFER_MAX_S):
             deadline = due_s + JUDGE_SLACK_S
         if self.closed or self._loop is None:
             deadline = None

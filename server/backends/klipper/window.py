@@ -71,6 +71,12 @@ class SendWindow:
         self.next_seq += 1
         return block
 
+    @property
+    def recovering(self) -> bool:
+        """The oldest block in flight was sent again: its timeout is judged on time (a second
+        loss must not wait for anything)."""
+        return bool(self.inflight) and self.inflight[0].retransmitted
+
     def deadline_s(self) -> float | None:
         """When the oldest unacknowledged block times out (None if nothing is in flight)."""
         return self.inflight[0].sent_s + self.rto_s if self.inflight else None
