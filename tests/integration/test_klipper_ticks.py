@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import sys
 import time
 from collections.abc import AsyncIterator, Callable
 from typing import Any
@@ -89,7 +90,12 @@ async def test_a_cruise_is_sampled_only_when_the_backend_needs_it(mcu: VirtualMc
         await asyncio.sleep(LEAD_S + 0.1)
         assert backend.mcu is not None and backend.mcu.clock is not None
         ahead_s = mcu.min_lead_ticks / backend.mcu.clock.freq_hz
-        assert ahead_s > LEAD_S - backend.hold_back_s - backend.flush_s, ahead_s
+        # less what the design cannot help: the loop's own late wake-ups (a flush would be as
+        # late), and the virtual MCU, a thread of this interpreter, reading the block only
+        # when the loop lets go of the interpreter lock (a switch interval at most)
+        late_s = app.kernel.loop_monitor.worst_stall_s + sys.getswitchinterval()
+        assert ahead_s > LEAD_S - backend.hold_back_s - backend.flush_s - late_s, (
+            ahead_s, late_s)
         clocks, _ = mcu.step_clocks(backend.axes[0].oid)
         assert len(clocks) == 150 * 80 and backend.fault is None
 
