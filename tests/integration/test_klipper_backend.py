@@ -126,7 +126,7 @@ async def test_the_fitted_clock_maps_host_time_to_mcu_ticks(mcu: VirtualMcu) -> 
     async with klipper_machine(mcu) as app:
         backend = app.kernel.machine.backend
         assert isinstance(backend, KlipperBackend) and backend.mcu is not None
-        await asyncio.sleep(2.0)  # a few periodic get_clock samples (0.5 s apart when idle)
+        await asyncio.sleep(4.0)  # a few periodic get_clock samples (1 s apart when idle)
         sync = backend.mcu.clock
         assert sync is not None
         errors = []
@@ -138,7 +138,7 @@ async def test_the_fitted_clock_maps_host_time_to_mcu_ticks(mcu: VirtualMcu) -> 
             errors.append(abs(predicted - actual) / mcu.clock_hz - 0.5 * (after - before))
         # The fit can know the clock no better than the windows it is made of: the board read
         # its clock somewhere between a poll's sending and its answer. The polls of an idle
-        # machine come after 0.5 s asleep, and on this shared VM the cold wake-ups of the
+        # machine come after 1 s asleep, and on this shared VM the cold wake-ups of the
         # virtual MCU's thread and of the loop make their round trips 0.25-1.9 ms (the start's
         # back-to-back burst: 0.1 ms), so the bound is half the recent round trips, 400 us at
         # the least (258 us seen on a slow 2-core CI machine); a wrong fit is off by far more.

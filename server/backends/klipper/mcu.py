@@ -9,10 +9,12 @@ configured by someone else is refused (:class:`KlipperFault`); one still configu
 (outputs may be on from before) or shut down raises :class:`NeedsRestart`: it is restarted
 (:meth:`Mcu.restart`, as Klipper's host does for its ``restart_method``) and connected afresh.
 :meth:`Mcu.watch` samples the clock every ``poll_s`` (``BUSY_POLL_S`` while :attr:`Mcu.busy`:
-steps queued or an output on) and, one request at a time (never back to back), checks
-``get_config`` every ``CONFIG_EVERY`` polls: about 14 bytes a second to an idle MCU (klippy
-sends 6); to a busy one each poll waits up to ``RIDE_S`` to join a block of steps (as klippy's
-do), about 3 bytes a second then; silence for ``timeout_s`` (no block acknowledged), a restart, a
+steps queued or an output on) and checks ``get_config`` every ``CONFIG_EVERY`` polls. An idle
+MCU is polled once a second, on the whole second as the server's other periodic wake-ups, and
+its ``get_config`` shares the clock poll's block: about 6 bytes a second (klippy's
+``get_clock`` once a second). To a busy one the requests go one at a time (never back to back),
+each waiting up to ``RIDE_S`` to join a block of steps (as klippy's do), about 3 bytes a second
+then; silence for ``timeout_s`` (no block acknowledged), a restart, a
 clock that jumps ahead, a foreign configuration or a link fault raise :class:`KlipperFault`, a
 shutdown (ours from :meth:`emergency_stop`, or the firmware's own) :class:`McuShutdown`. A
 restart is told from the firmware's evidence, never from the host's timing: ``starting`` (sent
@@ -52,10 +54,11 @@ CLOCK_SETTLE_S = 5.0
 RATE_PROBE_S = 0.15
 RATE_TOLERANCE = 0.05  # a round trip's jitter over RATE_PROBE_S stays well inside this
 RESET_SETTLE_S = 0.015  # klippy's pause after ``reset`` before it lets the port go
-POLL_S = 0.5  # a 6-byte get_clock block: 12 bytes/s; a clock set back by more than this is
-# caught at the next reading (behind the last one)
+POLL_S = 1.0  # a 6-byte get_clock block: 6 bytes/s, as klippy's; a restart is caught at the
+# next reading (its clock went back), or by the ``starting`` it sends
 BUSY_POLL_S = 0.4  # while steps are queued or an output is on (15 bytes/s)
-CONFIG_EVERY = 8  # get_config once every 8 polls (4 s idle, 3.2 s busy)
+CONFIG_EVERY = 8  # get_config once every 8 polls (8 s idle, 3.2 s busy)
+CONFIG_RIDE_S = 0.05  # an idle poll's get_config waits this long at most for its get_clock
 RIDE_S = 0.15  # while busy, a poll waits this long at most to join a block of steps (5 bytes)
 JUMP_S = 0.05  # a clock reading this far outside its round trip's window is looked into
 BEHIND_LIMIT_S = 1.0  # a clock that stays behind the fit this long: the fit starts over
@@ -291,6 +294,7 @@ class Mcu:
     async def watch(self) -> None:
         """Poll clock and config until a fault; raises KlipperFault (McuShutdown)."""
         assert self._fault is not None
+        last_period_s = self.poll_s
         while True:
             period_s = min(self.poll_s, BUSY_POLL_S) if self.busy else self.poll_s
             # idle, on whole multiples of the period (monotonic), as the other periodic
@@ -300,13 +304,16 @@ class Mcu:
             done, _ = await asyncio.wait([self._fault], timeout=wait_s)
             if done:
                 raise self._fault.result()
-            if time.monotonic() - self._last_heard_s > self.timeout_s + period_s:
+            # silent past its timeout and the longest wait since the last answer (an idle
+            # period's, the first time the board is busy)
+            silence_s = self.timeout_s + max(period_s, last_period_s)
+            last_period_s = period_s
+            if time.monotonic() - self._last_heard_s > silence_s:
                 self.link.read_waiting()  # what came while the host hung (the board's
                 if self._fault.done():  # own shutdown) is read before silence is judged
                     raise self._fault.result()
-            if time.monotonic() - self._last_heard_s > self.timeout_s + period_s:
-                raise KlipperFault(
-                    f"the MCU stopped answering for {self.timeout_s + period_s:g} s")
+            if time.monotonic() - self._last_heard_s > silence_s:
+                raise KlipperFault(f"the MCU stopped answering for {silence_s:g} s")
             try:
                 await self._poll()
             except (KlipperFault, ConnectionError):
@@ -319,11 +326,23 @@ class Mcu:
         return RIDE_S if self.busy else 0.0
 
     async def _poll(self) -> None:
-        await self.sample_clock()
         self._polls += 1
         if self._polls % CONFIG_EVERY:
+            await self.sample_clock()
             return
-        config = await self._ask("get_config", "config", ride_s=self._ride_s())
+        if self.busy:  # each rides a block of steps, one after the other
+            await self.sample_clock()
+            config = await self._ask("get_config", "config", ride_s=self._ride_s())
+        else:  # the get_config rides in the get_clock's block (7 bytes, not 12)
+            asked = asyncio.ensure_future(
+                self._ask("get_config", "config", ride_s=CONFIG_RIDE_S))
+            await asyncio.sleep(0)  # it waits to ride before the get_clock leaves
+            try:
+                await self.sample_clock()
+            except BaseException:
+                asked.cancel()
+                raise
+            config = await asked
         if config["is_shutdown"]:
             raise self.shutdown or McuShutdown("the MCU shut down: reason unknown", None,
                                                self.stopping)
