@@ -103,22 +103,29 @@ async def test_identify_reads_the_dictionary_and_configures_with_a_crc(mcu: Virt
 
 
 @pytest.mark.slow
-async def test_idle_polling_costs_under_20_bytes_a_second_and_draws_no_resend(
+async def test_an_idle_board_gets_one_block_a_poll_and_its_get_config_rides_in_it(
     mcu: VirtualMcu
 ) -> None:
-    """One request at a time (the firmware acks a response's block after it: no nak), a
-    get_clock every 0.5 s and a get_config every 4 s: about 14 bytes/s to the MCU."""
+    """At rest a poll is one block: a get_clock (6 bytes), and every 8th poll the get_config
+    in the same block (one byte more), never a block of its own; no resend, no nak. The
+    default poll is once a second (6 bytes/s, as klippy's); here every 0.25 s, to see a few
+    get_configs in a short test."""
     async with klipper_machine(mcu) as app:
         backend = app.kernel.machine.backend
         assert isinstance(backend, KlipperBackend) and backend.mcu is not None
+        assert backend.mcu.poll_s == 1.0
         await submit_all(app, ["G1 X20 Y10 F6000"])
         await app.kernel.machine.wait_idle()
         await asyncio.sleep(backend.lead_s + 0.2)
+        backend.mcu.poll_s = 0.25
+        await asyncio.sleep(1.0)  # the wait already begun ends
         link = backend.mcu.link
-        sent, started = link.bytes_sent, time.monotonic()
+        sent, blocks = link.bytes_sent, mcu.blocks_received
         await asyncio.sleep(4.5)
-        rate = (link.bytes_sent - sent) / (time.monotonic() - started)
-        assert 5.0 < rate <= 20.0, rate
+        sent, blocks = link.bytes_sent - sent, mcu.blocks_received - blocks
+        riders = sent - 6 * blocks  # a get_config's byte in a get_clock's block
+        assert 16 <= blocks <= 19, blocks
+        assert 2 <= riders <= 3, (sent, blocks)
         assert link.window.retransmits == 0 and mcu.naks_sent == 0
 
 
