@@ -100,6 +100,9 @@ async def run_host(host: str, job_list: list[Job], runs: int, workdir: Path,
         starter = Klippy.start(rig, workdir) if host == "klippy" else \
             Motiond.start(rig, workdir, tree, lead_time_s)
         async with starter as driver:
+            if feed == "job" and isinstance(driver, Motiond):
+                await driver.run(["G1 X10 Y10 F6000"], (10.0, 10.0))
+                await driver.warm_up()
             for _ in range(runs):
                 for job in job_list:
                     setup = [f"G1 X{job.start[0]:.3f} Y{job.start[1]:.3f} F6000"]

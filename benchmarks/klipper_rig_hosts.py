@@ -301,6 +301,16 @@ class Motiond:
                 raise TimeoutError(f"motiond not idle at {want}: {report}")
             await asyncio.sleep(POLL_S)
 
+    async def warm_up(self) -> None:
+        """Play a stored job big enough to be planned in a child process (over
+        ``IN_THREAD_BYTES``): a server's first such job starts the fork server the plans are
+        forked from (an interpreter's start-up, once in the server's life), which the jobs
+        measured after it do not pay. It stays where it is."""
+        from server.jobs.planning import IN_THREAD_BYTES  # noqa: PLC0415
+
+        line = "G1 X10.000 Y10.000 F6000"
+        await self.play([line] * (IN_THREAD_BYTES // len(line) + 100), (10.0, 10.0))
+
     async def run(self, lines: list[str], end_mm: tuple[float, float]) -> None:
         """Stream the lines and ``M400`` (answered when the moves are done, as klippy's run is:
         neither host is polled while it moves); back when motiond is idle at ``end_mm``."""

@@ -39,8 +39,13 @@ log = logging.getLogger("motiond.jobs")
 TIMING_GRACE_S = 0.2  # the fit waits this long for the time, which a small job has by then
 IN_THREAD_BYTES = 16_384  # a file this small is planned in a thread, in one pass (<10 ms)
 KEPT_PLANS = 4  # job plans kept for files whose plan may be asked again (bounded memory each)
+FIT_FIRST_BYTES = 512 * 1024  # a bigger file's fit is read alone too (see JobPlans)
 CONTEXT = multiprocessing.get_context("forkserver")
-CONTEXT.set_forkserver_preload(["server.jobs.clock", "server.jobs.planning"])
+# What every child would import otherwise, once in the fork server: the main module (the
+# ``motiond`` script imports the whole server: 40 ms of CPU a child), numpy.ma (np.unique's
+# first call imports it: 12 ms a child)
+CONTEXT.set_forkserver_preload(["__main__", "server.jobs.clock", "server.jobs.planning",
+                                "numpy.ma"])
 T = TypeVar("T")
 Reader = Callable[[Path, CoreConfig, Interpreter, Callable[[], bool]], T]
 
@@ -156,9 +161,11 @@ class JobPlans:
     """The plans of one kernel's job files: the fit first, the time filled in when known.
 
     A file of at most :data:`IN_THREAD_BYTES` is planned whole in a thread (a few
-    milliseconds: less than a child's start). For a larger one, :meth:`plan` reads the whole
-    plan in one child and the fit alone in another (about a quarter of the work: it comes
-    first, and on a busy host delays the time by no more than its share); it answers with
+    milliseconds: less than a child's start), one of at most :data:`FIT_FIRST_BYTES` in a
+    child (a few tenths of a second at most: fit and time come together). For a larger one,
+    :meth:`plan` reads the whole plan in one child and the fit alone in another (about a
+    quarter of the work: it comes first, and on a busy host delays the time by no more than
+    its share); it answers with
     the first fit (and the time, if it comes within :data:`TIMING_GRACE_S`) and fills in
     the plan's ``timing`` when it comes, calling ``on_timing(plan)``. The last
     :data:`KEPT_PLANS` plans are kept under their key (the file's size and time, the
@@ -183,6 +190,8 @@ class JobPlans:
             return kept[1]
         if size_bytes <= IN_THREAD_BYTES:
             plan = await self._in_thread(path, core, interpreter)
+        elif size_bytes <= FIT_FIRST_BYTES:
+            plan = await self._in_process(path, core, interpreter)
         else:
             plan = await self._in_processes(path, core, interpreter)
         self._kept.pop(path.name, None)
@@ -200,6 +209,13 @@ class JobPlans:
                 read_plan, path, core.model_copy(deep=True), interpreter, stop.is_set)
         finally:
             self._stops.discard(stop)
+
+    async def _in_process(self, path: Path, core: CoreConfig,
+                          interpreter: Interpreter) -> JobPlan:
+        plan = await self._read(PlanProcess(read_plan, path, core, interpreter))
+        if plan is None:  # cancelled
+            raise Stopped
+        return plan
 
     async def _in_processes(self, path: Path, core: CoreConfig,
                             interpreter: Interpreter) -> JobPlan:
