@@ -185,3 +185,48 @@ async def test_a_board_slower_than_its_wire_has_its_acknowledgements_read_as_the
     assert calls.get("_on_refill", 0) >= 1, calls
     assert calls.get("_on_readable", 0) >= 1, f"read as they came: {calls}"
     assert blocks >= 8 and not link._slow, "the window moved: back to one read a window"
+
+
+async def test_a_busy_board_s_clock_poll_rides_the_steps_without_a_timer_of_its_own(
+        mcu: VirtualMcu, monkeypatch: pytest.MonkeyPatch) -> None:
+    """While steps flow, a clock poll leaves with the first block of steps a period after the
+    last one: the watch sets no timer of its own to wait for that period (one wake-up less a
+    poll), and the polls still come a period apart, each in a block with steps."""
+    waits: list[float | None] = []
+    wait = asyncio.wait
+
+    async def counted(*args: Any, **kwargs: Any) -> Any:
+        waits.append(kwargs.get("timeout"))
+        return await wait(*args, **kwargs)
+
+    async with klipper_machine(mcu) as app:
+        backend = app.kernel.machine.backend
+        assert isinstance(backend, KlipperBackend) and backend.mcu is not None
+        board = backend.mcu
+        sent: list[tuple[float, bytes]] = []
+        write = board.link._write
+
+        def recorded(data: bytes, flush: bool = True) -> None:
+            sent.append((time.monotonic(), data))
+            write(data, flush)
+
+        monkeypatch.setattr(board.link, "_write", recorded)
+        monkeypatch.setattr(mcu_module.asyncio, "wait", counted)
+        await submit_all(app, ["G1 X100 F3000"])  # 2 s of motion
+        await asyncio.sleep(0.6)
+        polls_before, waits_before = board._polls, len(waits)  # noqa: SLF001
+        since_s = time.monotonic()
+        await asyncio.sleep(1.2)
+        assert board.busy
+        polls = board._polls - polls_before  # noqa: SLF001
+        timed = [t for t in waits[waits_before:] if t is not None]
+        assert timed == [], "no timer of the watch's own while busy"
+        assert 2 <= polls <= 4, polls  # every 0.4 s
+        blocks = []
+        for sent_s, data in sent:  # a write: whole blocks (length, sequence, payload, crc, sync)
+            while sent_s >= since_s and data:
+                blocks.append([name for name, _ in board.dictionary.decode(data[2:data[0] - 3])])
+                data = data[data[0]:]
+        polled = [names for names in blocks if "get_clock" in names]
+        assert polled and all("queue_step" in names for names in polled), polled
+        await app.kernel.machine.wait_idle()

@@ -56,8 +56,8 @@ JUDGE_SLACK_S = 0.002  # the timer of a deferred judgement comes this much after
 class _Rider:
     """A request waiting to share a block with other messages: when it left, once it has."""
 
-    def __init__(self, message: bytes) -> None:
-        self.message = message
+    def __init__(self, message: bytes, earliest_s: float) -> None:
+        self.message, self.earliest_s = message, earliest_s  # it joins no block before this
         self.sent_s: float | None = None
         self.timer: asyncio.TimerHandle | None = None
 
@@ -153,11 +153,13 @@ class Link(LinkReader):
         return dropped
 
     async def request(self, message: bytes, response: str, timeout_s: float,
-                      match: Match = lambda _: True, ride_s: float = 0.0) -> Params:
+                      match: Match = lambda _: True, ride_s: float = 0.0,
+                      ride_after_s: float = 0.0) -> Params:
         """Send ``message`` and wait for the first ``response`` that ``match``es; its
         ``#sent_s`` is when ``message`` left. With ``ride_s``, ``message`` waits that long at
-        most for other messages to leave and joins their first block (``timeout_s`` counts
-        from when it may have left at the latest)."""
+        most for other messages to leave and joins their first block, leaving no sooner than
+        ``ride_after_s`` from now (``timeout_s`` counts from when it may have left at the
+        latest)."""
         assert self._loop is not None
         future: asyncio.Future[Params] = self._loop.create_future()
         waiter = (response, match, future)
@@ -165,13 +167,14 @@ class Link(LinkReader):
         rider = None
         sent_s = time.monotonic()
         if ride_s > 0.0 and self._rider is None and not self.closed:
-            rider = self._rider = _Rider(message)
-            rider.timer = self._loop.call_later(ride_s, self._release_rider)
+            rider = self._rider = _Rider(message, sent_s + ride_after_s)
+            rider.timer = self._loop.call_later(ride_after_s + ride_s, self._release_rider)
         else:
             self.send(message, keep=True)  # watched for its answer once it leaves (_pump)
         try:
-            # its patience starts when it leaves: a rider waits up to ride_s for company
-            params = await asyncio.wait_for(future, timeout_s + (ride_s if rider else 0.0))
+            # its patience starts when it leaves: a rider waits for company until its time
+            ride_for_s = ride_after_s + ride_s if rider else 0.0
+            params = await asyncio.wait_for(future, timeout_s + ride_for_s)
         finally:
             if waiter in self._waiters:
                 self._waiters.remove(waiter)
@@ -197,7 +200,7 @@ class Link(LinkReader):
         now_s = time.monotonic()
         rider = self._rider
         queue, window = self._queue, self.window
-        if (rider is not None and queue and not self.closed
+        if (rider is not None and queue and not self.closed and now_s >= rider.earliest_s
                 and window.can_send(len(rider.message) + len(queue[0]) + 5)):
             self._drop_rider()  # it leaves now, in the first block
             rider.sent_s = now_s

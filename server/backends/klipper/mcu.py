@@ -13,8 +13,9 @@ steps queued or an output on) and checks ``get_config`` every ``CONFIG_EVERY`` p
 MCU is polled once a second, on the whole second as the server's other periodic wake-ups, and
 its ``get_config`` shares the clock poll's block: about 6 bytes a second (klippy's
 ``get_clock`` once a second). To a busy one the requests go one at a time (never back to back),
-each waiting up to ``RIDE_S`` to join a block of steps (as klippy's do), about 3 bytes a second
-then; silence for ``timeout_s`` (no block acknowledged), a restart, a
+each joining a block of steps (as klippy's do; up to ``RIDE_S`` late), about 3 bytes a second
+then: the clock poll rides the first block sent a period after the last poll, so the poll
+costs no wake-up of its own; silence for ``timeout_s`` (no block acknowledged), a restart, a
 clock that jumps ahead, a foreign configuration or a link fault raise :class:`KlipperFault`, a
 shutdown (ours from :meth:`emergency_stop`, or the firmware's own) :class:`McuShutdown`. A
 restart is told from the firmware's evidence, never from the host's timing: ``starting`` (sent
@@ -171,10 +172,12 @@ class Mcu:
         await self._configure()
 
     async def _ask(self, name: str, response: str, match: Callable[[Params], bool] = lambda _: True,
-                   timeout_s: float | None = None, ride_s: float = 0.0, **params: Any) -> Params:
+                   timeout_s: float | None = None, ride_s: float = 0.0,
+                   ride_after_s: float = 0.0, **params: Any) -> Params:
         try:
             return await self.link.request(self.dictionary.encode(name, **params), response,
-                                           timeout_s or self.timeout_s, match, ride_s)
+                                           timeout_s or self.timeout_s, match, ride_s,
+                                           ride_after_s)
         except TimeoutError as exc:
             raise KlipperFault(f"the MCU on {self.path} does not answer {name}") from exc
 
@@ -220,9 +223,10 @@ class Mcu:
             if time.monotonic() > deadline:
                 raise KlipperFault(f"the MCU's clock runs at {rate:.1%} of its CLOCK_FREQ")
 
-    async def sample_clock(self) -> None:
+    async def sample_clock(self, ride_after_s: float = 0.0) -> None:
         assert self.clock is not None
-        reply = await self._ask("get_clock", "clock", ride_s=self._ride_s())
+        reply = await self._ask("get_clock", "clock", ride_s=self._ride_s(),
+                                ride_after_s=ride_after_s)
         sent, received = reply["#sent_s"], reply["#received_s"]
         clock = self.clock.extend(reply["clock"])
         if self.clock.synced:
@@ -293,45 +297,67 @@ class Mcu:
     # -- running ------------------------------------------------------------------------------
     async def watch(self) -> None:
         """Poll clock and config until a fault; raises KlipperFault (McuShutdown)."""
-        assert self._fault is not None
-        last_period_s = self.poll_s
+        fault = self._fault
+        assert fault is not None
+        last_period_s, polled_s = self.poll_s, 0.0
         while True:
-            period_s = min(self.poll_s, BUSY_POLL_S) if self.busy else self.poll_s
-            # idle, on whole multiples of the period (monotonic), as the other periodic
-            # wake-ups of an idle server (the loop monitor's, the kernel's second): one
-            # wake-up; busy, a period after the last poll (which rode a while: fewer bytes)
-            wait_s = period_s - time.monotonic() % period_s if not self.busy else period_s
-            done, _ = await asyncio.wait([self._fault], timeout=wait_s)
-            if done:
-                raise self._fault.result()
+            busy = self.busy
+            period_s = min(self.poll_s, BUSY_POLL_S) if busy else self.poll_s
+            ride_after_s = 0.0
+            if busy:  # it rides the first block of steps a period after the last poll (no
+                ride_after_s = max(0.0, polled_s + period_s - time.monotonic())  # wake-up)
+            else:  # on whole multiples of the period (monotonic), as the other periodic
+                # wake-ups of an idle server (the loop monitor's, the kernel's second)
+                done, _ = await asyncio.wait(
+                    [fault], timeout=period_s - time.monotonic() % period_s)
+                if done:
+                    raise fault.result()
             # silent past its timeout and the longest wait since the last answer (an idle
             # period's, the first time the board is busy)
             silence_s = self.timeout_s + max(period_s, last_period_s)
             last_period_s = period_s
-            if time.monotonic() - self._last_heard_s > silence_s:
-                self.link.read_waiting()  # what came while the host hung (the board's
-                if self._fault.done():  # own shutdown) is read before silence is judged
-                    raise self._fault.result()
-            if time.monotonic() - self._last_heard_s > silence_s:
-                raise KlipperFault(f"the MCU stopped answering for {silence_s:g} s")
+            self._judge_silence(silence_s)
+            poll = asyncio.ensure_future(self._poll(ride_after_s))
+            either: list[asyncio.Future[Any]] = [fault, poll]
             try:
-                await self._poll()
+                await asyncio.wait(either, return_when=asyncio.FIRST_COMPLETED)
+            finally:
+                poll.cancel()  # (when it has not ended: the watch ends)
+            if fault.done():  # the first word, with its reason, wins
+                if poll.done() and not poll.cancelled():
+                    poll.exception()  # retrieved: the fault says it
+                raise fault.result()
+            try:
+                poll.result()
             except (KlipperFault, ConnectionError):
-                if self._fault.done():  # the first word, with its reason, wins
-                    raise self._fault.result() from None
+                self.link.read_waiting()  # the board's own word (a shutdown) may be waiting
+                if fault.done():
+                    raise fault.result() from None
                 raise
+            polled_s = time.monotonic()
+
+    def _judge_silence(self, silence_s: float) -> None:
+        """Raise KlipperFault if nothing came for ``silence_s`` (what came while the host
+        hung, the board's own shutdown, is read first: it is the fault then)."""
+        assert self._fault is not None
+        if time.monotonic() - self._last_heard_s > silence_s:
+            self.link.read_waiting()
+            if self._fault.done():
+                raise self._fault.result()
+        if time.monotonic() - self._last_heard_s > silence_s:
+            raise KlipperFault(f"the MCU stopped answering for {silence_s:g} s")
 
     def _ride_s(self) -> float:
         """How long a poll waits to share a block: ``RIDE_S`` while steps flow, else 0."""
         return RIDE_S if self.busy else 0.0
 
-    async def _poll(self) -> None:
+    async def _poll(self, ride_after_s: float = 0.0) -> None:
         self._polls += 1
         if self._polls % CONFIG_EVERY:
-            await self.sample_clock()
+            await self.sample_clock(ride_after_s)
             return
         if self.busy:  # each rides a block of steps, one after the other
-            await self.sample_clock()
+            await self.sample_clock(ride_after_s)
             config = await self._ask("get_config", "config", ride_s=self._ride_s())
         else:  # the get_config rides in the get_clock's block (7 bytes, not 12)
             asked = asyncio.ensure_future(
