@@ -317,24 +317,30 @@ class Mcu:
             silence_s = self.timeout_s + max(period_s, last_period_s)
             last_period_s = period_s
             self._judge_silence(silence_s)
-            poll = asyncio.ensure_future(self._poll(ride_after_s))
-            either: list[asyncio.Future[Any]] = [fault, poll]
-            try:
-                await asyncio.wait(either, return_when=asyncio.FIRST_COMPLETED)
-            finally:
-                poll.cancel()  # (when it has not ended: the watch ends)
-            if fault.done():  # the first word, with its reason, wins
-                if poll.done() and not poll.cancelled():
-                    poll.exception()  # retrieved: the fault says it
-                raise fault.result()
-            try:
-                poll.result()
-            except (KlipperFault, ConnectionError):
-                self.link.read_waiting()  # the board's own word (a shutdown) may be waiting
-                if fault.done():
-                    raise fault.result() from None
-                raise
+            await self._poll_unless_fault(ride_after_s)
             polled_s = time.monotonic()
+
+    async def _poll_unless_fault(self, ride_after_s: float) -> None:
+        """A poll (see :meth:`_poll`); a fault meanwhile ends it and is raised at once."""
+        fault = self._fault
+        assert fault is not None
+        poll = asyncio.ensure_future(self._poll(ride_after_s))
+        either: list[asyncio.Future[Any]] = [fault, poll]
+        try:
+            await asyncio.wait(either, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            poll.cancel()  # (when it has not ended: the watch ends)
+        if fault.done():  # the first word, with its reason, wins
+            if poll.done() and not poll.cancelled():
+                poll.exception()  # retrieved: the fault says it
+            raise fault.result()
+        try:
+            poll.result()
+        except (KlipperFault, ConnectionError):
+            self.link.read_waiting()  # the board's own word (a shutdown) may be waiting
+            if fault.done():
+                raise fault.result() from None
+            raise
 
     def _judge_silence(self, silence_s: float) -> None:
         """Raise KlipperFault if nothing came for ``silence_s`` (what came while the host
