@@ -295,11 +295,7 @@ class Motiond:
                     raise TimeoutError("the job did not end")
         finally:
             writer.close()
-        want = f"MPos:{end_mm[0]:.3f},{end_mm[1]:.3f}|"
-        while not ((report := await self.status()).startswith("<Idle") and want in report):
-            if time.monotonic() > deadline:
-                raise TimeoutError(f"motiond not idle at {want}: {report}")
-            await asyncio.sleep(POLL_S)
+        await self._until_idle_at(end_mm, deadline)
 
     async def warm_up(self) -> None:
         """Play a stored job big enough to be planned in a child process (over
@@ -319,8 +315,12 @@ class Motiond:
         result = await run_client(self.port, path, banner=True)
         if result["errors"]:
             raise RuntimeError(f"motiond refused {result['errors']} lines")
+        await self._until_idle_at(end_mm, time.monotonic() + RUN_LIMIT_S)
+
+    async def _until_idle_at(self, end_mm: tuple[float, float], deadline: float) -> None:
+        """Until motiond reports Idle at ``end_mm``; an alarm (with its log) or the deadline
+        (monotonic) raises."""
         want = f"MPos:{end_mm[0]:.3f},{end_mm[1]:.3f}|"
-        deadline = time.monotonic() + RUN_LIMIT_S
         while not ((report := await self.status()).startswith("<Idle") and want in report):
             if time.monotonic() > deadline:
                 raise TimeoutError(f"motiond not idle at {want}: {report}")
