@@ -108,12 +108,12 @@ async def test_an_idle_board_gets_one_block_a_poll_and_its_get_config_rides_in_i
 ) -> None:
     """At rest a poll is one block: a get_clock (6 bytes), and every 8th poll the get_config
     in the same block (one byte more), never a block of its own; no resend, no nak. The
-    default poll is once a second (6 bytes/s, as klippy's); here every 0.25 s, to see a few
-    get_configs in a short test."""
+    default poll is every 0.5 s (12 bytes/s); here every 0.25 s, to see a few get_configs in
+    a short test."""
     async with klipper_machine(mcu) as app:
         backend = app.kernel.machine.backend
         assert isinstance(backend, KlipperBackend) and backend.mcu is not None
-        assert backend.mcu.poll_s == 1.0
+        assert backend.mcu.poll_s == 0.5
         await submit_all(app, ["G1 X20 Y10 F6000"])
         await app.kernel.machine.wait_idle()
         await asyncio.sleep(backend.lead_s + 0.2)
@@ -133,7 +133,7 @@ async def test_the_fitted_clock_maps_host_time_to_mcu_ticks(mcu: VirtualMcu) -> 
     async with klipper_machine(mcu) as app:
         backend = app.kernel.machine.backend
         assert isinstance(backend, KlipperBackend) and backend.mcu is not None
-        await asyncio.sleep(4.0)  # a few periodic get_clock samples (1 s apart when idle)
+        await asyncio.sleep(2.0)  # a few periodic get_clock samples (0.5 s apart when idle)
         sync = backend.mcu.clock
         assert sync is not None
         errors = []
@@ -145,7 +145,7 @@ async def test_the_fitted_clock_maps_host_time_to_mcu_ticks(mcu: VirtualMcu) -> 
             errors.append(abs(predicted - actual) / mcu.clock_hz - 0.5 * (after - before))
         # The fit can know the clock no better than the windows it is made of: the board read
         # its clock somewhere between a poll's sending and its answer. The polls of an idle
-        # machine come after 1 s asleep, and on this shared VM the cold wake-ups of the
+        # machine come after 0.5 s asleep, and on this shared VM the cold wake-ups of the
         # virtual MCU's thread and of the loop make their round trips 0.25-1.9 ms (the start's
         # back-to-back burst: 0.1 ms), so the bound is half the recent round trips, 400 us at
         # the least (258 us seen on a slow 2-core CI machine); a wrong fit is off by far more.

@@ -10,8 +10,8 @@ configured by someone else is refused (:class:`KlipperFault`); one still configu
 (:meth:`Mcu.restart`, as Klipper's host does for its ``restart_method``) and connected afresh.
 :meth:`Mcu.watch` samples the clock every ``poll_s`` (``BUSY_POLL_S`` while :attr:`Mcu.busy`:
 steps queued or an output on) and checks ``get_config`` every ``CONFIG_EVERY`` polls. An idle
-MCU is polled once a second, on the whole second as the server's other periodic wake-ups, and
-its ``get_config`` shares the clock poll's block: about 6 bytes a second (klippy's
+MCU is polled on whole multiples of the period, as the server's other periodic wake-ups, and
+its ``get_config`` shares the clock poll's block: about 12 bytes a second (klippy sends 6, its
 ``get_clock`` once a second). To a busy one the requests go one at a time (never back to back),
 each joining a block of steps (as klippy's do; up to ``RIDE_S`` late), about 3 bytes a second
 then: the clock poll rides the first block sent a period after the last poll, so the poll
@@ -55,10 +55,12 @@ CLOCK_SETTLE_S = 5.0
 RATE_PROBE_S = 0.15
 RATE_TOLERANCE = 0.05  # a round trip's jitter over RATE_PROBE_S stays well inside this
 RESET_SETTLE_S = 0.015  # klippy's pause after ``reset`` before it lets the port go
-POLL_S = 1.0  # a 6-byte get_clock block: 6 bytes/s, as klippy's; a restart is caught at the
-# next reading (its clock went back), or by the ``starting`` it sends
+POLL_S = 0.5  # a 6-byte get_clock block: 12 bytes/s; a clock set back by more than this is
+# caught at the next reading (behind the last one). Once a second (klippy's) was tried: the fit
+# at rest, which a move is anchored at, was off by up to a millisecond more, and a clock set
+# back a second just as a move began went unseen
 BUSY_POLL_S = 0.4  # while steps are queued or an output is on (15 bytes/s)
-CONFIG_EVERY = 8  # get_config once every 8 polls (8 s idle, 3.2 s busy)
+CONFIG_EVERY = 8  # get_config once every 8 polls (4 s idle, 3.2 s busy)
 CONFIG_RIDE_S = 0.05  # an idle poll's get_config waits this long at most for its get_clock
 RIDE_S = 0.15  # while busy, a poll waits this long at most to join a block of steps (5 bytes)
 JUMP_S = 0.05  # a clock reading this far outside its round trip's window is looked into
@@ -329,10 +331,10 @@ class Mcu:
         try:
             await asyncio.wait(either, return_when=asyncio.FIRST_COMPLETED)
         finally:
-            poll.cancel()  # (when it has not ended: the watch ends)
-        if fault.done():  # the first word, with its reason, wins
+            poll.cancel()  # (when it has not ended: a fault, or the watch ends)
             if poll.done() and not poll.cancelled():
-                poll.exception()  # retrieved: the fault says it
+                poll.exception()  # retrieved: raised below when it is the answer
+        if fault.done():  # the first word, with its reason, wins
             raise fault.result()
         try:
             poll.result()
