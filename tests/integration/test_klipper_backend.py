@@ -153,7 +153,10 @@ async def test_the_fitted_clock_maps_host_time_to_mcu_ticks(mcu: VirtualMcu) -> 
         print("clock errors us", sorted(round(e * 1e6, 1) for e in errors),
               f"recent round trips {recent_rtt_s * 1e6:.0f} us")
         assert float(np.median(errors)) < max(400e-6, 0.5 * recent_rtt_s + 100e-6)
-        assert abs(sync.freq_hz / mcu.rate - 1) < 300e-6
+        # and its rate no better than those windows over the time they span (a CI run: 340
+        # ppm off from 2 s of polls whose round trips were 1.5 ms; a wrong fit is off by more)
+        span_s = sync._samples[-1][0] - sync._samples[0][0]  # noqa: SLF001
+        assert abs(sync.freq_hz / mcu.rate - 1) < max(300e-6, recent_rtt_s / span_s)
 
 
 @pytest.mark.parametrize(("job", "lines", "feed_scale"), [
