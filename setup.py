@@ -8,7 +8,9 @@ from setuptools import Extension, setup
 
 setup(ext_modules=[Extension(
     "server.backends.klipper._stepcore",
-    sources=["server/backends/klipper/_stepcore.c", "server/backends/klipper/_wire.c"],
-    extra_compile_args=["-O2", "-ffp-contract=off"],  # no fused multiply-add: exact roundings
+    sources=["server/backends/klipper/_stepcore.c", "server/backends/klipper/_wire.c",
+             "server/backends/klipper/_serialq.c"],
+    extra_compile_args=["-O2", "-ffp-contract=off", "-pthread"],  # (-ffp-contract=off: no
+    extra_link_args=["-pthread"],  # fused multiply-add: exact roundings)
     optional=True,
 )])

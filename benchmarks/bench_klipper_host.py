@@ -91,9 +91,6 @@ class WireCount:
     def sample(self) -> None:
         """The backend's tick reads the device here: there is none."""
 
-    def sample_due(self, when_s: float) -> None:
-        """When the next sample comes: no timeout to judge there."""
-
 
 class BenchMcu:
     def __init__(self) -> None:

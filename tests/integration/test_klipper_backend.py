@@ -126,7 +126,7 @@ async def test_an_idle_board_gets_one_block_a_poll_and_its_get_config_rides_in_i
         riders = sent - 6 * blocks  # a get_config's byte in a get_clock's block
         assert 16 <= blocks <= 19, blocks
         assert 2 <= riders <= 3, (sent, blocks)
-        assert link.window.retransmits == 0 and mcu.naks_sent == 0
+        assert link.retransmits == 0 and mcu.naks_sent == 0
 
 
 async def test_the_fitted_clock_maps_host_time_to_mcu_ticks(mcu: VirtualMcu) -> None:

@@ -37,7 +37,7 @@ async def test_a_burst_of_small_messages_leaves_in_full_blocks_decoded_in_order(
         received = [p["offset"] for _, name, p in mcu.commands if name == "identify"]
         assert received == list(range(100)), "every message decoded once, in order"
         assert responses == list(range(100))
-        assert link.window.retransmits == 0
+        assert link.retransmits == 0
     finally:
         link.close()
 
@@ -95,6 +95,6 @@ async def test_a_riding_request_joins_the_next_block_or_leaves_alone_when_none_c
         assert company <= reply["#sent_s"] < company + 0.05  # when its block left
         assert mcu.block_messages[-1] == ["identify", "identify"]
         assert [p["offset"] for _, name, p in mcu.commands if name == "identify"] == [0, 1, 2]
-        assert link.window.retransmits == 0
+        assert link.retransmits == 0
     finally:
         link.close()

@@ -39,7 +39,7 @@ async def test_lost_and_corrupted_blocks_are_sent_again_and_no_step_is_lost(
         await asyncio.sleep(0.15)
         mcu.corrupt_blocks = 2
         await run_job(app, ["G1 X5 Y40", "G1 X60 Y10"])
-        assert mcu.naks_sent >= 2 and backend.mcu.link.window.retransmits >= 2
+        assert mcu.naks_sent >= 2 and backend.mcu.link.retransmits >= 2
         assert check_steps(app, mcu) > 5000
 
 
@@ -155,10 +155,10 @@ async def test_the_emergency_stop_goes_out_at_once_before_every_message_not_yet_
             link.send(dictionary.encode("get_clock"))
         await asyncio.sleep(0.05)
         assert link.queued_bytes > 0
-        inflight = len(link.window.inflight)
+        inflight = link.in_flight
         backend.halt()
-        waiting = [dictionary.decode(message)[0][0] for message in link._queue]
+        waiting = [dictionary.decode(message)[0][0] for message in link.queued()]
         assert "queue_step" not in waiting and "get_clock" not in waiting  # plain sends dropped
         # written at once in a block of its own, though the window was full
-        assert len(link.window.inflight) == inflight + 1
-        assert dictionary.decode(link.window.inflight[-1].payload) == [("emergency_stop", {})]
+        assert link.in_flight == inflight + 1
+        assert dictionary.decode(link.inflight_payloads()[-1]) == [("emergency_stop", {})]

@@ -88,7 +88,7 @@ async def configured_link(mcu: VirtualMcu) -> AsyncIterator[tuple[Link, Dictiona
                                 default_value=0, max_duration=0),
                   encode.encode("finalize_config", crc=1))
         for _ in range(200):
-            if mcu.configured and not link.window.inflight:
+            if mcu.configured and not link.in_flight:
                 break
             await asyncio.sleep(0.01)
         link.sample()

@@ -44,9 +44,6 @@ class Sink:
     def sample(self) -> None:
         """The backend's tick reads the device here: there is none."""
 
-    def sample_due(self, when_s: float) -> None:
-        """When the next sample comes: no timeout to judge there."""
-
 
 class FittedMcu:
     """What the backend reads of an MCU: its dictionary, the clock fit, its move queue."""

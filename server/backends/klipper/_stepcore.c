@@ -17,6 +17,7 @@ void wire_init(void);
 PyObject *wire_message(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
 PyObject *wire_crc16(PyObject *self, PyObject *arg);
 PyObject *wire_frame(PyObject *self, PyObject *args);
+int serialq_add_type(PyObject *module);
 PyObject *wire_step_messages(PyObject *self, PyObject *args);
 extern const char message_doc[], crc16_doc[], frame_doc[], step_messages_doc[];
 
@@ -352,7 +353,8 @@ PyMODINIT_FUNC PyInit__stepcore(void)
         || PyModule_AddIntConstant(m, "ADD_MAX", ADD_MAX) < 0
         || PyModule_AddIntConstant(m, "WINDOW", WINDOW) < 0
         || PyModule_AddIntConstant(m, "QUADRATIC_DEV", QUADRATIC_DEV) < 0
-        || PyModule_AddIntConstant(m, "MAX_TRIES", MAX_TRIES) < 0) {
+        || PyModule_AddIntConstant(m, "MAX_TRIES", MAX_TRIES) < 0
+        || serialq_add_type(m) < 0) {
         Py_DECREF(m);
         return NULL;
     }

@@ -86,6 +86,12 @@ static uint16_t crc16_of(const uint8_t *data, Py_ssize_t len, uint16_t crc)
     return crc;
 }
 
+/* The block checksum of `data`, for the link's thread (_serialq.c). */
+uint16_t wire_crc16_of(const uint8_t *data, Py_ssize_t len)
+{
+    return crc16_of(data, len, 0xFFFF);
+}
+
 const char crc16_doc[] =
 "crc16(data) -> int\n\nThe block checksum: CRC-16/MCRF4XX (CCITT polynomial, reflected,\n"
 "initial 0xFFFF).";

@@ -176,13 +176,8 @@ class KlipperBackend(BoardSession, OutputTiming, StepSchedule):
         refreshed in time, and messages held to share a block leave at their turn (as late
         as a flush would send them), or as soon as the MCU's move queue has room for those
         waiting for it; at most ``SAMPLE_GAP_MAX_S`` apart. At once (the next tick) while a
-        fault waits to be raised or the board is not ready. The link is told when that sample
-        comes (not before a ``flush_s``, the ticks' own period): the retransmission timeouts
-        of what this sample sent are judged there (:meth:`~.link.Link.sample_due`)."""
-        when_s = self._next_sample_s(time_s)
-        if self.mcu is not None:
-            self.mcu.link.sample_due(max(when_s, time_s + self.flush_s))
-        return when_s
+        fault waits to be raised or the board is not ready."""
+        return self._next_sample_s(time_s)
 
     def _next_sample_s(self, time_s: float) -> float:
         mcu = self.mcu

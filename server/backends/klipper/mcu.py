@@ -167,7 +167,7 @@ class Mcu:
                                "adopted; restart motiond to drive it")
         self.link.dictionary = self.dictionary
         freq = self.dictionary.constant_int("CLOCK_FREQ")
-        self.link.window.window_bytes = self.dictionary.constant_int("RECEIVE_WINDOW", 192)
+        self.link.window_bytes = self.dictionary.constant_int("RECEIVE_WINDOW", 192)
         await self._start_clock(float(freq))
         self._commands = configure(self.dictionary)
         self.crc = zlib.crc32("\n".join(map(command_text, self._commands)).encode())

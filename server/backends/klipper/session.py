@@ -199,7 +199,7 @@ class BoardSession:
     async def _drain(self, mcu: Mcu, limit_s: float) -> bool:
         """Wait (at most ``limit_s``) until what was queued for the MCU has left."""
         deadline = time.monotonic() + limit_s
-        while (mcu.link.queued_bytes or mcu.link.window.inflight) and not mcu.link.closed:
+        while (mcu.link.queued_bytes or mcu.link.in_flight) and not mcu.link.closed:
             if time.monotonic() > deadline:
                 return False
             await asyncio.sleep(0.01)

@@ -1,5 +1,6 @@
 """The compiled step core (``_stepcore.c``): step times and their compression, and the wire's
-hot end (a prepared message's VLQs, a block's framing and checksum).
+hot end (a prepared message's VLQs, a block's framing and checksum) and the link's thread
+(``_serialq.c``: :class:`SerialQueue`).
 
 ``pip install`` builds it when a C compiler and Python's headers are there; it is optional so
 that motiond installs without them (the simulated machine needs no core). Without it the Klipper
@@ -21,6 +22,7 @@ try:
         MAX_TRIES,
         QUADRATIC_DEV,
         WINDOW,
+        SerialQueue,
         compress,
         crc16,
         frame,
@@ -31,5 +33,6 @@ try:
 except ImportError:
     raise ConfigError([MISSING]) from None
 
-__all__ = ["ADD_MAX", "ADD_MIN", "MAX_COUNT", "MAX_TRIES", "QUADRATIC_DEV", "WINDOW", "compress",
+__all__ = ["ADD_MAX", "ADD_MIN", "MAX_COUNT", "MAX_TRIES", "QUADRATIC_DEV", "WINDOW", "SerialQueue",
+           "compress",
            "crc16", "frame", "message", "solve", "step_messages"]
