@@ -144,7 +144,7 @@ async def test_messages_waiting_for_room_leave_as_the_thread_reads_the_acknowled
     assert counts["next_seq"] >= 30, counts
     assert wakes == 0
     assert link.retransmits == 0 and mcu.naks_sent == 0
-    assert counts["wakes"] <= 8 * counts["next_seq"], counts  # the thread's: a block comes in pieces
+    assert counts["wakes"] <= 8 * counts["next_seq"], counts  # the thread's: a block in pieces
 
 
 async def test_a_board_slower_than_its_wire_still_gets_every_message_once_in_order() -> None:
