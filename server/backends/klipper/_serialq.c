@@ -40,7 +40,9 @@ uint16_t wire_crc16_of(const uint8_t *data, Py_ssize_t len);
 #define SEQ_MASK 0x0F
 #define MIN_RTO_S 0.025
 #define MAX_RTO_S 2.0
-#define MAX_BLOCKS 16       /* in flight at most (the window's own limit is lower) */
+#define MAX_BLOCKS 15       /* in flight at most: a 4-bit ack tells 0 to 15 apart */
+#define WINDOW_BLOCKS 12    /* what the window may fill (klippy's MAX_PENDING_BLOCKS), the
+                               rest left for send_first */
 #define READ_BYTES 4096
 #define RX_LIMIT 4096       /* blocks kept for the Python side: reading pauses beyond */
 
@@ -115,7 +117,11 @@ static void set_fault(SerialQueue *s, enum fault fault, const char *text)
     s->failed = 1; /* nothing more is read or judged */
     if (fault != BROKEN)
         s->dead = 1; /* nor written */
-    kick(s->notify_fd); /* a fault is always told at once */
+    if (!s->notified) { /* a fault is always told at once; pull takes the signal */
+        s->notified = 1;
+        s->signals++;
+        kick(s->notify_fd);
+    }
 }
 
 static struct sent *oldest(SerialQueue *s) { return &s->inflight[s->inflight_head]; }
@@ -161,6 +167,8 @@ static void flush_out(SerialQueue *s)
         if (errno == EAGAIN || errno == EINTR)
             return;
         set_fault(s, WRITE, strerror(errno));
+        s->dead = 1; /* (after a broken stream's fault too) nothing more is written */
+        s->out_len = 0;
         return;
     }
     s->writes++;
@@ -183,8 +191,6 @@ static int can_send(SerialQueue *s, int size)
 
 static void make_block(SerialQueue *s, const uint8_t *payload, int len, double now)
 {
-    if (s->inflight_len == MAX_BLOCKS)
-        return; /* (send_first past a full window: the window's limit is below this) */
     struct sent *sent = inflight_at(s, s->inflight_len++);
     sent->seq = s->next_seq++;
     sent->payload_len = (uint8_t)len;
@@ -461,7 +467,8 @@ static void *run(void *arg)
         s->thread_deadline_s = deadline;
         struct pollfd fds[2];
         int reading = !s->failed && s->rx_len < RX_LIMIT;
-        fds[0].fd = s->dead ? -1 : s->fd;
+        /* not polled for nothing: a hung-up device reports POLLHUP whatever is asked */
+        fds[0].fd = s->dead || !(reading || s->out_len) ? -1 : s->fd;
         fds[0].events = (short)((reading ? POLLIN : 0) | (s->out_len ? POLLOUT : 0));
         fds[1].fd = s->wake_fd;
         fds[1].events = POLLIN;
@@ -602,6 +609,13 @@ static PyObject *sq_send_first(SerialQueue *s, PyObject *arg)
     if (dropped == NULL)
         return NULL;
     pthread_mutex_lock(&s->lock);
+    if (s->inflight_len == MAX_BLOCKS) { /* (the window fills 12: three send_first past it) */
+        pthread_mutex_unlock(&s->lock);
+        Py_DECREF(dropped);
+        PyErr_Format(PyExc_BufferError, "%d blocks unacknowledged: no room for another",
+                     MAX_BLOCKS);
+        return NULL;
+    }
     size_t kept = 0;
     for (size_t i = 0; i < s->queue_len; i++) {
         struct message m = s->queue[(s->queue_head + i) % s->queue_cap];
@@ -722,8 +736,15 @@ static PyObject *sq_halt(SerialQueue *s, PyObject *arg)
         return NULL;
     pthread_mutex_lock(&s->lock);
     if (s->fault == NONE) {
-        set_fault(s, BROKEN, text);
-        s->fault_taken = 1; /* the Python side knows */
+        s->fault = BROKEN;
+        snprintf(s->fault_text, sizeof s->fault_text, "%s", text);
+        s->fault_taken = 1; /* the Python side knows: nothing to signal */
+    }
+    if (s->notified) { /* nothing more is taken: a pending signal is dropped */
+        uint64_t count;
+        ssize_t r = read(s->notify_fd, &count, sizeof count);
+        (void)r;
+        s->notified = 0;
     }
     s->failed = 1;
     kick(s->wake_fd);
@@ -937,9 +958,9 @@ static int sq_init(SerialQueue *s, PyObject *args, PyObject *kwargs)
         PyErr_SetString(PyExc_RuntimeError, "already running");
         return -1;
     }
-    if (max_blocks < 1 || max_blocks > MAX_BLOCKS || window_bytes < MESSAGE_MAX) {
+    if (max_blocks < 1 || max_blocks > WINDOW_BLOCKS || window_bytes < MESSAGE_MAX) {
         PyErr_Format(PyExc_ValueError, "max_blocks 1 to %d, window_bytes %d at least",
-                     MAX_BLOCKS, MESSAGE_MAX);
+                     WINDOW_BLOCKS, MESSAGE_MAX);
         return -1;
     }
     s->fd = fd;

@@ -30,6 +30,7 @@ reported once and nothing more is read, but an emergency stop can still be writt
 from __future__ import annotations
 
 import asyncio
+import logging
 import os
 import termios
 import time
@@ -42,6 +43,7 @@ from server.backends.klipper.codec import Params, ProtocolError
 from server.backends.klipper.dictionary import Dictionary
 from server.backends.klipper.stepcore import SerialQueue
 
+log = logging.getLogger("motiond.klipper")
 MessageHandler = Callable[[str, Params, float], None]
 Match = Callable[[Params], bool]
 READ_BYTES = 1024  # of responses decoded per turn of the event loop: a board that floods
@@ -186,7 +188,11 @@ class Link:
         room in the window: it goes out in a block of its own at once)."""
         if self._queue is None:
             return []
-        return self._queue.send_first(message)
+        try:
+            return self._queue.send_first(message)
+        except BufferError as exc:  # a board that acknowledged none of 15 blocks: its
+            log.warning("%s: not sent: %s", self.path, exc)  # silence is judged soon
+            return []
 
     async def request(self, message: bytes, response: str, timeout_s: float,
                       match: Match = lambda _: True, ride_s: float = 0.0,
