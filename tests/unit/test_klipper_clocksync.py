@@ -1,5 +1,6 @@
 """The clock fit (plain Python) is the weighted least-squares line numpy finds, weighted by
-how close each round trip is to the best."""
+how close each round trip is to the best, its rate held towards nominal by a prior
+(``RATE_PRIOR``: one more row of the least squares)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import random
 import numpy as np
 import pytest
 
-from server.backends.klipper.clocksync import ClockSync
+from server.backends.klipper.clocksync import RATE_PRIOR, ClockSync
 
 HZ = 16_000_000.0
 
@@ -34,12 +35,33 @@ def test_the_fit_is_numpy_s_weighted_least_squares_line(rate: float, seed: int) 
     host = np.array([s[0] for s in samples])
     clock = np.array([s[1] for s in samples])
     rtt = np.array([s[2] for s in samples])
-    weight = 1.0 / (rtt - sync.min_rtt_s + 20e-6) ** 2
-    slope, intercept = np.polyfit(host - host[-1], clock, 1, w=np.sqrt(weight))
+    weight = np.sqrt(1.0 / (rtt - sync.min_rtt_s + 20e-6) ** 2)
+    # rows: w * (intercept + slope * x) = w * clock (w: 1/s of host time, a tick residual
+    # scaled by 1/HZ), and the prior's: slope / (RATE_PRIOR * HZ) = 1 / RATE_PRIOR
+    rows = np.vstack([np.column_stack([weight, weight * (host - host[-1])]) / HZ,
+                      [[0.0, 1.0 / (RATE_PRIOR * HZ)]]])
+    wanted = np.concatenate([weight * clock / HZ, [1.0 / RATE_PRIOR]])
+    (intercept, slope), *_ = np.linalg.lstsq(rows, wanted, rcond=None)
     assert len(samples) == 64
     assert sync.freq_hz == pytest.approx(slope, rel=1e-9)
     assert sync.clock_at(host[-1]) == pytest.approx(intercept, abs=1.0)  # within a tick
     assert sync.freq_hz / HZ == pytest.approx(rate, abs=20e-6)
+
+
+def test_a_few_seconds_of_wide_round_trips_keep_the_rate_near_nominal() -> None:
+    """The start's burst (0.1 ms round trips), then polls after sleeping (1-2 ms, the board
+    reading its clock early in each): without the prior the rate is bent by hundreds of ppm
+    (the polls' bias over their span) and the clock a second on is off by that."""
+    sync = ClockSync(HZ)
+    sync.reset(100.0, 0)
+    for k in range(4):  # the burst
+        sent_s = 100.0 + k * 0.0002
+        sync.add_sample(sent_s, sent_s + 0.0001, round((sent_s + 0.00005 - 100.0) * HZ))
+    for k in range(1, 5):  # polls 0.5 s apart, read 0.1 ms after sending, answered 1.5 ms on
+        sent_s = 100.0 + 0.5 * k
+        sync.add_sample(sent_s, sent_s + 0.0015, round((sent_s + 0.0001 - 100.0) * HZ))
+    assert abs(sync.freq_hz / HZ - 1.0) < 30e-6
+    assert abs(sync.clock_at(103.0) - 3.0 * HZ) / HZ < 150e-6  # 0.15 ms
 
 
 def test_samples_too_close_together_keep_the_nominal_rate_from_the_best_round_trip() -> None:

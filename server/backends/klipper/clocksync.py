@@ -7,6 +7,12 @@ middle, and the narrower the window the surer. The fit is a weighted least-squar
 its round trip is to the best one seen, so a delayed answer barely moves it. The MCU's clock is
 32 bits on the wire; :meth:`ClockSync.extend` unwraps it to 64 bits near the estimate.
 
+The rate has a prior: the nominal ``CLOCK_FREQ``, within ``RATE_PRIOR`` (a crystal's
+tolerance), so a fit of a few seconds' samples, whose rate a round trip's width over that span
+would bend by hundreds of ppm (a poll after the process slept takes 1-3 ms; the start's burst
+0.1 ms), keeps near nominal until the samples span enough time to say otherwise (a board off by
+200 ppm is followed within seconds; one whose clock lost time is reset, see :mod:`.mcu`).
+
 The fit is plain Python over at most 64 samples, not numpy: it runs once a poll, after the
 process has slept, and there numpy's machinery is what costs (on a shared VM, a numpy fit
 after 0.3 s asleep took 0.2-1.4 ms against 17 us warm; this loop 0.06-0.3 ms against 12 us).
@@ -15,6 +21,10 @@ after 0.3 s asleep took 0.2-1.4 ms against 17 us warm; this loop 0.06-0.3 ms aga
 from __future__ import annotations
 
 from collections import deque
+
+RATE_PRIOR = 100e-6
+"""How far (a fraction) the rate is expected to be from nominal before the samples say: the
+fit minimises the weighted squares plus ``((rate - nominal) / (RATE_PRIOR * nominal))**2``."""
 
 
 class ClockSync:
@@ -90,7 +100,9 @@ class ClockSync:
             dx = x - x_mean
             var += w * dx * dx
             cov += w * dx * (y - y_mean)
-        freq = cov / var
+        # the weights are 1/s^2 of host time: the prior in the same units (see RATE_PRIOR)
+        prior = 1.0 / (RATE_PRIOR * RATE_PRIOR)
+        freq = (cov + prior * self.nominal_hz) / (var + prior)
         if abs(freq / self.nominal_hz - 1.0) > 0.01:  # a reading from another clock: keep nominal
             freq = self.nominal_hz
         self.freq_hz = freq
