@@ -11,8 +11,9 @@ of the interpreter costs far more than one of that thread.
 The responses it keeps are decoded here, with the current :class:`~.dictionary.Dictionary`,
 and handed to ``on_message`` with their arrival time: at the owner's samples (the step
 generator's ticks, :meth:`Link.sample`), or at once when the thread signals them, which it does
-while something must be read at once: an answer awaited once its request has left (a poll
-waiting to ride along is not), or no samples (:meth:`Link.rest`: an idle board's shutdown or
+while something must be read at once: an answer awaited (but a riding poll's: a clock
+reading's arrival time is its measurement, stamped by the thread, so a poll riding the steps is
+answered at the next sample), or no samples (:meth:`Link.rest`: an idle board's shutdown or
 restart is read at once). A fault of the link is always signalled at once.
 
 :meth:`Link.request` sends one command and waits for a matching response; a request that may
@@ -53,6 +54,7 @@ class _Waiter(NamedTuple):
     response: str
     match: Match
     future: asyncio.Future[Params]
+    lazy: bool  # its answer may wait for the owner's next sample (a poll riding the steps)
 
 
 class _Rider:
@@ -177,7 +179,6 @@ class Link:
             self._drop_rider()  # it leaves now, in the first block
             rider.sent_s = time.monotonic()
             queue.send((rider.message, *messages), keep, 1)
-            self._watch()  # its answer is awaited now
         else:
             queue.send(messages, keep)
 
@@ -200,7 +201,8 @@ class Link:
         ``#sent_s`` is when ``message`` left. With ``ride_s``, ``message`` waits that long at
         most for other messages to leave and joins their first block, leaving no sooner than
         ``ride_after_s`` from now (``timeout_s`` counts from when it may have left at the
-        latest)."""
+        latest); a riding request's answer is taken at the owner's next sample if it
+        samples."""
         assert self._loop is not None
         future: asyncio.Future[Params] = self._loop.create_future()
         rider = None
@@ -208,7 +210,7 @@ class Link:
         if ride_s > 0.0 and self._rider is None and not self.closed:
             rider = self._rider = _Rider(message, sent_s + ride_after_s)
             rider.timer = self._loop.call_later(ride_after_s + ride_s, self._release_rider)
-        waiter = _Waiter(response, match, future)
+        waiter = _Waiter(response, match, future, rider is not None)
         self._waiters.append(waiter)
         if rider is None:
             self.send(message, keep=True)
@@ -232,7 +234,6 @@ class Link:
         if rider is not None:
             self._rider, rider.timer, rider.sent_s = None, None, time.monotonic()
             self.send(rider.message, keep=True)
-            self._watch()
 
     def _drop_rider(self) -> None:
         if self._rider is not None and self._rider.timer is not None:
@@ -267,8 +268,7 @@ class Link:
         module docstring)."""
         if self._queue is None or self.closed or self.failed:
             return
-        answer_due = bool(self._waiters) and self._rider is None  # (a rider has not left)
-        want = not self.sampling or answer_due
+        want = not self.sampling or any(not waiter.lazy for waiter in self._waiters)
         if want != self.signalled:
             self._queue.set_notify(want)
             self.signalled = want
