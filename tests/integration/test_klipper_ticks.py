@@ -73,7 +73,7 @@ async def cruising(mcu: VirtualMcu) -> AsyncIterator[tuple[App, KlipperBackend, 
 
 @pytest.mark.slow
 async def test_a_cruise_is_sampled_only_when_the_backend_needs_it(mcu: VirtualMcu) -> None:
-    """100 mm/s along X for 1.5 s: in the cruise the backend is sampled about every 162 ms
+    """100 mm/s along X for 1.5 s: in the cruise the backend is sampled about every 158 ms
     (each run's turn to leave, as late as a flush would send it), not every 20 ms flush (50 a
     second); every run still reaches the MCU at least the lead less the hold-back less a flush
     ahead (the ride-through the flushes kept), and every step is exact."""
@@ -102,7 +102,7 @@ async def test_a_cruise_is_sampled_only_when_the_backend_needs_it(mcu: VirtualMc
 
 async def test_a_raster_sampled_in_late_tick_slices_keeps_the_laser_on_along_its_line(
         mcu: VirtualMcu) -> None:
-    """0.1 mm segments at 100 mm/s: a sample ~162 ms after the last spans more blocks than a
+    """0.1 mm segments at 100 mm/s: a sample ~158 ms after the last spans more blocks than a
     step generator call takes (64), so it comes in slices, each ending on a block's end. Such
     a slice is not motion's end: the laser (M3, following the pieces) goes on once and off
     once, never off and on again in between; every step is exact."""

@@ -47,16 +47,16 @@ from server.motion.backend import Piece
 log = logging.getLogger("motiond.klipper")
 DONE_MARGIN_S = 0.005
 TRAIL_EXTRA_S = 1.0  # the pieces are kept this long beyond the lead (where the tool was)
-SAMPLE_MARGIN_S = 0.008  # a sample asked for at the last moment comes this much before it
+SAMPLE_MARGIN_S = 0.012  # a sample asked for at the last moment comes this much before it
 # (a woken loop is late by a millisecond or so, and the sample works a few before it sends:
-# 5 ms left runs 1-2 ms short of the ride-through on a slow shared VM)
+# 5 or 8 ms left runs 1-5 ms short of the ride-through on a slow shared VM)
 SAMPLE_GAP_MAX_S = 0.17
 """The longest the samples may pause while steps or outputs are under way; within it, at
 most the hold-back plus a flush (less ``SAMPLE_MARGIN_S``): what a sample does not yet
 generate still leaves the ride-through the flushes kept (``lead_s`` - ``hold_back_s`` -
 ``flush_s``: 130 ms at the default lead), a run held back to grow leaves as late as the
 flushes let it (runs as long: the same bytes), and a board's shutdown or fault mid-motion is
-read (and alarmed) within it (162 ms at the default lead)."""
+read (and alarmed) within it (158 ms at the default lead)."""
 
 
 class KlipperBackend(BoardSession, OutputTiming, StepSchedule):

@@ -19,7 +19,7 @@ costs no wake-up of its own; silence for ``timeout_s`` (no block acknowledged), 
 clock that jumps ahead, a foreign configuration or a link fault raise :class:`KlipperFault`, a
 shutdown (ours from :meth:`emergency_stop`, or the firmware's own) :class:`McuShutdown`. A
 restart is told from the firmware's evidence, never from the host's timing: ``starting`` (sent
-at every boot), ``get_config`` unconfigured, a sequence number never sent (:mod:`.window`), or a
+at every boot), ``get_config`` unconfigured, a sequence number never sent (the link's thread), or a
 clock that went back, checked against its 64-bit ``get_uptime``; a host stall widens a reading's
 round trip and leaves it inside, and a reading behind the fit is left out of it.
 After a shutdown :meth:`stopped_positions` reads where each stepper stopped (``clear_shutdown``
