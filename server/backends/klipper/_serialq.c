@@ -285,6 +285,15 @@ static PyObject *sq_close(SerialQueue *s, PyObject *unused)
     Py_RETURN_NONE;
 }
 
+/* ``data`` appended to ``*list`` as bytes; on failure the list is released (NULL). */
+static void append_bytes(PyObject **list, const uint8_t *data, size_t len)
+{
+    PyObject *b = PyBytes_FromStringAndSize((const char *)data, (Py_ssize_t)len);
+    if (b == NULL || PyList_Append(*list, b) < 0)
+        Py_CLEAR(*list);
+    Py_XDECREF(b);
+}
+
 static const char inflight_doc[] =
 "inflight() -> list[bytes]\n\nThe payloads of the blocks not yet acknowledged, oldest first.";
 
@@ -295,16 +304,9 @@ static PyObject *sq_inflight(SerialQueue *s, PyObject *unused)
     if (list == NULL)
         return NULL;
     pthread_mutex_lock(&s->lock);
-    for (int i = 0; i < s->inflight_len; i++) {
+    for (int i = 0; i < s->inflight_len && list != NULL; i++) {
         struct sent *sent = inflight_at(s, i);
-        PyObject *b = PyBytes_FromStringAndSize((const char *)sent->block + 2,
-                                                sent->payload_len);
-        if (b == NULL || PyList_Append(list, b) < 0) {
-            Py_XDECREF(b);
-            Py_CLEAR(list);
-            break;
-        }
-        Py_DECREF(b);
+        append_bytes(&list, sent->block + 2, sent->payload_len);
     }
     pthread_mutex_unlock(&s->lock);
     return list;
@@ -320,15 +322,9 @@ static PyObject *sq_queued(SerialQueue *s, PyObject *unused)
     if (list == NULL)
         return NULL;
     pthread_mutex_lock(&s->lock);
-    for (size_t i = 0; i < s->queue_len; i++) {
+    for (size_t i = 0; i < s->queue_len && list != NULL; i++) {
         struct message *m = &s->queue[(s->queue_head + i) % s->queue_cap];
-        PyObject *b = PyBytes_FromStringAndSize((const char *)m->data, m->len);
-        if (b == NULL || PyList_Append(list, b) < 0) {
-            Py_XDECREF(b);
-            Py_CLEAR(list);
-            break;
-        }
-        Py_DECREF(b);
+        append_bytes(&list, m->data, m->len);
     }
     pthread_mutex_unlock(&s->lock);
     return list;

@@ -330,6 +330,8 @@ static void take_blocks(SerialQueue *s, double now)
 
 static void read_device(SerialQueue *s, short revents)
 {
+    if (s->failed) /* (halted while the thread waited) */
+        return;
     ssize_t got = read(s->fd, s->in + s->in_len, READ_BYTES);
     if (got == 0 && !(revents & (POLLHUP | POLLERR | POLLNVAL)))
         got = read(s->fd, s->in + s->in_len, READ_BYTES); /* a raw tty reads empty too */
@@ -349,6 +351,8 @@ static void read_device(SerialQueue *s, short revents)
     uint64_t acked = s->acked;
     size_t before = s->rx_len;
     take_blocks(s, now);
+    if (s->failed) /* a restart: what waits is not sent to it (the fault is signalled) */
+        return;
     if (s->acked != acked)
         moved(s, now);
     else if (unacknowledged(s, now)) /* a board that talks but never acknowledges */

@@ -178,9 +178,6 @@ class KlipperBackend(BoardSession, OutputTiming, StepSchedule):
         as a flush would send them), or as soon as the MCU's move queue has room for those
         waiting for it; at most ``SAMPLE_GAP_MAX_S`` apart. At once (the next tick) while a
         fault waits to be raised or the board is not ready."""
-        return self._next_sample_s(time_s)
-
-    def _next_sample_s(self, time_s: float) -> float:
         mcu = self.mcu
         if (not self.ready or self._fault_to_raise is not None or not self._print.anchored
                 or mcu is None or mcu.clock is None):
