@@ -213,3 +213,37 @@ async def test_a_busy_board_s_clock_poll_rides_the_steps_without_a_timer_of_its_
         assert polled and all(names[0] == "get_clock" and "queue_step" in names
                               for names in polled), polled
         await app.kernel.machine.wait_idle()
+
+
+async def test_a_board_becoming_busy_is_polled_as_a_busy_one_riding_its_steps(
+        mcu: VirtualMcu) -> None:
+    """At rest the clock is polled once a second; a move begun just after a poll does not
+    wait out that second: the first steps wake the watch, and its next poll rides one of the
+    first blocks of steps, within a busy period of the last (a clock set back as the move began
+    is read then, not a second later)."""
+    async with klipper_machine(mcu) as app:
+        backend = app.kernel.machine.backend
+        assert isinstance(backend, KlipperBackend) and backend.mcu is not None
+        assert backend.mcu.poll_s == 1.0
+
+        def polls() -> list[int]:
+            return [clock for clock, name, _ in mcu.commands if name == "get_clock"]
+
+        await asyncio.sleep(1.2)
+        before = len(polls())
+        for _ in range(150):  # just after an idle poll: the next idle one is a second away
+            if len(polls()) > before:
+                break
+            await asyncio.sleep(0.01)
+        last_idle = polls()[-1]
+        await asyncio.sleep(0.1)
+        await submit_all(app, ["G1 X50 F6000"])
+        await asyncio.sleep(0.7)
+        polled = [clock for clock in polls() if clock > last_idle]
+        assert polled, "polled since the move began"
+        after_s = (polled[0] - last_idle) / mcu.clock_hz
+        assert after_s < mcu_module.BUSY_POLL_S + mcu_module.RIDE_S + 0.05, after_s
+        steps = [clock for clock, name, _ in mcu.commands if name == "queue_step"]
+        nearest_s = min(abs(clock - polled[0]) for clock in steps) / mcu.clock_hz
+        assert nearest_s < 0.0005, "in a block of steps (read one after the other)"
+        await app.kernel.machine.wait_idle()

@@ -10,18 +10,19 @@ configured by someone else is refused (:class:`KlipperFault`); one still configu
 (:meth:`Mcu.restart`, as Klipper's host does for its ``restart_method``) and connected afresh.
 :meth:`Mcu.watch` samples the clock every ``poll_s`` (``BUSY_POLL_S`` while :attr:`Mcu.busy`:
 steps queued or an output on) and checks ``get_config`` every ``CONFIG_EVERY`` polls. An idle
-MCU is polled on whole multiples of the period, as the server's other periodic wake-ups, and
-its ``get_config`` shares the clock poll's block: about 12 bytes a second (klippy sends 6, its
-``get_clock`` once a second). To a busy one the requests go one at a time (never back to back),
-each joining a block of steps (as klippy's do; up to ``RIDE_S`` late), about 3 bytes a second
-then: the clock poll rides the first block sent a period after the last poll, so the poll
-costs no wake-up of its own; silence for ``timeout_s`` (no block acknowledged), a restart, a
-clock that jumps ahead, a foreign configuration or a link fault raise :class:`KlipperFault`, a
-shutdown (ours from :meth:`emergency_stop`, or the firmware's own) :class:`McuShutdown`. A
-restart is told from the firmware's evidence, never from the host's timing: ``starting`` (sent
-at every boot), ``get_config`` unconfigured, a sequence number never sent (the link's thread), or a
-clock that went back, checked against its 64-bit ``get_uptime``; a host stall widens a reading's
-round trip and leaves it inside, and a reading behind the fit is left out of it.
+MCU is polled once a second on whole seconds, as the server's other periodic wake-ups, and its
+``get_config`` shares the clock poll's block: about 6 bytes a second (as klippy's ``get_clock``
+once a second); a board becoming busy wakes the watch. To a busy one the requests go one at a
+time (never back to back), each joining a block of steps (as klippy's do; up to ``RIDE_S``
+late), about 3 bytes a second then: the clock poll rides the first block sent a period after
+the last poll, so the poll costs no wake-up of its own; silence for ``timeout_s`` (no block
+acknowledged), a restart, a clock that jumps ahead, a foreign configuration or a link fault
+raise :class:`KlipperFault`, a shutdown (ours from :meth:`emergency_stop`, or the firmware's
+own) :class:`McuShutdown`. A restart is told from the firmware's evidence, never from the
+host's timing: ``starting`` (sent at every boot), ``get_config`` unconfigured, a sequence
+number never sent (the link's thread), or a clock that went back, checked against its 64-bit
+``get_uptime``; a host stall widens a reading's round trip and leaves it inside, and a reading
+behind the fit is left out of it.
 After a shutdown :meth:`stopped_positions` reads where each stepper stopped (``clear_shutdown``
 then ``stepper_get_position``) and shuts the board down again until it is restarted.
 """
@@ -55,10 +56,8 @@ CLOCK_SETTLE_S = 5.0
 RATE_PROBE_S = 0.15
 RATE_TOLERANCE = 0.05  # a round trip's jitter over RATE_PROBE_S stays well inside this
 RESET_SETTLE_S = 0.015  # klippy's pause after ``reset`` before it lets the port go
-POLL_S = 0.5  # a 6-byte get_clock block: 12 bytes/s; a clock set back by more than this is
-# caught at the next reading (behind the last one). Once a second (klippy's) was tried: the fit
-# at rest, which a move is anchored at, was off by up to a millisecond more, and a clock set
-# back a second just as a move began went unseen
+POLL_S = 1.0  # a 6-byte get_clock block: 6 bytes/s, as klippy's; the board becoming busy
+# wakes the watch (a clock set back as a move begins is read at once, not a second later)
 BUSY_POLL_S = 0.4  # while steps are queued or an output is on (15 bytes/s)
 CONFIG_EVERY = 8  # get_config once every 8 polls (4 s idle, 3.2 s busy)
 CONFIG_RIDE_S = 0.05  # an idle poll's get_config waits this long at most for its get_clock
@@ -139,7 +138,8 @@ class Mcu:
         self._fault: asyncio.Future[KlipperFault] | None = None
         self._last_heard_s = time.monotonic()
         self._polls = 0
-        self.busy = False  # set by the backend: steps queued or an output on
+        self._busy = False
+        self._nap: asyncio.Future[None] | None = None  # the idle watch's wait, woken by busy
         self._behind_since_s: float | None = None  # the MCU's clock behind the fit since
         self.running = False  # configured by us: a "starting" from now on is a restart
         self._commands: list[Command] = []
@@ -297,6 +297,17 @@ class Mcu:
         return max(oids, default=-1) + 1
 
     # -- running ------------------------------------------------------------------------------
+    @property
+    def busy(self) -> bool:
+        """Steps queued or an output on (set by the backend at its samples)."""
+        return self._busy
+
+    @busy.setter
+    def busy(self, busy: bool) -> None:
+        if busy and self._nap is not None and not self._nap.done():
+            self._nap.set_result(None)  # the idle watch polls at once, riding the steps
+        self._busy = busy
+
     async def watch(self) -> None:
         """Poll clock and config until a fault; raises KlipperFault (McuShutdown)."""
         fault = self._fault
@@ -310,10 +321,15 @@ class Mcu:
                 ride_after_s = max(0.0, polled_s + period_s - time.monotonic())  # wake-up)
             else:  # on whole multiples of the period (monotonic), as the other periodic
                 # wake-ups of an idle server (the loop monitor's, the kernel's second)
-                done, _ = await asyncio.wait(
-                    [fault], timeout=period_s - time.monotonic() % period_s)
-                if done:
+                nap: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
+                self._nap = nap
+                await asyncio.wait([fault, nap], return_when=asyncio.FIRST_COMPLETED,
+                                   timeout=period_s - time.monotonic() % period_s)
+                self._nap.cancel()
+                if fault.done():
                     raise fault.result()
+                if self.busy:  # woken: the first busy poll rides the first steps
+                    period_s = BUSY_POLL_S
             # silent past its timeout and the longest wait since the last answer (an idle
             # period's, the first time the board is busy)
             silence_s = self.timeout_s + max(period_s, last_period_s)
