@@ -2,8 +2,8 @@
 # It listens on every interface inside the container, so it never runs without a token: the first
 # start makes one in /data/.token and prints it (docker logs); or pass -e MOTIOND_TOKEN=...
 # Reached by name from the LAN: -e MOTIOND_ALLOWED_HOSTS=nas.local (docs/docker.md).
-# The build stage compiles the Klipper backend's step core (gcc; the image's Python has its
-# headers) into a virtual environment the image copies: no compiler, pip or setuptools in the image.
+# The build stage compiles the Klipper backend's step core and the parser's words (gcc; the image's
+# Python has its headers) into a virtual environment the image copies: no compiler, pip or setuptools in the image.
 # podman: build with --format docker (the OCI format has no HEALTHCHECK).
 FROM python:3.11-slim AS build
 
@@ -21,7 +21,7 @@ COPY web ./web
 # a non-editable install: the package and its core live in the environment (-I: not /src);
 # then the installers go: the image runs motiond, it installs nothing
 RUN /opt/motiond/bin/pip install --no-cache-dir "./[mqtt,fast]" \
-    && /opt/motiond/bin/python -I -c "import server.backends.klipper._stepcore" \
+    && /opt/motiond/bin/python -I -c "import server.backends.klipper._stepcore, server.gcode._words" \
     && /opt/motiond/bin/python -m pip uninstall --yes --quiet pip setuptools wheel
 
 FROM python:3.11-slim

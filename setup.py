@@ -1,7 +1,9 @@
-"""The Klipper backend's compiled step core; the metadata is in pyproject.toml.
+"""The compiled parts: the Klipper backend's step core and the G-code parser's plain words;
+the metadata is in pyproject.toml.
 
-The extension is optional: without a C compiler and Python's headers motiond still installs
-and runs the simulated machine, and the Klipper backend refuses to start, naming what to install.
+Both are optional: without a C compiler and Python's headers motiond still installs and runs
+the simulated machine, the parser reads every line on its general path (slower, alike), and
+the Klipper backend refuses to start, naming what to install.
 """
 
 from setuptools import Extension, setup
@@ -13,5 +15,10 @@ setup(ext_modules=[Extension(
     depends=["server/backends/klipper/_serialq.h"],
     extra_compile_args=["-O2", "-ffp-contract=off", "-pthread"],  # (-ffp-contract=off: no
     extra_link_args=["-pthread"],  # fused multiply-add: exact roundings)
+    optional=True,
+), Extension(
+    "server.gcode._words",
+    sources=["server/gcode/_words.c"],
+    extra_compile_args=["-O2"],
     optional=True,
 )])

@@ -13,6 +13,10 @@ Accepted syntax: words are a letter and a number with optional spaces anywhere
 Every value is finite and at most :data:`MAX_MAGNITUDE` in size: a number too long to be a
 float (``F1`` and 400 zeros, which float() turns into infinity) or too large for any machine
 quantity is a bad number format (error 2), on the fast path as on the general one.
+
+The fast path, a line of plain words (most lines), is C (``_words.c``: one call, where Python
+took a dozen); the general path reads every other line and finds the errors. Both read every
+line alike (tests/unit/test_gcode.py).
 """
 
 from __future__ import annotations
@@ -30,6 +34,12 @@ import numpy as np
 
 from server.errors import CommandError, Error
 
+try:  # the plain line's words in C, built by pip install where a C compiler is
+    from server.gcode._words import words as _plain_words
+except ImportError:  # without it every line takes the general path: slower, read alike
+    def _plain_words(text: str, /) -> tuple[str, list[float]] | None:
+        return None
+
 MAX_LINE_NUMBER = 10_000_000
 # No G-code quantity is larger: 1e9 mm is 1000 km, 1e9 mm/min is 17 km/s. The bound keeps every
 # step count (at most 1e6 steps/mm, see AxisConfig) exactly representable in a float, and
@@ -44,13 +54,8 @@ _COMMENT = re.compile(r"\(([^)]*)\)|;(.*)", re.S)
 _CHECKSUM = re.compile(r"\s*(\d{1,3})\s*")
 _REPEATABLE = frozenset("GM")
 
-# Byte tables of the fast path (see parse_line).
 _UPPER, _LOWER = b"ABCDEFGHIJKLMNOPQRSTUVWXYZ", b"abcdefghijklmnopqrstuvwxyz"
-# Letters become the separator; "_" and whitespace other than spaces (float() would accept
-# them) become "#", which float() refuses.
-_NUMBERS_ONLY = bytes.maketrans(_UPPER + _LOWER + b"_\t\n\r\x0b\x0c", b" " * 52 + b"#" * 6)
 _TO_UPPER = bytes.maketrans(_LOWER, _UPPER)
-_NOT_LETTERS = bytes(code for code in range(256) if code not in _UPPER + _LOWER)
 
 # Byte classes of the batch path (see parse_plain): a number's characters, a letter, a line's
 # end; everything else (comments, checksums, tabs, "_", "%", "/", non-ASCII) is a stranger.
@@ -120,31 +125,16 @@ def checksum_of(text: str) -> int:
 
 def parse_line(text: str) -> Line:
     """Parse one line of G-code. Never raises; see :class:`Line`."""
-    # The common line, plain words, takes a few C-level calls on the bytes: the spaces go,
-    # the letters become separators. If the first byte left is a letter, every other byte is
-    # a letter or lies in the number piece after one, and float() must accept each piece:
-    # a comment, a checksum, "_" or any stray character fails float(), a letter without a
-    # number makes the counts differ, and such lines go to the general path, which also
-    # finds the error. (Exponents cannot occur: E is a letter.) A number too large (an overflow
-    # to infinity included) makes the numbers' Euclidean norm, one C call, exceed the bound; the
-    # general path then checks each number on its own.
-    if text.isascii():
-        raw = text.encode()
-        separated = raw.translate(_NUMBERS_ONLY, b" ")
-        numbers = separated.split()
-        letters = raw.translate(_TO_UPPER, _NOT_LETTERS).decode()
-        if len(numbers) == len(letters) == len(set(letters)) and separated[:1] == b" ":
-            try:
-                values = list(map(float, numbers))
-            except ValueError:
-                pass
-            else:
-                if hypot(*values) <= MAX_MAGNITUDE:
-                    line = Line(text, letters, values)
-                    if "N" in letters:
-                        _take_line_number(line)
-                    return line
-    return _parse_framed_or_commented(text)
+    # The common line, plain words, is read in C in one call (``_words.c``); any other line
+    # (a comment, a checksum, a stray character, an error) takes the general path, which also
+    # finds the error: so does every line when the extension was not built.
+    plain = _plain_words(text)
+    if plain is None:
+        return _parse_framed_or_commented(text)
+    line = Line(text, *plain)
+    if "N" in plain[0]:
+        _take_line_number(line)
+    return line
 
 
 @dataclass(frozen=True, slots=True)

@@ -7,7 +7,9 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from server.errors import CommandError
+from server.gcode import _words, parser
 from server.gcode.parser import _parse_framed_or_commented, checksum_of, parse_line
+from tests.unit.test_plain_lines import corpus_lines
 
 
 @pytest.mark.parametrize(
@@ -141,6 +143,27 @@ def test_the_fast_path_agrees_with_the_general_path(text: str) -> None:
         general.letters, general.values, general.line_number, general.comments,
         general.block_delete)
     assert (fast.error and fast.error.code) == (general.error and general.error.code)
+
+
+def test_the_plain_line_is_read_in_c() -> None:
+    """The install builds the extension, and parse_line reads plain lines with it."""
+    assert parser._plain_words is _words.words
+    assert _words.words("g1 x 1 0 Y-.5") == ("GXY", [1.0, 10.0, -0.5])
+    assert _words.words("G1 X1 ;c") is None and _words.words("") is None
+
+
+def test_every_corpus_line_reads_alike_on_the_fast_and_the_general_path() -> None:
+    lines = [*corpus_lines(),
+             "G1 X0." + "0" * 70 + "1",  # longer than the C path reads: the general path's
+             "G1 X1000000000 Y1000000000",  # each at the bound, not above
+             "G1 X1e5", "G1 X1.2.3", "G1 X+-1", "G1 X.", "G1 X-", "N7 G1 X1", "G1X1X2", "G1 X1 F"]
+    assert [text for text in lines if _read(parse_line(text)) != _read(
+        _parse_framed_or_commented(text))] == []
+
+
+def _read(line: parser.Line) -> tuple[object, ...]:
+    return (line.letters, line.values, line.line_number, line.comments, line.block_delete,
+            line.error and line.error.code)
 
 
 HUGE = "1" + "0" * 400  # float() turns it into infinity

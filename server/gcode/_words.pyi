@@ -1,0 +1,3 @@
+"""The words of a plain G-code line, in C (``_words.c``); see :func:`.parser.parse_line`."""
+
+def words(text: str, /) -> tuple[str, list[float]] | None: ...
