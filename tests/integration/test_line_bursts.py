@@ -158,3 +158,24 @@ async def test_the_lines_of_a_read_are_answered_within_that_read_in_one_write(
         assert app.kernel.machine.stepgen.state.position_mm[0] == pytest.approx(4.0)
     finally:
         await session.close()
+
+
+async def test_a_long_read_s_replies_leave_as_its_lines_free_half_the_window(
+        app: App, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A character-counting sender may refill as soon as half its 128-byte window is
+    answered, while the rest of its read runs (check-mode streaming 1.12-1.2x the lines/s):
+    20 lines of 6 bytes leave their replies in two writes, the first once 11 (66 bytes) are
+    answered."""
+    monkeypatch.setattr(session_module, "YIELD_AFTER_S", 10.0)  # (as the test above)
+    session = await started(app)
+    written: list[bytes] = []
+    session.outbox.write_now = lambda data: written.append(data) is None
+    try:
+        await asyncio.sleep(0.01)
+        await session.feed(b"$C\n")
+        await wait_for(lambda: app.kernel.status.state is MachineState.CHECK, 2.0, "check mode")
+        written.clear()
+        await session.feed(b"".join(b"G0 X%d\n" % (index % 10) for index in range(20)))
+        assert written == [b"ok\r\n" * 11, b"ok\r\n" * 9]
+    finally:
+        await session.close()
