@@ -351,6 +351,7 @@ class Jobs(JobStore):
         self, lines: AsyncIterator[str], progress: JobProgress, source: _JobSource
     ) -> None:
         dispatcher, machine = self.kernel.dispatcher, self.kernel.machine
+        begin = dispatcher.begin
         loop = asyncio.get_running_loop()
         turn_s = loop.time()
         limit = self.kernel.config.core.protocol.line_limit
@@ -368,8 +369,12 @@ class Jobs(JobStore):
                 if waiting:  # a requester's line, in the job's order (a baby-step)
                     await interjections.run(as_job)
                 check_length(line, limit)  # error 11, as a stream refuses it
-                await dispatcher.submit(line, source, source.ticket, _deferring(pending, number))
-                await _settle(pending, wait=False)
+                # (submit, without its coroutine for the line that needs no wait: most)
+                outcome = begin(line, source, source.ticket, _deferring(pending, number))
+                if not isinstance(outcome, list):
+                    await outcome
+                if pending:
+                    await _settle(pending, wait=False)
             except _LineFailed as failed:
                 self._fail(progress, failed.text)
                 return
