@@ -160,12 +160,11 @@ async def test_the_lines_of_a_read_are_answered_within_that_read_in_one_write(
         await session.close()
 
 
-async def test_a_long_read_s_replies_leave_as_its_lines_free_half_the_window(
+async def test_a_long_read_s_replies_leave_as_its_lines_free_each_quarter_of_the_window(
         app: App, monkeypatch: pytest.MonkeyPatch) -> None:
-    """A character-counting sender may refill as soon as half its 128-byte window is
-    answered, while the rest of its read runs (check-mode streaming 1.12-1.2x the lines/s):
-    20 lines of 6 bytes leave their replies in two writes, the first once 11 (66 bytes) are
-    answered."""
+    """A character-counting sender may refill as soon as a quarter of its 128-byte window
+    is answered, while the rest of its read runs: 20 lines of 6 bytes leave their replies in
+    four writes, one each time 6 lines (36 bytes) are answered, then the last 2."""
     monkeypatch.setattr(session_module, "YIELD_AFTER_S", 10.0)  # (as the test above)
     session = await started(app)
     written: list[bytes] = []
@@ -176,6 +175,6 @@ async def test_a_long_read_s_replies_leave_as_its_lines_free_half_the_window(
         await wait_for(lambda: app.kernel.status.state is MachineState.CHECK, 2.0, "check mode")
         written.clear()
         await session.feed(b"".join(b"G0 X%d\n" % (index % 10) for index in range(20)))
-        assert written == [b"ok\r\n" * 11, b"ok\r\n" * 9]
+        assert written == [b"ok\r\n" * 6] * 3 + [b"ok\r\n" * 2]
     finally:
         await session.close()
