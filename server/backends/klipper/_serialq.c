@@ -40,18 +40,13 @@ static int queue_message(SerialQueue *s, PyObject *item, int keep)
         return -1;
     }
     if (s->queue_len == s->queue_cap) {
-        size_t cap = s->queue_cap ? s->queue_cap * 2 : 64;
-        struct message *grown = PyMem_RawMalloc(cap * sizeof *grown);
+        struct message *grown = ring_grow(s->queue, sizeof *s->queue, &s->queue_cap,
+                                          &s->queue_head);
         if (grown == NULL) {
             PyErr_NoMemory();
             return -1;
         }
-        for (size_t i = 0; i < s->queue_len; i++)
-            grown[i] = s->queue[(s->queue_head + i) % s->queue_cap];
-        PyMem_RawFree(s->queue);
         s->queue = grown;
-        s->queue_cap = cap;
-        s->queue_head = 0;
     }
     struct message *m = &s->queue[(s->queue_head + s->queue_len++) % s->queue_cap];
     m->len = (uint8_t)len;
@@ -508,7 +503,7 @@ static void sq_dealloc(SerialQueue *s)
     if (s->notify_fd >= 0)
         close(s->notify_fd);
     PyMem_RawFree(s->queue);
-    free(s->rx);
+    PyMem_RawFree(s->rx);
     free(s->out);
     pthread_mutex_destroy(&s->lock);
     Py_TYPE(s)->tp_free((PyObject *)s);

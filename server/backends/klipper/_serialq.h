@@ -90,5 +90,6 @@ SQ_INTERNAL void new_block(SerialQueue *s, const uint8_t *payload, int len, doub
 SQ_INTERNAL double deadline_s(SerialQueue *s);
 SQ_INTERNAL void pump(SerialQueue *s, double now);
 SQ_INTERNAL void *run(void *arg);
+SQ_INTERNAL void *ring_grow(void *ring, size_t entry_size, size_t *cap, size_t *head);
 
 #endif

@@ -267,21 +267,35 @@ SQ_INTERNAL void pump(SerialQueue *s, double now)
 }
 
 /* -- reading ---------------------------------------------------------------------------- */
+/* A ring of ``cap`` entries of ``entry_size`` bytes, full with ``cap`` from ``*head``, with
+   twice the room (64 entries at first), its entries moved to the front in order (``*head``
+   becomes 0, ``*cap`` doubles); NULL when out of memory (the ring unchanged). Both rings grow
+   here: the messages waiting for room (Python's side, with the GIL) and the blocks received
+   (this thread, without it: PyMem_Raw* need none). */
+void *ring_grow(void *ring, size_t entry_size, size_t *cap, size_t *head)
+{
+    size_t grown_cap = *cap ? *cap * 2 : 64;
+    uint8_t *grown = PyMem_RawMalloc(grown_cap * entry_size);
+    if (grown == NULL)
+        return NULL;
+    const uint8_t *old = ring;
+    for (size_t i = 0; i < *cap; i++)
+        memcpy(grown + i * entry_size, old + (*head + i) % *cap * entry_size, entry_size);
+    PyMem_RawFree(ring);
+    *cap = grown_cap;
+    *head = 0;
+    return grown;
+}
+
 static void keep_received(SerialQueue *s, const uint8_t *payload, int len, double now)
 {
     if (s->rx_len == s->rx_cap) {
-        size_t cap = s->rx_cap ? s->rx_cap * 2 : 64;
-        struct received *grown = malloc(cap * sizeof *grown);
+        struct received *grown = ring_grow(s->rx, sizeof *s->rx, &s->rx_cap, &s->rx_head);
         if (grown == NULL) {
             set_fault(s, READ, "out of memory");
             return;
         }
-        for (size_t i = 0; i < s->rx_len; i++)
-            grown[i] = s->rx[(s->rx_head + i) % s->rx_cap];
-        free(s->rx);
         s->rx = grown;
-        s->rx_cap = cap;
-        s->rx_head = 0;
     }
     struct received *r = &s->rx[(s->rx_head + s->rx_len++) % s->rx_cap];
     r->len = (uint8_t)len;
