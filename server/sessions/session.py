@@ -79,7 +79,7 @@ YIELD_AFTER_S = 0.0003  # the executor gives other tasks a turn at least this of
 # A run of lines answered at once is told as soon as its lines free this many bytes of the
 # client's view of our input buffer (a quarter of Grbl's 128): a character-counting sender
 # refills while the rest of its read is run, not after. Check-mode streaming of the raster
-# corpus, AMD EPYC: 0.50-0.52 s at 32 or 40 bytes, 0.57-0.59 at 64, 0.60-0.63 unbounded,
+# corpus, AMD EPYC: 0.50-0.52 s at 24 to 40 bytes, 0.57-0.59 at 64, 0.60-0.63 unbounded,
 # 0.66-0.68 a write per line (docs/performance.md)
 EARLY_REPLY_BYTES = 32
 BUSY_INTERVAL_S = 2.0  # Marlin's DEFAULT_KEEPALIVE_INTERVAL
