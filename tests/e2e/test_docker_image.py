@@ -40,8 +40,8 @@ def docs_run_command(name: str, volume: str, tcp_port: int, http_port: int) -> l
 @pytest.fixture(scope="module")
 def image(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, str]]:
     assert os.geteuid() == 0, "rootful podman: the e2e suite runs as root in CI"
+    ensure_base()  # (first: on a new machine no image has its name, and settings() runs it)
     env = settings(tmp_path_factory.mktemp("podman"))
-    ensure_base()
     built = build(REPO, env)
     assert built.returncode == 0, built.stdout[-2000:] + built.stderr[-2000:]
     yield env

@@ -4,7 +4,8 @@ No Docker and no registry here: the base image ``python:3.11-slim`` is, when mis
 minimal Debian 12 root file system (``mmdebstrap``) with Debian's Python 3.11, imported under
 that name (as ``../shared/tools/docker-check`` makes it); podman runs rootful, with rlimits
 this machine allows when its defaults are refused (a container's ``nofile`` above the hard
-limit needs CAP_SYS_RESOURCE). Built with ``--format docker``, which keeps ``HEALTHCHECK``.
+limit needs CAP_SYS_RESOURCE), and with runc where crun refuses the host's cgroups. Built with
+``--format docker``, which keeps ``HEALTHCHECK``.
 """
 
 from __future__ import annotations
@@ -30,19 +31,30 @@ def podman(*args: str, timeout_s: float = 120, check: bool = False,
 
 
 def settings(folder: Path) -> dict[str, str]:
-    """The environment podman needs here: none, or a containers.conf with allowed rlimits."""
-    if podman("run", "--rm", "--network", "none", BASE, "true").returncode == 0:
+    """The environment podman needs here: none, or a containers.conf with allowed rlimits, and
+    runc where podman's crun refuses the host's cgroups (crun 1.8: "cgroups in hybrid mode not
+    supported"), as ``../shared/tools/docker-check`` tries them."""
+    if probe({}).returncode == 0:
         return {}
     nofile = resource.getrlimit(resource.RLIMIT_NOFILE)[1]
     nproc = min(resource.getrlimit(resource.RLIMIT_NPROC)[1],
                 int(Path("/proc/sys/kernel/pid_max").read_text()))
     conf = folder / "containers.conf"
-    conf.write_text(f'[containers]\ndefault_ulimits = ["nofile={nofile}:{nofile}", '
-                    f'"nproc={nproc}:{nproc}"]\n')
     env = {"CONTAINERS_CONF": str(conf)}
-    probe = podman("run", "--rm", "--network", "none", BASE, "true", env=env)
-    assert probe.returncode == 0, f"podman cannot run a container here: {probe.stderr[-500:]}"
-    return env
+    errors = []
+    for engine in ("", '[engine]\nruntime = "runc"\n'):
+        conf.write_text(f'[containers]\ndefault_ulimits = ["nofile={nofile}:{nofile}", '
+                        f'"nproc={nproc}:{nproc}"]\n{engine}')
+        tried = probe(env)
+        if tried.returncode == 0:
+            return env
+        errors.append(tried.stderr[-300:])
+    raise AssertionError(f"podman cannot run a container here: {' / '.join(errors)}")
+
+
+def probe(env: dict[str, str]) -> subprocess.CompletedProcess[str]:
+    """A container of the base image that does nothing (never pulled: it is made here)."""
+    return podman("run", "--rm", "--pull=never", "--network", "none", BASE, "true", env=env)
 
 
 def ensure_base() -> None:
