@@ -146,7 +146,9 @@ async def test_messages_waiting_for_room_leave_as_the_thread_reads_the_acknowled
     assert counts["next_seq"] >= 30, counts
     assert wakes == 0
     assert link.retransmits == 0 and mcu.naks_sent == 0
-    assert counts["wakes"] <= 8 * counts["next_seq"], counts  # the thread's: a block in pieces
+    # the thread's: a block and its acknowledgement in pieces, 4-6 wakes a block here, 9 once in
+    # CI beside the rest of the suite; a thread that spun would wake thousands of times
+    assert counts["wakes"] <= 16 * counts["next_seq"], counts
 
 
 async def test_a_board_slower_than_its_wire_still_gets_every_message_once_in_order() -> None:
