@@ -272,7 +272,7 @@ SQ_INTERNAL void pump(SerialQueue *s, double now)
    becomes 0, ``*cap`` doubles); NULL when out of memory (the ring unchanged). Both rings grow
    here: the messages waiting for room (Python's side, with the GIL) and the blocks received
    (this thread, without it: PyMem_Raw* need none). */
-void *ring_grow(void *ring, size_t entry_size, size_t *cap, size_t *head)
+SQ_INTERNAL void *ring_grow(void *ring, size_t entry_size, size_t *cap, size_t *head)
 {
     size_t grown_cap = *cap ? *cap * 2 : 64;
     uint8_t *grown = PyMem_RawMalloc(grown_cap * entry_size);
