@@ -6,7 +6,9 @@ then each job of :mod:`benchmarks.klipper_rig_jobs` ``--runs`` times. From the h
 the rig's serial log and its GPIO log (cycles at 20 MHz: the MCU's own time), per job:
 
 * host CPU seconds per second of motion (the host's own process; motion from the first step
-  edge to the last; the idle job: per second);
+  edge to the last; the idle job: per second), the main thread's share of it (motiond's event
+  loop, klippy's reactor), and how often the main thread and the others (chiefly each host's
+  serial thread) were put on a CPU, per second;
 * bytes, blocks and messages per second to the MCU, retransmitted blocks per second;
 * cruise speed error in ppm (each cruise's steps over the cycles they took, against the
   commanded 100 mm/s), and step time error against the ideal trapezoid (p99 and max |µs|,
@@ -21,7 +23,7 @@ Run: ``python -m benchmarks klipper [--quick] [--json] [--runs N] [--motiond-tre
 [--rig-pause-ms MS]``
 (``--motiond-tree``: measure motiond from another checkout, e.g. a branch's worktree;
 ``--logs``: keep the logs there; ``--lead-time-s``: motiond's ``[backend] lead_time_s``,
-default its own 0.2 s; ``--rig-pause-ms``: stop the simulator that long every 1.5 s, the lag
+default its own 0.3 s; ``--rig-pause-ms``: stop the simulator that long every 1.5 s, the lag
 of a loaded host made repeatable).
 """
 
@@ -48,8 +50,10 @@ from benchmarks.klipper_rig_hosts import (
     Klippy,
     Motiond,
     Rig,
+    Threads,
     cpu_ns,
     klipper_rig,
+    threads,
 )
 from benchmarks.klipper_rig_jobs import SPEED_MM_S, Job, jobs
 
@@ -65,11 +69,15 @@ class Window:
     end_ns: int
     cpu_s: float
     failure: str = ""
+    threads: Threads = field(default_factory=Threads)
 
 
 @dataclass
 class Figures:
     cpu_per_s: float = float("nan")
+    main_share: float = float("nan")  # of the CPU: the main thread's (event loop, reactor)
+    main_runs_per_s: float = float("nan")  # the main thread put on a CPU, a second
+    other_runs_per_s: float = float("nan")  # the other threads (the serial thread's)
     bytes_per_s: float = float("nan")
     messages_per_s: float = float("nan")
     blocks_per_s: float = float("nan")
@@ -107,9 +115,11 @@ async def run_host(host: str, job_list: list[Job], runs: int, workdir: Path,
                 for job in job_list:
                     setup = [f"G1 X{job.start[0]:.3f} Y{job.start[1]:.3f} F6000"]
                     cpu, started, failure = 0, time.monotonic_ns(), ""
+                    before = Threads()
                     try:
                         await driver.run(setup, job.start)
                         await asyncio.sleep(SETTLE_S)
+                        before = threads(driver.pid)
                         cpu, started = cpu_ns(driver.pid), time.monotonic_ns()
                         if job.idle_s:
                             await asyncio.sleep(job.idle_s)
@@ -119,7 +129,8 @@ async def run_host(host: str, job_list: list[Job], runs: int, workdir: Path,
                         failure = str(error)[:300]
                     ended = time.monotonic_ns()
                     windows.append(Window(job, host, started, ended,
-                                          (cpu_ns(driver.pid) - cpu) / 1e9, failure))
+                                          (cpu_ns(driver.pid) - cpu) / 1e9, failure,
+                                          threads(driver.pid) - before))
                     print(f"  {host:8} {job.name:11} {(ended - started) / 1e9:6.2f} s"
                           + (f" FAILED: {failure}" if failure else ""), file=sys.stderr)
                     if failure:
@@ -189,6 +200,10 @@ def analyse(rig: Rig, windows: list[Window]) -> list[Figures]:
             fig.wall_s = (last_ns - window.start_ns) / 1e9
         wire = serial.window(start, end)
         fig.cpu_per_s = window.cpu_s / seconds
+        used = window.threads
+        fig.main_share = used.main_ns / 1e9 / window.cpu_s if window.cpu_s else float("nan")
+        fig.main_runs_per_s = used.main_runs / seconds
+        fig.other_runs_per_s = used.other_runs / seconds
         fig.bytes_per_s, fig.blocks_per_s = wire.bytes / seconds, wire.blocks / seconds
         fig.messages_per_s = wire.messages / seconds
         fig.retransmits_per_s = wire.retransmitted / seconds
@@ -255,6 +270,13 @@ def message_mix(runs: list[Figures]) -> str:
             f"{median(runs, 'steps_per_run'):.0f} steps/queue_step; messages/s: {mix or '-'}")
 
 
+def thread_mix(runs: list[Figures]) -> str:
+    """The main thread's share of the CPU, and how often the threads run (medians)."""
+    return (f"main thread {100 * median(runs, 'main_share'):.0f}% of the CPU, on a CPU "
+            f"{median(runs, 'main_runs_per_s'):.0f} times a second; the other threads "
+            f"{median(runs, 'other_runs_per_s'):.0f}")
+
+
 def median_of(values: list[float]) -> float:
     return float(np.median(values)) if values else 0.0
 
@@ -282,6 +304,7 @@ def report(result: BenchResult, figures: dict[str, dict[str, list[Figures]]]) ->
                   f"{sum(f.slips_in_moves for f in runs):5} {len(failed):6}")
             traffic = message_mix(runs)
             print(f"{'':11} {'':8} {traffic}")
+            print(f"{'':11} {'':8} {thread_mix(runs)}")
             per_run = "; per run: step p99 µs " + ", ".join(
                 f"{f.error_p99_us:.0f}" for f in runs) + "; cruise ppm " + " | ".join(
                 ", ".join(f"{p:+.0f}" for p in f.cruise_ppm) for f in runs)
@@ -295,6 +318,9 @@ def report(result: BenchResult, figures: dict[str, dict[str, list[Figures]]]) ->
                        cruise_ppm_max=(max(ppm, default=float("nan")), "ppm"),
                        exact=(float(exact), "bool"), failed=(float(len(failed)), "runs"),
                        lag_records=(float(lag), "records"),
+                       main_thread_share=(median(runs, "main_share"), "share"),
+                       main_thread_runs_per_s=(median(runs, "main_runs_per_s"), "1/s"),
+                       other_threads_runs_per_s=(median(runs, "other_runs_per_s"), "1/s"),
                        lag_max=(max((f.lag_max_ms for f in runs), default=0.0), "ms"),
                        clock_slips=(float(sum(f.slips for f in runs)), "slips"),
                        slips_taken_out=(float(sum(f.slips_in_moves for f in runs)), "slips"))

@@ -62,6 +62,37 @@ def cpu_ns(pid: int) -> int:
     return total
 
 
+@dataclass(frozen=True)
+class Threads:
+    """A process's own threads, so far: its main thread's run time (ns) and how many times it
+    was put on a CPU (``schedstat``'s third field: wake-ups, and resumptions after a
+    preemption), and the same count for its other threads together. motiond's main thread is
+    its event loop's, klippy's its reactor's; the others are chiefly each host's serial
+    thread."""
+
+    main_ns: int = 0
+    main_runs: int = 0
+    other_runs: int = 0
+
+    def __sub__(self, before: Threads) -> Threads:
+        return Threads(self.main_ns - before.main_ns, self.main_runs - before.main_runs,
+                       self.other_runs - before.other_runs)
+
+
+def threads(pid: int) -> Threads:
+    """:class:`Threads` of process ``pid`` now (threads that ended are not counted)."""
+    main_ns = main_runs = other_runs = 0
+    with contextlib.suppress(OSError):
+        for task in Path(f"/proc/{pid}/task").iterdir():
+            with contextlib.suppress(OSError, ValueError):
+                run_ns, _, runs = (int(v) for v in (task / "schedstat").read_text().split())
+                if task.name == str(pid):
+                    main_ns, main_runs = run_ns, runs
+                else:
+                    other_runs += runs
+    return Threads(main_ns, main_runs, other_runs)
+
+
 def _descendants(pid: int) -> list[int]:
     parents: dict[int, list[int]] = {}
     for entry in Path("/proc").iterdir():

@@ -3,6 +3,9 @@ error, cruise ppm), the firmware's clock slips, and the blocks on the wire."""
 
 from __future__ import annotations
 
+import os
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +13,7 @@ import pytest
 
 from benchmarks import klipper_rig_analysis as analysis
 from benchmarks.klipper_rig_analysis import FREQ_HZ, Block, SerialLog, Trapezoid
+from benchmarks.klipper_rig_hosts import threads
 from tests.support.rigs import KLIPPER_AVR, msgproto
 
 MOVE = Trapezoid(distance_mm=20.0, speed_mm_s=100.0, accel_mm_s2=2000.0)
@@ -125,3 +129,33 @@ def test_the_raster_job_is_the_same_motion_for_both_hosts_and_its_moves_run_back
     x0, y0, x1 = job.moves["x"][0], job.moves["y"][0], job.moves["x"][1]
     assert starts["x"] == [0.0, pytest.approx(x0.duration_s + y0.duration_s)]
     assert starts["y"][1] == pytest.approx(starts["x"][1] + x1.duration_s)
+
+
+def test_a_process_s_main_thread_is_counted_apart_from_its_other_threads() -> None:
+    """The benchmark's per-thread figures, read from /proc for this process: a thread that
+    sleeps 20 times runs at least 20 times among the others; the main thread's own work shows
+    in its run time, not the other thread's sleeps."""
+    before = threads(os.getpid())
+    finish = threading.Event()
+    slept = threading.Event()
+
+    def sleeper() -> None:
+        for _ in range(20):
+            time.sleep(0.001)
+        slept.set()
+        finish.wait()  # alive when counted: a thread that ended is not
+
+    thread = threading.Thread(target=sleeper)
+    thread.start()
+    try:
+        assert slept.wait(5.0)
+        busy_until = time.thread_time() + 0.02
+        while time.thread_time() < busy_until:  # 20 ms of the main thread's own CPU
+            pass
+        used = threads(os.getpid()) - before
+    finally:
+        finish.set()
+        thread.join()
+    assert used.other_runs >= 20, used
+    assert used.main_ns >= 15_000_000, used
+    assert used.main_runs >= 1, used
