@@ -27,7 +27,7 @@ import subprocess
 import sys
 import time
 from collections.abc import AsyncIterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Self
 
@@ -66,22 +66,29 @@ def cpu_ns(pid: int) -> int:
 class Threads:
     """A process's own threads, so far: its main thread's run time (ns) and how many times it
     was put on a CPU (``schedstat``'s third field: wake-ups, and resumptions after a
-    preemption), and the same count for its other threads together. motiond's main thread is
+    preemption), and the same count for each of its other threads. motiond's main thread is
     its event loop's, klippy's its reactor's; the others are chiefly each host's serial
     thread."""
 
     main_ns: int = 0
     main_runs: int = 0
-    other_runs: int = 0
+    others: dict[int, int] = field(default_factory=dict)  # thread id: runs
+
+    @property
+    def other_runs(self) -> int:
+        return sum(self.others.values())
 
     def __sub__(self, before: Threads) -> Threads:
+        """What ran since ``before`` (a thread that ended meanwhile is not counted)."""
         return Threads(self.main_ns - before.main_ns, self.main_runs - before.main_runs,
-                       self.other_runs - before.other_runs)
+                       {tid: runs - before.others.get(tid, 0)
+                        for tid, runs in self.others.items()})
 
 
 def threads(pid: int) -> Threads:
-    """:class:`Threads` of process ``pid`` now (threads that ended are not counted)."""
-    main_ns = main_runs = other_runs = 0
+    """:class:`Threads` of process ``pid`` now."""
+    main_ns = main_runs = 0
+    others: dict[int, int] = {}
     with contextlib.suppress(OSError):
         for task in Path(f"/proc/{pid}/task").iterdir():
             with contextlib.suppress(OSError, ValueError):
@@ -89,8 +96,8 @@ def threads(pid: int) -> Threads:
                 if task.name == str(pid):
                     main_ns, main_runs = run_ns, runs
                 else:
-                    other_runs += runs
-    return Threads(main_ns, main_runs, other_runs)
+                    others[int(task.name)] = runs
+    return Threads(main_ns, main_runs, others)
 
 
 def _descendants(pid: int) -> list[int]:
