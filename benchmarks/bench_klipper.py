@@ -98,6 +98,7 @@ class Figures:
     slips: int = 0
     slips_in_moves: int = 0
     failure: str = ""
+    inexact: str = ""  # how the step counts differ, where they do
 
 
 async def run_host(host: str, job_list: list[Job], runs: int, workdir: Path,
@@ -151,6 +152,16 @@ async def feed_job(driver: Klippy | Motiond, job: Job, host: str, feed: str) -> 
         await driver.run(job.lines(host), job.end)
 
 
+def inexact_where(rises: np.ndarray, start: int, end: int) -> str:
+    """Where a window's steps lie against its bounds (a count that is off near one points
+    at the window, not the steps)."""
+    if not rises.size:
+        return "no step"
+    return (f"first step {(rises[0] - start) / analysis.FREQ_HZ * 1e3:.1f} ms after the "
+            f"window's start, last {(end - rises[-1]) / analysis.FREQ_HZ * 1e3:.1f} ms "
+            "before its end")
+
+
 def cycle_of(sync: np.ndarray, host_ns: int) -> int:
     """The rig's cycle at a CLOCK_MONOTONIC time (its 10 ms ``T`` records)."""
     return int(np.interp(host_ns, sync[:, 1], sync[:, 0]))
@@ -185,7 +196,11 @@ def analyse(rig: Rig, windows: list[Window]) -> list[Figures]:
             net = sum((-1 if inverted else 1) * (1 if gpio.level_at(dir_pin, int(c)) else -1)
                       for c in rises)
             gross_want, net_want = window.job.steps(0 if axis == "x" else 1)
-            fig.exact &= (len(rises), net) == (gross_want, net_want)
+            if (len(rises), net) != (gross_want, net_want):
+                fig.exact = False
+                where = inexact_where(rises, start, end)
+                fig.inexact += (f"{axis}: {len(rises)} steps, net {net:+d} (want "
+                                f"{gross_want}, {net_want:+d}), {where}; ")
             edges[axis] = rises
         all_edges = np.sort(np.concatenate(list(edges.values())))
         if window.job.idle_s:
@@ -299,6 +314,9 @@ def report(result: BenchResult, figures: dict[str, dict[str, list[Figures]]]) ->
             lag = sum(f.lag_records for f in runs)
             failed = [f.failure for f in runs if f.failure]
             exact = all(f.exact for f in runs if not f.failure)
+            for f in runs:
+                if f.inexact:
+                    print(f"{'':11} {'':8} not exact: {f.inexact.rstrip('; ')}")
             print(f"{name:11} {host:8} " + " ".join(f"{c:>16}" for c in cells)
                   + f" {span(ppm, '+.0f'):>16} {exact!s:5} {lag:4} "
                   f"{sum(f.slips_in_moves for f in runs):5} {len(failed):6}")
