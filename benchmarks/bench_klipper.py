@@ -98,7 +98,7 @@ class Figures:
     slips: int = 0
     slips_in_moves: int = 0
     failure: str = ""
-    inexact: str = ""  # how the step counts differ, where they do
+    inexact: list[str] = field(default_factory=list)  # how each axis' count is off, if it is
 
 
 async def run_host(host: str, job_list: list[Job], runs: int, workdir: Path,
@@ -199,8 +199,8 @@ def analyse(rig: Rig, windows: list[Window]) -> list[Figures]:
             if (len(rises), net) != (gross_want, net_want):
                 fig.exact = False
                 where = inexact_where(rises, start, end)
-                fig.inexact += (f"{axis}: {len(rises)} steps, net {net:+d} (want "
-                                f"{gross_want}, {net_want:+d}), {where}; ")
+                fig.inexact.append(f"{axis}: {len(rises)} steps, net {net:+d} (want "
+                                   f"{gross_want}, {net_want:+d}), {where}")
             edges[axis] = rises
         all_edges = np.sort(np.concatenate(list(edges.values())))
         if window.job.idle_s:
@@ -314,9 +314,9 @@ def report(result: BenchResult, figures: dict[str, dict[str, list[Figures]]]) ->
             lag = sum(f.lag_records for f in runs)
             failed = [f.failure for f in runs if f.failure]
             exact = all(f.exact for f in runs if not f.failure)
-            for f in runs:
-                if f.inexact:
-                    print(f"{'':11} {'':8} not exact: {f.inexact.rstrip('; ')}")
+            inexact = ["; ".join(f.inexact) for f in runs if f.inexact]
+            for how in inexact:
+                print(f"{'':11} {'':8} not exact: {how}")
             print(f"{name:11} {host:8} " + " ".join(f"{c:>16}" for c in cells)
                   + f" {span(ppm, '+.0f'):>16} {exact!s:5} {lag:4} "
                   f"{sum(f.slips_in_moves for f in runs):5} {len(failed):6}")
@@ -328,6 +328,7 @@ def report(result: BenchResult, figures: dict[str, dict[str, list[Figures]]]) ->
                 ", ".join(f"{p:+.0f}" for p in f.cruise_ppm) for f in runs)
             result.add(name, host, note=f"{len(runs)} runs, {len(failed)} failed; {lag} LAG "
                        "records" + "".join(f"; failed: {reason}" for reason in failed)
+                       + "".join(f"; not exact: {how}" for how in inexact)
                        + (per_run if any(f.cruise_ppm for f in runs) else ""),
                        **{f"{c[0]}_{k}": (fn(finite([getattr(f, c[0]) for f in runs]),
                                              default=float("nan")), c[3])

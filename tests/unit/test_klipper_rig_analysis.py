@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from benchmarks import klipper_rig_analysis as analysis
+from benchmarks.bench_klipper import inexact_where
 from benchmarks.klipper_rig_analysis import FREQ_HZ, Block, SerialLog, Trapezoid
 from benchmarks.klipper_rig_hosts import threads
 from tests.support.rigs import KLIPPER_AVR, msgproto
@@ -164,8 +165,6 @@ def test_a_process_s_main_thread_is_counted_apart_from_its_other_threads() -> No
 def test_a_count_that_is_off_says_where_the_steps_lie_in_the_window() -> None:
     """A run that is not exact names how far its first and last steps are from the window's
     bounds: a step missed at its end, 0.25 ms after it, shows as a last step close to the end."""
-    from benchmarks.bench_klipper import inexact_where  # noqa: PLC0415
-
     rises = np.array([0.1, 1.0, 2.0]) * FREQ_HZ
     where = inexact_where(rises, 0, int(2.0016 * FREQ_HZ))
     assert where == "first step 100.0 ms after the window's start, last 1.6 ms before its end"
