@@ -149,7 +149,7 @@ async def test_the_fitted_clock_maps_host_time_to_mcu_ticks(mcu: VirtualMcu) -> 
         # virtual MCU's thread and of the loop make their round trips 0.25-1.9 ms (the start's
         # back-to-back burst: 0.1 ms), so the bound is half the recent round trips, 400 us at
         # the least (258 us seen on a slow 2-core CI machine); a wrong fit is off by far more.
-        recent_rtt_s = float(np.median([rtt for _, _, rtt in sync._samples][-4:]))  # noqa: SLF001
+        recent_rtt_s = float(np.median([sample[2] for sample in sync._samples][-4:]))  # noqa: SLF001
         print("clock errors us", sorted(round(e * 1e6, 1) for e in errors),
               f"recent round trips {recent_rtt_s * 1e6:.0f} us")
         assert float(np.median(errors)) < max(400e-6, 0.5 * recent_rtt_s + 100e-6)
