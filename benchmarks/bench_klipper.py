@@ -16,6 +16,9 @@ the rig's serial log and its GPIO log (cycles at 20 MHz: the MCU's own time), pe
   one offset for the job: a drift from move to move counts), on the firmware's clock
   (simavr's lost timer overflows, 65,536 cycles each, taken out where the edges show one);
 * wall time from sending the job to its last step, and whether every step count is exact;
+* how long after the board's last step the host said the job was done (motiond: the ``ok`` to
+  ``M400`` or the job's end, then Idle at the job's end on ``?``; klippy: its script's
+  ``M400``), from the host's fit of the board's clock: negative, it said so too early;
 * LAG records (the simulation fell behind wall-clock time: a loaded machine) in the window.
 
 Run: ``python -m benchmarks klipper [--quick] [--json] [--runs N] [--motiond-tree DIR]
@@ -37,6 +40,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -57,8 +61,12 @@ from benchmarks.klipper_rig_hosts import (
 )
 from benchmarks.klipper_rig_jobs import SPEED_MM_S, Job, jobs
 
+if TYPE_CHECKING:
+    from tests.support.klipper_rig import GpioLog
+
 PINS = {"x": ("A0", "A1", True), "y": ("A3", "A4", False)}  # step, dir, dir inverted
 SETTLE_S = 0.5
+DONE_SLACK_S = 0.2  # a step this long after a window's end is still its job's (a lead is more)
 
 
 @dataclass
@@ -87,6 +95,7 @@ class Figures:
     error_max_us: float = float("nan")
     error_job_p99_us: float = float("nan")
     wall_s: float = float("nan")
+    done_after_ms: float = float("nan")  # the host said done this long after the last step
     motion_s: float = float("nan")
     exact: bool = True
     lag_records: int = 0
@@ -162,6 +171,18 @@ def inexact_where(rises: np.ndarray, start: int, end: int) -> str:
             "before its end")
 
 
+def done_after_ms(gpio: GpioLog, sync: np.ndarray, start: int, end: int, end_ns: int) -> float:
+    """How long after the board's last step the window ended (the host said the job was
+    done): negative when a step came later, up to ``DONE_SLACK_S`` after the window's end
+    (the next job's first step comes a lead later)."""
+    until = end + DONE_SLACK_S * analysis.FREQ_HZ
+    last = max((c for step, _, _ in PINS.values() for c, v in gpio.edges.get(step, [])
+                if v == 1 and start <= c < until), default=None)
+    if last is None:
+        return float("nan")
+    return (end_ns - float(np.interp(last, sync[:, 0], sync[:, 1]))) / 1e6
+
+
 def cycle_of(sync: np.ndarray, host_ns: int) -> int:
     """The rig's cycle at a CLOCK_MONOTONIC time (its 10 ms ``T`` records)."""
     return int(np.interp(host_ns, sync[:, 1], sync[:, 0]))
@@ -213,6 +234,7 @@ def analyse(rig: Rig, windows: list[Window]) -> list[Figures]:
             fig.motion_s = seconds
             last_ns = float(np.interp(all_edges[-1], sync[:, 0], sync[:, 1]))
             fig.wall_s = (last_ns - window.start_ns) / 1e9
+            fig.done_after_ms = done_after_ms(gpio, sync, start, end, window.end_ns)
         wire = serial.window(start, end)
         fig.cpu_per_s = window.cpu_s / seconds
         used = window.threads
@@ -303,7 +325,8 @@ def report(result: BenchResult, figures: dict[str, dict[str, list[Figures]]]) ->
                ("retransmits_per_s", "retx/s", ".2f", "1/s"),
                ("error_p99_us", "step p99 µs", ".1f", "µs"),
                ("error_max_us", "step max µs", ".1f", "µs"),
-               ("error_job_p99_us", "job p99 µs", ",.0f", "µs"), ("wall_s", "wall s", ".2f", "s"))
+               ("error_job_p99_us", "job p99 µs", ",.0f", "µs"), ("wall_s", "wall s", ".2f", "s"),
+               ("done_after_ms", "done after ms", ".1f", "ms"))
     print(f"{'job':11} {'host':8} " + " ".join(f"{c[1]:>16}" for c in columns)
           + f" {'cruise ppm':>16} exact  lag slips failed")
     for name in names:
@@ -346,7 +369,7 @@ def report(result: BenchResult, figures: dict[str, dict[str, list[Figures]]]) ->
         if len(figures) == 2:
             ratios = {c[0]: median(figures["motiond"][name], c[0])
                       / median(figures["klippy"][name], c[0])
-                      for c in columns[:2] + columns[4:5] + columns[6:]}
+                      for c in columns[:2] + columns[4:5] + columns[6:8]}
             ratios = {k: v for k, v in ratios.items() if np.isfinite(v)}
             print(f"{name:11} {'ratio':8} " + "  ".join(f"{k} {v:.2f}x" for k, v in
                                                         ratios.items()) + " (motiond / klippy)")

@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 
 from benchmarks import klipper_rig_analysis as analysis
-from benchmarks.bench_klipper import inexact_where
+from benchmarks.bench_klipper import done_after_ms, inexact_where
 from benchmarks.klipper_rig_analysis import FREQ_HZ, Block, SerialLog, Trapezoid
 from benchmarks.klipper_rig_hosts import threads
+from tests.support.klipper_rig import GpioLog
 from tests.support.rigs import KLIPPER_AVR, msgproto
 
 MOVE = Trapezoid(distance_mm=20.0, speed_mm_s=100.0, accel_mm_s2=2000.0)
@@ -169,3 +170,19 @@ def test_a_count_that_is_off_says_where_the_steps_lie_in_the_window() -> None:
     where = inexact_where(rises, 0, int(2.0016 * FREQ_HZ))
     assert where == "first step 100.0 ms after the window's start, last 1.6 ms before its end"
     assert inexact_where(np.array([]), 0, 1) == "no step"
+
+
+def test_done_after_counts_from_the_last_step_even_one_past_the_window_s_end() -> None:
+    """The host said done 7.5 ms after the last step (its clock 1 s = 1e9 ns per 20 M
+    cycles); a step 2 ms after the window's end makes it -2 ms; the next job's, a lead
+    later, does not count."""
+    sync = np.array([[0, 5_000_000_000], [200_000_000, 15_000_000_000]], dtype=np.float64)
+    gpio = GpioLog(edges={"A0": [(int(1.0 * FREQ_HZ), 1), (int(1.0 * FREQ_HZ) + 40, 0)],
+                          "A3": [(int(0.5 * FREQ_HZ), 1)]})
+    end_ns = 6_000_000_000 + 7_500_000
+    end = int(1.0075 * FREQ_HZ)
+    assert done_after_ms(gpio, sync, 0, end, end_ns) == pytest.approx(7.5)
+    gpio.edges["A3"].append((int(1.0095 * FREQ_HZ), 1))  # 2 ms after the window's end
+    assert done_after_ms(gpio, sync, 0, end, end_ns) == pytest.approx(-2.0)
+    gpio.edges["A0"].append((int(1.3 * FREQ_HZ), 1))  # the next job's first step
+    assert done_after_ms(gpio, sync, 0, end, end_ns) == pytest.approx(-2.0)
