@@ -108,6 +108,7 @@ class Figures:
     slips_in_moves: int = 0
     failure: str = ""
     inexact: list[str] = field(default_factory=list)  # how each axis' count is off, if it is
+    fit_errors_ms: list[float] = field(default_factory=list)  # motiond's clock fit, each poll
 
 
 async def run_host(host: str, job_list: list[Job], runs: int, workdir: Path,
@@ -188,7 +189,7 @@ def cycle_of(sync: np.ndarray, host_ns: int) -> int:
     return int(np.interp(host_ns, sync[:, 1], sync[:, 0]))
 
 
-def analyse(rig: Rig, windows: list[Window]) -> list[Figures]:
+def analyse(rig: Rig, windows: list[Window], clock_log: Path | None = None) -> list[Figures]:
     from tests.support.klipper_rig import GpioLog  # noqa: PLC0415
     from tests.support.rigs import msgproto  # noqa: PLC0415
 
@@ -197,6 +198,8 @@ def analyse(rig: Rig, windows: list[Window]) -> list[Figures]:
                                       (KLIPPER_AVR / "klipper.dict").read_bytes())
     slips = analysis.clock_slips(serial.clocks)
     sync = np.array(gpio.sync, dtype=np.float64)
+    fits = analysis.clock_fit_errors(clock_log.read_text().splitlines(), serial.clocks, sync) \
+        if clock_log is not None and clock_log.exists() else []
     lags = [(int(w[0]), int(w[2])) for w in (line.split() for line in
                                              rig.gpio_log.read_text().splitlines())
             if len(w) == 3 and w[1] == "LAG"]
@@ -208,6 +211,8 @@ def analyse(rig: Rig, windows: list[Window]) -> list[Figures]:
         start, end = cycle_of(sync, window.start_ns), cycle_of(sync, window.end_ns)
         fig = Figures()
         fig.slips = sum(start <= c < end for c, _ in slips)
+        fig.fit_errors_ms = [e for sent_s, e in fits
+                             if window.start_ns <= sent_s * 1e9 < window.end_ns]
         in_lag = [ns for c, ns in lags if start <= c < end]
         fig.lag_records, fig.lag_max_ms = len(in_lag), max(in_lag, default=0) / 1e6
         edges: dict[str, np.ndarray] = {}
@@ -346,6 +351,11 @@ def report(result: BenchResult, figures: dict[str, dict[str, list[Figures]]]) ->
             traffic = message_mix(runs)
             print(f"{'':11} {'':8} {traffic}")
             print(f"{'':11} {'':8} {thread_mix(runs)}")
+            fit = np.abs([e for f in runs for e in f.fit_errors_ms])
+            if fit.size:
+                print(f"{'':11} {'':8} clock fit, each poll's prediction against the rig's "
+                      f"clock: {fit.size} polls, |error| p50 {np.median(fit):.2f}, p90 "
+                      f"{analysis.percentile(fit, 90):.2f}, max {fit.max():.2f} ms")
             per_run = "; per run: step p99 µs " + ", ".join(
                 f"{f.error_p99_us:.0f}" for f in runs) + "; cruise ppm " + " | ".join(
                 ", ".join(f"{p:+.0f}" for p in f.cruise_ppm) for f in runs)
@@ -364,6 +374,8 @@ def report(result: BenchResult, figures: dict[str, dict[str, list[Figures]]]) ->
                        main_thread_runs_per_s=(median(runs, "main_runs_per_s"), "1/s"),
                        other_threads_runs_per_s=(median(runs, "other_runs_per_s"), "1/s"),
                        lag_max=(max((f.lag_max_ms for f in runs), default=0.0), "ms"),
+                       fit_error_p50=(float(np.median(fit)) if fit.size else float("nan"), "ms"),
+                       fit_error_max=(float(fit.max()) if fit.size else float("nan"), "ms"),
                        clock_slips=(float(sum(f.slips for f in runs)), "slips"),
                        slips_taken_out=(float(sum(f.slips_in_moves for f in runs)), "slips"))
         if len(figures) == 2:
@@ -389,7 +401,8 @@ async def measure(quick: bool, runs: int, tree: Path, hosts: Sequence[str],
             rig, windows = await run_host(host, job_list, runs, workdir, tree, lead_time_s,
                                           rig_pause_ms, feed)
             by_job: dict[str, list[Figures]] = {job.name: [] for job in job_list}
-            for window, fig in zip(windows, analyse(rig, windows), strict=True):
+            clock_log = workdir / "motiond.err" if host == "motiond" else None
+            for window, fig in zip(windows, analyse(rig, windows, clock_log), strict=True):
                 by_job[window.job.name].append(fig)
             figures[host] = by_job
     return figures

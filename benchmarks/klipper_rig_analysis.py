@@ -18,6 +18,7 @@ Cycles count at 20 MHz (the firmware's ``CLOCK_FREQ``): the MCU's own time.
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -177,6 +178,32 @@ def clock_slips(clocks: Sequence[tuple[int, int]]) -> list[tuple[int, int]]:
         if slips * SLIP_TICKS > behind:
             behind = slips * SLIP_TICKS
             out.append((cycle, behind))
+    return out
+
+
+CLOCK_SAMPLE = re.compile(r"clock (\S+) (\S+) (\d+) fit (\S+)$")
+"""motiond's debug line for each clock poll: sent and received (host s), the MCU clock (64
+bits), and the host time at which its clock fit put that clock before taking the poll."""
+
+
+def clock_fit_errors(log_lines: Iterable[str], clocks: Sequence[tuple[int, int]],
+                     sync: FloatArray) -> list[tuple[float, float]]:
+    """(sent s, ms) for each of motiond's clock polls: how far its fit's prediction of the
+    clock it read lay from when the MCU really read it. The truth is the rig's: the response
+    carrying that clock left at a known cycle, the clock was read a few hundred µs before (its
+    lag behind the cycle count, less whole lost overflows); ``sync`` maps cycles to host ns."""
+    read_at = {clock: cycle - ((cycle - clock) % (1 << 32)) % SLIP_TICKS
+               for cycle, clock in clocks}
+    out = []
+    for line in log_lines:
+        found = CLOCK_SAMPLE.search(line)
+        if found is None:
+            continue
+        cycle = read_at.get(int(found[3]) & 0xFFFFFFFF)
+        if cycle is None:
+            continue
+        truth_s = float(np.interp(cycle, sync[:, 0], sync[:, 1])) / 1e9
+        out.append((float(found[1]), (float(found[4]) - truth_s) * 1e3))
     return out
 
 

@@ -257,7 +257,8 @@ class Motiond:
 
     @classmethod
     async def spawn(cls, config_text: str, workdir: Path, source: Path) -> Self:
-        """``python -m server.cli`` of ``source`` on ``config_text``, on a free TCP port."""
+        """``python -m server.cli`` of ``source`` on ``config_text``, on a free TCP port,
+        logging at debug level: its clock polls, which the benchmark checks against the rig."""
         from tests.support.processes import free_port  # noqa: PLC0415
 
         config = workdir / "motiond.toml"
@@ -266,7 +267,7 @@ class Motiond:
         with (workdir / "motiond.err").open("wb") as err:
             process = await asyncio.create_subprocess_exec(
                 sys.executable, "-m", "server.cli", "--config", str(config), "--host",
-                "127.0.0.1", "--tcp-port", str(port), "--log-level", "warning", cwd=source,
+                "127.0.0.1", "--tcp-port", str(port), "--log-level", "debug", cwd=source,
                 env={**os.environ, "PYTHONPATH": str(source)},
                 stdout=asyncio.subprocess.DEVNULL, stderr=err)
         return cls(process, port, workdir, source)

@@ -186,3 +186,20 @@ def test_done_after_counts_from_the_last_step_even_one_past_the_window_s_end() -
     assert done_after_ms(gpio, sync, 0, end, end_ns) == pytest.approx(-2.0)
     gpio.edges["A0"].append((int(1.3 * FREQ_HZ), 1))  # the next job's first step
     assert done_after_ms(gpio, sync, 0, end, end_ns) == pytest.approx(-2.0)
+
+
+def test_the_clock_fit_is_checked_against_when_the_mcu_read_each_clock() -> None:
+    """Each poll's clock is found in the rig's responses: read at the cycle its response left
+    less its lag behind the cycle count (whole lost overflows aside); the fit's prediction of
+    it against that cycle's host time. A poll the rig never answered is left out."""
+    sync = np.array([[0, 1_000_000_000], [200_000_000, 11_000_000_000]], dtype=np.float64)
+    slipped = 40_000_000 - analysis.SLIP_TICKS  # one lost overflow before the second read
+    clocks = [(20_000_000 + 8_000, 20_000_000), (40_000_000 + 9_000, slipped)]
+    lines = ["12:00:01 DEBUG motiond.klipper: clock 1.999000 2.001000 20000000 fit 2.000100",
+             "12:00:02 INFO motiond: something else",
+             f"12:00:03 DEBUG motiond.klipper: clock 2.999 3.001 {slipped} fit 2.996723",
+             "12:00:04 DEBUG motiond.klipper: clock 3.999 4.001 123 fit 4.0"]
+    found = analysis.clock_fit_errors(lines, clocks, sync)
+    assert [sent for sent, _ in found] == [1.999, 2.999]
+    assert found[0][1] == pytest.approx(0.1, abs=1e-6)
+    assert found[1][1] == pytest.approx(-3.277, abs=1e-6)  # the fit did not know of the slip

@@ -22,9 +22,8 @@ own) :class:`McuShutdown`. A restart is told from the firmware's evidence, never
 host's timing: ``starting`` (sent at every boot), ``get_config`` unconfigured, a sequence
 number never sent (the link's thread), or a clock that went back, checked against its 64-bit
 ``get_uptime``; a host stall widens a reading's round trip and leaves it inside, and a reading
-behind the fit is left out of it.
-After a shutdown :meth:`stopped_positions` reads where each stepper stopped (``clear_shutdown``
-then ``stepper_get_position``) and shuts the board down again until it is restarted.
+behind the fit is left out of it. After a shutdown :meth:`stopped_positions` reads where each
+stepper stopped (``clear_shutdown``, ``stepper_get_position``) and shuts the board down again.
 """
 
 from __future__ import annotations
@@ -230,7 +229,8 @@ class Mcu:
         reply = await self._ask("get_clock", "clock", ride_s=self._ride_s(),
                                 ride_after_s=ride_after_s)
         sent, received = reply["#sent_s"], reply["#received_s"]
-        clock = self.clock.extend(reply["clock"])
+        clock = self.clock.extend(reply["clock"])  # logged with the fit's prediction of it
+        log.debug("clock %.6f %.6f %d fit %.6f", sent, received, clock, self.clock.host_at(clock))
         if self.clock.synced:
             off_s = self.clock.predict_error_s(sent, received, reply["clock"])
             if abs(off_s) > JUMP_S and not await self._still_running(off_s, received):
