@@ -157,11 +157,13 @@ class GcodeFeed:
             self.status.set_state(state)
 
     async def wait_idle(self) -> None:
-        """Wait until every queued move has been executed."""
+        """Wait until every queued move has been executed, by the hardware too: a Klipper
+        MCU runs a lead time behind the step generator, whose end sets the idle event only
+        once the board's last step has run (:meth:`Machine.on_idle`)."""
         if not self.stepgen.idle:
             self.idle_event.clear()
             self.stepgen.request_start()
-            await self.idle_event.wait()
+        await self.idle_event.wait()
 
     # -- sync requests ----------------------------------------------------------------------
     async def sync(self, request: Sync) -> list[str]:

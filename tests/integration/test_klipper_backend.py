@@ -23,6 +23,7 @@ from server.errors import CommandError
 from server.kernel.status import snapshot
 from server.motion.backend import Piece
 from server.motion.stepgen import HoldState
+from server.runtime.dispatcher import SystemSource
 from server.runtime.events import MachineState
 from tests.conftest import CORPUS
 from tests.support.helpers import submit_all
@@ -157,6 +158,54 @@ async def test_the_fitted_clock_maps_host_time_to_mcu_ticks(mcu: VirtualMcu) -> 
         # ppm off from 2 s of polls whose round trips were 1.5 ms; a wrong fit is off by more)
         span_s = sync._samples[-1][0] - sync._samples[0][0]  # noqa: SLF001
         assert abs(sync.freq_hz / mcu.rate - 1) < max(300e-6, recent_rtt_s / span_s)
+
+
+def last_step_s(app: App, mcu: VirtualMcu) -> float:
+    """When (monotonic) the virtual MCU's last step runs, by its own clock."""
+    backend = app.kernel.machine.backend
+    assert isinstance(backend, KlipperBackend)
+    last = max(int(mcu.step_clocks(axis.oid)[0].max(initial=0)) for axis in backend.axes)
+    return mcu._t0 + last / mcu.rate  # noqa: SLF001
+
+
+class GrblSender(SystemSource):
+    dwell_waits = True  # a Grbl-dialect connection's G4 syncs (see Session.dwell_waits)
+
+
+@pytest.mark.parametrize("wait", ["G4 P0", "M400"])
+async def test_a_wait_that_comes_after_the_step_generator_is_done_answers_after_the_board(
+    mcu: VirtualMcu, wait: str
+) -> None:
+    """A sender's G4 P0 (Grbl) or M400 (RepRap hosts) arrives when the step generator has
+    finished but the board, a lead behind, has not: its ok waits for the board's last step."""
+    async with klipper_machine(mcu) as app:
+        machine = app.kernel.machine
+        await submit_all(app, ["G1 X20 Y10 F6000"])
+        for _ in range(1000):  # until the step generator is done
+            if machine.stepgen.idle:
+                break
+            await asyncio.sleep(0.001)
+        assert time.monotonic() < last_step_s(app, mcu) - 0.1  # the board is still moving
+        await app.kernel.dispatcher.submit(wait, GrblSender())
+        answered_s = time.monotonic()
+        assert last_step_s(app, mcu) <= answered_s < last_step_s(app, mcu) + 0.05
+
+
+async def test_idle_waits_for_a_reading_of_the_board_s_clock_past_its_last_step(
+    mcu: VirtualMcu
+) -> None:
+    """The board's clock falls 12 ms behind just after the poll that rides the move's first
+    steps (as a simulated board's lost timer overflows make it), and the next poll is due
+    after the move's end: by the clock fit alone the machine would say Idle before the last
+    step; it asks the board for its clock first, and waits until a reading is past it."""
+    async with klipper_machine(mcu) as app:
+        machine = app.kernel.machine
+        mcu.lose_after_riding_poll_s = 0.012
+        await submit_all(app, ["G1 X2 F6000"])  # 20 ms of motion
+        await machine.wait_idle()
+        idle_s = time.monotonic()
+        assert mcu.lose_after_riding_poll_s == 0.0  # it lost the time
+        assert last_step_s(app, mcu) <= idle_s < last_step_s(app, mcu) + 0.05
 
 
 @pytest.mark.parametrize(("job", "lines", "feed_scale"), [

@@ -101,6 +101,9 @@ class VirtualMcu:
         self.hold_config: threading.Event | None = None  # a get_config reply waits for it
         self.holding_config = threading.Event()  # ...and this says one is waiting
         self.drop_blocks = 0
+        self.lose_after_riding_poll_s = 0.0  # after the next get_clock that shares a block
+        # with steps is answered, its clock falls this far behind (as a simulated board that
+        # drops timer overflows does): the host's next reading is a poll period on
         self.corrupt_blocks = 0
         self.resets = 0  # ``reset`` commands obeyed
         self.naks_sent = 0
@@ -255,6 +258,10 @@ class VirtualMcu:
         self.block_messages.append([name for name, _ in messages])
         for name, params in messages:
             self._command(name, params)
+        names = self.block_messages[-1]
+        if self.lose_after_riding_poll_s and "get_clock" in names and "queue_step" in names:
+            self._t0 += self.lose_after_riding_poll_s
+            self.lose_after_riding_poll_s = 0.0
         if self.resets == resets:  # acked after its responses, as src/command.c does (a
             self._send_block(b"")  # reset reboots first)
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import time
 from collections import deque
 from collections.abc import Callable, Sequence
 
@@ -45,7 +46,7 @@ from server.config import CoreConfig
 from server.motion.backend import Piece
 
 log = logging.getLogger("motiond.klipper")
-DONE_MARGIN_S = 0.005
+CONFIRM_S = 0.002  # a clock poll's round trip, about: the end of motion confirmed by one
 TRAIL_EXTRA_S = 1.0  # the pieces are kept this long beyond the lead (where the tool was)
 SAMPLE_MARGIN_S = 0.012  # a sample asked for at the last moment comes this much before it
 # (a woken loop is late by a millisecond or so, and the sample works a few before it sends:
@@ -234,14 +235,23 @@ class KlipperBackend(BoardSession, OutputTiming, StepSchedule):
         return self._trail.speed_at(self._print_time_at(time_s) - self.lead_s)
 
     def done_at_s(self) -> float:
-        """The last step executes a lead time after the trajectory ends (+ the clock fit's
-        possible lag behind the MCU's own clock)."""
+        """The last step executes a lead time after the trajectory ends: when the clock fit
+        puts the board's clock past it and a reading of that clock says so (the fit cannot
+        see a board that lost time since its last reading). Until one does, a reading is
+        asked for and the answer looked for ``CONFIRM_S`` later."""
         if not self.ready or not self._motion_end_s:
             return 0.0
         end_s = self._motion_end_s + self.lead_s
-        if self.mcu is not None and self.mcu.clock is not None and self._print.anchored:
-            end_s = self.mcu.clock.host_at(float(self._print.clock(end_s)))
-        return end_s + DONE_MARGIN_S
+        mcu = self.mcu
+        if mcu is None or mcu.clock is None or not self._print.anchored:
+            return end_s  # nothing was scheduled on the board
+        end_clock = float(self._print.clock(end_s))
+        due_s = mcu.clock.host_at(end_clock)
+        now_s = time.monotonic()
+        if now_s < due_s or mcu.clock.last_clock >= end_clock:
+            return due_s
+        mcu.poll_now()
+        return now_s + CONFIRM_S
 
     def _print_time_at(self, host_s: float) -> float:
         """The print time the MCU executes at host time ``host_s`` (through the fit)."""

@@ -35,7 +35,8 @@ import os
 import termios
 import time
 from collections.abc import Callable
-from typing import Any, NamedTuple
+from dataclasses import dataclass
+from typing import Any
 
 import serial
 
@@ -50,7 +51,8 @@ READ_BYTES = 1024  # of responses decoded per turn of the event loop: a board th
 # delays a status report by one such turn (~2 ms of decoding), never more
 
 
-class _Waiter(NamedTuple):
+@dataclass(eq=False, slots=True)
+class _Waiter:
     response: str
     match: Match
     future: asyncio.Future[Params]
@@ -227,6 +229,18 @@ class Link:
             self._watch()
         params["#sent_s"] = sent_s if rider is None or rider.sent_s is None else rider.sent_s
         return params
+
+    def hurry(self) -> None:
+        """A request waiting to ride leaves now, and every answer awaited is read as it
+        arrives (the end of motion is confirmed by a reading of the board's clock)."""
+        rider = self._rider
+        if rider is not None:
+            self._drop_rider()
+            rider.sent_s = time.monotonic()
+            self.send(rider.message, keep=True)
+        for waiter in self._waiters:
+            waiter.lazy = False
+        self._watch()
 
     def _release_rider(self) -> None:
         """No company came in time: the rider leaves on its own."""

@@ -9,21 +9,16 @@ configured by someone else is refused (:class:`KlipperFault`); one still configu
 (outputs may be on from before) or shut down raises :class:`NeedsRestart`: it is restarted
 (:meth:`Mcu.restart`, as Klipper's host does for its ``restart_method``) and connected afresh.
 :meth:`Mcu.watch` samples the clock every ``poll_s`` (``BUSY_POLL_S`` while :attr:`Mcu.busy`:
-steps queued or an output on) and checks ``get_config`` every ``CONFIG_EVERY`` polls. An idle
-MCU is polled once a second on whole seconds, as the server's other periodic wake-ups, and its
-``get_config`` shares the clock poll's block: about 6 bytes a second (as klippy's ``get_clock``
-once a second); a board becoming busy wakes the watch. To a busy one the requests go one at a
-time (never back to back), each joining a block of steps (as klippy's do; up to ``RIDE_S``
-late), about 3 bytes a second then: the clock poll rides the first block sent a period after
-the last poll, so the poll costs no wake-up of its own; silence for ``timeout_s`` (no block
-acknowledged), a restart, a clock that jumps ahead, a foreign configuration or a link fault
-raise :class:`KlipperFault`, a shutdown (ours from :meth:`emergency_stop`, or the firmware's
-own) :class:`McuShutdown`. A restart is told from the firmware's evidence, never from the
-host's timing: ``starting`` (sent at every boot), ``get_config`` unconfigured, a sequence
-number never sent (the link's thread), or a clock that went back, checked against its 64-bit
-``get_uptime``; a host stall widens a reading's round trip and leaves it inside, and a reading
-behind the fit is left out of it. After a shutdown :meth:`stopped_positions` reads where each
-stepper stopped (``clear_shutdown``, ``stepper_get_position``) and shuts the board down again.
+steps queued or an output on; at once on :meth:`Mcu.poll_now`), ``get_config`` every
+``CONFIG_EVERY`` polls. Idle, on whole seconds, the ``get_config`` in the clock poll's block
+(6 bytes a second, as klippy's); busy, each rides the first block of steps sent a period after
+the last (as klippy's do; up to ``RIDE_S`` late), costing no wake-up of its own. Silence for
+``timeout_s`` (no block acknowledged), a restart, a clock that jumps ahead, a foreign
+configuration or a link fault raise :class:`KlipperFault`, a shutdown (ours from
+:meth:`emergency_stop`, or the firmware's own) :class:`McuShutdown`. A restart is told from
+the firmware's evidence, never the host's timing: ``starting`` (sent at every boot),
+``get_config`` unconfigured, a sequence number never sent, or a clock that went back (checked
+against its 64-bit ``get_uptime``); a reading behind the fit is left out of it.
 """
 
 from __future__ import annotations
@@ -308,6 +303,12 @@ class Mcu:
             self._nap.set_result(None)  # the idle watch polls at once, riding the steps
         self._busy = busy
 
+    def poll_now(self) -> None:
+        """A clock reading as soon as may be: a napping watch wakes, a waiting poll leaves."""
+        if self._nap is not None and not self._nap.done():
+            self._nap.set_result(None)
+        self.link.hurry()
+
     async def watch(self) -> None:
         """Poll clock and config until a fault; raises KlipperFault (McuShutdown)."""
         fault = self._fault
@@ -496,5 +497,4 @@ class Mcu:
         self.link.close()
 
 
-__all__ = ["KlipperFault", "Mcu", "McuShutdown", "NeedsRestart", "ProtocolError",
-           "command_text"]
+__all__ = ["KlipperFault", "Mcu", "McuShutdown", "NeedsRestart", "ProtocolError", "command_text"]
