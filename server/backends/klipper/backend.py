@@ -248,7 +248,9 @@ class KlipperBackend(BoardSession, OutputTiming, StepSchedule):
         end_clock = float(self._print.clock(end_s))
         due_s = mcu.clock.host_at(end_clock)
         now_s = time.monotonic()
-        if now_s < due_s or mcu.clock.last_clock >= end_clock:
+        if mcu.clock.last_clock >= end_clock:  # a reading is past it: done
+            return min(due_s, now_s)
+        if now_s < due_s:
             return due_s
         mcu.poll_now()
         return now_s + CONFIRM_S

@@ -16,9 +16,9 @@ would bend by hundreds of ppm (a poll after the process slept takes 1-3 ms; the 
 A board's clock can also lose time at once (a simulated one drops a timer overflow: 3.3 ms). A
 line through the samples on both sides of such a step bends its rate to join them, by a
 thousand ppm for as long as the older samples are kept, and mispredicts the clock by ms (Idle
-reported before the last step ran). So a reading that no line through its segment's samples
-explains (see ``STEP_S``) starts a new segment: the segments share one rate, each with its own
-offset, and the newest one's offset is the fit's.
+reported before the last step ran). So a reading that no line through the samples explains,
+its rate free (see ``STEP_S``), starts a new segment: the segments share one rate, each with
+its own offset, and the newest one's offset is the fit's.
 
 The fit is plain Python over at most 64 samples, not numpy: it runs once a poll, after the
 process has slept, and there numpy's machinery is what costs (on a shared VM, a numpy fit
@@ -36,9 +36,10 @@ fit minimises the weighted squares plus ``((rate - nominal) / (RATE_PRIOR * nomi
 
 STEP_S = 0.3e-3
 """A reading this far (seconds) outside its round trip's window, both as the fit predicts it
-and by the best line through its segment's samples and it, is a step of the board's clock: a
-new segment starts. The fit's error is a few tens of µs; a board whose rate the fit has not yet
-learnt (the prior holds it near nominal for a few seconds) strays further, but on a line."""
+and by the best line through the samples and it with the rate free (no prior), is a step of
+the board's clock: a new segment starts. The fit's error is a few tens of µs; a board whose
+rate the fit has not yet learnt (the prior holds it near nominal for a few seconds) strays
+further, but on a line."""
 
 Sample = tuple[float, float, float, int]  # host time (the window's middle), clock, rtt, segment
 
