@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import time
 from collections import deque
 from collections.abc import Callable, Sequence
 
@@ -246,14 +245,13 @@ class KlipperBackend(BoardSession, OutputTiming, StepSchedule):
         if mcu is None or mcu.clock is None or not self._print.anchored:
             return end_s  # nothing was scheduled on the board
         end_clock = float(self._print.clock(end_s))
-        due_s = mcu.clock.host_at(end_clock)
-        now_s = time.monotonic()
+        due_s, now_clock = mcu.clock.host_at(end_clock), self._now_clock()
         if mcu.clock.last_clock >= end_clock:  # a reading is past it: done
-            return min(due_s, now_s)
-        if now_s < due_s:
+            return min(due_s, mcu.clock.host_at(now_clock))
+        if now_clock < end_clock:
             return due_s
         mcu.poll_now()
-        return now_s + CONFIRM_S
+        return mcu.clock.host_at(now_clock) + CONFIRM_S
 
     def _print_time_at(self, host_s: float) -> float:
         """The print time the MCU executes at host time ``host_s`` (through the fit)."""
