@@ -18,12 +18,14 @@ the rig's serial log and its GPIO log (cycles at 20 MHz: the MCU's own time), pe
 * wall time from sending the job to its last step, and whether every step count is exact;
 * how long after the board's last step the host said the job was done (motiond: the ``ok`` to
   ``M400`` or the job's end, then Idle at the job's end on ``?``; klippy: its script's
-  ``M400``), from the host's fit of the board's clock: negative, it said so too early;
+  ``M400``): negative, it said so too early;
+* with ``--clock-fit``, motiond's clock fit: each clock poll's prediction (motiond logs its
+  polls at debug level, which costs it some CPU) against when the MCU read that clock;
 * LAG records (the simulation fell behind wall-clock time: a loaded machine) in the window.
 
 Run: ``python -m benchmarks klipper [--quick] [--json] [--runs N] [--motiond-tree DIR]
 [--hosts klippy motiond] [--jobs raster circles long idle] [--logs DIR] [--lead-time-s S]
-[--rig-pause-ms MS]``
+[--rig-pause-ms MS] [--feed job] [--clock-fit]``
 (``--motiond-tree``: measure motiond from another checkout, e.g. a branch's worktree;
 ``--logs``: keep the logs there; ``--lead-time-s``: motiond's ``[backend] lead_time_s``,
 default its own 0.3 s; ``--rig-pause-ms``: stop the simulator that long every 1.5 s, the lag
@@ -113,11 +115,11 @@ class Figures:
 
 async def run_host(host: str, job_list: list[Job], runs: int, workdir: Path,
                    tree: Path, lead_time_s: float | None, rig_pause_ms: float,
-                   feed: str = "stream") -> tuple[Rig, list[Window]]:
+                   feed: str = "stream", clock_fit: bool = False) -> tuple[Rig, list[Window]]:
     windows: list[Window] = []
     async with klipper_rig(workdir, host, rig_pause_ms) as rig:
         starter = Klippy.start(rig, workdir) if host == "klippy" else \
-            Motiond.start(rig, workdir, tree, lead_time_s)
+            Motiond.start(rig, workdir, tree, lead_time_s, "debug" if clock_fit else "warning")
         async with starter as driver:
             if feed == "job" and isinstance(driver, Motiond):
                 await driver.run(["G1 X10 Y10 F6000"], (10.0, 10.0))
@@ -391,7 +393,8 @@ def report(result: BenchResult, figures: dict[str, dict[str, list[Figures]]]) ->
 async def measure(quick: bool, runs: int, tree: Path, hosts: Sequence[str],
                   logs: Path | None = None, lead_time_s: float | None = None,
                   rig_pause_ms: float = 0.0, job_names: Sequence[str] = JOBS,
-                  feed: str = "stream") -> dict[str, dict[str, list[Figures]]]:
+                  feed: str = "stream",
+                  clock_fit: bool = False) -> dict[str, dict[str, list[Figures]]]:
     job_list = [job for job in jobs(quick) if job.name.split()[0] in job_names]
     figures: dict[str, dict[str, list[Figures]]] = {}
     with tempfile.TemporaryDirectory(prefix="motiond-bench-klipper-") as name:
@@ -399,9 +402,9 @@ async def measure(quick: bool, runs: int, tree: Path, hosts: Sequence[str],
             workdir = (logs or Path(name)) / host
             workdir.mkdir(parents=True, exist_ok=True)
             rig, windows = await run_host(host, job_list, runs, workdir, tree, lead_time_s,
-                                          rig_pause_ms, feed)
+                                          rig_pause_ms, feed, clock_fit)
             by_job: dict[str, list[Figures]] = {job.name: [] for job in job_list}
-            clock_log = workdir / "motiond.err" if host == "motiond" else None
+            clock_log = workdir / "motiond.err" if host == "motiond" and clock_fit else None
             for window, fig in zip(windows, analyse(rig, windows, clock_log), strict=True):
                 by_job[window.job.name].append(fig)
             figures[host] = by_job
@@ -411,7 +414,8 @@ async def measure(quick: bool, runs: int, tree: Path, hosts: Sequence[str],
 def run(quick: bool, runs: int | None = None, motiond_tree: Path | None = None,
         hosts: Sequence[str] = HOSTS, logs: Path | None = None,
         lead_time_s: float | None = None, rig_pause_ms: float = 0.0,
-        job_names: Sequence[str] = JOBS, feed: str = "stream") -> BenchResult:
+        job_names: Sequence[str] = JOBS, feed: str = "stream",
+        clock_fit: bool = False) -> BenchResult:
     result = BenchResult("klipper", quick)
     runs = runs or (1 if quick else 3)
     tree = (motiond_tree or REPO).resolve()
@@ -422,7 +426,7 @@ def run(quick: bool, runs: int | None = None, motiond_tree: Path | None = None,
           + (f"; the rig paused {rig_pause_ms:g} ms every {PAUSE_EVERY_S:g} s"
              if rig_pause_ms else ""))
     report(result, asyncio.run(measure(quick, runs, tree, hosts, logs, lead_time_s,
-                                       rig_pause_ms, job_names, feed)))
+                                       rig_pause_ms, job_names, feed, clock_fit)))
     return result
 
 

@@ -30,10 +30,13 @@ def add_options(parser: argparse.ArgumentParser) -> None:
                         "how motiond gets each job: streamed by a sender over TCP (character "
                         "counting), or stored and started with 'play' (as klippy gets the "
                         "whole job)")
+    parser.add_argument("--clock-fit", action="store_true", help="klipper: run motiond at "
+                        "debug level and check each of its clock polls against the rig's clock "
+                        "(its CPU then includes that logging)")
 
 
 def options_of(options: Any) -> dict[str, Any]:
     return {"runs": options.runs, "motiond_tree": options.motiond_tree, "hosts": options.hosts,
             "logs": options.logs, "lead_time_s": options.lead_time_s,
             "rig_pause_ms": options.rig_pause_ms, "job_names": options.jobs,
-            "feed": options.feed}
+            "feed": options.feed, "clock_fit": options.clock_fit}

@@ -235,18 +235,19 @@ class Motiond:
     @classmethod
     @contextlib.asynccontextmanager
     async def start(cls, rig: Rig, workdir: Path, source: Path = REPO,
-                    lead_time_s: float | None = None) -> AsyncIterator[Self]:
+                    lead_time_s: float | None = None,
+                    log_level: str = "warning") -> AsyncIterator[Self]:
         toml = motiond_toml(rig.path, workdir / "data", lead_time_s)
-        async with cls.serving(toml, workdir, source, rig) as host:
+        async with cls.serving(toml, workdir, source, rig, log_level) as host:
             yield host
 
     @classmethod
     @contextlib.asynccontextmanager
     async def serving(cls, config_text: str, workdir: Path, source: Path,
-                      rig: Rig | None = None) -> AsyncIterator[Self]:
+                      rig: Rig | None = None, log_level: str = "warning") -> AsyncIterator[Self]:
         """:meth:`spawn`, ready (on ``rig``, if given), stopped at the end."""
         (workdir / "data").mkdir(exist_ok=True)
-        host = await cls.spawn(config_text, workdir, source)
+        host = await cls.spawn(config_text, workdir, source, log_level)
         try:
             await host.wait_ready(rig)
             yield host
@@ -256,9 +257,10 @@ class Motiond:
             await stop(host.process)
 
     @classmethod
-    async def spawn(cls, config_text: str, workdir: Path, source: Path) -> Self:
-        """``python -m server.cli`` of ``source`` on ``config_text``, on a free TCP port,
-        logging at debug level: its clock polls, which the benchmark checks against the rig."""
+    async def spawn(cls, config_text: str, workdir: Path, source: Path,
+                    log_level: str = "warning") -> Self:
+        """``python -m server.cli`` of ``source`` on ``config_text``, on a free TCP port
+        (``log_level`` debug: a line for each clock poll, which the benchmark can check)."""
         from tests.support.processes import free_port  # noqa: PLC0415
 
         config = workdir / "motiond.toml"
@@ -267,7 +269,7 @@ class Motiond:
         with (workdir / "motiond.err").open("wb") as err:
             process = await asyncio.create_subprocess_exec(
                 sys.executable, "-m", "server.cli", "--config", str(config), "--host",
-                "127.0.0.1", "--tcp-port", str(port), "--log-level", "debug", cwd=source,
+                "127.0.0.1", "--tcp-port", str(port), "--log-level", log_level, cwd=source,
                 env={**os.environ, "PYTHONPATH": str(source)},
                 stdout=asyncio.subprocess.DEVNULL, stderr=err)
         return cls(process, port, workdir, source)
