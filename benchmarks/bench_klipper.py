@@ -68,6 +68,8 @@ if TYPE_CHECKING:
 
 PINS = {"x": ("A0", "A1", True), "y": ("A3", "A4", False)}  # step, dir, dir inverted
 SETTLE_S = 0.5
+IDLE_SETTLE_S = 1.5  # the idle job's window starts at rest: motiond's loop monitor samples the
+# loop every tick for a second after each command (QUIET_AFTER_S), a cost of the command
 DONE_SLACK_S = 0.2  # a step this long after a window's end is still its job's (a lead is more)
 
 
@@ -131,7 +133,7 @@ async def run_host(host: str, job_list: list[Job], runs: int, workdir: Path,
                     before = Threads()
                     try:
                         await driver.run(setup, job.start)
-                        await asyncio.sleep(SETTLE_S)
+                        await asyncio.sleep(IDLE_SETTLE_S if job.idle_s else SETTLE_S)
                         before = threads(driver.pid)
                         cpu, started = cpu_ns(driver.pid), time.monotonic_ns()
                         if job.idle_s:
