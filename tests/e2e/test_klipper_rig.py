@@ -181,3 +181,23 @@ async def test_a_board_that_dies_mid_job_is_an_alarm_in_one_log_line(tmp_path: P
         await client.close()
     log = (tmp_path / "machine.log").read_text()
     assert "ALARM:42" in log and "Traceback" not in log, log
+
+
+async def test_m400_sent_while_the_board_still_runs_the_move_answers_after_its_last_step(
+    tmp_path: Path
+) -> None:
+    """``M400`` sent once motiond has generated a move's steps, while the board (a lead
+    behind) still makes them: its ``ok`` comes after the board's last step edge."""
+    async with klipper_rig(tmp_path) as board, motiond(tmp_path, rig_toml(board.path)) as served:
+        await wait_configured(board)
+        client = await CharCountingClient.connect("127.0.0.1", served.tcp_port)
+        assert (await client.stream(["G21 G90", "G1 X10 F6000"])).replies == ["ok"] * 2
+        await asyncio.sleep(0.25)  # the steps generated; the board, LEAD_S behind, still moves
+        assert (await client.stream(["M400"])).replies == ["ok"] * 3
+        ok_ns = time.monotonic_ns()
+        await asyncio.sleep(0.3)  # the log is written every 10 ms of simulated time
+        gpio = board.gpio()
+        assert x_steps(gpio) == (800, 800)
+        last_edge = max(c for c, v in gpio.edges["A0"] if v == 1)
+        assert gpio.host_ns(last_edge) <= ok_ns, "M400 answered before the board's last step"
+        await client.close()

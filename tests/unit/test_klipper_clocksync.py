@@ -11,7 +11,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from server.backends.klipper.clocksync import RATE_PRIOR, STEP_S, ClockSync
+from server.backends.klipper.clocksync import RATE_PRIOR, ClockSync
 
 HZ = 16_000_000.0
 
@@ -80,7 +80,6 @@ def test_a_clock_that_loses_time_at_once_keeps_its_rate_and_takes_the_new_offset
     assert abs(sync.clock_at(host_s) - true_clock(host_s - lost_s, 1.0)) / HZ < 0.1e-3
     assert sync.freq_hz / HZ == pytest.approx(1.0, abs=20e-6)
     assert sync.steps == 1
-    assert lost_s > 10 * STEP_S
 
 
 def test_a_few_seconds_of_wide_round_trips_keep_the_rate_near_nominal() -> None:
