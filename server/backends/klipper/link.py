@@ -233,20 +233,17 @@ class Link:
     def hurry(self) -> None:
         """A request waiting to ride leaves now, and every answer awaited is read as it
         arrives (the end of motion is confirmed by a reading of the board's clock)."""
-        rider = self._rider
-        if rider is not None:
-            self._drop_rider()
-            rider.sent_s = time.monotonic()
-            self.send(rider.message, keep=True)
+        self._release_rider()
         for waiter in self._waiters:
             waiter.lazy = False
         self._watch()
 
     def _release_rider(self) -> None:
-        """No company came in time: the rider leaves on its own."""
+        """The rider leaves on its own (no company came in time, or it is hurried)."""
         rider = self._rider
         if rider is not None:
-            self._rider, rider.timer, rider.sent_s = None, None, time.monotonic()
+            self._drop_rider()  # (its timer cancelled: harmless when it is this call)
+            rider.sent_s = time.monotonic()
             self.send(rider.message, keep=True)
 
     def _drop_rider(self) -> None:
