@@ -201,7 +201,7 @@ async def test_idle_waits_for_a_reading_of_the_board_s_clock_past_its_last_step(
     async with klipper_machine(mcu) as app:
         machine = app.kernel.machine
         mcu.lose_after_riding_poll_s = 0.012
-        await submit_all(app, ["G1 X2 F6000"])  # 20 ms of motion
+        await submit_all(app, ["G1 X5 F6000"])  # 50 ms of motion: its steps leave in two samples
         await machine.wait_idle()
         idle_s = time.monotonic()
         assert mcu.lose_after_riding_poll_s == 0.0  # it lost the time

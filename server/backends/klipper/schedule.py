@@ -82,6 +82,7 @@ class StepSchedule:
     cfg: BackendConfig
     lead_s: float
     hold_back_s: float
+    flush_s: float
     axes: list[Axis]
     outputs: dict[str, Output]
     errors: list[FloatArray] | None
@@ -265,6 +266,14 @@ class StepSchedule:
                 jumped = True
         return jumped and piece.duration_s == 0.0
 
+    @property
+    def _send_ahead_s(self) -> float:
+        """What is due within this of a sample leaves at it: the lead less the hold-back,
+        and a flush more (what would turn before another flush could come goes with it: a
+        run of another axis, a message held to share a block), so that one sample serves the
+        turns that come close together."""
+        return self.lead_s - self.hold_back_s + self.flush_s
+
     def _flush(self, now_s: float) -> None:
         """Compress what is due soon (all of it when motion has no more pieces): steps that
         may still join a longer run wait until their first is due within the lead less the
@@ -274,7 +283,7 @@ class StepSchedule:
         sent). Motion has ended once the samples pass the last piece's end (a late tick's
         slice ends exactly on one)."""
         idle = not self._pieces and now_s > self._generated_s + SLICE_END_S
-        force_clock = float(self._motion_clock(now_s + self.lead_s - self.hold_back_s))
+        force_clock = float(self._motion_clock(now_s + self._send_ahead_s))
         for axis in self.axes:
             if not idle and axis.holds(force_clock):
                 continue  # nothing due: its run may still grow
@@ -324,7 +333,7 @@ class StepSchedule:
         now = self._now_clock()
         hold_after = None
         if mcu.clock is not None:
-            hold_after = now + (self.lead_s - self.hold_back_s) * mcu.clock.freq_hz
+            hold_after = now + self._send_ahead_s * mcu.clock.freq_hz
         late_ms = self._queue.pump(mcu, now, hold_after)
         if late_ms is not None:
             self.halt()
