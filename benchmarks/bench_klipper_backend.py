@@ -18,7 +18,6 @@ from typing import Any
 
 from benchmarks import bench_klipper_host as host
 from benchmarks.common import BenchResult, standalone
-from server.backends.klipper.stepcompress import StepCompressor
 
 
 def record(motion_s: float) -> tuple[list[tuple[Any, ...]], float]:
@@ -50,8 +49,8 @@ def replay(calls: list[tuple[Any, ...]]) -> tuple[float, int]:
     backend = host.OfflineBackend(host.machine())
     mcu = host.BenchMcu()
     backend.mcu, backend.ready = mcu, True  # type: ignore[assignment]
-    for axis in backend.axes:
-        axis.compressor = StepCompressor(backend.cfg.max_error_s * host.CLOCK_HZ)
+    for oid, axis in enumerate(backend.axes):  # what configuring the MCU sets
+        axis.configure(oid, mcu.dictionary, backend.cfg.max_error_s * host.CLOCK_HZ)
     backend.follow_power("PA8", 0.001)
     trajectory, sample = backend.trajectory, backend.sample
     started = time.process_time()

@@ -49,7 +49,6 @@ from server.backends.klipper.backend import KlipperBackend
 from server.backends.klipper.clocksync import ClockSync
 from server.backends.klipper.codec import PAYLOAD_MAX
 from server.backends.klipper.dictionary import Dictionary
-from server.backends.klipper.stepcompress import StepCompressor
 from server.config_loader import build_config
 from server.machine.parts import planner_settings
 from server.motion.backend import PowerLaw
@@ -172,8 +171,8 @@ def execute(motion_s: float, job: Job | None = None,
     core = machine() if job is None else rig_machine()
     backend = OfflineBackend(core, record=True)
     backend.mcu, backend.ready = BenchMcu(), True  # type: ignore[assignment]
-    for axis in backend.axes:  # what configuring the MCU sets
-        axis.compressor = StepCompressor(backend.cfg.max_error_s * CLOCK_HZ)
+    for oid, axis in enumerate(backend.axes):  # what configuring the MCU sets
+        axis.configure(oid, backend.mcu.dictionary, backend.cfg.max_error_s * CLOCK_HZ)
     start = (0.0, 0.0) if job is None else job.start
     planner = Planner(planner_settings(core), start)
     for axis, mm in zip(backend.axes, start, strict=True):

@@ -78,7 +78,7 @@ def check_steps(app: App, mcu: VirtualMcu) -> int:
         sign = -1 if axis.invert_dir else 1
         commanded = step_target(machine.stepgen.state.position_mm[index] * axis.steps_per_mm)
         assert sign * int(dirs.sum()) == axis.position == commanded, axis.name
-        exact = np.concatenate(axis.exact) if axis.exact else np.empty(0)
+        exact = np.asarray(axis.steps.recorded())
         assert len(exact) == len(clocks), axis.name
         if not len(clocks):
             continue

@@ -65,7 +65,7 @@ async def _configured(app: App) -> App:
     backend = app.kernel.machine.backend
     assert isinstance(backend, KlipperBackend)
     for axis in backend.axes:
-        axis.exact = []
+        axis.steps.record = True
     backend.pwm_log = []
     for _ in range(300):
         if backend.ready:

@@ -21,7 +21,9 @@ from server.backends.klipper.codec import (
 )
 from server.backends.klipper.dictionary import Dictionary, vlq
 from server.backends.klipper.outputs import level
-from server.backends.klipper.stepcompress import StepRun, run_clocks
+from server.backends.klipper.stepcompress import StepCompressor, run_clocks
+from server.backends.klipper.stepcore import StepAxis
+from server.backends.klipper.steptimes import Spans, step_target
 from tests.support.klipper_dictionary import compressed, dictionary_data
 
 
@@ -189,24 +191,56 @@ def test_compiled_queue_steps_are_the_generic_encoders_bytes(
         ("queue_step", {"oid": oid, "interval": i, "count": c, "add": a}) for i, c, a in runs]
 
 
-@given(st.lists(st.tuples(st.integers(1, 2**20), st.integers(1, 65535),
-                          st.integers(-32768, 32767)), max_size=40),
-       st.integers(0, 255), st.integers(0, 2**40), st.sampled_from([0, 41, 120]))
+@given(st.floats(1.0, 200.0), st.floats(0.0, 3000.0), st.floats(0.005, 0.3),
+       st.sampled_from([0.0, 0.01, 0.1]), st.integers(0, 255), st.booleans(),
+       st.sampled_from([0, 41, 120]))
 @settings(max_examples=200, deadline=None)
-def test_a_flushs_runs_encoded_at_once_are_the_prepared_encoders_messages(
-        runs: list[tuple[int, int, int]], oid: int, last_clock: int, id_offset: int) -> None:
-    """The compiled batch (one call a flush and stepper) sends each run's bytes as the
-    prepared encoder does, due at its first step's clock as the MCU counts it from the last
-    step (src/stepper.c: interval, then interval + add, ...), and ends at the last step."""
+def test_a_step_axis_sends_the_compressed_runs_of_its_exact_steps_as_the_generic_encoder(
+        v0: float, a: float, duration_s: float, back_s: float, oid: int, invert: bool,
+        id_offset: int) -> None:
+    """The compiled step axis (one call a sample to add, one to flush) sends what solving
+    the spans, compressing each direction's steps from a reset a bound before the first
+    (stepcompress.py, the state carried across a turn) and encoding each message with the
+    generic encoder send: the same bytes, each run due (and its slot taken until) its first
+    step's clock as the MCU counts it, a direction change due with its first step."""
     ours = Dictionary(dictionary_data(id_offset=id_offset))
-    messages, last = ours.step_encoder()(oid, runs, last_clock)
-    queue_step = ours.encoder("queue_step")
-    expected, clock = [], last_clock
-    for interval, count, add in runs:
-        steps = run_clocks(clock, StepRun(interval, count, add))
-        expected.append((queue_step(oid, interval, count, add), int(steps[0]), int(steps[0])))
-        clock = int(steps[-1])
-    assert messages == expected and last == clock
+    spans, per_mm, max_error = Spans(), 80.0, 400.0
+    distance = v0 * duration_s + 0.5 * a * duration_s * duration_s
+    target = step_target(0.3 + per_mm * distance)
+    spans.add(0.3, per_mm, v0, a, duration_s, 0, target, 0.0)
+    end = 0.3 + per_mm * distance
+    back = step_target(end - per_mm * v0 * back_s)
+    if back != target:  # a turn: the other way at v0
+        spans.add(end, -per_mm, v0, 0.0, back_s, target, back, duration_s)
+    to_clock = (1e6, 16e6, 0.0)
+    axis = StepAxis()
+    axis.configure(oid, invert, max_error, *ours.step_prefixes())
+    assert axis.add(spans.rows, spans.counts, *to_clock) == spans.total
+    sent: list[tuple[bytes, int | None, int]] = []
+    axis.flush(0.0, True, sent, None)
+
+    points, expected = spans.solve(to_clock), []
+    if len(points):
+        start = int(points[0] - max_error) - 1
+        expected.append((ours.encode("reset_step_clock", oid=oid, clock=start), None, start))
+        compressor, first = StepCompressor(max_error, start, float(start)), 0
+        for row, count in zip(spans.rows, spans.counts, strict=True):
+            if not count:
+                continue
+            run, first = points[first:first + count], first + count
+            forward = row[6] > 0
+            expected.append((ours.encode("set_next_step_dir", oid=oid, dir=int(forward != invert)),
+                             None, int(run[0])))
+            clock = compressor.last_clock
+            runs, done = compressor.compress(run, final=True)
+            assert done == len(run)
+            for step_run in runs:
+                due = int(run_clocks(clock, step_run)[0])
+                expected.append((ours.encode("queue_step", oid=oid, interval=step_run.interval,
+                                             count=step_run.count, add=step_run.add), due, due))
+                clock = int(run_clocks(clock, step_run)[-1])
+    assert sent == expected
+    assert axis.held == 0 and axis.first_clock() is None
 
 
 def test_a_prepared_encoder_refuses_another_count_of_parameters() -> None:

@@ -17,7 +17,6 @@ from server.backends.klipper.clocksync import ClockSync
 from server.backends.klipper.codec import PAYLOAD_MAX
 from server.backends.klipper.dictionary import Dictionary
 from server.backends.klipper.printclock import PrintClock
-from server.backends.klipper.stepcompress import StepCompressor
 from server.config_loader import build_config
 from server.machine.parts import planner_settings
 from server.motion.moves import Move, MoveKind, ToolMode
@@ -78,7 +77,7 @@ def run(moves: list[Move], fitted_hz: float, lead_time_s: float = 0.2,
         mcu.link = sink
     backend.mcu, backend.ready = mcu, True  # type: ignore[assignment]
     for oid, axis in enumerate(backend.axes):  # what configuring the MCU sets
-        axis.oid, axis.compressor = oid, StepCompressor(backend.cfg.max_error_s * CLOCK_HZ)
+        axis.configure(oid, mcu.dictionary, backend.cfg.max_error_s * CLOCK_HZ)
     planner = Planner(planner_settings(core), (0.0, 0.0))
     stepgen = StepGenerator(planner, backend, (80.0, 80.0), Listener())
     for move in moves:

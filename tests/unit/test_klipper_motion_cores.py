@@ -8,8 +8,11 @@ import random
 import numpy as np
 
 from server.backends.klipper.clocksync import ClockSync
+from server.backends.klipper.dictionary import Dictionary
 from server.backends.klipper.stepcompress import StepCompressor, run_clocks
+from server.backends.klipper.stepcore import StepAxis
 from server.backends.klipper.steptimes import Spans, crossing_times, step_target
+from tests.support.klipper_dictionary import dictionary_data
 
 CLOCK_HZ = 72e6
 
@@ -80,9 +83,24 @@ def test_the_steps_of_many_pieces_solved_at_once_are_each_pieces_own() -> None:
                 runs.append((direction, abs(target - position)))
         position, base_s = target, base_s + duration_s
     times = spans.solve()
-    assert spans.runs == runs and len(runs) > 20
-    assert len(times) == sum(count for _, count in runs) > 1000
+    assert len(runs) > 20 and len(times) == sum(count for _, count in runs) > 1000
     assert np.max(np.abs(times - np.concatenate(expected))) < 1e-12  # (rounding: a cruise is d/v0)
+    d = Dictionary(dictionary_data())
+    axis = StepAxis(record=True)  # the same spans held by a step axis, sent in runs by direction
+    axis.configure(0, False, 25e-6 * CLOCK_HZ, *d.step_prefixes())
+    axis.add(spans.rows, spans.counts, 0.0, CLOCK_HZ, 0.0)
+    assert np.array_equal(np.asarray(axis.recorded()), times * CLOCK_HZ)
+    sent: list[tuple[bytes, int | None, int]] = []
+    axis.flush(0.0, True, sent, None)
+    by_direction: list[tuple[int, int]] = []
+    for message, _, _ in sent:
+        for name, params in d.decode(message):
+            if name == "set_next_step_dir":
+                by_direction.append((1 if params["dir"] else -1, 0))
+            elif name == "queue_step":
+                direction, count = by_direction[-1]
+                by_direction[-1] = (direction, count + params["count"])
+    assert by_direction == runs
 
 
 def test_compression_keeps_every_step_within_the_bound_and_never_late() -> None:

@@ -7,7 +7,6 @@ from __future__ import annotations
 from typing import Any
 
 from benchmarks.bench_klipper_host import Listener, OfflineBackend
-from server.backends.klipper.stepcompress import StepCompressor
 from server.config_loader import build_config
 from server.machine.parts import planner_settings
 from server.motion.moves import Move, MoveKind, ToolMode
@@ -49,7 +48,7 @@ def test_a_redefined_position_between_blocks_sends_no_step_and_moves_on_from_the
     backend, mcu = OfflineBackend(core), FittedMcu(CLOCK_HZ)
     backend.mcu, backend.ready = mcu, True  # type: ignore[assignment]
     for oid, axis in enumerate(backend.axes):  # what configuring the MCU sets
-        axis.oid, axis.compressor = oid, StepCompressor(backend.cfg.max_error_s * CLOCK_HZ)
+        axis.configure(oid, mcu.dictionary, backend.cfg.max_error_s * CLOCK_HZ)
     looked, pieces = [], []  # the pieces _rebased looked at; all pieces
     rebased, trajectory = backend._rebased, backend.trajectory
     backend._rebased = lambda piece: (looked.append(piece), rebased(piece))[1]  # type: ignore[method-assign]

@@ -13,7 +13,6 @@ from typing import Any
 import pytest
 
 from benchmarks.bench_klipper_host import Listener, OfflineBackend
-from server.backends.klipper.stepcompress import StepCompressor
 from server.config_loader import build_config
 from server.machine.parts import planner_settings
 from server.motion import pieces as pieces_module
@@ -77,7 +76,7 @@ def drive(moves: list[Move], merge: bool, monkeypatch: pytest.MonkeyPatch,
     backend, mcu = OfflineBackend(core, record=True), FittedMcu(CLOCK_HZ)
     backend.mcu, backend.ready = mcu, True  # type: ignore[assignment]
     for oid, axis in enumerate(backend.axes):  # what configuring the MCU sets
-        axis.oid, axis.compressor = oid, StepCompressor(backend.cfg.max_error_s * CLOCK_HZ)
+        axis.configure(oid, mcu.dictionary, backend.cfg.max_error_s * CLOCK_HZ)
         axis.position = 800
     backend.outputs["PA8"].oid = 2
     given: list[Piece] = []

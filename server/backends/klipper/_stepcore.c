@@ -12,14 +12,15 @@
 #include <stdint.h>
 #include <string.h>
 
+#include "_stepcore.h"
+
 /* The wire's hot end, in _wire.c (one module, two files) */
 void wire_init(void);
 PyObject *wire_message(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
 PyObject *wire_crc16(PyObject *self, PyObject *arg);
 PyObject *wire_frame(PyObject *self, PyObject *args);
 int serialq_add_type(PyObject *module);
-PyObject *wire_step_messages(PyObject *self, PyObject *args);
-extern const char message_doc[], crc16_doc[], frame_doc[], step_messages_doc[];
+extern const char message_doc[], crc16_doc[], frame_doc[];
 
 #define MAX_COUNT 65535
 #define ADD_MIN (-32768)
@@ -103,10 +104,6 @@ static Py_ssize_t longest_run(Windows *w, int64_t add, int64_t *interval)
     return w->len;
 }
 
-typedef struct {
-    int64_t interval, count, add;
-} Run;
-
 static Run best_run(Windows *w)
 {
     int64_t min_add = ADD_MIN, max_add = ADD_MAX, add = 0, best_reach = -1;
@@ -168,6 +165,62 @@ PyDoc_STRVAR(compress_doc,
 "queue_step runs (interval, count, add) for a prefix of points; errors: None or a float64\n"
 "array as long as points that gets each covered step's early-ness (ticks).");
 
+Py_ssize_t steps_compress(const double *points, Py_ssize_t n, int64_t *last_clock,
+                          double *last_exact, double max_error, int final, double *errors,
+                          RunSink sink, void *ctx)
+{
+    Py_ssize_t done = 0, cap = n < MAX_COUNT ? n : MAX_COUNT;
+    int64_t *lohi = PyMem_Malloc(sizeof(int64_t) * 2 * (size_t)(cap ? cap : 1));
+    if (lohi == NULL) {
+        PyErr_NoMemory();
+        return -1;
+    }
+    int64_t last = *last_clock;
+    Py_ssize_t size = WINDOW;
+    while (done < n) {
+        Windows w = {points + done, n - done < size ? n - done : size, 0, lohi, lohi + cap,
+                     (double)last, *last_exact, max_error};
+        Run run = best_run(&w);
+        if (run.count == w.len && w.len < n - done && size < MAX_COUNT) {
+            size = size * 4 < MAX_COUNT ? size * 4 : MAX_COUNT; /* it may reach further */
+            continue;
+        }
+        size = WINDOW;
+        if (!final && done + run.count == n)
+            break;
+        if (sink(ctx, run, last + run.interval) < 0) {
+            PyMem_Free(lohi);
+            return -1;
+        }
+        if (errors) {
+            for (int64_t k = 0; k < run.count; k++) {
+                int64_t clock = last + (k + 1) * run.interval + run.add * (k * (k + 1) / 2);
+                errors[done + k] = points[done + k] - (double)clock;
+            }
+        }
+        last += run.count * run.interval + run.add * ((run.count - 1) * run.count / 2);
+        *last_clock = last;
+        *last_exact = points[done + run.count - 1];
+        done += run.count;
+    }
+    PyMem_Free(lohi);
+    return done;
+}
+
+/* compress()'s sink: each run as an (interval, count, add) tuple in a list */
+static int append_run(void *ctx, Run run, int64_t first_clock)
+{
+    (void)first_clock;
+    PyObject *item = Py_BuildValue("(LLL)", (long long)run.interval, (long long)run.count,
+                                   (long long)run.add);
+    if (item == NULL || PyList_Append((PyObject *)ctx, item) < 0) {
+        Py_XDECREF(item);
+        return -1;
+    }
+    Py_DECREF(item);
+    return 0;
+}
+
 static PyObject *compress(PyObject *self, PyObject *args)
 {
     (void)self;
@@ -194,61 +247,48 @@ static PyObject *compress(PyObject *self, PyObject *args)
             return NULL;
         }
     }
-    const double *points = pv.buf;
-    double *errors = want_errors ? ev.buf : NULL;
-    Py_ssize_t n = pv.len / 8, done = 0, cap = n < MAX_COUNT ? n : MAX_COUNT;
-    int64_t *lohi = PyMem_Malloc(sizeof(int64_t) * 2 * (size_t)(cap ? cap : 1));
     PyObject *runs = PyList_New(0);
-    if (lohi == NULL || runs == NULL) {
-        PyErr_NoMemory();
-        goto fail;
-    }
     int64_t last = last_clock;
-    Py_ssize_t size = WINDOW;
-    while (done < n) {
-        Windows w = {points + done, n - done < size ? n - done : size, 0, lohi, lohi + cap,
-                     (double)last, last_exact, max_error};
-        Run run = best_run(&w);
-        if (run.count == w.len && w.len < n - done && size < MAX_COUNT) {
-            size = size * 4 < MAX_COUNT ? size * 4 : MAX_COUNT; /* it may reach further */
-            continue;
-        }
-        size = WINDOW;
-        if (!final && done + run.count == n)
-            break;
-        PyObject *item = Py_BuildValue("(LLL)", (long long)run.interval, (long long)run.count,
-                                       (long long)run.add);
-        if (item == NULL || PyList_Append(runs, item) < 0) {
-            Py_XDECREF(item);
-            goto fail;
-        }
-        Py_DECREF(item);
-        if (errors) {
-            for (int64_t k = 0; k < run.count; k++) {
-                int64_t clock = last + (k + 1) * run.interval + run.add * (k * (k + 1) / 2);
-                errors[done + k] = points[done + k] - (double)clock;
-            }
-        }
-        last += run.count * run.interval + run.add * ((run.count - 1) * run.count / 2);
-        last_exact = points[done + run.count - 1];
-        done += run.count;
+    Py_ssize_t done = runs == NULL ? -1 : steps_compress(
+        pv.buf, pv.len / 8, &last, &last_exact, max_error, final,
+        want_errors ? ev.buf : NULL, append_run, runs);
+    PyBuffer_Release(&pv);
+    if (want_errors)
+        PyBuffer_Release(&ev);
+    if (done < 0) {
+        Py_XDECREF(runs);
+        return NULL;
     }
-    PyMem_Free(lohi);
-    PyBuffer_Release(&pv);
-    if (want_errors)
-        PyBuffer_Release(&ev);
-    PyObject *result = Py_BuildValue("(NnLd)", runs, done, (long long)last, last_exact);
-    return result;
-fail:
-    PyMem_Free(lohi);
-    Py_XDECREF(runs);
-    PyBuffer_Release(&pv);
-    if (want_errors)
-        PyBuffer_Release(&ev);
-    return NULL;
+    return Py_BuildValue("(NnLd)", runs, done, (long long)last, last_exact);
 }
 
 /* -- step times -------------------------------------------------------------------------- */
+
+void steps_solve_row(const double v[8], Py_ssize_t count, double *out, double *latest,
+                     double ref_clock, double hz, double ref_s)
+{
+    double x0 = v[0], u = v[1], v0 = v[2], a = v[3], duration = v[4], first = v[5];
+    double direction = v[6], base = v[7];
+    for (Py_ssize_t k = 0; k < count; k++) {
+        double boundary = first + direction * (double)k;
+        double distance = (boundary - x0) / u;
+        if (!(distance > 0.0))
+            distance = 0.0;
+        double square = v0 * v0 + 2.0 * a * distance;
+        double root = sqrt(square > 0.0 ? square : 0.0);
+        double speed = v0 + root;
+        double t = 2.0 * distance / (speed > 1e-300 ? speed : 1e-300);
+        if (t < 0.0)
+            t = 0.0;
+        if (t > duration)
+            t = duration;
+        t = base + t;
+        if (t < *latest)
+            t = *latest; /* rounding never puts a step before the one before */
+        *latest = t;
+        out[k] = ref_clock + hz * (t - ref_s);
+    }
+}
 
 static inline double as_double(PyObject *o)
 {
@@ -295,27 +335,8 @@ static PyObject *solve(PyObject *self, PyObject *args)
             PyErr_SetString(PyExc_ValueError, "out is shorter than the steps");
             goto fail;
         }
-        double x0 = v[0], u = v[1], v0 = v[2], a = v[3], duration = v[4], first = v[5];
-        double direction = v[6], base = v[7];
-        for (Py_ssize_t k = 0; k < count; k++) {
-            double boundary = first + direction * (double)k;
-            double distance = (boundary - x0) / u;
-            if (!(distance > 0.0))
-                distance = 0.0;
-            double square = v0 * v0 + 2.0 * a * distance;
-            double root = sqrt(square > 0.0 ? square : 0.0);
-            double speed = v0 + root;
-            double t = 2.0 * distance / (speed > 1e-300 ? speed : 1e-300);
-            if (t < 0.0)
-                t = 0.0;
-            if (t > duration)
-                t = duration;
-            t = base + t;
-            if (t < latest)
-                t = latest; /* rounding never puts a step before the one before */
-            latest = t;
-            out[at++] = ref_clock + hz * (t - ref_s);
-        }
+        steps_solve_row(v, count, out + at, &latest, ref_clock, hz, ref_s);
+        at += count;
     }
     PyBuffer_Release(&ov);
     return PyLong_FromSsize_t(at);
@@ -330,7 +351,6 @@ static PyMethodDef methods[] = {
     {"solve", solve, METH_VARARGS, solve_doc},
     {"message", (PyCFunction)(void (*)(void))wire_message, METH_FASTCALL, message_doc},
     {"crc16", wire_crc16, METH_O, crc16_doc},
-    {"step_messages", wire_step_messages, METH_VARARGS, step_messages_doc},
     {"frame", wire_frame, METH_VARARGS, frame_doc},
     {NULL, NULL, 0, NULL},
 };
@@ -354,7 +374,7 @@ PyMODINIT_FUNC PyInit__stepcore(void)
         || PyModule_AddIntConstant(m, "WINDOW", WINDOW) < 0
         || PyModule_AddIntConstant(m, "QUADRATIC_DEV", QUADRATIC_DEV) < 0
         || PyModule_AddIntConstant(m, "MAX_TRIES", MAX_TRIES) < 0
-        || serialq_add_type(m) < 0) {
+        || serialq_add_type(m) < 0 || stepaxis_add_type(m) < 0) {
         Py_DECREF(m);
         return NULL;
     }

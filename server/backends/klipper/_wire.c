@@ -1,11 +1,9 @@
 /* The wire's hot end of the Klipper backend, compiled into the step core's module (see
- * _stepcore.c): a prepared message's VLQs, a flush's queue_step runs at once, a block's framing
+ * _stepcore.c): a prepared message's VLQs (and Klipper's VLQ for _stepaxis.c), a block's framing
  * and its crc16. codec.py and dictionary.py hold the protocol's description; the tests hold
  * these to the generic Python encoder and to klippy's own msgproto, byte for byte. The
  * functions below that are not static are declared in _stepcore.c, which names them. */
-#define PY_SSIZE_T_CLEAN
-#include <Python.h>
-#include <stdint.h>
+#include "_stepcore.h"
 #include <string.h>
 
 
@@ -27,6 +25,11 @@ static inline Py_ssize_t put_vlq(uint8_t *out, int64_t value)
         *out++ = (uint8_t)(((bits >> (7 * i)) & 0x7F) | 0x80);
     *out = (uint8_t)(bits & 0x7F);
     return size;
+}
+
+Py_ssize_t wire_put_vlq(uint8_t *out, int64_t value)
+{
+    return put_vlq(out, value);
 }
 
 #define MESSAGE_VALUES 16
@@ -137,53 +140,4 @@ PyObject *wire_frame(PyObject *self, PyObject *args)
     return PyBytes_FromStringAndSize((const char *)buf, n + 5);
 }
 
-const char step_messages_doc[] =
-"step_messages(prefix, oid, runs, last_clock) -> (messages, last_clock)\n\n"
-"A flush's queue_step runs ((interval, count, add) tuples) of one stepper, each encoded as\n"
-"prefix (queue_step's id) + VLQs of oid, interval, count, add, in a list of\n"
-"(message, first_clock, first_clock): the clock of the run's first step after last_clock;\n"
-"and the clock of the last step of them all.";
-
-PyObject *wire_step_messages(PyObject *self, PyObject *args)
-{
-    (void)self;
-    PyObject *prefix, *runs;
-    long long oid, last;
-    if (!PyArg_ParseTuple(args, "SLO!L", &prefix, &oid, &PyList_Type, &runs, &last))
-        return NULL;
-    Py_ssize_t plen = PyBytes_GET_SIZE(prefix), n = PyList_GET_SIZE(runs);
-    if (plen > 8) {
-        PyErr_SetString(PyExc_ValueError, "a message id prefix is at most 8 bytes");
-        return NULL;
-    }
-    PyObject *out = PyList_New(n);
-    if (out == NULL)
-        return NULL;
-    uint8_t buf[8 + 5 * 4];
-    memcpy(buf, PyBytes_AS_STRING(prefix), (size_t)plen);
-    Py_ssize_t head = plen + put_vlq(buf + plen, oid);
-    for (Py_ssize_t i = 0; i < n; i++) {
-        PyObject *run = PyList_GET_ITEM(runs, i);
-        long long interval, count, add;
-        if (!PyTuple_Check(run) || !PyArg_ParseTuple(run, "LLL", &interval, &count, &add)) {
-            if (!PyErr_Occurred())
-                PyErr_SetString(PyExc_TypeError, "a run is an (interval, count, add) tuple");
-            Py_DECREF(out);
-            return NULL;
-        }
-        Py_ssize_t at = head;
-        at += put_vlq(buf + at, interval);
-        at += put_vlq(buf + at, count);
-        at += put_vlq(buf + at, add);
-        long long first = last + interval;
-        PyObject *item = Py_BuildValue("(y#LL)", (const char *)buf, at, first, first);
-        if (item == NULL) {
-            Py_DECREF(out);
-            return NULL;
-        }
-        PyList_SET_ITEM(out, i, item);
-        last += count * interval + add * (count * (count - 1) / 2);
-    }
-    return Py_BuildValue("(NL)", out, last);
-}
 

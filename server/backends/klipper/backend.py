@@ -39,7 +39,7 @@ from server.backends.klipper.schedule import (
     StepSchedule,
 )
 from server.backends.klipper.session import BoardSession
-from server.backends.klipper.steptimes import FloatArray
+from server.backends.klipper.stepcore import StepAxis
 from server.backends.klipper.trail import Trail
 from server.config import CoreConfig
 from server.motion.backend import Piece
@@ -72,14 +72,14 @@ class KlipperBackend(BoardSession, OutputTiming, StepSchedule):
         self.lead_s = cfg.lead_time_s
         self.hold_back_s = max(HOLD_BACK_SHARE * self.lead_s, self.lead_s - RIDE_THROUGH_S)
         self.axis_names = core.axis_names
-        self.axes = [Axis(n, a.steps_per_mm, exact=[] if record else None)
+        self.axes = [Axis(n, a.steps_per_mm, steps=StepAxis(record=record))
                      for n, a in zip(core.axis_names, core.axes.values(), strict=True)]
         self.outputs = {name: Output(name, out) for name, out in cfg.outputs.items()}
         self.values: dict[str, float] = {}
         self.motors_on, self._enable_clock = True, 0
         self._motors_off_s = 0.0  # the motion time the drivers were last turned off at
         self.pwm_log: list[tuple[float, str, float, int]] | None = [] if record else None
-        self.errors: list[FloatArray] | None = [] if record else None
+        self.errors: list[memoryview] | None = [] if record else None  # how early
         self.mcu: Mcu | None = None
         self.ready = False
         self.fault: str | None = None
@@ -192,7 +192,7 @@ class KlipperBackend(BoardSession, OutputTiming, StepSchedule):
             soonest_s = min(soonest_s, mcu.clock.host_at(turn) + (0.0 if full else late_s))
         to_print = self._print.time_at
         for axis in self.axes:
-            first = axis.first_clock()  # what it holds waits for its turn, as in _flush
+            first = axis.steps.first_clock()  # what it holds waits for its turn (_flush)
             if first == 0.0:
                 return time_s
             if first is not None:

@@ -22,10 +22,7 @@ from server.backends.klipper.codec import (
     encode_vlq,
     expand_enumerations,
 )
-from server.backends.klipper.stepcore import message, step_messages
-
-StepEncoder = Callable[[int, list[tuple[int, int, int]], int],
-                       tuple[list[tuple[bytes, int, int]], int]]
+from server.backends.klipper.stepcore import message
 
 
 class Dictionary:
@@ -46,7 +43,6 @@ class Dictionary:
                 self._add(MessageFormat.parse(int(msgid), text, self.enumerations))
         self.pwm_max = int(self.constants.get("PWM_MAX", 255))  # a PWM output's full on
         self._prepared: dict[str, Callable[..., bytes]] = {}
-        self._steps: StepEncoder | None = None
 
     @classmethod
     def bootstrap(cls) -> Dictionary:
@@ -113,20 +109,23 @@ class Dictionary:
             prepared = self._prepared[name] = self._prepare(name)
         return prepared
 
-    def step_encoder(self) -> StepEncoder:
-        """``queue_step`` for a flush's runs of one stepper at once (compiled:
-        ``_stepcore.step_messages``): ``(oid, [(interval, count, add)...], last_clock)`` ->
-        ``([(message, first_clock, first_clock)...], last_clock)``, each message the bytes
-        :meth:`encoder` gives for it."""
-        if self._steps is None:
-            fmt = self.by_name.get("queue_step")
+    def step_prefixes(self) -> tuple[bytes, bytes, bytes]:
+        """The id VLQs of ``queue_step``, ``set_next_step_dir`` and ``reset_step_clock``, whose
+        messages the compiled step axis (``_stepaxis.c``) encodes itself, once their
+        parameters are checked to be the ones it sends, in that order."""
+        expected = {"queue_step": [("oid", "u"), ("interval", "u"), ("count", "u"),
+                                   ("add", "i")],
+                    "set_next_step_dir": [("oid", "u"), ("dir", "u")],
+                    "reset_step_clock": [("oid", "u"), ("clock", "u")]}
+        prefixes = []
+        for name, params in expected.items():
+            fmt = self.by_name.get(name)
             if fmt is None:
-                raise ProtocolError("the MCU has no command 'queue_step'")
-            if [(p, k) for p, k, _ in fmt.params] != [("oid", "u"), ("interval", "u"),
-                                                      ("count", "u"), ("add", "i")]:
-                raise ProtocolError(f"queue_step has unexpected parameters: {fmt.text!r}")
-            self._steps = partial(step_messages, vlq(fmt.msgid))
-        return self._steps
+                raise ProtocolError(f"the MCU has no command {name!r}")
+            if [(p, k) for p, k, _ in fmt.params] != params:
+                raise ProtocolError(f"{name} has unexpected parameters: {fmt.text!r}")
+            prefixes.append(vlq(fmt.msgid))
+        return prefixes[0], prefixes[1], prefixes[2]
 
     def _prepare(self, name: str) -> Callable[..., bytes]:
         fmt = self.by_name.get(name)

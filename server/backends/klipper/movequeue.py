@@ -33,7 +33,7 @@ class MoveQueue:
         """Queue ``message``; ``until`` is the MCU clock its slot frees at (None: no slot)."""
         self.waiting.append((message, until, due))
 
-    def extend(self, messages: list[tuple[bytes, int, int]]) -> None:
+    def extend(self, messages: list[tuple[bytes, int | None, int]]) -> None:
         """Queue ``(message, slot until, due)`` triples (each as :meth:`add`)."""
         self.waiting.extend(messages)
 

@@ -4,12 +4,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import numpy as np
-
 from server.backends.klipper.dictionary import Dictionary
 from server.backends.klipper.mcu import Command, KlipperFault
-from server.backends.klipper.stepcompress import StepCompressor
-from server.backends.klipper.steptimes import FloatArray
+from server.backends.klipper.stepcore import StepAxis
 from server.config import BackendConfig, KlipperOutput
 
 
@@ -20,59 +17,23 @@ def split_pin(text: str) -> tuple[str, bool]:
 
 @dataclass(slots=True)
 class Axis:
-    """One stepper: its oid, where its steps are, and what waits to be compressed."""
+    """One stepper: its oid, where its steps are, and the steps held until they are due (the
+    compiled :class:`StepAxis`: compressed and encoded there too)."""
 
     name: str
     steps_per_mm: float
     oid: int = 0
     invert_dir: bool = False
     position: int = 0  # whole steps commanded so far
-    segments: list[tuple[int, FloatArray]] = field(default_factory=list)  # (dir, exact clocks)
-    pending: list[FloatArray] = field(default_factory=list)  # added, not yet in segments
-    pending_dir: int = 0
-    compressor: StepCompressor = field(default_factory=lambda: StepCompressor(1.0))
-    sent_dir: int = 0
-    needs_reset: bool = True
+    steps: StepAxis = field(default_factory=StepAxis)
     enable_oid: int | None = None  # its enable pin's digital output, if it has one
     enable_inverted: bool = False
-    exact: list[FloatArray] | None = None  # recorded exact clocks (tests, benchmarks)
 
-    def add(self, direction: int, clocks: FloatArray) -> None:
-        if self.exact is not None:
-            self.exact.append(clocks)
-        if self.pending and self.pending_dir != direction:
-            self.collect()
-        self.pending.append(clocks)
-        self.pending_dir = direction
-
-    def holds(self, before_clock: float) -> bool:
-        """Whether :meth:`collect` may wait: what was added runs one way, and its first step
-        is not due before ``before_clock`` (a run still growing is not copied every flush)."""
-        first = self.first_clock()
-        return first is None or first >= before_clock
-
-    def first_clock(self) -> float | None:
-        """The clock from which what this axis holds must be looked at: its first step's, 0
-        when at once (runs both ways wait), None when it holds nothing."""
-        segments, pending = self.segments, self.pending
-        if len(segments) > 1 or (segments and pending and self.pending_dir != segments[0][0]):
-            return 0.0
-        if segments:
-            return float(segments[0][1][0])
-        return float(pending[0][0]) if pending else None
-
-    def collect(self) -> None:
-        """The pieces' step clocks added since the last call join :attr:`segments` (at most
-        one concatenation per flush, not one per piece)."""
-        pending, segments, direction = self.pending, self.segments, self.pending_dir
-        if not pending:
-            return
-        self.pending = []
-        if segments and segments[-1][0] == direction:  # one copy: the held run and the new
-            segments[-1] = (direction, np.concatenate((segments[-1][1], *pending)))
-        else:
-            segments.append((direction, pending[0] if len(pending) == 1
-                             else np.concatenate(pending)))
+    def configure(self, oid: int, d: Dictionary, max_error_ticks: float) -> None:
+        """What configuring the MCU sets: its oid, the compression's bound, the step
+        commands' ids; the next steps start with a ``reset_step_clock``."""
+        self.oid = oid
+        self.steps.configure(oid, self.invert_dir, max_error_ticks, *d.step_prefixes())
 
 
 @dataclass(slots=True)
@@ -101,7 +62,7 @@ def config_commands(cfg: BackendConfig, axes: list[Axis], outputs: dict[str, Out
         step, invert_step = split_pin(check_pin(d, f"axes.{name}", pins.step_pin))
         direction, axis.invert_dir = split_pin(check_pin(d, f"axes.{name}",
                                                                pins.dir_pin))
-        axis.oid, axis.compressor = oid, StepCompressor(cfg.max_error_s * freq)
+        axis.configure(oid, d, cfg.max_error_s * freq)
         commands.append(("config_stepper", {
             "oid": oid, "step_pin": step, "dir_pin": direction,
             "invert_step": int(invert_step),

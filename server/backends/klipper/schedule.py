@@ -85,7 +85,7 @@ class StepSchedule:
     flush_s: float
     axes: list[Axis]
     outputs: dict[str, Output]
-    errors: list[FloatArray] | None
+    errors: list[memoryview] | None
     mcu: Mcu | None
     ready: bool
     fault: str | None
@@ -177,11 +177,10 @@ class StepSchedule:
 
     def _schedule_idle(self) -> bool:
         """Nothing waits to be scheduled or sent, and every step sent is already past."""
-        if self._pieces or self._queue.waiting or any(a.segments or a.pending
-                                                      for a in self.axes):
+        if self._pieces or self._queue.waiting or any(a.steps.held for a in self.axes):
             return False
         now = self._now_clock()
-        return all(a.compressor.last_clock < now for a in self.axes) and all(
+        return all(a.steps.last_clock < now for a in self.axes) and all(
             o.last_clock < now for o in self.outputs.values()) and self._enable_clock < now
 
     def _now_clock(self) -> float:
@@ -203,15 +202,11 @@ class StepSchedule:
                 break
             pieces.popleft()
             self._generated_s = end_s
-        to_clock = (self._print.ref_clock, self._print.hz, self._print.ref_s)  # _motion_clock
+        print_clock = self._print  # solved as _motion_clock maps them
         for axis, axis_spans in zip(self.axes, spans, strict=True):
-            if not axis_spans.runs:
-                continue
-            clocks = axis_spans.solve(to_clock)
-            first = 0
-            for direction, count in axis_spans.runs:
-                axis.add(direction, clocks[first:first + count])
-                first += count
+            if axis_spans.counts:
+                axis.steps.add(axis_spans.rows, axis_spans.counts, print_clock.ref_clock,
+                               print_clock.hz, print_clock.ref_s)
         out = self._follow
         if (self._follow_on and out is not None and not pieces
                 and until_s > self._generated_s + SLICE_END_S):
@@ -276,50 +271,19 @@ class StepSchedule:
 
     def _flush(self, now_s: float) -> None:
         """Compress what is due soon (all of it when motion has no more pieces): steps that
-        may still join a longer run wait until their first is due within the lead less the
-        hold-back (compressed once then, not at every flush). Of those, the runs complete
+        may still join a longer run wait until their first is due within ``_send_ahead_s``
+        (compressed once then, not at every flush). Of those, the runs complete
         before the last step known go; the last run waits on while its own first step is not
         yet due, so that it grows (a cruise is not cut where an acceleration's steps were
         sent). Motion has ended once the samples pass the last piece's end (a late tick's
         slice ends exactly on one)."""
         idle = not self._pieces and now_s > self._generated_s + SLICE_END_S
         force_clock = float(self._motion_clock(now_s + self._send_ahead_s))
-        for axis in self.axes:
-            if not idle and axis.holds(force_clock):
-                continue  # nothing due: its run may still grow
-            axis.collect()
-            while axis.segments:
-                direction, points = axis.segments[0]
-                final = idle or len(axis.segments) > 1  # a direction change ends the run
-                if not (final or points[0] < force_clock):
-                    break
-                done = self._emit(axis, direction, points, final)
-                if done < len(points) and points[done] < force_clock:  # the last run is due
-                    done += self._emit(axis, direction, points[done:], True)
-                if done < len(points):
-                    axis.segments[0] = (direction, points[done:])
-                    break
-                axis.segments.pop(0)
-
-    def _emit(self, axis: Axis, direction: int, points: FloatArray, final: bool) -> int:
-        assert self.mcu is not None
-        d = self.mcu.dictionary
-        compressor = axis.compressor
-        oid, add_message = axis.oid, self._queue.add
-        if axis.needs_reset or points[0] - compressor.last_clock > 2**30:
-            start = int(points[0] - compressor.max_error) - 1
-            compressor.last_clock, compressor.last_exact = start, float(start)
-            add_message(d.encoder("reset_step_clock")(oid, start & 0xFFFFFFFF), None, start)
-            axis.needs_reset = False
-        if direction != axis.sent_dir:  # due with the first step it turns
-            add_message(d.encoder("set_next_step_dir")(
-                oid, int((direction > 0) != axis.invert_dir)), None, int(points[0]))
-            axis.sent_dir = direction
-        last = compressor.last_clock
-        runs, done = compressor.compress_runs(points, final, self.errors)  # errors: how early
-        if runs:  # encoded at once, each due (and its slot taken until) its first step
-            self._queue.extend(d.step_encoder()(oid, runs, last)[0])
-        return done
+        messages: list[tuple[bytes, int | None, int]] = []
+        for axis in self.axes:  # compressed and encoded there (_stepaxis.c)
+            axis.steps.flush(force_clock, idle, messages, self.errors)
+        if messages:
+            self._queue.extend(messages)
 
     def _pump(self) -> None:
         """Send queued messages in order while the MCU's move queue has room. Less than a
@@ -354,5 +318,4 @@ class StepSchedule:
         self._pieces.clear()
         self._queue.waiting.clear()
         for axis in self.axes:
-            axis.segments.clear()
-            axis.pending.clear()
+            axis.steps.clear()

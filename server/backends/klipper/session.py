@@ -230,7 +230,7 @@ class BoardSession:
     def _on_configured(self) -> None:
         self.motors_on, self._enable_clock = True, 0  # the configuration turns them on
         for axis in self.axes:
-            axis.needs_reset, axis.sent_dir = True, 0
+            axis.steps.restart()
         self._config_base = [axis.position for axis in self.axes]
         for out in self.outputs.values():
             out.last_clock, out.value = 0, 0.0

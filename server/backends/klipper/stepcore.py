@@ -1,6 +1,7 @@
-"""The compiled step core (``_stepcore.c``): step times and their compression, and the wire's
-hot end (a prepared message's VLQs, a block's framing and checksum) and the link's thread
-(``_serialq.c``: :class:`SerialQueue`).
+"""The compiled step core (``_stepcore.c``): step times and their compression, each stepper's
+steps held until due and sent (``_stepaxis.c``: :class:`StepAxis`), the wire's hot end (a
+prepared message's VLQs, a block's framing and checksum) and the link's thread (``_serialq.c``:
+:class:`SerialQueue`).
 
 ``pip install`` builds it when a C compiler and Python's headers are there; it is optional so
 that motiond installs without them (the simulated machine needs no core). Without it the Klipper
@@ -23,16 +24,15 @@ try:
         QUADRATIC_DEV,
         WINDOW,
         SerialQueue,
+        StepAxis,
         compress,
         crc16,
         frame,
         message,
         solve,
-        step_messages,
     )
 except ImportError:
     raise ConfigError([MISSING]) from None
 
 __all__ = ["ADD_MAX", "ADD_MIN", "MAX_COUNT", "MAX_TRIES", "QUADRATIC_DEV", "WINDOW", "SerialQueue",
-           "compress",
-           "crc16", "frame", "message", "solve", "step_messages"]
+           "StepAxis", "compress", "crc16", "frame", "message", "solve"]

@@ -37,7 +37,6 @@ class Spans:
     rows: list[tuple[float, float, float, float, float, float, float, float]] = field(
         default_factory=list)  # x0, u, v0, a, duration, first boundary, direction, base
     counts: list[int] = field(default_factory=list)
-    runs: list[tuple[int, int]] = field(default_factory=list)  # (direction, steps) in order
     total: int = 0  # steps of all the spans
 
     def add(self, x0: float, u: float, v0: float, a: float, duration_s: float, current: int,
@@ -48,14 +47,9 @@ class Spans:
                           base_s))
         self.counts.append(count)
         self.total += count
-        runs = self.runs
-        if runs and runs[-1][0] == direction:
-            runs[-1] = (direction, runs[-1][1] + count)
-        else:
-            runs.append((direction, count))
 
     def solve(self, to_clock: tuple[float, float, float] = (0.0, 1.0, 0.0)) -> FloatArray:
-        """Every step's print time, ascending (the runs of :attr:`runs` one after another),
+        """Every step's print time, ascending (span after span),
         or with ``to_clock`` = ``(ref_clock, hz, ref_s)`` its MCU clock
         ``ref_clock + hz·(t - ref_s)`` (the print clock's affine map, in the same pass).
 

@@ -1,0 +1,459 @@
+/* One stepper's steps from the trajectory to the wire, compiled (pins.py's Axis owns one): the
+ * exact step clocks each sample solves for its spans are held here, in runs of one direction,
+ * until schedule.py's flush finds them due; then they are compressed into queue_step runs and
+ * encoded, with a reset_step_clock and a set_next_step_dir where needed, as the (message, slot
+ * until, due) triples of the move queue. One call a sample for each (add, flush), where the
+ * Python it replaces made dozens: a wake-up of the server costs what its Python touches.
+ *
+ * The arithmetic is _stepcore.c's (steps_solve_row, steps_compress: what solve() and
+ * compress() compute) and the VLQs _wire.c's; the tests hold the messages to the generic
+ * encoder's bytes and the steps to their exact times. */
+#include "_stepcore.h"
+#include <string.h>
+
+typedef struct {
+    PyObject_HEAD
+    double *clocks;       /* held exact step clocks: clocks[head..len) */
+    Py_ssize_t head, len, cap;
+    int *seg_dir;         /* the held runs of one direction, in order: each one's direction */
+    Py_ssize_t *seg_end;  /* ...and where it ends in clocks */
+    Py_ssize_t nseg, dir_cap, end_cap;
+    double *exact;        /* every clock added, when recording (tests, benchmarks) */
+    Py_ssize_t exact_len, exact_cap;
+    int record;
+    int oid, invert_dir, sent_dir, needs_reset;
+    double max_error;     /* ticks */
+    int64_t last_clock;   /* the last step sent (MCU clock), and its exact clock */
+    double last_exact;
+    PyObject *step_prefix, *dir_prefix, *reset_prefix; /* the commands' id VLQs */
+} StepAxis;
+
+static int grow(void **buf, Py_ssize_t *cap, Py_ssize_t need, size_t item)
+{
+    if (need <= *cap)
+        return 0;
+    Py_ssize_t size = *cap ? *cap : 256;
+    while (size < need)
+        size *= 2;
+    void *bigger = PyMem_Realloc(*buf, (size_t)size * item);
+    if (bigger == NULL) {
+        PyErr_NoMemory();
+        return -1;
+    }
+    *buf = bigger;
+    *cap = size;
+    return 0;
+}
+
+/* Room for n more clocks (the consumed prefix dropped first). */
+static int room_for(StepAxis *s, Py_ssize_t n)
+{
+    if (s->head && s->len + n > s->cap) {
+        memmove(s->clocks, s->clocks + s->head, (size_t)(s->len - s->head) * sizeof(double));
+        for (Py_ssize_t i = 0; i < s->nseg; i++)
+            s->seg_end[i] -= s->head;
+        s->len -= s->head;
+        s->head = 0;
+    }
+    return grow((void **)&s->clocks, &s->cap, s->len + n, sizeof(double));
+}
+
+static int to_double_row(PyObject *row, double v[8])
+{
+    if (!PyTuple_Check(row) || PyTuple_GET_SIZE(row) != 8) {
+        PyErr_SetString(PyExc_TypeError, "a row is a tuple of 8 numbers");
+        return -1;
+    }
+    for (int i = 0; i < 8; i++) {
+        PyObject *o = PyTuple_GET_ITEM(row, i);
+        v[i] = PyFloat_CheckExact(o) ? PyFloat_AS_DOUBLE(o) : PyFloat_AsDouble(o);
+    }
+    return PyErr_Occurred() ? -1 : 0;
+}
+
+PyDoc_STRVAR(add_doc,
+"add(rows, counts, ref_clock, hz, ref_s) -> int\n\n"
+"A sample's spans (steptimes.Spans' rows and counts): every step's exact clock, solved as\n"
+"solve() does, held in runs of one direction; the count added.");
+
+static PyObject *sa_add(StepAxis *s, PyObject *args)
+{
+    PyObject *rows, *counts;
+    double ref_clock, hz, ref_s;
+    if (!PyArg_ParseTuple(args, "O!O!ddd", &PyList_Type, &rows, &PyList_Type, &counts,
+                          &ref_clock, &hz, &ref_s))
+        return NULL;
+    Py_ssize_t nrows = PyList_GET_SIZE(rows), added = 0;
+    if (PyList_GET_SIZE(counts) != nrows) {
+        PyErr_SetString(PyExc_ValueError, "rows and counts differ in length");
+        return NULL;
+    }
+    double latest = -INFINITY;
+    for (Py_ssize_t r = 0; r < nrows; r++) {
+        double v[8];
+        if (to_double_row(PyList_GET_ITEM(rows, r), v) < 0)
+            return NULL;
+        Py_ssize_t count = PyLong_AsSsize_t(PyList_GET_ITEM(counts, r));
+        if (count < 0) {
+            if (!PyErr_Occurred())
+                PyErr_SetString(PyExc_ValueError, "a negative count");
+            return NULL;
+        }
+        if (count == 0)
+            continue;
+        if (room_for(s, count) < 0)
+            return NULL;
+        steps_solve_row(v, count, s->clocks + s->len, &latest, ref_clock, hz, ref_s);
+        if (s->record) {
+            if (grow((void **)&s->exact, &s->exact_cap, s->exact_len + count, sizeof(double)) < 0)
+                return NULL;
+            memcpy(s->exact + s->exact_len, s->clocks + s->len, (size_t)count * sizeof(double));
+            s->exact_len += count;
+        }
+        s->len += count;
+        added += count;
+        int direction = v[6] > 0.0 ? 1 : -1;
+        if (s->nseg && s->seg_dir[s->nseg - 1] == direction) {
+            s->seg_end[s->nseg - 1] = s->len;
+            continue;
+        }
+        if (grow((void **)&s->seg_dir, &s->dir_cap, s->nseg + 1, sizeof(int)) < 0
+            || grow((void **)&s->seg_end, &s->end_cap, s->nseg + 1, sizeof(Py_ssize_t)) < 0)
+            return NULL;
+        s->seg_dir[s->nseg] = direction;
+        s->seg_end[s->nseg++] = s->len;
+    }
+    return PyLong_FromSsize_t(added);
+}
+
+/* The clock from which what is held must be looked at: its first step's; 0 when at once
+ * (runs both ways wait); -1 when nothing is held. */
+static double first_clock(StepAxis *s)
+{
+    if (s->nseg > 1)
+        return 0.0;
+    return s->nseg ? s->clocks[s->head] : -1.0;
+}
+
+PyDoc_STRVAR(first_clock_doc,
+"first_clock() -> float | None\n\n"
+"The clock from which what this axis holds must be looked at: its first step's, 0 when at\n"
+"once (runs both ways wait), None when it holds nothing.");
+
+static PyObject *sa_first_clock(StepAxis *s, PyObject *unused)
+{
+    (void)unused;
+    if (!s->nseg)
+        Py_RETURN_NONE;
+    return PyFloat_FromDouble(first_clock(s));
+}
+
+static PyObject *message(PyObject *prefix, int64_t a, int64_t b)
+{
+    uint8_t buf[8 + 10];
+    Py_ssize_t at = PyBytes_GET_SIZE(prefix);
+    memcpy(buf, PyBytes_AS_STRING(prefix), (size_t)at);
+    at += wire_put_vlq(buf + at, a);
+    at += wire_put_vlq(buf + at, b);
+    return PyBytes_FromStringAndSize((const char *)buf, at);
+}
+
+static int append_triple(PyObject *out, PyObject *message, PyObject *until, int64_t due)
+{
+    if (message == NULL)
+        return -1;
+    PyObject *item = Py_BuildValue("(NOL)", message, until, (long long)due);
+    if (item == NULL || PyList_Append(out, item) < 0) {
+        Py_XDECREF(item);
+        return -1;
+    }
+    Py_DECREF(item);
+    return 0;
+}
+
+typedef struct {
+    StepAxis *axis;
+    PyObject *out;
+} Sink;
+
+/* Each run as its queue_step, due (and its slot taken until) its first step. */
+static int encode_run(void *ctx, Run run, int64_t first_clock)
+{
+    Sink *sink = ctx;
+    PyObject *prefix = sink->axis->step_prefix;
+    uint8_t buf[8 + 20];
+    Py_ssize_t at = PyBytes_GET_SIZE(prefix);
+    memcpy(buf, PyBytes_AS_STRING(prefix), (size_t)at);
+    at += wire_put_vlq(buf + at, sink->axis->oid);
+    at += wire_put_vlq(buf + at, run.interval);
+    at += wire_put_vlq(buf + at, run.count);
+    at += wire_put_vlq(buf + at, run.add);
+    PyObject *item = Py_BuildValue("(y#LL)", (const char *)buf, at, (long long)first_clock,
+                                   (long long)first_clock);
+    if (item == NULL || PyList_Append(sink->out, item) < 0) {
+        Py_XDECREF(item);
+        return -1;
+    }
+    Py_DECREF(item);
+    return 0;
+}
+
+static PyObject *doubles(const double *values, Py_ssize_t n)
+{
+    PyObject *raw = PyBytes_FromStringAndSize((const char *)values,
+                                              n * (Py_ssize_t)sizeof(double));
+    if (raw == NULL)
+        return NULL;
+    PyObject *view = PyMemoryView_FromObject(raw);
+    Py_DECREF(raw);
+    if (view == NULL)
+        return NULL;
+    PyObject *cast = PyObject_CallMethod(view, "cast", "s", "d");
+    Py_DECREF(view);
+    return cast;
+}
+
+/* Runs for a prefix of points (one direction), the reset and direction messages they need
+ * first, into out; how many points they cover, or -1. */
+static Py_ssize_t emit(StepAxis *s, int direction, const double *points, Py_ssize_t n,
+                       int final, PyObject *out, PyObject *errors)
+{
+    if (s->needs_reset || points[0] - (double)s->last_clock > 1073741824.0) {
+        int64_t start = (int64_t)(points[0] - s->max_error) - 1;
+        s->last_clock = start;
+        s->last_exact = (double)start;
+        if (append_triple(out, message(s->reset_prefix, s->oid, start & 0xFFFFFFFF), Py_None,
+                          start) < 0)
+            return -1;
+        s->needs_reset = 0;
+    }
+    if (direction != s->sent_dir) { /* due with the first step it turns */
+        if (append_triple(out, message(s->dir_prefix, s->oid, (direction > 0) != s->invert_dir),
+                          Py_None, (int64_t)points[0]) < 0)
+            return -1;
+        s->sent_dir = direction;
+    }
+    double *early = NULL;
+    if (errors != Py_None && (early = PyMem_Malloc((size_t)n * sizeof(double))) == NULL) {
+        PyErr_NoMemory();
+        return -1;
+    }
+    Sink sink = {s, out};
+    Py_ssize_t done = steps_compress(points, n, &s->last_clock, &s->last_exact, s->max_error,
+                                     final, early, encode_run, &sink);
+    if (done > 0 && early != NULL) {
+        PyObject *view = doubles(early, done);
+        if (view == NULL || PyList_Append(errors, view) < 0)
+            done = -1;
+        Py_XDECREF(view);
+    }
+    PyMem_Free(early);
+    return done;
+}
+
+PyDoc_STRVAR(flush_doc,
+"flush(force_clock, idle, out, errors)\n\n"
+"What is due: unless idle (everything goes), nothing while what is held runs one way and its\n"
+"first step is not before force_clock (its run may still grow). Else, run by run: the runs\n"
+"complete before the last step held go; the last run waits while its own first step is not\n"
+"before force_clock (it grows). Appends (message, slot until, due) triples to out; with\n"
+"errors (a list), how early each step sent lands (ticks, an array a call).");
+
+static PyObject *sa_flush(StepAxis *s, PyObject *args)
+{
+    double force;
+    int idle;
+    PyObject *out, *errors;
+    if (!PyArg_ParseTuple(args, "dpO!O", &force, &idle, &PyList_Type, &out, &errors))
+        return NULL;
+    if (s->step_prefix == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "the axis is not configured");
+        return NULL;
+    }
+    double first = first_clock(s);
+    if (!idle && (first < 0.0 || first >= force))
+        Py_RETURN_NONE; /* nothing due: its run may still grow */
+    while (s->nseg) {
+        const double *points = s->clocks + s->head;
+        Py_ssize_t n = s->seg_end[0] - s->head;
+        int direction = s->seg_dir[0], final = idle || s->nseg > 1;
+        if (!(final || points[0] < force))
+            break;
+        Py_ssize_t done = emit(s, direction, points, n, final, out, errors);
+        if (done < 0)
+            return NULL;
+        if (done < n && points[done] < force) { /* the last run is due */
+            Py_ssize_t more = emit(s, direction, points + done, n - done, 1, out, errors);
+            if (more < 0)
+                return NULL;
+            done += more;
+        }
+        s->head += done;
+        if (done < n)
+            break;
+        memmove(s->seg_dir, s->seg_dir + 1, (size_t)(s->nseg - 1) * sizeof(int));
+        memmove(s->seg_end, s->seg_end + 1, (size_t)(s->nseg - 1) * sizeof(Py_ssize_t));
+        s->nseg--;
+    }
+    if (!s->nseg)
+        s->head = s->len = 0;
+    Py_RETURN_NONE;
+}
+
+PyDoc_STRVAR(configure_doc,
+"configure(oid, invert_dir, max_error, queue_step, set_next_step_dir, reset_step_clock)\n\n"
+"The stepper's oid and direction pin, the compression's bound (ticks) and each command's id\n"
+"VLQ (Dictionary.step_prefixes); the next steps start with a reset_step_clock.");
+
+static PyObject *sa_configure(StepAxis *s, PyObject *args)
+{
+    int oid, invert;
+    double max_error;
+    PyObject *step, *dir, *reset;
+    if (!PyArg_ParseTuple(args, "ipdSSS", &oid, &invert, &max_error, &step, &dir, &reset))
+        return NULL;
+    if (PyBytes_GET_SIZE(step) > 8 || PyBytes_GET_SIZE(dir) > 8 || PyBytes_GET_SIZE(reset) > 8) {
+        PyErr_SetString(PyExc_ValueError, "a message id prefix is at most 8 bytes");
+        return NULL;
+    }
+    s->oid = oid;
+    s->invert_dir = invert;
+    s->max_error = max_error;
+    Py_INCREF(step);
+    Py_INCREF(dir);
+    Py_INCREF(reset);
+    Py_XSETREF(s->step_prefix, step);
+    Py_XSETREF(s->dir_prefix, dir);
+    Py_XSETREF(s->reset_prefix, reset);
+    s->needs_reset = 1;
+    s->sent_dir = 0;
+    Py_RETURN_NONE;
+}
+
+PyDoc_STRVAR(restart_doc,
+"restart()\n\n"
+"The MCU's stepper was reset (a new configuration): the next steps start with a\n"
+"reset_step_clock and a set_next_step_dir.");
+
+static PyObject *sa_restart(StepAxis *s, PyObject *unused)
+{
+    (void)unused;
+    s->needs_reset = 1;
+    s->sent_dir = 0;
+    Py_RETURN_NONE;
+}
+
+PyDoc_STRVAR(clear_doc, "clear()\n\nDrop every step held (a stop).");
+
+static PyObject *sa_clear(StepAxis *s, PyObject *unused)
+{
+    (void)unused;
+    s->head = s->len = s->nseg = 0;
+    Py_RETURN_NONE;
+}
+
+PyDoc_STRVAR(recorded_doc,
+"recorded() -> memoryview\n\n"
+"Every exact clock added since the axis was made (float64), when made with record=True.");
+
+static PyObject *sa_recorded(StepAxis *s, PyObject *unused)
+{
+    (void)unused;
+    return doubles(s->exact, s->exact_len);
+}
+
+static PyObject *sa_held(StepAxis *s, void *closure)
+{
+    (void)closure;
+    return PyLong_FromSsize_t(s->len - s->head);
+}
+
+static PyObject *sa_last_clock(StepAxis *s, void *closure)
+{
+    (void)closure;
+    return PyLong_FromLongLong((long long)s->last_clock);
+}
+
+static int sa_init(StepAxis *s, PyObject *args, PyObject *kwargs)
+{
+    static char *names[] = {"record", NULL};
+    int record = 0;
+    if (!PyArg_ParseTupleAndKeywords(args, kwargs, "|p", names, &record))
+        return -1;
+    s->record = record;
+    s->max_error = 1.0;
+    s->needs_reset = 1;
+    return 0;
+}
+
+static void sa_dealloc(StepAxis *s)
+{
+    PyMem_Free(s->clocks);
+    PyMem_Free(s->seg_dir);
+    PyMem_Free(s->seg_end);
+    PyMem_Free(s->exact);
+    Py_XDECREF(s->step_prefix);
+    Py_XDECREF(s->dir_prefix);
+    Py_XDECREF(s->reset_prefix);
+    Py_TYPE(s)->tp_free((PyObject *)s);
+}
+
+static PyMethodDef sa_methods[] = {
+    {"add", (PyCFunction)sa_add, METH_VARARGS, add_doc},
+    {"first_clock", (PyCFunction)sa_first_clock, METH_NOARGS, first_clock_doc},
+    {"flush", (PyCFunction)sa_flush, METH_VARARGS, flush_doc},
+    {"configure", (PyCFunction)sa_configure, METH_VARARGS, configure_doc},
+    {"restart", (PyCFunction)sa_restart, METH_NOARGS, restart_doc},
+    {"clear", (PyCFunction)sa_clear, METH_NOARGS, clear_doc},
+    {"recorded", (PyCFunction)sa_recorded, METH_NOARGS, recorded_doc},
+    {NULL, NULL, 0, NULL},
+};
+
+static PyObject *sa_get_record(StepAxis *s, void *closure)
+{
+    (void)closure;
+    return PyBool_FromLong(s->record);
+}
+
+static int sa_set_record(StepAxis *s, PyObject *value, void *closure)
+{
+    (void)closure;
+    int on = value == NULL ? 0 : PyObject_IsTrue(value);
+    if (on < 0)
+        return -1;
+    s->record = on;
+    return 0;
+}
+
+static PyGetSetDef sa_getset[] = {
+    {"record", (getter)sa_get_record, (setter)sa_set_record,
+     "whether every clock added is kept (recorded())", NULL},
+    {"held", (getter)sa_held, NULL, "how many steps are held (not yet sent)", NULL},
+    {"last_clock", (getter)sa_last_clock, NULL, "the MCU clock of the last step sent", NULL},
+    {NULL, NULL, NULL, NULL, NULL},
+};
+
+static PyTypeObject StepAxisType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "server.backends.klipper._stepcore.StepAxis",
+    .tp_doc = "One stepper's steps from the trajectory to the wire (see _stepaxis.c).",
+    .tp_basicsize = sizeof(StepAxis),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)sa_init,
+    .tp_dealloc = (destructor)sa_dealloc,
+    .tp_methods = sa_methods,
+    .tp_getset = sa_getset,
+};
+
+int stepaxis_add_type(PyObject *module)
+{
+    if (PyType_Ready(&StepAxisType) < 0)
+        return -1;
+    Py_INCREF(&StepAxisType);
+    if (PyModule_AddObject(module, "StepAxis", (PyObject *)&StepAxisType) < 0) {
+        Py_DECREF(&StepAxisType);
+        return -1;
+    }
+    return 0;
+}
