@@ -15,8 +15,10 @@ error bound allows two quadratic sequences of that length to differ by
 window considered grows while the best run fills it.
 
 The algorithm runs compiled (``_stepcore.c``, :func:`compress`): a run costs a few
-microseconds, not dozens of numpy calls. ``tests/support/stepcore_reference.py`` holds it in
-numpy, the oracle the tests hold the compiled core to, exactly.
+microseconds, not dozens of numpy calls. The backend's steppers compress through it from C
+(``_stepaxis.c``: :class:`~.stepcore.StepAxis`); :class:`StepCompressor` is its face for the
+tests and tools. ``tests/support/stepcore_reference.py`` holds it in numpy, the oracle the
+tests hold the compiled core to, exactly.
 """
 
 from __future__ import annotations
@@ -75,18 +77,10 @@ class StepCompressor:
         many points they cover. Unless ``final``, a last run that reaches the end of ``points``
         is held back (more steps may extend it). With ``errors``, how early each covered step
         is (ticks, one array) is appended to it."""
-        raw, done = self.compress_runs(points, final, errors)
-        return [StepRun(*run) for run in raw], done
-
-    def compress_runs(self, points: FloatArray, final: bool,
-                      errors: list[FloatArray] | None = None,
-                      ) -> tuple[list[tuple[int, int, int]], int]:
-        """:meth:`compress` with the runs as ``(interval, count, add)`` tuples, as the
-        compiled encoder takes them (:meth:`.Dictionary.step_encoder`)."""
         points = np.ascontiguousarray(points, dtype=np.float64)
         early = np.empty(len(points)) if errors is not None else None
         raw, done, self.last_clock, self.last_exact = compress(
             points, self.last_clock, self.last_exact, self.max_error, final, early)
         if early is not None and errors is not None and done:
             errors.append(early[:done])
-        return raw, done
+        return [StepRun(*run) for run in raw], done
