@@ -402,8 +402,9 @@ class StepGenerator:
                 state.line_number = move.line_number
         state.time_s = now_s
         state.queue_depth = len(self.planner)
-        self._step_to(now_s, position)
-        if self._pieces is not None:
+        if self._pieces is None:  # whole steps a tick (a backend that times its own steps
+            self._step_to(now_s, position)  # from the pieces has no use for them)
+        else:
             self._pieces.flush()
         self.backend.sample(now_s, position, state.speed_mm_s)
         if block is not None and state.kind is MoveKind.PROBE:
@@ -452,7 +453,8 @@ class StepGenerator:
 
     @property
     def steps(self) -> tuple[int, ...]:
-        """Steps emitted so far per axis (absolute)."""
+        """Whole steps emitted so far per axis (absolute; not kept for a backend that times
+        its own steps from the pieces)."""
         return tuple(self._cursor.steps)
 
     # -- the task's hooks (server.runtime.ticks runs the ticks) -----------------------------
