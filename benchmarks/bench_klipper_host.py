@@ -189,9 +189,10 @@ def execute(motion_s: float, job: Job | None = None,
         all_moves = rig_moves(job)
     moves = iter(all_moves)
     pending: Move | None = next(moves)
-    now_s, started = 0.0, time.process_time()
+    now_s, started, ticks = 0.0, time.process_time(), 0
     stepgen.tick(now_s)
     while pending is not None or not stepgen.idle:
+        ticks += 1
         while pending is not None and not planner.is_full():
             planner.append(pending)
             pending = next(moves, None)
@@ -203,6 +204,7 @@ def execute(motion_s: float, job: Job | None = None,
             time.sleep(pause_s)  # not CPU: process_time counts only the work
         stepgen.tick(now_s)
     backend.segments = len(all_moves)  # type: ignore[attr-defined]
+    backend.ticks = ticks  # type: ignore[attr-defined]
     return time.process_time() - started, stepgen.state.motion_time_s, backend
 
 
@@ -228,16 +230,19 @@ def cold_ticks(result: BenchResult, quick: bool) -> None:
     """The rig's jobs ticked back to back, then ``COLD_GAP_S`` apart: CPU per second of
     motion of the same work, and the ratio (the cost of waking cold)."""
     scale = 1 if quick else 2
-    for job in (rig_long_moves(count=2 * scale), rig_circles(turns=scale)):
-        warm_s, motion_s, _ = min((execute(0.0, job) for _ in range(2)), key=lambda r: r[0])
+    for job in (rig_long_moves(count=2 * scale), rig_circles(turns=scale),
+                rig_raster(lines=2 * scale)):
+        warm_s, motion_s, backend = min((execute(0.0, job) for _ in range(2)),
+                                        key=lambda r: r[0])
         cold_s = execute(0.0, job, COLD_GAP_S)[0]
-        print(f"rig {job.name:10} ticks back to back {warm_s / motion_s:.4f} s/s, "
-              f"{COLD_GAP_S * 1e3:.0f} ms apart {cold_s / motion_s:.4f} s/s "
-              f"({cold_s / warm_s:.1f}x)")
+        samples_s = backend.ticks / motion_s  # type: ignore[attr-defined]
+        print(f"rig {job.name:10} {samples_s:4.1f} samples/s, back to back "
+              f"{warm_s / motion_s:.4f} s/s, {COLD_GAP_S * 1e3:.0f} ms apart "
+              f"{cold_s / motion_s:.4f} s/s ({cold_s / warm_s:.1f}x)")
         result.add("klipper", f"rig {job.name} cold ticks",
                    warm_cpu_per_motion_s=(warm_s / motion_s, "s/s"),
                    cold_cpu_per_motion_s=(cold_s / motion_s, "s/s"),
-                   cold_over_warm=(cold_s / warm_s, "x"))
+                   cold_over_warm=(cold_s / warm_s, "x"), samples_per_s=(samples_s, "/s"))
 
 
 def run(quick: bool) -> BenchResult:
