@@ -3,20 +3,23 @@
 :class:`StepSchedule` is the part of :class:`~.backend.KlipperBackend` (a base class of it) that
 turns the trajectory into the MCU's step messages. The step generator tells the backend every
 constant-acceleration piece of the trajectory (:meth:`StepSchedule.trajectory`); at each sample,
-up to its time, each axis' exact step times are computed for all the pieces at once
-(:mod:`.steptimes`), mapped to MCU ticks at ``t + lead_time_s`` in the MCU's own time base
-(:mod:`.printclock`: the nominal ``CLOCK_FREQ``; the fitted clock of :mod:`.clocksync` anchors
-the schedule's start and sets the host's deadlines), and compressed into ``queue_step`` runs
-within ``max_error_s`` (:mod:`.stepcompress`) every ``flush_s``, with ``set_next_step_dir`` on
-direction changes and ``reset_step_clock`` after a long idle or a reconfiguration. A run that
+up to its time, each axis' stretches of the pieces (:mod:`.steptimes`) go to its compiled step
+axis (``_stepaxis.c``), which solves their exact step times, mapped to MCU ticks at ``t +
+lead_time_s`` in the MCU's own time base (:mod:`.printclock`: the nominal ``CLOCK_FREQ``; the
+fitted clock of :mod:`.clocksync` anchors the schedule's start and sets the host's deadlines),
+holds them, and compresses what is due into ``queue_step`` runs within ``max_error_s``
+(:mod:`.stepcompress`), with ``set_next_step_dir`` on direction changes and
+``reset_step_clock`` after a long idle or a reconfiguration. A run that
 may still grow is held back at most all of the lead but ``RIDE_THROUGH_S`` (at least a quarter
 of it, ``HOLD_BACK_SHARE``), so a host stall of up to ``lead_time_s`` - hold-back - ``flush_s``
 (130 ms with a lead of 0.2 s or more) never starves the MCU. Messages leave in order while the
 MCU's move queue (``move_count`` from its config) has room (:mod:`.movequeue`), in bursts that
 the link packs into as few message blocks as fit; messages that would only part-fill a burst's
 last block wait for more while none of them is due within ``lead_time_s`` - ``hold_back_s``
-(as a held-back run does), so blocks leave fuller. The motion's timeline maps to the MCU's
-clock here too (:meth:`StepSchedule._scheduled_clock`), for the outputs (:mod:`.outputs`).
+and a flush (as a held-back run does), so blocks leave fuller; a sample sends what would
+turn before another flush could come, so turns close together take one wake-up. The motion's
+timeline maps to the MCU's clock here too (:meth:`StepSchedule._scheduled_clock`), for the
+outputs (:mod:`.outputs`).
 
 Kept apart from the outputs and the board's session (:mod:`.session`) so that the work done per
 piece and per sample reads in one place. As a base class its methods are the backend's own (no
@@ -287,10 +290,10 @@ class StepSchedule:
 
     def _pump(self) -> None:
         """Send queued messages in order while the MCU's move queue has room. Less than a
-        block of messages all due later than a flush must send (``lead_s`` - ``hold_back_s``
-        ahead) waits for more, at flushes and between them alike, so they share blocks; a
-        message so held still leaves at least ``lead_s`` - ``hold_back_s`` - ``flush_s``
-        ahead, as a held-back run does."""
+        block of messages all due later than a flush must send (``_send_ahead_s`` ahead)
+        waits for more, at flushes and between them alike, so they share blocks; a message so
+        held still leaves at least ``lead_s`` - ``hold_back_s`` - ``flush_s`` ahead, as a
+        held-back run does."""
         mcu = self.mcu
         if mcu is None or not self._queue.waiting:
             return
