@@ -11,8 +11,8 @@ from setuptools import Extension, setup
 setup(ext_modules=[Extension(
     "server.backends.klipper._stepcore",
     sources=["server/backends/klipper/_stepcore.c", "server/backends/klipper/_wire.c",
-             "server/backends/klipper/_stepaxis.c", "server/backends/klipper/_serialq.c",
-             "server/backends/klipper/_serialq_thread.c"],
+             "server/backends/klipper/_stepaxis.c", "server/backends/klipper/_movequeue.c",
+             "server/backends/klipper/_serialq.c", "server/backends/klipper/_serialq_thread.c"],
     depends=["server/backends/klipper/_serialq.h", "server/backends/klipper/_stepcore.h"],
     extra_compile_args=["-O2", "-ffp-contract=off", "-pthread"],  # (-ffp-contract=off: no
     extra_link_args=["-pthread"],  # fused multiply-add: exact roundings)

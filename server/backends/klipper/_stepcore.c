@@ -374,7 +374,8 @@ PyMODINIT_FUNC PyInit__stepcore(void)
         || PyModule_AddIntConstant(m, "WINDOW", WINDOW) < 0
         || PyModule_AddIntConstant(m, "QUADRATIC_DEV", QUADRATIC_DEV) < 0
         || PyModule_AddIntConstant(m, "MAX_TRIES", MAX_TRIES) < 0
-        || serialq_add_type(m) < 0 || stepaxis_add_type(m) < 0) {
+        || serialq_add_type(m) < 0 || stepaxis_add_type(m) < 0
+        || movequeue_add_type(m) < 0) {
         Py_DECREF(m);
         return NULL;
     }

@@ -1,4 +1,5 @@
-/* What the step core's C files share (one module: _stepcore.c, _wire.c, _stepaxis.c). */
+/* What the step core's C files share (one module: _stepcore.c, _wire.c, _stepaxis.c,
+ * _movequeue.c). */
 #ifndef MOTIOND_STEPCORE_H
 #define MOTIOND_STEPCORE_H
 #define PY_SSIZE_T_CLEAN
@@ -34,5 +35,8 @@ Py_ssize_t wire_put_vlq(uint8_t *out, int64_t value);
 
 /* The StepAxis type into the module. (_stepaxis.c) */
 int stepaxis_add_type(PyObject *module);
+
+/* The MoveQueueCore type into the module. (_movequeue.c) */
+int movequeue_add_type(PyObject *module);
 
 #endif

@@ -319,6 +319,6 @@ class StepSchedule:
         self._trail.clear()
         self._follow_on = False
         self._pieces.clear()
-        self._queue.waiting.clear()
+        self._queue.drop()
         for axis in self.axes:
             axis.steps.clear()

@@ -234,7 +234,7 @@ class BoardSession:
         self._config_base = [axis.position for axis in self.axes]
         for out in self.outputs.values():
             out.last_clock, out.value = 0, 0.0
-        self._queue.in_use.clear()
+        self._queue.free_slots()
         self._print.unanchor()
 
     def _config_commands(self, d: Dictionary) -> list[Command]:

@@ -1,5 +1,6 @@
 """The compiled step core (``_stepcore.c``): step times and their compression, each stepper's
-steps held until due and sent (``_stepaxis.c``: :class:`StepAxis`), the wire's hot end (a
+steps held until due and sent (``_stepaxis.c``: :class:`StepAxis`), the MCU's move queue as
+the host counts it (``_movequeue.c``: :class:`MoveQueueCore`), the wire's hot end (a
 prepared message's VLQs, a block's framing and checksum) and the link's thread (``_serialq.c``:
 :class:`SerialQueue`).
 
@@ -23,6 +24,7 @@ try:
         MAX_TRIES,
         QUADRATIC_DEV,
         WINDOW,
+        MoveQueueCore,
         SerialQueue,
         StepAxis,
         compress,
@@ -34,5 +36,6 @@ try:
 except ImportError:
     raise ConfigError([MISSING]) from None
 
-__all__ = ["ADD_MAX", "ADD_MIN", "MAX_COUNT", "MAX_TRIES", "QUADRATIC_DEV", "WINDOW", "SerialQueue",
-           "StepAxis", "compress", "crc16", "frame", "message", "solve"]
+__all__ = ["ADD_MAX", "ADD_MIN", "MAX_COUNT", "MAX_TRIES", "QUADRATIC_DEV", "WINDOW",
+           "MoveQueueCore", "SerialQueue", "StepAxis", "compress", "crc16", "frame", "message",
+           "solve"]
