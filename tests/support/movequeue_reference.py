@@ -44,11 +44,7 @@ class ReferenceMoveQueue:
         self.waiting.extend(messages)
 
     def pump(self, mcu: Mcu, now: float, hold_after: float | None = None) -> float | None:
-        """Send what the queue has room for at MCU clock ``now``, all in one burst (the link
-        packs it into as few blocks as fit); returns how many ms late the next message would
-        be (nothing more is sent), or None. ``hold_after``: an MCU clock; the messages of a
-        last block not filled wait while none of them is due by it (the next burst will share
-        their block), the blocks before it go."""
+        """As :meth:`server.backends.klipper.movequeue.MoveQueue.pump`."""
         freq = mcu.clock.freq_hz if mcu.clock else 0.0
         in_use, waiting = self.in_use, self.waiting
         freed = now - QUEUE_MARGIN_S * freq  # slots freed are counted free (see turn)

@@ -358,12 +358,5 @@ static PyTypeObject MoveQueueType = {
 
 int movequeue_add_type(PyObject *module)
 {
-    if (PyType_Ready(&MoveQueueType) < 0)
-        return -1;
-    Py_INCREF(&MoveQueueType);
-    if (PyModule_AddObject(module, "MoveQueueCore", (PyObject *)&MoveQueueType) < 0) {
-        Py_DECREF(&MoveQueueType);
-        return -1;
-    }
-    return 0;
+    return stepcore_add_type(module, &MoveQueueType, "MoveQueueCore");
 }

@@ -19,6 +19,8 @@
  * calls, the thread takes it but never the GIL, so neither waits for the other long. */
 #include "_serialq.h"
 
+int stepcore_add_type(PyObject *module, PyTypeObject *type, const char *name); /* _stepcore.c */
+
 /* -- the Python side -------------------------------------------------------------------- */
 /* After a call changed what the thread waits for: wake it if it would wait too long. */
 static void wake_if_needed(SerialQueue *s)
@@ -552,12 +554,5 @@ static PyTypeObject SerialQueueType = {
 
 int serialq_add_type(PyObject *module)
 {
-    if (PyType_Ready(&SerialQueueType) < 0)
-        return -1;
-    Py_INCREF(&SerialQueueType);
-    if (PyModule_AddObject(module, "SerialQueue", (PyObject *)&SerialQueueType) < 0) {
-        Py_DECREF(&SerialQueueType);
-        return -1;
-    }
-    return 0;
+    return stepcore_add_type(module, &SerialQueueType, "SerialQueue");
 }

@@ -448,12 +448,5 @@ static PyTypeObject StepAxisType = {
 
 int stepaxis_add_type(PyObject *module)
 {
-    if (PyType_Ready(&StepAxisType) < 0)
-        return -1;
-    Py_INCREF(&StepAxisType);
-    if (PyModule_AddObject(module, "StepAxis", (PyObject *)&StepAxisType) < 0) {
-        Py_DECREF(&StepAxisType);
-        return -1;
-    }
-    return 0;
+    return stepcore_add_type(module, &StepAxisType, "StepAxis");
 }

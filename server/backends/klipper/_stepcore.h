@@ -33,6 +33,9 @@ void steps_solve_row(const double v[8], Py_ssize_t count, double *out, double *l
 /* Klipper's VLQ of value into out (at most 5 bytes); its length. (_wire.c) */
 Py_ssize_t wire_put_vlq(uint8_t *out, int64_t value);
 
+/* type, made ready, into module as name. (_stepcore.c) */
+int stepcore_add_type(PyObject *module, PyTypeObject *type, const char *name);
+
 /* The StepAxis type into the module. (_stepaxis.c) */
 int stepaxis_add_type(PyObject *module);
 
