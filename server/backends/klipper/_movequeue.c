@@ -236,7 +236,7 @@ static PyObject *mq_turn(MoveQueue *q, PyObject *args)
         return NULL;
     if (!q->len)
         Py_RETURN_NONE;
-    if (q->used >= move_count)
+    if (q->used && q->used >= move_count)
         return PyFloat_FromDouble((double)q->heap[0] + QUEUE_MARGIN_S * freq);
     int64_t first = at(q, 0)->due;
     for (Py_ssize_t i = 1; i < q->len; i++)

@@ -126,13 +126,11 @@ static PyObject *sa_add(StepAxis *s, PyObject *args)
     return PyLong_FromSsize_t(added);
 }
 
-/* The clock from which what is held must be looked at: its first step's; 0 when at once
- * (runs both ways wait); -1 when nothing is held. */
+/* The clock from which what is held must be looked at (something is): its first step's; 0
+ * when at once (runs both ways wait). */
 static double first_clock(StepAxis *s)
 {
-    if (s->nseg > 1)
-        return 0.0;
-    return s->nseg ? s->clocks[s->head] : -1.0;
+    return s->nseg > 1 ? 0.0 : s->clocks[s->head];
 }
 
 PyDoc_STRVAR(first_clock_doc,
@@ -270,8 +268,7 @@ static PyObject *sa_flush(StepAxis *s, PyObject *args)
         PyErr_SetString(PyExc_RuntimeError, "the axis is not configured");
         return NULL;
     }
-    double first = first_clock(s);
-    if (!idle && (first < 0.0 || first >= force))
+    if (!idle && (!s->nseg || first_clock(s) >= force))
         Py_RETURN_NONE; /* nothing due: its run may still grow */
     while (s->nseg) {
         const double *points = s->clocks + s->head;
