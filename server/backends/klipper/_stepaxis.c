@@ -58,19 +58,6 @@ static int room_for(StepAxis *s, Py_ssize_t n)
     return grow((void **)&s->clocks, &s->cap, s->len + n, sizeof(double));
 }
 
-static int to_double_row(PyObject *row, double v[8])
-{
-    if (!PyTuple_Check(row) || PyTuple_GET_SIZE(row) != 8) {
-        PyErr_SetString(PyExc_TypeError, "a row is a tuple of 8 numbers");
-        return -1;
-    }
-    for (int i = 0; i < 8; i++) {
-        PyObject *o = PyTuple_GET_ITEM(row, i);
-        v[i] = PyFloat_CheckExact(o) ? PyFloat_AS_DOUBLE(o) : PyFloat_AsDouble(o);
-    }
-    return PyErr_Occurred() ? -1 : 0;
-}
-
 PyDoc_STRVAR(add_doc,
 "add(rows, counts, ref_clock, hz, ref_s) -> int\n\n"
 "A sample's spans (steptimes.Spans' rows and counts): every step's exact clock, solved as\n"
@@ -91,7 +78,7 @@ static PyObject *sa_add(StepAxis *s, PyObject *args)
     double latest = -INFINITY;
     for (Py_ssize_t r = 0; r < nrows; r++) {
         double v[8];
-        if (to_double_row(PyList_GET_ITEM(rows, r), v) < 0)
+        if (steps_row(PyList_GET_ITEM(rows, r), v) < 0)
             return NULL;
         Py_ssize_t count = PyLong_AsSsize_t(PyList_GET_ITEM(counts, r));
         if (count < 0) {
@@ -148,19 +135,18 @@ static PyObject *sa_first_clock(StepAxis *s, PyObject *unused)
 
 static PyObject *message(PyObject *prefix, int64_t a, int64_t b)
 {
-    uint8_t buf[8 + 10];
-    Py_ssize_t at = PyBytes_GET_SIZE(prefix);
-    memcpy(buf, PyBytes_AS_STRING(prefix), (size_t)at);
-    at += wire_put_vlq(buf + at, a);
-    at += wire_put_vlq(buf + at, b);
-    return PyBytes_FromStringAndSize((const char *)buf, at);
+    int64_t values[] = {a, b};
+    return wire_encode(prefix, values, 2);
 }
 
-static int append_triple(PyObject *out, PyObject *message, PyObject *until, int64_t due)
+/* (message, slot until, due) onto out: a message that takes a slot of the MCU's move queue
+ * (a queue_step) holds it until it is due; the others take none (until None). */
+static int append_triple(PyObject *out, PyObject *message, int takes_slot, int64_t due)
 {
     if (message == NULL)
         return -1;
-    PyObject *item = Py_BuildValue("(NOL)", message, until, (long long)due);
+    PyObject *item = takes_slot ? Py_BuildValue("(NLL)", message, (long long)due, (long long)due)
+                                : Py_BuildValue("(NOL)", message, Py_None, (long long)due);
     if (item == NULL || PyList_Append(out, item) < 0) {
         Py_XDECREF(item);
         return -1;
@@ -178,22 +164,9 @@ typedef struct {
 static int encode_run(void *ctx, Run run, int64_t first_clock)
 {
     Sink *sink = ctx;
-    PyObject *prefix = sink->axis->step_prefix;
-    uint8_t buf[8 + 20];
-    Py_ssize_t at = PyBytes_GET_SIZE(prefix);
-    memcpy(buf, PyBytes_AS_STRING(prefix), (size_t)at);
-    at += wire_put_vlq(buf + at, sink->axis->oid);
-    at += wire_put_vlq(buf + at, run.interval);
-    at += wire_put_vlq(buf + at, run.count);
-    at += wire_put_vlq(buf + at, run.add);
-    PyObject *item = Py_BuildValue("(y#LL)", (const char *)buf, at, (long long)first_clock,
-                                   (long long)first_clock);
-    if (item == NULL || PyList_Append(sink->out, item) < 0) {
-        Py_XDECREF(item);
-        return -1;
-    }
-    Py_DECREF(item);
-    return 0;
+    int64_t values[] = {sink->axis->oid, run.interval, run.count, run.add};
+    return append_triple(sink->out, wire_encode(sink->axis->step_prefix, values, 4), 1,
+                         first_clock);
 }
 
 static PyObject *doubles(const double *values, Py_ssize_t n)
@@ -220,14 +193,14 @@ static Py_ssize_t emit(StepAxis *s, int direction, const double *points, Py_ssiz
         int64_t start = (int64_t)(points[0] - s->max_error) - 1;
         s->last_clock = start;
         s->last_exact = (double)start;
-        if (append_triple(out, message(s->reset_prefix, s->oid, start & 0xFFFFFFFF), Py_None,
+        if (append_triple(out, message(s->reset_prefix, s->oid, start & 0xFFFFFFFF), 0,
                           start) < 0)
             return -1;
         s->needs_reset = 0;
     }
     if (direction != s->sent_dir) { /* due with the first step it turns */
         if (append_triple(out, message(s->dir_prefix, s->oid, (direction > 0) != s->invert_dir),
-                          Py_None, (int64_t)points[0]) < 0)
+                          0, (int64_t)points[0]) < 0)
             return -1;
         s->sent_dir = direction;
     }

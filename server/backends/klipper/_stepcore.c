@@ -290,9 +290,17 @@ void steps_solve_row(const double v[8], Py_ssize_t count, double *out, double *l
     }
 }
 
-static inline double as_double(PyObject *o)
+int steps_row(PyObject *row, double v[8])
 {
-    return PyFloat_CheckExact(o) ? PyFloat_AS_DOUBLE(o) : PyFloat_AsDouble(o);
+    if (!PyTuple_Check(row) || PyTuple_GET_SIZE(row) != 8) {
+        PyErr_SetString(PyExc_TypeError, "a row is a tuple of 8 numbers");
+        return -1;
+    }
+    for (int i = 0; i < 8; i++) {
+        PyObject *o = PyTuple_GET_ITEM(row, i);
+        v[i] = PyFloat_CheckExact(o) ? PyFloat_AS_DOUBLE(o) : PyFloat_AsDouble(o);
+    }
+    return PyErr_Occurred() ? -1 : 0;
 }
 
 PyDoc_STRVAR(solve_doc,
@@ -320,14 +328,9 @@ static PyObject *solve(PyObject *self, PyObject *args)
     double *out = ov.buf, latest = -INFINITY;
     Py_ssize_t room = ov.len / 8, at = 0;
     for (Py_ssize_t r = 0; r < nrows; r++) {
-        PyObject *row = PyList_GET_ITEM(rows, r);
-        if (!PyTuple_Check(row) || PyTuple_GET_SIZE(row) != 8) {
-            PyErr_SetString(PyExc_TypeError, "a row is a tuple of 8 numbers");
-            goto fail;
-        }
         double v[8];
-        for (int i = 0; i < 8; i++)
-            v[i] = as_double(PyTuple_GET_ITEM(row, i));
+        if (steps_row(PyList_GET_ITEM(rows, r), v) < 0)
+            goto fail;
         Py_ssize_t count = PyLong_AsSsize_t(PyList_GET_ITEM(counts, r));
         if (PyErr_Occurred())
             goto fail;

@@ -1,5 +1,5 @@
 /* The wire's hot end of the Klipper backend, compiled into the step core's module (see
- * _stepcore.c): a prepared message's VLQs (and Klipper's VLQ for _stepaxis.c), a block's framing
+ * _stepcore.c): a prepared message's VLQs (_stepaxis.c's messages too), a block's framing
  * and its crc16. codec.py and dictionary.py hold the protocol's description; the tests hold
  * these to the generic Python encoder and to klippy's own msgproto, byte for byte. The
  * functions below that are not static are declared in _stepcore.c, which names them. */
@@ -27,12 +27,17 @@ static inline Py_ssize_t put_vlq(uint8_t *out, int64_t value)
     return size;
 }
 
-Py_ssize_t wire_put_vlq(uint8_t *out, int64_t value)
-{
-    return put_vlq(out, value);
-}
-
 #define MESSAGE_VALUES 16
+
+PyObject *wire_encode(PyObject *prefix, const int64_t *values, Py_ssize_t count)
+{
+    uint8_t buf[8 + 5 * MESSAGE_VALUES];
+    Py_ssize_t at = PyBytes_GET_SIZE(prefix);
+    memcpy(buf, PyBytes_AS_STRING(prefix), (size_t)at);
+    for (Py_ssize_t i = 0; i < count; i++)
+        at += put_vlq(buf + at, values[i]);
+    return PyBytes_FromStringAndSize((const char *)buf, at);
+}
 
 const char message_doc[] =
 "message(prefix, count, *values) -> bytes\n\n"
@@ -57,16 +62,13 @@ PyObject *wire_message(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
         PyErr_SetString(PyExc_ValueError, "a message id prefix is at most 8 bytes");
         return NULL;
     }
-    uint8_t buf[8 + 5 * MESSAGE_VALUES];
-    memcpy(buf, PyBytes_AS_STRING(args[0]), (size_t)plen);
-    Py_ssize_t at = plen;
+    int64_t values[MESSAGE_VALUES];
     for (Py_ssize_t i = 0; i < count; i++) {
-        long long value = PyLong_AsLongLong(args[2 + i]);
-        if (value == -1 && PyErr_Occurred())
+        values[i] = PyLong_AsLongLong(args[2 + i]);
+        if (values[i] == -1 && PyErr_Occurred())
             return NULL;
-        at += put_vlq(buf + at, value);
     }
-    return PyBytes_FromStringAndSize((const char *)buf, at);
+    return wire_encode(args[0], values, count);
 }
 
 static uint16_t crc_table[256]; /* filled at import: the reflected polynomial 0x8408 */
