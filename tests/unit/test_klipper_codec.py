@@ -207,15 +207,17 @@ def test_a_step_axis_sends_the_compressed_runs_of_its_exact_steps_as_the_generic
     spans, per_mm, max_error = Spans(), 80.0, 400.0
     distance = v0 * duration_s + 0.5 * a * duration_s * duration_s
     target = step_target(0.3 + per_mm * distance)
+    axis = StepAxis()
+    axis.configure(oid, invert, max_error, *ours.step_prefixes())
     spans.add(0.3, per_mm, v0, a, duration_s, 0, target, 0.0)
+    axis.span(0.3, per_mm, v0, a, duration_s, 0, target, 0.0)
     end = 0.3 + per_mm * distance
     back = step_target(end - per_mm * v0 * back_s)
     if back != target:  # a turn: the other way at v0
         spans.add(end, -per_mm, v0, 0.0, back_s, target, back, duration_s)
+        axis.span(end, -per_mm, v0, 0.0, back_s, target, back, duration_s)
     to_clock = (1e6, 16e6, 0.0)
-    axis = StepAxis()
-    axis.configure(oid, invert, max_error, *ours.step_prefixes())
-    assert axis.add(spans.rows, spans.counts, *to_clock) == spans.total
+    assert axis.add(*to_clock) == spans.total
     sent: list[tuple[bytes, int | None, int]] = []
     axis.flush(0.0, True, sent, None)
 

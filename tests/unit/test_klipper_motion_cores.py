@@ -6,11 +6,14 @@ import math
 import random
 
 import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from server.backends.klipper.clocksync import ClockSync
 from server.backends.klipper.dictionary import Dictionary
 from server.backends.klipper.stepcompress import StepCompressor, run_clocks
-from server.backends.klipper.stepcore import StepAxis
+from server.backends.klipper.stepcore import StepAxis, off_track, piece_steps
 from server.backends.klipper.steptimes import Spans, crossing_times, step_target
 from tests.support.klipper_dictionary import dictionary_data
 
@@ -88,7 +91,11 @@ def test_the_steps_of_many_pieces_solved_at_once_are_each_pieces_own() -> None:
     d = Dictionary(dictionary_data())
     axis = StepAxis(record=True)  # the same spans held by a step axis, sent in runs by direction
     axis.configure(0, False, 25e-6 * CLOCK_HZ, *d.step_prefixes())
-    axis.add(spans.rows, spans.counts, 0.0, CLOCK_HZ, 0.0)
+    for row, count in zip(spans.rows, spans.counts, strict=True):
+        x0, u, v0, a, duration_s, first, direction, base_s = row
+        start = round(first - 0.5 * direction)
+        axis.span(x0, u, v0, a, duration_s, start, start + int(direction) * count, base_s)
+    axis.add(0.0, CLOCK_HZ, 0.0)
     assert np.array_equal(np.asarray(axis.recorded()), times * CLOCK_HZ)
     sent: list[tuple[bytes, int | None, int]] = []
     axis.flush(0.0, True, sent, None)
@@ -130,3 +137,58 @@ def test_compression_holds_back_a_run_that_may_still_grow() -> None:
     assert runs == [] and done == 0
     runs, done = compressor.compress(points, final=True)
     assert done == 100 and len(runs) == 1 and math.isclose(runs[0].interval, 72_000)
+
+
+@given(st.lists(st.tuples(
+    st.floats(-50.0, 50.0), st.floats(-50.0, 50.0), st.sampled_from([0.0, 0.6, -0.8, 1.0]),
+    st.sampled_from([(0.0, 3000.0), (80.0, 0.0), (80.0, -1500.0), (3.0, 200.0)]),
+    st.floats(0.0, 0.05)), min_size=1, max_size=12),
+    st.sampled_from([80.0, 56.6, 400.0]), st.sampled_from([80.0, 13.0]))
+@settings(max_examples=150, deadline=None)
+def test_a_piece_s_steps_on_each_axis_are_those_of_the_python_it_replaces(
+        pieces: list[tuple[float, float, float, tuple[float, float], float]],
+        x_per_mm: float, y_per_mm: float) -> None:
+    """``piece_steps`` (one compiled call a piece for every axis) queues the spans that the
+    schedule's Python made: the whole step ``floor(x0 + u·d + 0.5)`` at the piece's distance,
+    a span from where the axis is when that differs, the position carried on; an axis the
+    piece does not move is left alone. Solved (``add``), the same clocks to the bit."""
+    axes = (StepAxis(record=True), StepAxis(record=True))
+    axes[0].steps_per_mm, axes[1].steps_per_mm = x_per_mm, y_per_mm
+    positions, spans = [0, 0], (Spans(), Spans())
+    base_s = 1.0
+    for x_mm, y_mm, ux, (v0, a), rel_s in pieces:
+        start, unit = (x_mm, y_mm), (ux, math.sqrt(1.0 - ux * ux))
+        if a < 0.0:
+            rel_s = min(rel_s, v0 / -a)
+        assert off_track(axes, start) == any(
+            abs(s * per_mm - p) > 1.0 for s, per_mm, p in zip(start, (x_per_mm, y_per_mm),
+                                                              positions, strict=True))
+        piece_steps(axes, start, unit, v0, a, rel_s, base_s)
+        distance = v0 * rel_s + 0.5 * a * rel_s * rel_s
+        for i, per_mm in enumerate((x_per_mm, y_per_mm)):
+            if unit[i] == 0.0:
+                continue
+            x0, u = start[i] * per_mm, unit[i] * per_mm
+            target = math.floor(x0 + u * distance + 0.5)
+            if target != positions[i]:
+                spans[i].add(x0, u, v0, a, rel_s, positions[i], target, base_s)
+                positions[i] = target
+        base_s += 0.05
+    for axis, axis_spans, position in zip(axes, spans, positions, strict=True):
+        assert axis.position == position
+        assert axis.add(1e6, CLOCK_HZ, 1.0) == axis_spans.total
+        assert np.array_equal(np.asarray(axis.recorded()),
+                              axis_spans.solve((1e6, CLOCK_HZ, 1.0)))
+
+
+def test_piece_steps_refuses_what_is_not_a_piece_of_its_axes() -> None:
+    axes = (StepAxis(), StepAxis())
+    with pytest.raises(ValueError, match="one number per axis"):
+        piece_steps(axes, (0.0,), (1.0, 0.0), 10.0, 0.0, 0.1, 0.0)
+    with pytest.raises(TypeError, match="StepAxis"):
+        piece_steps((axes[0], "y"), (0.0, 0.0), (0.0, 1.0), 10.0, 0.0, 0.1, 0.0)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="not finite"):
+        piece_steps(axes, (math.inf, 0.0), (1.0, 0.0), 10.0, 0.0, 0.1, 0.0)
+    with pytest.raises(ValueError, match="positive"):
+        axes[0].steps_per_mm = 0.0
+    assert axes[0].position == axes[1].position == 0 and axes[0].add(0.0, 1.0, 0.0) == 0

@@ -6,7 +6,10 @@ from __future__ import annotations
 
 from typing import Any
 
+import pytest
+
 from benchmarks.bench_klipper_host import Listener, OfflineBackend
+from server.backends.klipper import schedule
 from server.config_loader import build_config
 from server.machine.parts import planner_settings
 from server.motion.moves import Move, MoveKind, ToolMode
@@ -38,7 +41,8 @@ def x_steps(messages: list[tuple[str, Any]]) -> list[int]:
     return out
 
 
-def test_a_redefined_position_between_blocks_sends_no_step_and_moves_on_from_there() -> None:
+def test_a_redefined_position_between_blocks_sends_no_step_and_moves_on_from_there(
+        monkeypatch: pytest.MonkeyPatch) -> None:
     axes = {a: {"steps_per_mm": 80, "max_rate_mm_s": 300, "accel_mm_s2": 3000, "max_mm": 400}
             for a in "xy"}
     pins = {"x": {"step_pin": "PB13", "dir_pin": "PB12"},
@@ -49,9 +53,11 @@ def test_a_redefined_position_between_blocks_sends_no_step_and_moves_on_from_the
     backend.mcu, backend.ready = mcu, True  # type: ignore[assignment]
     for oid, axis in enumerate(backend.axes):  # what configuring the MCU sets
         axis.configure(oid, mcu.dictionary, backend.cfg.max_error_s * CLOCK_HZ)
-    looked, pieces = [], []  # the pieces _rebased looked at; all pieces
-    rebased, trajectory = backend._rebased, backend.trajectory
-    backend._rebased = lambda piece: (looked.append(piece), rebased(piece))[1]  # type: ignore[method-assign]
+    looked, pieces, moved = [], [], []  # the starts checked, all pieces, those rebased
+    check, rebased, trajectory = schedule.off_track, backend._rebased, backend.trajectory
+    monkeypatch.setattr(schedule, "off_track",
+                        lambda steps, start: (looked.append(start), check(steps, start))[1])
+    backend._rebased = lambda piece: (moved.append(piece), rebased(piece))[1]  # type: ignore[method-assign]
     backend.trajectory = lambda piece: (pieces.append(piece), trajectory(piece))[1]  # type: ignore[method-assign]
     planner = Planner(planner_settings(core), (0.0, 0.0))
     stepgen = StepGenerator(planner, backend, (80.0, 80.0), Listener())
@@ -70,3 +76,4 @@ def test_a_redefined_position_between_blocks_sends_no_step_and_moves_on_from_the
     assert sum(steps) == 1600 + 400 and backend.axes[0].position == 400
     moving = [p for p in pieces if p.duration_s > 0.0]
     assert len(moving) > 3 and len(looked) == len({id(p.unit) for p in moving}) == 3
+    assert [p.start_mm for p in moved] == [(0.0, 0.0)]  # only the block that starts elsewhere

@@ -9,6 +9,7 @@
  * compress() compute) and the VLQs _wire.c's; the tests hold the messages to the generic
  * encoder's bytes and the steps to their exact times. */
 #include "_stepcore.h"
+#include <math.h>
 #include <string.h>
 
 typedef struct {
@@ -26,6 +27,11 @@ typedef struct {
     int64_t last_clock;   /* the last step sent (MCU clock), and its exact clock */
     double last_exact;
     PyObject *step_prefix, *dir_prefix, *reset_prefix; /* the commands' id VLQs */
+    int64_t position;     /* whole steps commanded so far */
+    double per_mm;        /* steps per mm */
+    double *spans;        /* the spans queued since the last add: 8 numbers each (steptimes.py) */
+    Py_ssize_t *counts;   /* ...and the steps of each */
+    Py_ssize_t nspans, spans_cap, counts_cap;
 } StepAxis;
 
 static int grow(void **buf, Py_ssize_t *cap, Py_ssize_t need, size_t item)
@@ -58,36 +64,62 @@ static int room_for(StepAxis *s, Py_ssize_t n)
     return grow((void **)&s->clocks, &s->cap, s->len + n, sizeof(double));
 }
 
+/* A span of count steps (row: steptimes.Spans' eight numbers) queued until add() solves it. */
+static int queue_span(StepAxis *s, const double row[8], Py_ssize_t count)
+{
+    if (grow((void **)&s->spans, &s->spans_cap, 8 * (s->nspans + 1), sizeof(double)) < 0
+        || grow((void **)&s->counts, &s->counts_cap, s->nspans + 1, sizeof(Py_ssize_t)) < 0)
+        return -1;
+    memcpy(s->spans + 8 * s->nspans, row, 8 * sizeof(double));
+    s->counts[s->nspans++] = count;
+    return 0;
+}
+
+/* The span from the whole step current to target (not equal) as Spans.add makes it. */
+static int queue_steps(StepAxis *s, double x0, double u, double v0, double a,
+                       double duration_s, int64_t current, int64_t target, double base_s)
+{
+    double direction = target > current ? 1.0 : -1.0;
+    double row[8] = {x0, u, v0, a, duration_s, (double)current + 0.5 * direction, direction,
+                     base_s};
+    return queue_span(s, row, (Py_ssize_t)(target > current ? target - current
+                                                               : current - target));
+}
+
+PyDoc_STRVAR(span_doc,
+"span(x0, u, v0, a, duration_s, current, target, base_s)\n\n"
+"Queue the steps from the whole step current to target along a piece, as steptimes.Spans.add\n"
+"takes them (x0: steps at the piece's start, u: steps per mm of path); add() solves them.");
+
+static PyObject *sa_span(StepAxis *s, PyObject *args)
+{
+    double x0, u, v0, a, duration_s, base_s;
+    long long current, target;
+    if (!PyArg_ParseTuple(args, "dddddLLd", &x0, &u, &v0, &a, &duration_s, &current, &target,
+                          &base_s))
+        return NULL;
+    if (current != target && queue_steps(s, x0, u, v0, a, duration_s, current, target,
+                                         base_s) < 0)
+        return NULL;
+    Py_RETURN_NONE;
+}
+
 PyDoc_STRVAR(add_doc,
-"add(rows, counts, ref_clock, hz, ref_s) -> int\n\n"
-"A sample's spans (steptimes.Spans' rows and counts): every step's exact clock, solved as\n"
-"solve() does, held in runs of one direction; the count added.");
+"add(ref_clock, hz, ref_s) -> int\n\n"
+"The spans queued since the last add (span(), piece_steps()): every step's exact clock,\n"
+"solved as solve() does, held in runs of one direction; the count added.");
 
 static PyObject *sa_add(StepAxis *s, PyObject *args)
 {
-    PyObject *rows, *counts;
     double ref_clock, hz, ref_s;
-    if (!PyArg_ParseTuple(args, "O!O!ddd", &PyList_Type, &rows, &PyList_Type, &counts,
-                          &ref_clock, &hz, &ref_s))
+    if (!PyArg_ParseTuple(args, "ddd", &ref_clock, &hz, &ref_s))
         return NULL;
-    Py_ssize_t nrows = PyList_GET_SIZE(rows), added = 0;
-    if (PyList_GET_SIZE(counts) != nrows) {
-        PyErr_SetString(PyExc_ValueError, "rows and counts differ in length");
-        return NULL;
-    }
+    Py_ssize_t nspans = s->nspans, added = 0;
+    s->nspans = 0; /* solved now, or dropped with the error */
     double latest = -INFINITY;
-    for (Py_ssize_t r = 0; r < nrows; r++) {
-        double v[8];
-        if (steps_row(PyList_GET_ITEM(rows, r), v) < 0)
-            return NULL;
-        Py_ssize_t count = PyLong_AsSsize_t(PyList_GET_ITEM(counts, r));
-        if (count < 0) {
-            if (!PyErr_Occurred())
-                PyErr_SetString(PyExc_ValueError, "a negative count");
-            return NULL;
-        }
-        if (count == 0)
-            continue;
+    for (Py_ssize_t r = 0; r < nspans; r++) {
+        const double *v = s->spans + 8 * r;
+        Py_ssize_t count = s->counts[r];
         if (room_for(s, count) < 0)
             return NULL;
         steps_solve_row(v, count, s->clocks + s->len, &latest, ref_clock, hz, ref_s);
@@ -111,6 +143,118 @@ static PyObject *sa_add(StepAxis *s, PyObject *args)
         s->seg_end[s->nseg++] = s->len;
     }
     return PyLong_FromSsize_t(added);
+}
+
+static PyTypeObject StepAxisType;
+
+/* The i-th of a tuple of step axes, or NULL with an exception set. */
+static StepAxis *axis_at(PyObject *axes, Py_ssize_t i)
+{
+    PyObject *item = PyTuple_GET_ITEM(axes, i);
+    if (!PyObject_TypeCheck(item, &StepAxisType)) {
+        PyErr_SetString(PyExc_TypeError, "axes is a tuple of StepAxis");
+        return NULL;
+    }
+    return (StepAxis *)item;
+}
+
+/* args[first..first+n) as doubles into out; -1 with an exception set. */
+static int doubles_of(PyObject *const *args, Py_ssize_t first, Py_ssize_t n, double *out)
+{
+    for (Py_ssize_t i = 0; i < n; i++) {
+        PyObject *o = args[first + i];
+        out[i] = PyFloat_CheckExact(o) ? PyFloat_AS_DOUBLE(o) : PyFloat_AsDouble(o);
+    }
+    return PyErr_Occurred() ? -1 : 0;
+}
+
+/* A tuple of n numbers (a piece's start or unit) as doubles, or -1 with an exception set. */
+static int vector_of(PyObject *tuple, Py_ssize_t n, double *out)
+{
+    if (!PyTuple_Check(tuple) || PyTuple_GET_SIZE(tuple) != n) {
+        PyErr_SetString(PyExc_ValueError, "a piece's vectors have one number per axis");
+        return -1;
+    }
+    return doubles_of(((PyTupleObject *)tuple)->ob_item, 0, n, out);
+}
+
+/* The axes (a tuple) and a piece's vector (start or unit), checked; their count or -1. */
+static Py_ssize_t axes_and(PyObject *axes, PyObject *vector, double *out, Py_ssize_t max)
+{
+    if (!PyTuple_Check(axes) || PyTuple_GET_SIZE(axes) > max) {
+        PyErr_SetString(PyExc_TypeError, "axes is a tuple of at most 16 StepAxis");
+        return -1;
+    }
+    Py_ssize_t n = PyTuple_GET_SIZE(axes);
+    return vector_of(vector, n, out) < 0 ? -1 : n;
+}
+
+PyDoc_STRVAR(piece_steps_doc,
+"piece_steps(axes, start_mm, unit, v0, a, rel_s, base_s)\n\n"
+"Each axis' whole steps along a piece (schedule.py: its start, unit vector, speed and\n"
+"acceleration) up to rel_s into it: the axis is commanded round_half_up(steps at the path's\n"
+"distance), and the steps from its position to there are queued as one span (span()) of the\n"
+"piece that starts at print time base_s; its position follows. add() solves them.");
+
+static PyObject *piece_steps(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)self;
+    double start[16], unit[16], v[4];
+    if (nargs != 7) {
+        PyErr_SetString(PyExc_TypeError, "piece_steps takes 7 arguments");
+        return NULL;
+    }
+    Py_ssize_t n = axes_and(args[0], args[1], start, 16);
+    if (n < 0 || vector_of(args[2], n, unit) < 0 || doubles_of(args, 3, 4, v) < 0)
+        return NULL;
+    double v0 = v[0], a = v[1], rel_s = v[2], base_s = v[3];
+    double distance = v0 * rel_s + 0.5 * a * rel_s * rel_s;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        if (unit[i] == 0.0)
+            continue;
+        StepAxis *s = axis_at(args[0], i);
+        if (s == NULL)
+            return NULL;
+        double x0 = start[i] * s->per_mm, u = unit[i] * s->per_mm;
+        double at = floor(x0 + u * distance + 0.5); /* steptimes.step_target */
+        if (!(fabs(at) < 9e15)) {
+            PyErr_SetString(PyExc_ValueError, "a piece's steps are not finite");
+            return NULL;
+        }
+        int64_t target = (int64_t)at;
+        if (target == s->position)
+            continue;
+        if (queue_steps(s, x0, u, v0, a, rel_s, s->position, target, base_s) < 0)
+            return NULL;
+        s->position = target;
+    }
+    Py_RETURN_NONE;
+}
+
+PyDoc_STRVAR(off_track_doc,
+"off_track(axes, start_mm) -> bool\n\n"
+"Whether a piece starting at start_mm starts more than a step away from where some axis'\n"
+"steps are (the position was redefined: schedule.py rebases it).");
+
+static PyObject *off_track(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)self;
+    double start[16];
+    if (nargs != 2) {
+        PyErr_SetString(PyExc_TypeError, "off_track takes 2 arguments");
+        return NULL;
+    }
+    Py_ssize_t n = axes_and(args[0], args[1], start, 16);
+    if (n < 0)
+        return NULL;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        StepAxis *s = axis_at(args[0], i);
+        if (s == NULL)
+            return NULL;
+        if (fabs(start[i] * s->per_mm - (double)s->position) > 1.0)
+            Py_RETURN_TRUE;
+    }
+    Py_RETURN_FALSE;
 }
 
 /* The clock from which what is held must be looked at (something is): its first step's; 0
@@ -318,7 +462,7 @@ PyDoc_STRVAR(clear_doc, "clear()\n\nDrop every step held (a stop).");
 static PyObject *sa_clear(StepAxis *s, PyObject *unused)
 {
     (void)unused;
-    s->head = s->len = s->nseg = 0;
+    s->head = s->len = s->nseg = s->nspans = 0;
     Py_RETURN_NONE;
 }
 
@@ -353,6 +497,7 @@ static int sa_init(StepAxis *s, PyObject *args, PyObject *kwargs)
     s->record = record;
     s->max_error = 1.0;
     s->needs_reset = 1;
+    s->per_mm = 1.0;
     return 0;
 }
 
@@ -362,6 +507,8 @@ static void sa_dealloc(StepAxis *s)
     PyMem_Free(s->seg_dir);
     PyMem_Free(s->seg_end);
     PyMem_Free(s->exact);
+    PyMem_Free(s->spans);
+    PyMem_Free(s->counts);
     Py_XDECREF(s->step_prefix);
     Py_XDECREF(s->dir_prefix);
     Py_XDECREF(s->reset_prefix);
@@ -369,6 +516,7 @@ static void sa_dealloc(StepAxis *s)
 }
 
 static PyMethodDef sa_methods[] = {
+    {"span", (PyCFunction)sa_span, METH_VARARGS, span_doc},
     {"add", (PyCFunction)sa_add, METH_VARARGS, add_doc},
     {"first_clock", (PyCFunction)sa_first_clock, METH_NOARGS, first_clock_doc},
     {"flush", (PyCFunction)sa_flush, METH_VARARGS, flush_doc},
@@ -395,12 +543,61 @@ static int sa_set_record(StepAxis *s, PyObject *value, void *closure)
     return 0;
 }
 
+static PyObject *sa_get_position(StepAxis *s, void *closure)
+{
+    (void)closure;
+    return PyLong_FromLongLong((long long)s->position);
+}
+
+static int sa_set_position(StepAxis *s, PyObject *value, void *closure)
+{
+    (void)closure;
+    long long position = value == NULL ? -1 : PyLong_AsLongLong(value);
+    if (value == NULL)
+        PyErr_SetString(PyExc_AttributeError, "position cannot be deleted");
+    if (PyErr_Occurred())
+        return -1;
+    s->position = position;
+    return 0;
+}
+
+static PyObject *sa_get_per_mm(StepAxis *s, void *closure)
+{
+    (void)closure;
+    return PyFloat_FromDouble(s->per_mm);
+}
+
+static int sa_set_per_mm(StepAxis *s, PyObject *value, void *closure)
+{
+    (void)closure;
+    double per_mm = value == NULL ? -1.0 : PyFloat_AsDouble(value);
+    if (value == NULL)
+        PyErr_SetString(PyExc_AttributeError, "steps_per_mm cannot be deleted");
+    if (PyErr_Occurred())
+        return -1;
+    if (!(per_mm > 0.0 && isfinite(per_mm))) {
+        PyErr_SetString(PyExc_ValueError, "steps_per_mm is a positive number");
+        return -1;
+    }
+    s->per_mm = per_mm;
+    return 0;
+}
+
 static PyGetSetDef sa_getset[] = {
+    {"position", (getter)sa_get_position, (setter)sa_set_position,
+     "whole steps commanded so far", NULL},
+    {"steps_per_mm", (getter)sa_get_per_mm, (setter)sa_set_per_mm, "steps per mm", NULL},
     {"record", (getter)sa_get_record, (setter)sa_set_record,
      "whether every clock added is kept (recorded())", NULL},
     {"held", (getter)sa_held, NULL, "how many steps are held (not yet sent)", NULL},
     {"last_clock", (getter)sa_last_clock, NULL, "the MCU clock of the last step sent", NULL},
     {NULL, NULL, NULL, NULL, NULL},
+};
+
+static PyMethodDef module_functions[] = {
+    {"piece_steps", (PyCFunction)(void (*)(void))piece_steps, METH_FASTCALL, piece_steps_doc},
+    {"off_track", (PyCFunction)(void (*)(void))off_track, METH_FASTCALL, off_track_doc},
+    {NULL, NULL, 0, NULL},
 };
 
 static PyTypeObject StepAxisType = {
@@ -418,5 +615,7 @@ static PyTypeObject StepAxisType = {
 
 int stepaxis_add_type(PyObject *module)
 {
+    if (PyModule_AddFunctions(module, module_functions) < 0)
+        return -1;
     return stepcore_add_type(module, &StepAxisType, "StepAxis");
 }

@@ -74,6 +74,7 @@ class KlipperBackend(BoardSession, OutputTiming, StepSchedule):
         self.axis_names = core.axis_names
         self.axes = [Axis(n, a.steps_per_mm, steps=StepAxis(record=record))
                      for n, a in zip(core.axis_names, core.axes.values(), strict=True)]
+        self._steps = tuple(axis.steps for axis in self.axes)
         self.outputs = {name: Output(name, out) for name, out in cfg.outputs.items()}
         self.values: dict[str, float] = {}
         self.motors_on, self._enable_clock = True, 0

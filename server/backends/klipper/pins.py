@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from server.backends.klipper.dictionary import Dictionary
 from server.backends.klipper.mcu import Command, KlipperFault
@@ -15,19 +15,37 @@ def split_pin(text: str) -> tuple[str, bool]:
     return text.lstrip("!"), text.startswith("!")
 
 
-@dataclass(slots=True)
 class Axis:
-    """One stepper: its oid, where its steps are, and the steps held until they are due (the
-    compiled :class:`StepAxis`: compressed and encoded there too)."""
+    """One stepper: its oid, and its steps (the compiled :class:`StepAxis`: where they are,
+    the steps held until they are due, compressed and encoded there too)."""
 
-    name: str
-    steps_per_mm: float
-    oid: int = 0
-    invert_dir: bool = False
-    position: int = 0  # whole steps commanded so far
-    steps: StepAxis = field(default_factory=StepAxis)
-    enable_oid: int | None = None  # its enable pin's digital output, if it has one
-    enable_inverted: bool = False
+    __slots__ = ("name", "oid", "invert_dir", "steps", "enable_oid", "enable_inverted")
+
+    def __init__(self, name: str, steps_per_mm: float, steps: StepAxis | None = None) -> None:
+        self.name = name
+        self.oid = 0
+        self.invert_dir = False
+        self.steps = StepAxis() if steps is None else steps
+        self.steps.steps_per_mm = steps_per_mm
+        self.enable_oid: int | None = None  # its enable pin's digital output, if it has one
+        self.enable_inverted = False
+
+    @property
+    def position(self) -> int:
+        """Whole steps commanded so far."""
+        return self.steps.position
+
+    @position.setter
+    def position(self, steps: int) -> None:
+        self.steps.position = steps
+
+    @property
+    def steps_per_mm(self) -> float:
+        return self.steps.steps_per_mm
+
+    @steps_per_mm.setter
+    def steps_per_mm(self, value: float) -> None:
+        self.steps.steps_per_mm = value
 
     def configure(self, oid: int, d: Dictionary, max_error_ticks: float) -> None:
         """What configuring the MCU sets: its oid, the compression's bound, the step

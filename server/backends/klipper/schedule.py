@@ -33,14 +33,14 @@ import logging
 import time
 from collections import deque
 from dataclasses import replace
-from math import floor
 from typing import TYPE_CHECKING
 
 from server.backends.klipper.mcu import KlipperFault, Mcu
 from server.backends.klipper.movequeue import MoveQueue
 from server.backends.klipper.pins import Axis, Output
 from server.backends.klipper.printclock import PrintClock
-from server.backends.klipper.steptimes import FloatArray, Spans, step_target
+from server.backends.klipper.stepcore import StepAxis, off_track, piece_steps
+from server.backends.klipper.steptimes import FloatArray, step_target
 from server.backends.klipper.trail import Trail
 from server.motion.backend import Piece
 
@@ -87,6 +87,7 @@ class StepSchedule:
     hold_back_s: float
     flush_s: float
     axes: list[Axis]
+    _steps: tuple[StepAxis, ...]  # each axis' (Axis.steps), for the compiled calls
     outputs: dict[str, Output]
     errors: list[memoryview] | None
     mcu: Mcu | None
@@ -193,35 +194,33 @@ class StepSchedule:
         """Exact step clocks of every axis (and the followed output's power) for the
         trajectory up to ``until_s``."""
         pieces = self._pieces
-        spans = [Spans() for _ in self.axes]
         while pieces:
             piece = pieces[0]
             end_s = min(until_s, piece.start_s + piece.duration_s)
             rel_s = end_s - piece.start_s
             if rel_s < 0.0:
                 break
-            self._piece_steps(piece, rel_s, spans)
+            self._piece_steps(piece, rel_s)
             if end_s < piece.start_s + piece.duration_s:
                 break
             pieces.popleft()
             self._generated_s = end_s
         print_clock = self._print  # solved as _motion_clock maps them
-        for axis, axis_spans in zip(self.axes, spans, strict=True):
-            if axis_spans.counts:
-                axis.steps.add(axis_spans.rows, axis_spans.counts, print_clock.ref_clock,
-                               print_clock.hz, print_clock.ref_s)
+        for steps in self._steps:
+            steps.add(print_clock.ref_clock, print_clock.hz, print_clock.ref_s)
         out = self._follow
         if (self._follow_on and out is not None and not pieces
                 and until_s > self._generated_s + SLICE_END_S):
             self._follow_on = False  # motion ended (not merely a slice of a late tick)
             self._set_followed(0.0, self._generated_s, self._level_top(out))
 
-    def _piece_steps(self, piece: Piece, rel_s: float, spans: list[Spans]) -> None:
-        """Each axis' whole steps along ``piece`` up to ``rel_s`` into it join ``spans``."""
-        v0, a = piece.start_mm_s, piece.accel_mm_s2
+    def _piece_steps(self, piece: Piece, rel_s: float) -> None:
+        """Each axis' whole steps along ``piece`` up to ``rel_s`` into it, queued on its step
+        axis (solved together at the end of the sample: ``_stepaxis.c``)."""
         before = self._head
         first = piece is not before
-        if first and before is not None and _lengthens(piece, before):
+        if first and before is not None and piece.start_s == before.start_s and _lengthens(
+                piece, before):
             self._head = piece  # the same motion carried on (a run of blocks: see pieces.py):
             self._trail.add(piece)  # steps and the followed output go on where they were
             first = False
@@ -230,31 +229,21 @@ class StepSchedule:
             self._trail.add(piece)
             # the pieces of one block share its direction (the same tuple) and follow on from
             # each other: only the first of a block may start elsewhere
-            if (before is None or piece.unit is not before.unit) and self._rebased(piece):
+            if ((before is None or piece.unit is not before.unit)
+                    and off_track(self._steps, piece.start_mm) and self._rebased(piece)):
                 return
             if (not self.motors_on and piece.duration_s > 0.0
                     and piece.start_s >= self._motors_off_s):  # enabled as it starts
                 self._switch_motors(True, int(self._motion_clock(piece.start_s + self.lead_s)))
         if self._follow is not None:
             self._follow_piece(piece, rel_s, first)
-        if rel_s == 0.0:
-            return
-        distance = v0 * rel_s + 0.5 * a * rel_s * rel_s
-        base_s = piece.start_s + self.lead_s
-        for axis, start, unit, axis_spans in zip(self.axes, piece.start_mm, piece.unit, spans,
-                                                 strict=True):
-            if unit == 0.0:
-                continue
-            per_mm = axis.steps_per_mm
-            x0, u = start * per_mm, unit * per_mm
-            target = floor(x0 + u * distance + 0.5)  # step_target, inline
-            if target != axis.position:
-                axis_spans.add(x0, u, v0, a, rel_s, axis.position, target, base_s)
-                axis.position = target
+        if rel_s != 0.0:
+            piece_steps(self._steps, piece.start_mm, piece.unit, piece.start_mm_s,
+                        piece.accel_mm_s2, rel_s, piece.start_s + self.lead_s)
 
     def _rebased(self, piece: Piece) -> bool:
         """A piece that starts away from where the steps are (the position was redefined,
-        as homing does) moves the step count there without stepping."""
+        as homing does: ``off_track``) moves the step count there without stepping."""
         jumped = False
         for axis, start in zip(self.axes, piece.start_mm, strict=True):
             here = start * axis.steps_per_mm

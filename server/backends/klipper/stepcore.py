@@ -31,6 +31,8 @@ try:
         crc16,
         frame,
         message,
+        off_track,
+        piece_steps,
         solve,
     )
 except ImportError:
@@ -38,4 +40,4 @@ except ImportError:
 
 __all__ = ["ADD_MAX", "ADD_MIN", "MAX_COUNT", "MAX_TRIES", "QUADRATIC_DEV", "WINDOW",
            "MoveQueueCore", "SerialQueue", "StepAxis", "compress", "crc16", "frame", "message",
-           "solve"]
+           "off_track", "piece_steps", "solve"]
