@@ -73,7 +73,9 @@ class PieceReporter:
                 self._run_s += t1 + t2 + t3
                 self._run_end_mm = block.end_mm
                 return
-            self._close()
+            if self._run_s != run.duration_s:  # (_close, without a call for nothing to tell)
+                self.flush()
+            self._run = None
         d1 = 0.5 * t1 * (entry + cruise)
         if t1 > 0.0:
             if t2 <= JOIN_S and t3 <= JOIN_S:  # a ramp to the end: blocks continuing it

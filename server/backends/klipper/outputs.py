@@ -146,14 +146,15 @@ class OutputTiming:
         assert out is not None
         start_s = piece.start_s
         top = self._level_top(out)
+        duty = 0.0 if law is None else law.at(v0)  # where the piece starts
         if first:  # level(v, top) > 0 is v·top > 0.5 (a PWM level rounds to 0 up to 0.5)
             scale = top or 1
             on = out.value * scale > 0.5
-            if law is None or not law.at(v0) * scale > 0.5:
+            if not duty * scale > 0.5:
                 if on:
                     self._set_followed(0.0, start_s, top)
             elif not on:
-                self._set_followed(law.at(v0), start_s, top)
+                self._set_followed(duty, start_s, top)
                 self._follow_next_s = start_s + self._follow_period_s
         if law is None:
             return
@@ -161,7 +162,8 @@ class OutputTiming:
         if t <= end_s:  # the grid: the output is looked at only where its duty may change
             period_s, set_followed = self._follow_period_s, self._set_followed
             if a == 0.0 or law.per_mm_s == 0.0:  # one duty along the piece: the first look
-                set_followed(law.at(v0), t, top)  # decides (the others would see the same)
+                if duty != out.value:  # decides (the others would see the same)
+                    set_followed(duty, t, top)
                 while t <= end_s:
                     t += period_s  # the grid's times exactly as the looks would step them
             else:

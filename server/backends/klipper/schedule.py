@@ -123,17 +123,23 @@ class StepSchedule:
         else:
             self._motion_end_s = min(self._motion_end_s, piece.start_s)
         pieces = self._pieces
-        while pieces and pieces[-1].start_s >= piece.start_s:
+        if not pieces or pieces[-1].start_s + pieces[-1].duration_s > piece.start_s:
+            self._replace_from(piece.start_s)  # (else it follows on: nothing to cut)
+        if piece.duration_s > 0.0:
+            pieces.append(piece)
+
+    def _replace_from(self, start_s: float) -> None:
+        """What the pieces and the trail held from ``start_s`` on is replaced: cut there."""
+        pieces = self._pieces
+        while pieces and pieces[-1].start_s >= start_s:
             pieces.pop()
-        if pieces and pieces[-1].start_s + pieces[-1].duration_s > piece.start_s:
+        if pieces and pieces[-1].start_s + pieces[-1].duration_s > start_s:
             last = pieces.pop()
-            cut = replace(last, duration_s=piece.start_s - last.start_s)
+            cut = replace(last, duration_s=start_s - last.start_s)
             pieces.append(cut)
             if last is self._head:
                 self._head = cut
-        self._trail.cut(piece.start_s)
-        if piece.duration_s > 0.0:
-            pieces.append(piece)
+        self._trail.cut(start_s)  # (it ends where the pieces left start)
 
     def _when_s(self, time_s: float) -> float:
         """When a change asked for at ``time_s`` (on the motion's timeline: a block's start
