@@ -128,7 +128,7 @@ class LineExecutor(NonModal):
 
     def _tools(self) -> None:
         m, values, g = self.modal, self.words.values, self.words.g
-        if "S" in values:
+        if "S" in values and not self._module_uses("S"):  # (M221 S50 is no spindle speed)
             m.s = values["S"]
         if "T" in values:
             m.tool = int(values["T"])
@@ -151,6 +151,13 @@ class LineExecutor(NonModal):
         if delay_s > 0 and not was_on and m.tool_mode is not ToolMode.OFF and m.s > 0:
             self.before.append(Action(ActionName.DWELL, {"seconds": delay_s, "reason": "spin-up"},
                                       lead_s=delay_s, stops_motion=True))
+
+    def _module_uses(self, letter: str) -> bool:
+        """Whether an M-code of a module on the line reads ``letter`` (its value is then that
+        code's, as Marlin's M221 S or M106 S are: not the spindle's speed)."""
+        codes, values = self.codes, self.words.values
+        return codes is not None and any(
+            letter in codes.lookup(code, values).uses for code in self.words.module_codes)
 
     def _module_codes(self) -> None:
         """M-codes that modules own, after coolant (see :mod:`server.gcode.codes`)."""

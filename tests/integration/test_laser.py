@@ -217,6 +217,15 @@ async def test_spindle_override_and_m221_scale_the_power() -> None:
         assert await submit_all(app, ["M221"]) == [["[MSG:laser power scale 50%]"]]
 
 
+async def test_m221_s_after_m3_scales_the_power_and_leaves_the_spindle_speed() -> None:
+    """M221's S is its percentage (as Marlin's): the laser's S stays what M3 set."""
+    async with running(make_config(laser={})) as app:
+        await submit_all(app, ["M3 S800", "M221 S50", "G1 X30 F600"])
+        await app.clock.sleep(0.5)  # type: ignore[attr-defined]
+        assert sim(app).output("laser") == pytest.approx(0.4)
+        assert " S800" in app.kernel.machine.interpreter.gc_report()
+
+
 async def test_fire_works_while_idle_only_and_stops_by_itself() -> None:
     async with running(make_config(laser={"fire_max_duration_s": 2})) as app:
         machine, clock = app.kernel.machine, app.clock
