@@ -131,6 +131,8 @@ class Laser(Module):
         self.override_percent = 100.0
         self._state = MachineState.IDLE
         self._fire_until_s: float | None = None
+        self._law_key: tuple[object, ...] = ()  # what the last block's power law came from
+        self._law: PowerLaw | None = None
         self._wake = asyncio.Event()  # a state change or a fire: the resting sampler resumes
         ctx.register_command("fire", self._fire)
         ctx.register_api_method("laser.fire", self._api_fire, FireParams, control=True)
@@ -204,8 +206,16 @@ class Laser(Module):
                                                          self.scale))
 
     def _power_of(self, move: Move, nominal_mm_s: float) -> PowerLaw | None:
-        return power_law(self.config, move.kind, move.tool_mode, move.s_value, nominal_mm_s,
-                         self.scale)
+        """A block's power law; the last block's again (the same object) when nothing it
+        depends on changed: a raster's blocks then continue one piece without comparing
+        their laws field by field (:mod:`server.motion.pieces`)."""
+        key = (move.kind, move.tool_mode, move.s_value, nominal_mm_s, self.m221_percent,
+               self.override_percent)
+        if key != self._law_key:
+            self._law_key = key
+            self._law = power_law(self.config, move.kind, move.tool_mode, move.s_value,
+                                  nominal_mm_s, self.scale)
+        return self._law
 
     def _apply(self, power: float) -> None:
         if power == self.power:

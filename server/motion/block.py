@@ -239,9 +239,11 @@ class BlockColumns:
 
     def pop_front(self) -> list[float]:
         """Remove the head column (already synced); return its first ``read_rows`` values."""
-        values = self.column(self.head)
-        self.head += 1
-        if self.head == self.tail:
+        head = self.head
+        offset, read = head - self._read_start, self._read  # (column(), without a call while
+        values = read[offset] if 0 <= offset < len(read) else self.column(head)  # it is read)
+        self.head = head = head + 1
+        if head == self.tail:
             self.clear()
         return values
 

@@ -67,7 +67,7 @@ class PieceReporter:
         run = self._run
         if run is not None:
             if (not block.actions and block.start_mm == self._run_end_mm
-                    and block.unit == run.unit and power == run.power
+                    and block.unit == run.unit and (power is run.power or power == run.power)
                     and abs(start_s - run.start_s - self._run_s) <= JOIN_S + 8 * math.ulp(start_s)
                     and self._continues(run, block)):
                 self._run_s += t1 + t2 + t3

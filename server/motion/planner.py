@@ -181,7 +181,7 @@ class Planner(PlannerIntake):
         pending follow actions, or None. The popped block's exit speed becomes the start speed.
         """
         columns = self._columns
-        if not len(columns):
+        if columns.head == columns.tail:  # (not len(columns), without a call: once a block)
             return self._pop_pending()
         if self._head_dirty or self._planned <= 0:
             self._dirty = True
@@ -196,7 +196,7 @@ class Planner(PlannerIntake):
         self._settled -= 1
         self._start_mm_s = exit_
         self._time_planned_s -= duration
-        if not len(columns):
+        if columns.head == columns.tail:
             self._clear_window()
         if move is None:
             nominal = accel = 0.0

@@ -260,7 +260,9 @@ class StepGenerator:
                 self.state.motion_time_s += dt - behind_s
                 return behind_s
             t -= block.duration_s
-            self._finish(block)
+            state = self.state  # (_finish, without a call: once a block)
+            state.position_mm = block.end_mm
+            state.blocks_done += 1
             block = None
         cursor.block, cursor.time_s = block, t
         if block is not None:

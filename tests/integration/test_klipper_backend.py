@@ -279,6 +279,28 @@ async def test_laser_pwm_switches_at_the_mcu_clock_its_piece_starts_and_ends_m3(
         assert x_clocks[1607] < off < x_clocks[1608], "between the G1's last and the G0's first"
 
 
+async def test_blocks_at_one_power_share_its_law_and_m221_gives_the_next_its_own(
+        mcu: VirtualMcu) -> None:
+    """A line of blocks at one S shares one power law object (the laser gives the last block's
+    again: the pieces of a raster's line continue without comparing laws field by field);
+    M221 in between changes the power from the next block on, exactly."""
+    pieces: list[Piece] = []
+    async with klipper_machine(mcu, laser=LASER) as app:
+        backend = app.kernel.machine.backend
+        assert isinstance(backend, KlipperBackend)
+        original = backend.trajectory
+        backend.trajectory = lambda piece: (pieces.append(piece), original(piece))[1]  # type: ignore[method-assign]
+        await run_job(app, ["M3 S500", "G1 X4 F3000", "G1 X8", "G1 X12", "M221 S50",
+                            "G1 X16", "G1 X20", "M5"])
+        check_steps(app, mcu)
+        laws = [piece.power for piece in pieces if piece.power is not None]
+        assert [law.offset for law in laws] == sorted((law.offset for law in laws), reverse=True)
+        assert {law.offset for law in laws} == {0.4, 0.2}
+        assert len({id(law) for law in laws}) == 2, "one law object for each power"
+        assert max(p.start_mm[0] for p in pieces if p.power and p.power.offset == 0.4) < 12.0
+        assert min(p.start_mm[0] for p in pieces if p.power and p.power.offset == 0.2) == 12.0
+
+
 async def test_an_output_a_line_switches_is_timed_at_that_lines_start(mcu: VirtualMcu) -> None:
     """M8 between two moves: on the board where the first move's steps end and the second's
     begin, not at the step generator's tick (a flush apart)."""
