@@ -191,7 +191,9 @@ class Planner(PlannerIntake):
         geometry, head = self._geometry, self._geometry_head
         move, actions, start, end, unit = geometry[head]
         geometry[head] = _TAKEN  # released now, not with a window's worth at the compaction
-        self._drop_geometry(1)
+        self._geometry_head = head = head + 1
+        if head >= GEOMETRY_COMPACT and 2 * head >= len(geometry):  # (_drop_geometry(1): a
+            self._drop_geometry(0)  # call only when it compacts)
         self._planned -= 1
         self._settled -= 1
         self._start_mm_s = exit_

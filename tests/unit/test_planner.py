@@ -669,3 +669,22 @@ def test_a_run_appended_at_once_plans_the_blocks_of_its_moves_one_by_one(seed: i
         taken_by[at_once] = (popped, planner.moves_appended, planner.position_mm)
     assert len(taken_by[True][0]) > 1500 / 40
     assert taken_by[True] == taken_by[False]
+
+
+def test_blocks_popped_past_the_geometry_compactions_keep_their_own_geometry() -> None:
+    """Popped blocks' geometry is dropped from the list in batches (GEOMETRY_COMPACT): across
+    several batches, each block still carries its own move, start and end, in order."""
+    planner = Planner(XYZ, (0.0, 0.0, 0.0))
+    targets, popped = [], []
+    for i in range(1, 3500):
+        target = (float(i % 2), float(i), 0.0)
+        targets.append(target)
+        planner.append(Move(target, 50.0, MoveKind.FEED))
+        if i > 40:  # a window of about forty blocks: compactions come every 1,024 pops
+            block = planner.pop()
+            assert block is not None and block.move is not None
+            popped.append((block.move.target_mm, block.end_mm))
+    while (block := planner.pop()) is not None:
+        assert block.move is not None
+        popped.append((block.move.target_mm, block.end_mm))
+    assert [move for move, _ in popped] == [end for _, end in popped] == targets
