@@ -147,17 +147,6 @@ static PyObject *sa_add(StepAxis *s, PyObject *args)
 
 static PyTypeObject StepAxisType;
 
-/* The i-th of a tuple of step axes, or NULL with an exception set. */
-static StepAxis *axis_at(PyObject *axes, Py_ssize_t i)
-{
-    PyObject *item = PyTuple_GET_ITEM(axes, i);
-    if (!PyObject_TypeCheck(item, &StepAxisType)) {
-        PyErr_SetString(PyExc_TypeError, "axes is a tuple of StepAxis");
-        return NULL;
-    }
-    return (StepAxis *)item;
-}
-
 /* args[first..first+n) as doubles into out; -1 with an exception set. */
 static int doubles_of(PyObject *const *args, Py_ssize_t first, Py_ssize_t n, double *out)
 {
@@ -178,15 +167,25 @@ static int vector_of(PyObject *tuple, Py_ssize_t n, double *out)
     return doubles_of(((PyTupleObject *)tuple)->ob_item, 0, n, out);
 }
 
-/* The axes (a tuple) and a piece's vector (start or unit), checked; their count or -1. */
-static Py_ssize_t axes_and(PyObject *axes, PyObject *vector, double *out, Py_ssize_t max)
+#define AXES_MAX 16
+
+/* The step axes (a tuple of at most AXES_MAX) into out and a piece's vector (start or unit)
+ * as doubles, checked; their count, or -1 with an exception set. */
+static Py_ssize_t axes_and(PyObject *axes, PyObject *vector, StepAxis **out, double *values)
 {
-    if (!PyTuple_Check(axes) || PyTuple_GET_SIZE(axes) > max) {
+    Py_ssize_t n = PyTuple_Check(axes) ? PyTuple_GET_SIZE(axes) : AXES_MAX + 1;
+    for (Py_ssize_t i = 0; i < n && n <= AXES_MAX; i++) {
+        PyObject *item = PyTuple_GET_ITEM(axes, i);
+        if (!PyObject_TypeCheck(item, &StepAxisType))
+            n = AXES_MAX + 1;
+        else
+            out[i] = (StepAxis *)item;
+    }
+    if (n > AXES_MAX) {
         PyErr_SetString(PyExc_TypeError, "axes is a tuple of at most 16 StepAxis");
         return -1;
     }
-    Py_ssize_t n = PyTuple_GET_SIZE(axes);
-    return vector_of(vector, n, out) < 0 ? -1 : n;
+    return vector_of(vector, n, values) < 0 ? -1 : n;
 }
 
 PyDoc_STRVAR(piece_steps_doc,
@@ -194,39 +193,42 @@ PyDoc_STRVAR(piece_steps_doc,
 "Each axis' whole steps along a piece (schedule.py: its start, unit vector, speed and\n"
 "acceleration) up to rel_s into it: the axis is commanded round_half_up(steps at the path's\n"
 "distance), and the steps from its position to there are queued as one span (span()) of the\n"
-"piece that starts at print time base_s; its position follows. add() solves them.");
+"piece that starts at print time base_s; its position follows. add() solves them. Nothing\n"
+"is queued when an argument is refused.");
 
 static PyObject *piece_steps(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     (void)self;
-    double start[16], unit[16], v[4];
+    StepAxis *axes[AXES_MAX];
+    double start[AXES_MAX], unit[AXES_MAX], v[4];
+    int64_t target[AXES_MAX];
     if (nargs != 7) {
         PyErr_SetString(PyExc_TypeError, "piece_steps takes 7 arguments");
         return NULL;
     }
-    Py_ssize_t n = axes_and(args[0], args[1], start, 16);
+    Py_ssize_t n = axes_and(args[0], args[1], axes, start);
     if (n < 0 || vector_of(args[2], n, unit) < 0 || doubles_of(args, 3, 4, v) < 0)
         return NULL;
     double v0 = v[0], a = v[1], rel_s = v[2], base_s = v[3];
     double distance = v0 * rel_s + 0.5 * a * rel_s * rel_s;
-    for (Py_ssize_t i = 0; i < n; i++) {
-        if (unit[i] == 0.0)
-            continue;
-        StepAxis *s = axis_at(args[0], i);
-        if (s == NULL)
-            return NULL;
+    for (Py_ssize_t i = 0; i < n; i++) { /* every target first: all or nothing */
+        StepAxis *s = axes[i];
         double x0 = start[i] * s->per_mm, u = unit[i] * s->per_mm;
         double at = floor(x0 + u * distance + 0.5); /* steptimes.step_target */
-        if (!(fabs(at) < 9e15)) {
+        if (unit[i] != 0.0 && !(fabs(at) < 9e15)) {
             PyErr_SetString(PyExc_ValueError, "a piece's steps are not finite");
             return NULL;
         }
-        int64_t target = (int64_t)at;
-        if (target == s->position)
+        target[i] = unit[i] != 0.0 ? (int64_t)at : s->position;
+    }
+    for (Py_ssize_t i = 0; i < n; i++) {
+        StepAxis *s = axes[i];
+        if (target[i] == s->position)
             continue;
-        if (queue_steps(s, x0, u, v0, a, rel_s, s->position, target, base_s) < 0)
+        if (queue_steps(s, start[i] * s->per_mm, unit[i] * s->per_mm, v0, a, rel_s,
+                        s->position, target[i], base_s) < 0)
             return NULL;
-        s->position = target;
+        s->position = target[i];
     }
     Py_RETURN_NONE;
 }
@@ -239,21 +241,18 @@ PyDoc_STRVAR(off_track_doc,
 static PyObject *off_track(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     (void)self;
-    double start[16];
+    StepAxis *axes[AXES_MAX];
+    double start[AXES_MAX];
     if (nargs != 2) {
         PyErr_SetString(PyExc_TypeError, "off_track takes 2 arguments");
         return NULL;
     }
-    Py_ssize_t n = axes_and(args[0], args[1], start, 16);
+    Py_ssize_t n = axes_and(args[0], args[1], axes, start);
     if (n < 0)
         return NULL;
-    for (Py_ssize_t i = 0; i < n; i++) {
-        StepAxis *s = axis_at(args[0], i);
-        if (s == NULL)
-            return NULL;
-        if (fabs(start[i] * s->per_mm - (double)s->position) > 1.0)
+    for (Py_ssize_t i = 0; i < n; i++)
+        if (fabs(start[i] * axes[i]->per_mm - (double)axes[i]->position) > 1.0)
             Py_RETURN_TRUE;
-    }
     Py_RETURN_FALSE;
 }
 
