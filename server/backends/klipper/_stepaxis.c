@@ -2,8 +2,10 @@
  * exact step clocks each sample solves for its spans are held here, in runs of one direction,
  * until schedule.py's flush finds them due; then they are compressed into queue_step runs and
  * encoded, with a reset_step_clock and a set_next_step_dir where needed, as the (message, slot
- * until, due) triples of the move queue. One call a sample for each (add, flush), where the
- * Python it replaces made dozens: a wake-up of the server costs what its Python touches.
+ * until, due) triples of the move queue. Each axis keeps where its steps are: piece_steps()
+ * queues a piece's spans on every axis in one call, and each axis solves them in one call a
+ * sample (add) and sends what is due in one (flush), where the Python it replaces made dozens:
+ * a wake-up of the server costs what its Python touches.
  *
  * The arithmetic is _stepcore.c's (steps_solve_row, steps_compress: what solve() and
  * compress() compute) and the VLQs _wire.c's; the tests hold the messages to the generic

@@ -290,7 +290,8 @@ void steps_solve_row(const double v[8], Py_ssize_t count, double *out, double *l
     }
 }
 
-int steps_row(PyObject *row, double v[8])
+/* A span's row (steptimes.Spans: a tuple of 8 numbers) into v; -1 with an exception set. */
+static int steps_row(PyObject *row, double v[8])
 {
     if (!PyTuple_Check(row) || PyTuple_GET_SIZE(row) != 8) {
         PyErr_SetString(PyExc_TypeError, "a row is a tuple of 8 numbers");

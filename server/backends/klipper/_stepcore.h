@@ -30,10 +30,6 @@ Py_ssize_t steps_compress(const double *points, Py_ssize_t n, int64_t *last_cloc
 void steps_solve_row(const double v[8], Py_ssize_t count, double *out, double *latest,
                      double ref_clock, double hz, double ref_s);
 
-/* A span's row (steptimes.Spans: a tuple of 8 numbers) into v; -1 with an exception set.
- * (_stepcore.c) */
-int steps_row(PyObject *row, double v[8]);
-
 /* A message: prefix (a command's id VLQ, bytes of at most 8) and the VLQs of count (at most
  * 16) values. (_wire.c) */
 PyObject *wire_encode(PyObject *prefix, const int64_t *values, Py_ssize_t count);
