@@ -16,11 +16,13 @@ from typing import TYPE_CHECKING
 
 from server.errors import Alarm, CommandError, Error, SoftLimitError
 from server.machine.parts import on_step_grid
-from server.motion.feed import offer
+from server.motion.feed import MoveRun, offer, offer_run
 from server.motion.moves import Action, ActionName, Move, MoveKind, Output, Sync, SyncKind
 from server.runtime.events import MachineState
 
 if TYPE_CHECKING:
+    import numpy as np
+
     from server.config import CoreConfig
     from server.gcode.interpreter import Interpreter
     from server.machine.machine import SyncHandler
@@ -43,6 +45,7 @@ def _has_dwell(outputs: list[Output]) -> bool:
 class GcodeFeed:
     """Lines into the planner; see the module docstring."""
 
+    feeds_runs = True  # a job's runs of plain lines are fed at once (feed_plain)
     # The machine's state this part reads and writes (set by Machine.__init__).
     core: CoreConfig
     clock: Clock
@@ -76,6 +79,49 @@ class GcodeFeed:
         if index == len(outputs):
             return []
         return self._feed(outputs, index, epoch)
+
+    def feed_plain(self, columns: dict[str, np.ndarray], start: int, stop: int
+                   ) -> tuple[int, Awaitable[None] | None]:
+        """Plain lines ``start`` to ``stop`` of a parsed chunk (a playing job's:
+        :func:`~server.gcode.parser.parse_plain`), as many as the planner has room for now,
+        at once, as :meth:`handle_gcode` of each would (read with numpy:
+        :meth:`~server.gcode.interpreter.Interpreter.read_plain`; appended with
+        :func:`~server.motion.feed.offer_run`): nothing is read ahead of the planner, so what
+        comes after them in the stream (a line interjected) runs as soon as it would after
+        the same lines one by one. Returns how many lines it read (0: the first is the
+        one-line path's, which waits for room when there is none) and None when their outputs
+        are all in the planner, else an awaitable that queues the rest, waiting for room
+        (rare: the planner's estimate of its room changed as it planned)."""
+        interpreter = self.interpreter
+        if not interpreter.takes_runs() or (self.planner.is_full() and not self.check_mode):
+            return 0, None
+        run = interpreter.read_plain(columns, start, stop)
+        if not self.check_mode and run.count:
+            ends, (feeds_mm_s, rapid) = run.ends, run.move_feeds()
+            moves = self.planner.room_for_run(ends, feeds_mm_s, rapid)
+            run = run.head(run.lines_before(moves) if moves < ends.shape[0] else run.count,
+                           interpreter.position)
+        interpreter.commit_plain(run)
+        if not run.count or self.check_mode:
+            return run.count, None
+        outputs = run.outputs()
+        epoch = self.epoch
+        index = offer_run(self.planner, outputs)
+        if index:
+            self._note_input(_RUN)
+        if index == len(outputs.outputs):
+            return run.count, None
+        return run.count, self._feed_run(outputs, index, epoch)
+
+    async def _feed_run(self, run: MoveRun, index: int, epoch: int) -> None:
+        """The rest of a run's outputs from ``index`` on, waiting for room (``epoch``: the
+        machine's when the run began: motion reset meanwhile refuses the rest)."""
+        while index < len(run.outputs):
+            await self._wait_for_room(epoch)
+            taken = offer_run(self.planner, run, index)
+            if taken > index:
+                self._note_input(_RUN)
+            index = taken
 
     def interpret(self, command: Command) -> list[Output]:
         """The line's outputs from the interpreter; a target outside the travel alarms,
