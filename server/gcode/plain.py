@@ -80,9 +80,12 @@ class PlainRun:
         return int(starts[move]) if move < starts.shape[0] else self.count
 
     def head(self, lines: int, start: Position) -> PlainRun:
-        """The run of its first ``lines`` lines alone (``start``: where the run began)."""
+        """The run of its first ``lines`` lines alone (at least one; ``start``: where the run
+        began)."""
         if lines >= self.count:
             return self
+        if lines < 1:
+            raise ValueError("a run's head has a line at least")
         moves, last = int(np.count_nonzero(self.moved[:lines])), lines - 1
         return PlainRun(
             lines, self.moved[:lines], self.ends[:moves], self.feeds_mm_min[:lines],

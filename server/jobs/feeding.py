@@ -85,12 +85,15 @@ class JobFeeder:
                     while index < start:
                         await self._line(batch[index])
                         index += 1
-                    while index < stop:
-                        read = await self._run(columns, index, min(stop, index + RUN_LINES))
-                        if not read:
-                            await self._line(batch[index])
-                            read = 1
-                        index += read
+                    trying = True  # a run, until one reads nothing: then lines until one
+                    while index < stop:  # waits (for room: a run may fit after it)
+                        if trying:
+                            read = await self._run(columns, index, min(stop, index + RUN_LINES))
+                            if read:
+                                index += read
+                                continue
+                        trying = await self._line(batch[index])
+                        index += 1
             for line in batch[index:] if index else batch:
                 await self._line(line)
         try:
@@ -99,7 +102,8 @@ class JobFeeder:
         except CommandError as exc:
             raise LineFailed(f"line {self._number}: error:{exc.code} {exc.message}") from exc
 
-    async def _line(self, line: str) -> None:
+    async def _line(self, line: str) -> bool:
+        """Send one line; whether it waited (for its turn, or for room in the planner)."""
         self._number += 1
         number = self._number
         try:
@@ -110,7 +114,9 @@ class JobFeeder:
             source, pending = self._source, self._pending
             outcome = self._dispatcher.begin(line, source, source.ticket,
                                              _deferring(pending, number))
+            waited = False
             if not isinstance(outcome, list):
+                waited = True
                 await outcome
             if pending:
                 await _settle(pending, wait=False)
@@ -118,6 +124,7 @@ class JobFeeder:
             raise LineFailed(f"line {number}: error:{exc.code} {exc.message}") from exc
         if self._done(number):
             await asyncio.sleep(0)
+        return waited
 
     async def _run(self, columns: dict[str, np.ndarray], start: int, stop: int) -> int:
         """Lines ``start`` to ``stop`` of the batch as a run: how many were read (0: none)."""
@@ -125,10 +132,8 @@ class JobFeeder:
             if self._interjections.waiting:
                 await self._interjections.run(self._as_job)
             source = self._source
-            read, outcome = self._dispatcher.begin_run(columns, start, stop, source,
-                                                       source.ticket)
-            if outcome is not None:
-                await outcome
+            outcome = self._dispatcher.begin_run(columns, start, stop, source, source.ticket)
+            read = outcome if isinstance(outcome, int) else await outcome
         except CommandError as exc:
             raise LineFailed(f"line {self._number + 1}: error:{exc.code} {exc.message}"
                              ) from exc

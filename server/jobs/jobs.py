@@ -2,7 +2,8 @@
 :mod:`.store`).
 
 Playing a file streams its lines through the same dispatcher a sender uses, so the job is
-executed, flow-controlled and error-checked exactly like streamed G-code; the first line that is
+executed, flow-controlled and error-checked exactly like streamed G-code (its runs of plain
+lines at once, as many as the planner has room for: :mod:`.feeding`); the first line that is
 refused stops the job with a message naming the line. A line answered downstream (a Grbl
 controller) is deferred by the dispatcher: the job sends on while it is in the controller's
 buffer and stops at the first answer that is an error. A job file is never held in memory

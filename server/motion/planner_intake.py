@@ -160,15 +160,21 @@ class PlannerIntake:
         return taken
 
     def room_for_run(self, ends: FloatArray, feeds_mm_s: FloatArray,
-                     rapid: npt.NDArray[np.bool_]) -> int:
+                     rapid: npt.NDArray[np.bool_]) -> tuple[int, float]:
         """How many of these moves (a run's, as :meth:`append_run` takes them) it would take
-        now: fewer than it would when one is shorter than :data:`MIN_LENGTH_MM`, never more."""
+        now (fewer than it would when one is shorter than :data:`MIN_LENGTH_MM`, never more),
+        and their estimated time (s)."""
         if not ends.shape[0] or self.is_full():
-            return 0
+            return 0, 0.0
         if ends.shape[1] != len(self._chain_mm):
             raise ValueError(f"expected {len(self._chain_mm)} coordinates, got {ends.shape[1]}")
         _, _, estimates = self._run_estimates(ends, feeds_mm_s, rapid)
-        return self._room_for(estimates)[0]
+        count, times = self._room_for(estimates)
+        return count, float(times[count - 1]) - self._time_estimate_s
+
+    def room_s(self) -> float:
+        """The motion time the window has room for before it is full (by time)."""
+        return self._max_planned_s - self._time_planned_s - self._time_estimate_s
 
     def _run_estimates(self, ends: FloatArray, feeds: FloatArray, rapid: npt.NDArray[np.bool_]
                        ) -> tuple[FloatArray, FloatArray, FloatArray]:

@@ -66,7 +66,7 @@ Outcome = list[str] | Awaitable[list[str]]  # a line's messages, or the wait for
 Deferred = Callable[["asyncio.Future[list[str]]"], None]  # takes a line's answer-to-come
 Handler = Callable[["Command"], Awaitable[HandlerResult] | HandlerResult]
 Classifier = Callable[[Line], LineKind]
-RunHandler = Callable[["Columns", int, int], tuple[int, Awaitable[None] | None]]
+RunHandler = Callable[["Columns", int, int], int | Awaitable[int]]
 Columns = dict[str, "np.ndarray"]  # a chunk's plain lines parsed: each letter's values
 
 _NAMED = re.compile(r"([A-Za-z][A-Za-z_\-]+)(?:\s+(.*))?$", re.S)
@@ -252,19 +252,18 @@ class Dispatcher:
         return self._then_release(outcome)
 
     def begin_run(self, columns: Columns, start: int, stop: int, source: Source,
-                  ticket: int) -> tuple[int, Awaitable[None] | None]:
+                  ticket: int) -> int | Awaitable[int]:
         """Plain lines ``start`` to ``stop`` of a parsed chunk at once (a playing job's:
         :func:`~server.gcode.plain.plain_spans`), in order with every other source as
         :meth:`begin` runs each of them (one turn, one check of the ticket, the source and
-        the lock: plain lines are effects): how many lines it read, 0 when it took none (no
-        run handler, the turn is taken, or the first line is the one-line path's: the
-        caller sends it as a line); and None when they are done, else an awaitable the
-        caller must await at once (the lines hold their turn until then). Raises
-        CommandError as :meth:`begin` does."""
+        the lock: plain lines are effects): how many lines it read, or an awaitable of that
+        which the caller must await at once (the lines hold their turn until then); 0 when it
+        took none (no run handler, the turn is taken, or the first line is the one-line
+        path's: the caller sends it as a line). Raises CommandError as :meth:`begin` does."""
         if self._closed:
             raise CommandError(Error.BUSY, "shutting down")
         if self._runs is None or not self._turn.free:
-            return 0, None
+            return 0
         self.last_command_s = time.monotonic()
         if ticket != self.stops():
             self._check_ticket(ticket)
@@ -274,14 +273,14 @@ class Dispatcher:
             raise self._locked_out("G-code")
         self._turn.taken = True
         try:
-            read, outcome = self._runs(columns, start, stop)
+            outcome = self._runs(columns, start, stop)
         except BaseException:
             self._turn.release()
             raise
-        if outcome is None:
+        if isinstance(outcome, int):
             self._turn.release()
-            return read, None
-        return read, self._then_release(outcome)
+            return outcome
+        return self._then_release(outcome)
 
     def _check_ticket(self, ticket: int) -> None:
         if ticket != self.stops():
