@@ -3,15 +3,18 @@
 Each batch of lines read from the file (:func:`~server.jobs.reading.read_batches`) is parsed
 at once for its spans of plain lines (:func:`~server.gcode.plain.plain_spans`: ``G1 X12.3
 S380``, a raster's millions); the dispatcher runs up to :data:`RUN_LINES` of them at a time
-(:meth:`~server.runtime.dispatcher.Dispatcher.begin_run`: the machine interprets them with
-numpy and appends their blocks at once, the very blocks and state the lines one by one give,
-a fraction of the Python). Every other line, and every line when the machine takes no runs (a
-Grbl controller takes each line as sent), goes alone through
-:meth:`~server.runtime.dispatcher.Dispatcher.begin`, as a sender's would. A line waiting to
-interject (:class:`~server.jobs.interjections.Interjections`: a baby-step) runs between lines
-or runs, in the job's order; a run is at most :data:`RUN_LINES` long, so it waits at most that
-many lines more than between lines. The first refused line stops the job:
-:class:`LineFailed` names it.
+(:meth:`~server.runtime.dispatcher.Dispatcher.begin_run`): the machine reads as many as the
+planner has room for with numpy and appends their blocks at once, the very blocks and state
+the lines one by one give, for a fraction of the Python
+(:meth:`~server.machine.feed.GcodeFeed.feed_plain`, which reads a run only where it pays: short
+lines, and room for enough of them). Every other line, a line the machine does not take in a
+run, and every line when the machine takes no runs (a Grbl controller takes each line as
+sent), goes alone through :meth:`~server.runtime.dispatcher.Dispatcher.begin`, as a sender's
+would; after a run that read nothing, lines go one by one until one waits for room. Nothing is
+read ahead of the planner, so a line waiting to interject
+(:class:`~server.jobs.interjections.Interjections`: a baby-step) runs between lines or runs, in
+the job's order, as soon as it would between lines one by one. The first refused line stops
+the job: :class:`LineFailed` names it.
 """
 
 from __future__ import annotations

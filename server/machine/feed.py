@@ -36,6 +36,8 @@ if TYPE_CHECKING:
 
 RUN_DRAIN = 0.25  # a run waits for room until the window drained this share of it at most:
 # lines longer than max_planned_s * RUN_DRAIN / MIN_RUN each go one by one
+RUN_FILL = 128  # a run waits for room for this many lines (within RUN_DRAIN): one costs about
+# 200 µs and 2.7 µs a line, a line alone 7 µs (the simulated machine, in process)
 RUN_LINE_S_DECAY = 0.9  # while they do, the last run's time a line decays: a run is tried again
 _RUN, _IDLE = MachineState.RUN, MachineState.IDLE  # (an enum member's look-up costs a call)
 _WAIT = Sync(SyncKind.WAIT)
@@ -110,14 +112,14 @@ class GcodeFeed:
         if self.line_s * MIN_RUN > self.planner.settings.max_planned_s * RUN_DRAIN:
             self.line_s *= RUN_LINE_S_DECAY  # (the lines may grow short again: try now and then)
             return 0
-        if self.planner.room_s() >= MIN_RUN * self.line_s and not self.planner.is_full():
+        if self.planner.room_s() >= self._run_room_s() and not self.planner.is_full():
             return self._read_run(columns, start, stop, self.epoch)
         return self._run_with_room(columns, start, stop, self.epoch)
 
     async def _run_with_room(self, columns: dict[str, np.ndarray], start: int, stop: int,
                              epoch: int) -> int:
         """:meth:`feed_plain` once the planner has room for ``MIN_RUN`` of the lines."""
-        while self.planner.is_full() or self.planner.room_s() < MIN_RUN * self.line_s:
+        while self.planner.is_full() or self.planner.room_s() < self._run_room_s():
             self.room.clear()  # (set again after each tick while the window has room)
             await self.room.wait()
             if epoch != self.epoch:
@@ -125,6 +127,10 @@ class GcodeFeed:
                                    "they were not run")
         read = self._read_run(columns, start, stop, epoch)
         return read if isinstance(read, int) else await read
+
+    def _run_room_s(self) -> float:
+        """The room a run waits for: ``RUN_FILL`` lines, within ``RUN_DRAIN`` of the window."""
+        return min(RUN_FILL * self.line_s, self.planner.settings.max_planned_s * RUN_DRAIN)
 
     def _read_run(self, columns: dict[str, np.ndarray], start: int, stop: int,
                   epoch: int) -> int | Awaitable[int]:
