@@ -158,23 +158,14 @@ class Interpreter:
         :func:`~server.gcode.parser.parse_plain` (its ``columns``) at once, up to the first
         one the one-line fast path would not take (see :mod:`server.gcode.plain`): the same
         moves and state as :meth:`execute` of each."""
-        run = self.read_plain(columns, start, stop)
-        self.commit_plain(run)
-        return run
-
-    def read_plain(self, columns: dict[str, np.ndarray], start: int, stop: int) -> PlainRun:
-        """:meth:`execute_plain` without changing the state: :meth:`commit_plain` commits the
-        run (or its :meth:`~server.gcode.plain.PlainRun.head`) once its moves are taken."""
-        return plain_run(self._geo, self._modal, self._wco, self.position,
-                         {letter: values[start:stop] for letter, values in columns.items()},
-                         stop - start)
-
-    def commit_plain(self, run: PlainRun) -> None:
-        """The state after ``run``, read from this state by :meth:`read_plain`."""
+        run = plain_run(self._geo, self._modal, self._wco, self.position,
+                        {letter: values[start:stop] for letter, values in columns.items()},
+                        stop - start)
         if run.count:
             modal = self._modal
             modal.motion, modal.feed, modal.s = run.motion, run.feed_mm_min, run.s_last
             self.position = run.position
+        return run
 
     def classify(self, line: Line) -> LineKind:
         """What ``line`` may do (see :class:`LineKind`); unknown words count as effects.

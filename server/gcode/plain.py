@@ -10,10 +10,9 @@ words, F, S; G90, G94; with soft limits, every end inside the travel). The first
 does not take, every line that is not plain and every run shorter than :data:`MIN_RUN` are
 read by the one-line path (:func:`lines_read`), which also finds the errors. A run gives the
 same moves, positions and modal state as its lines one by one (the same float operations,
-in the same order per line); :meth:`PlainRun.outputs` gives the very outputs the one-line path
-gives (each move with its line's follow action when the line changed S; a line that changed
-S without moving, that action alone), which a job's plan and a playing job's feed
-(:func:`~server.motion.feed.offer_run`) append at once.
+in the same order per line); :meth:`PlainRun.moves` gives the very moves the one-line path
+gives, without their follow actions (a line's new S, a spindle action the move carries: the
+S is the move's own ``s_value`` too), which a plan's time and extent do not depend on.
 """
 
 from __future__ import annotations
@@ -28,8 +27,7 @@ import numpy as np
 
 from server.gcode.modal import G0, G1, MM_PER_INCH, Geometry, ModalState
 from server.gcode.parser import check_length, parse_line, parse_plain
-from server.motion.feed import MoveRun
-from server.motion.moves import Action, ActionName, Move, MoveKind, Output, Position, ToolMode
+from server.motion.moves import Move, MoveKind, Output, Position, ToolMode
 
 if TYPE_CHECKING:
     from server.gcode.interpreter import Interpreter
@@ -48,7 +46,7 @@ class PlainRun:
         moved: per line read, whether it made a move.
         ends: where each move ends (machine mm), one row per line that moved.
         feeds_mm_min: the feed of each line (mm/min); ``rapid`` per line: G0.
-        s: the modal S after each line; ``s_changed``: whether the line changed it.
+        s: the modal S after each line.
         tool_mode: the modal M3/M4/M5 (the same for the whole run).
         position: the position after the run; ``motion``, ``feed_mm_min``, ``s_last``: the
             modal state after it.
@@ -60,67 +58,23 @@ class PlainRun:
     feeds_mm_min: np.ndarray
     rapid: np.ndarray
     s: np.ndarray
-    s_changed: np.ndarray
     tool_mode: ToolMode
     position: Position
     motion: int
     feed_mm_min: float
     s_last: float
 
-    def move_feeds(self) -> tuple[np.ndarray, np.ndarray]:
-        """Each move's feed (mm/s; a rapid's is infinite) and whether it is a rapid: a row
-        each, as :attr:`ends`."""
+    def moves(self) -> tuple[list[Move], np.ndarray, np.ndarray]:
+        """The run's moves without their follow actions (the S changes; a line that only
+        changed S gives nothing): what a plan's time and extent depend on; with their feeds
+        (mm/s) and whether each is a rapid (their targets are :attr:`ends`, a row each)."""
         moved = self.moved
-        return np.where(self.rapid, math.inf, self.feeds_mm_min / 60.0)[moved], self.rapid[moved]
-
-    def lines_before(self, move: int) -> int:
-        """How many of the run's lines come before its move number ``move`` (from 0): all of
-        them past its last move."""
-        starts = np.flatnonzero(self.moved)
-        return int(starts[move]) if move < starts.shape[0] else self.count
-
-    def head(self, lines: int, start: Position) -> PlainRun:
-        """The run of its first ``lines`` lines alone (at least one; ``start``: where the run
-        began)."""
-        if lines >= self.count:
-            return self
-        if lines < 1:
-            raise ValueError("a run's head has a line at least")
-        moves, last = int(np.count_nonzero(self.moved[:lines])), lines - 1
-        return PlainRun(
-            lines, self.moved[:lines], self.ends[:moves], self.feeds_mm_min[:lines],
-            self.rapid[:lines], self.s[:lines], self.s_changed[:lines], self.tool_mode,
-            tuple(self.ends[moves - 1].tolist()) if moves else start,
-            G0 if self.rapid[last] else G1, float(self.feeds_mm_min[last]), float(self.s[last]))
-
-    def outputs(self) -> MoveRun:
-        """The run's outputs as the one-line path gives them, line after line: a move for
-        each line that moved (with the line's follow action when it changed S), the action
-        alone for a line that changed S without moving; with each one's target, feed (mm/s)
-        and whether it is a rapid."""
-        moved, changed = self.moved, self.s_changed
-        kept = moved | changed
-        lines = np.flatnonzero(kept)
-        rows = (np.cumsum(moved) - 1)[lines]  # each kept line's row of ``ends``
-        is_move = moved[lines]
-        mode = self.tool_mode
-        speeds = np.where(self.rapid, math.inf, self.feeds_mm_min / 60.0)[lines]
-        rapid = self.rapid[lines]
-        s_after = self.s[lines].tolist()
-        ends = self.ends[np.maximum(rows, 0)] if self.ends.shape[0] else np.zeros(
-            (len(lines), len(self.position)))
-        outputs: list[Move | Action] = list(map(
-            Move, map(tuple, ends.tolist()), speeds.tolist(),
-            map(_KINDS.__getitem__, rapid.tolist()), itertools.repeat(mode), s_after))
-        actions_at: list[int] = []
-        for index in np.flatnonzero(changed[lines]).tolist():
-            action = Action(ActionName.SPINDLE, {"mode": mode, "s": s_after[index]})
-            if is_move[index]:
-                outputs[index].actions.append(action)  # type: ignore[union-attr]
-            else:
-                outputs[index] = action
-                actions_at.append(index)
-        return MoveRun(outputs, ends, speeds, rapid, actions_at)
+        rapid = self.rapid[moved]
+        speeds = np.where(self.rapid, math.inf, self.feeds_mm_min / 60.0)[moved]
+        moves = list(map(Move, map(tuple, self.ends.tolist()), speeds.tolist(),
+                         map(_KINDS.__getitem__, rapid.tolist()),
+                         itertools.repeat(self.tool_mode), self.s[moved].tolist()))
+        return moves, speeds, rapid
 
 
 def plain_run(geo: Geometry, modal: ModalState, wco: Position, position: Position,
@@ -147,8 +101,7 @@ def plain_run(geo: Geometry, modal: ModalState, wco: Position, position: Positio
     s_after = _spindle(columns.get("S"), modal.s, count)
     last = count - 1
     return PlainRun(
-        count, moved, ends, feeds, motion == G0, s_after, s_after != _before(s_after, modal.s),
-        modal.tool_mode,
+        count, moved, ends, feeds, motion == G0, s_after, modal.tool_mode,
         tuple(ends[-1].tolist()) if ends.shape[0] else position,
         int(motion[last]) if count else modal.motion,
         float(feeds[last]) if count else modal.feed,
@@ -271,15 +224,17 @@ def lines_read(lines: Iterable[str], interpreter: Interpreter, limit_bytes: int,
             yield from _one_by_one(chunk, 0, len(chunk), base, interpreter, limit_bytes, where)
             base += len(chunk)
             continue
-        columns, spans = plain_spans(chunk, axes, limit_bytes)
+        plain = parse_plain(chunk)
+        taken = plain.plain & words_taken(axes, plain.columns, len(chunk)) & (
+            np.fromiter(map(len, chunk), np.int64, len(chunk)) * 4 <= limit_bytes)
         index = 0
-        for start, stop in spans:
+        for start, stop in _runs(taken):
             yield from _one_by_one(chunk, index, start, base, interpreter, limit_bytes, where)
             index = start
             if not interpreter.takes_runs():  # (nor will it before a line that is not plain)
                 continue
             while index < stop:
-                run = interpreter.execute_plain(columns, index, stop)
+                run = interpreter.execute_plain(plain.columns, index, stop)
                 where[0] = base + index + run.count
                 if run.count:
                     yield run
@@ -290,18 +245,6 @@ def lines_read(lines: Iterable[str], interpreter: Interpreter, limit_bytes: int,
                     index += 1
         yield from _one_by_one(chunk, index, len(chunk), base, interpreter, limit_bytes, where)
         base += len(chunk)
-
-
-def plain_spans(chunk: list[str], axes: Iterable[str], limit_bytes: int
-                ) -> tuple[dict[str, np.ndarray], list[tuple[int, int]]]:
-    """The chunk parsed (:func:`~server.gcode.parser.parse_plain`: each letter's column) and
-    its spans of at least :data:`MIN_RUN` lines in a row that a run may take (plain, with the
-    fast path's words, none over ``limit_bytes``): (first, after the last) each. Whether a
-    run takes them depends on the state it starts from (:meth:`Interpreter.execute_plain`)."""
-    plain = parse_plain(chunk)
-    taken = plain.plain & words_taken(axes, plain.columns, len(chunk)) & (
-        np.fromiter(map(len, chunk), np.int64, len(chunk)) * 4 <= limit_bytes)
-    return plain.columns, _runs(taken)
 
 
 def _one_by_one(chunk: list[str], start: int, stop: int, base: int, interpreter: Interpreter,

@@ -2,8 +2,7 @@
 :mod:`.store`).
 
 Playing a file streams its lines through the same dispatcher a sender uses, so the job is
-executed, flow-controlled and error-checked exactly like streamed G-code (its runs of plain
-lines at once, as many as the planner has room for: :mod:`.feeding`); the first line that is
+executed, flow-controlled and error-checked exactly like streamed G-code; the first line that is
 refused stops the job with a message naming the line. A line answered downstream (a Grbl
 controller) is deferred by the dispatcher: the job sends on while it is in the controller's
 buffer and stops at the first answer that is an error. A job file is never held in memory
@@ -17,17 +16,18 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections.abc import AsyncIterator
+from collections import deque
+from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
 from server.errors import CommandError, Error
+from server.gcode.parser import check_length
 from server.jobs.clock import JobClock, JobPlan
-from server.jobs.feeding import JobFeeder, LineFailed
 from server.jobs.interjections import Interjections
 from server.jobs.planning import JobPlans
-from server.jobs.reading import Stopped, read_batches
+from server.jobs.reading import Stopped, read_lines
 from server.jobs.store import JobStore
 from server.motion.moves import Action, ActionName
 from server.offline.stats import format_duration
@@ -45,6 +45,7 @@ if TYPE_CHECKING:
     from server.runtime.state import MachineStatus
 
 log = logging.getLogger("motiond.jobs")
+YIELD_AFTER_S = 0.0003  # the job feeder gives other tasks a turn at least this often
 
 
 class JobHost(Protocol):
@@ -88,7 +89,7 @@ class JobProgress:
 
 @dataclass(slots=True)
 class _Percent:
-    """Where :func:`read_batches` writes the share of the file read (the job counts lines)."""
+    """Where :func:`read_lines` writes the share of the file read (the job counts lines)."""
 
     percent: float = 0.0
 
@@ -334,9 +335,9 @@ class Jobs(JobStore):
             self._clock = JobClock(plan.timing, machine.stepgen.state,
                                    counts_blocks=machine.counts_blocks)
             async with contextlib.aclosing(
-                read_batches(path, core.protocol.line_limit, _Percent())
-            ) as batches:
-                await self._stream(batches, progress, source)
+                read_lines(path, core.protocol.line_limit, _Percent())
+            ) as lines:
+                await self._stream(lines, progress, source)
         except OSError as exc:
             self._fail(progress, f"cannot read {path.name}: {exc.strerror}")
         except CommandError as exc:  # the plan: the file went, or a stop came
@@ -347,15 +348,48 @@ class Jobs(JobStore):
             self._interjections.release()  # the job is over: what waits did not run
 
     async def _stream(
-        self, batches: AsyncIterator[list[str]], progress: JobProgress, source: _JobSource
+        self, lines: AsyncIterator[str], progress: JobProgress, source: _JobSource
     ) -> None:
-        machine = self.kernel.machine
-        feeder = JobFeeder(self.kernel.dispatcher, source, self._interjections, progress,
-                           self.kernel.config.core.protocol.line_limit,
-                           machine.interpreter.settings.axis_names, machine.feeds_runs)
+        dispatcher, machine = self.kernel.dispatcher, self.kernel.machine
+        begin = dispatcher.begin
+        loop = asyncio.get_running_loop()
+        turn_s = loop.time()
+        limit = self.kernel.config.core.protocol.line_limit
+        pending: deque[tuple[int, asyncio.Future[list[str]]]] = deque()
+        interjections = self._interjections
+        waiting = interjections.waiting  # (a deque's truth costs a fifth of a method's)
+
+        def as_job(text: str, ticket: int) -> Awaitable[list[str]]:
+            return dispatcher.submit(text, source, ticket)
+
+        number = 0
+        async for line in lines:
+            number += 1
+            try:
+                if waiting:  # a requester's line, in the job's order (a baby-step)
+                    await interjections.run(as_job)
+                check_length(line, limit)  # error 11, as a stream refuses it
+                # (submit, without its coroutine for the line that needs no wait: most)
+                outcome = begin(line, source, source.ticket, _deferring(pending, number))
+                if not isinstance(outcome, list):
+                    await outcome
+                if pending:
+                    await _settle(pending, wait=False)
+            except _LineFailed as failed:
+                self._fail(progress, failed.text)
+                return
+            except CommandError as exc:
+                self._fail(progress, f"line {number}: error:{exc.code} {exc.message}")
+                return
+            progress.lines_done = number
+            progress.percent = min(100.0, 100.0 * number / max(1, progress.lines_total))
+            if loop.time() - turn_s > YIELD_AFTER_S:  # lines that never wait must not hog
+                await asyncio.sleep(0)
+                turn_s = loop.time()
         try:
-            await feeder.feed(batches)
-        except LineFailed as failed:
+            await interjections.run(as_job)
+            await _settle(pending, wait=True)
+        except _LineFailed as failed:
             self._fail(progress, failed.text)
             return
         await machine.wait_idle()
@@ -422,6 +456,31 @@ class Jobs(JobStore):
 
     def _resume(self, command: Command) -> None:
         self.resume()
+
+
+def _deferring(
+    pending: deque[tuple[int, asyncio.Future[list[str]]]], number: int
+) -> Callable[[asyncio.Future[list[str]]], None]:
+    """The ``defer`` of line ``number``: its answer-to-come joins ``pending``."""
+    return lambda future: pending.append((number, future))
+
+
+class _LineFailed(Exception):
+    def __init__(self, text: str) -> None:
+        super().__init__(text)
+        self.text = text
+
+
+async def _settle(pending: deque[tuple[int, asyncio.Future[list[str]]]], *, wait: bool) -> None:
+    """Drop the deferred answers that came (all of them, waiting, with ``wait``); raise
+    :class:`_LineFailed` naming the first line the controller refused."""
+    while pending and (wait or pending[0][1].done()):
+        number, future = pending[0]
+        try:
+            await future
+        except CommandError as exc:
+            raise _LineFailed(f"line {number}: error:{exc.code} {exc.message}") from exc
+        pending.popleft()
 
 
 def _clock(seconds: float) -> str:

@@ -1,6 +1,6 @@
 """Reading a job file as it plays: never whole, file I/O in threads, its plan stoppable.
 
-:func:`read_batches` gives the lines to the player :data:`READ_LINES` at a time, read in a thread;
+:func:`read_lines` gives the lines to the player :data:`READ_LINES` at a time, read in a thread;
 :func:`until` lets a plan read through the file (:mod:`server.jobs.clock`) give up soon after
 it is no longer wanted (within a chunk of the file). Memory is bounded by a
 batch of lines and the planner's window, whatever the file's size.
@@ -23,21 +23,21 @@ class Progress(Protocol):
     percent: float
 
 
-async def read_batches(
+async def read_lines(
     path: Path, limit_chars: int, progress: Progress
-) -> AsyncGenerator[list[str], None]:
-    """The file's lines (see :func:`file_lines`), :data:`READ_LINES` at a time;
-    ``progress.percent`` follows the characters read (close the generator,
-    ``contextlib.aclosing``, to close the file early)."""
+) -> AsyncGenerator[str, None]:
+    """The file's lines (see :func:`file_lines`); ``progress.percent`` follows the characters
+    read (close the generator, ``contextlib.aclosing``, to close the file early)."""
     size = max(1, (await asyncio.to_thread(path.stat)).st_size)
     handle = await asyncio.to_thread(path.open, errors="replace")
     try:
         lines = file_lines(handle, limit_chars)
         read_chars = 0
         while batch := await asyncio.to_thread(_take, lines, READ_LINES):
-            read_chars += sum(map(len, batch)) + len(batch)
-            progress.percent = min(99.9, 100.0 * read_chars / size)
-            yield batch
+            for line in batch:
+                read_chars += len(line) + 1
+                progress.percent = min(99.9, 100.0 * read_chars / size)
+                yield line
     finally:
         handle.close()
 

@@ -238,8 +238,7 @@ class Kernel:
             locked_by=self._locked_by,
         )
         self.dispatcher.set_gcode_handler(
-            self.machine.handle_gcode, lambda line: self.machine.interpreter.classify(line),
-            self.machine.feed_plain if self.machine.feeds_runs else None,
+            self.machine.handle_gcode, lambda line: self.machine.interpreter.classify(line)
         )
         self.jobs = Jobs(self)
         self.control = MachineControl(self.machine, self.jobs)

@@ -15,15 +15,12 @@ from collections.abc import Awaitable
 from typing import TYPE_CHECKING
 
 from server.errors import Alarm, CommandError, Error, SoftLimitError
-from server.gcode.plain import MIN_RUN
 from server.machine.parts import on_step_grid
-from server.motion.feed import MoveRun, offer, offer_run
+from server.motion.feed import offer
 from server.motion.moves import Action, ActionName, Move, MoveKind, Output, Sync, SyncKind
 from server.runtime.events import MachineState
 
 if TYPE_CHECKING:
-    import numpy as np
-
     from server.config import CoreConfig
     from server.gcode.interpreter import Interpreter
     from server.machine.machine import SyncHandler
@@ -34,11 +31,6 @@ if TYPE_CHECKING:
     from server.runtime.state import MachineStatus
 
 
-RUN_DRAIN = 0.25  # a run waits for room until the window drained this share of it at most:
-# lines longer than max_planned_s * RUN_DRAIN / MIN_RUN each go one by one
-RUN_FILL = 128  # a run waits for room for this many lines (within RUN_DRAIN): one costs about
-# 200 µs and 2.7 µs a line, a line alone 7 µs (the simulated machine, in process)
-RUN_LINE_S_DECAY = 0.9  # while they do, the last run's time a line decays: a run is tried again
 _RUN, _IDLE = MachineState.RUN, MachineState.IDLE  # (an enum member's look-up costs a call)
 _WAIT = Sync(SyncKind.WAIT)
 
@@ -51,8 +43,6 @@ def _has_dwell(outputs: list[Output]) -> bool:
 class GcodeFeed:
     """Lines into the planner; see the module docstring."""
 
-    feeds_runs = True  # a job's runs of plain lines are fed at once (feed_plain)
-    line_s = 0.0  # the time the last run's lines took each (its estimate; 0: none yet)
     # The machine's state this part reads and writes (set by Machine.__init__).
     core: CoreConfig
     clock: Clock
@@ -86,90 +76,6 @@ class GcodeFeed:
         if index == len(outputs):
             return []
         return self._feed(outputs, index, epoch)
-
-    def feed_plain(self, columns: dict[str, np.ndarray], start: int, stop: int
-                   ) -> int | Awaitable[int]:
-        """Plain lines ``start`` to ``stop`` of a parsed chunk (a playing job's:
-        :func:`~server.gcode.plain.plain_spans`), as many as the planner has room for, at
-        once, as :meth:`handle_gcode` of each would (read with numpy:
-        :meth:`~server.gcode.interpreter.Interpreter.read_plain`; appended with
-        :func:`~server.motion.feed.offer_run`). Nothing is read ahead of the planner, so what
-        comes after them in the stream (a line interjected) runs as soon as it would after the
-        same lines one by one.
-
-        A run costs about as much as ``MIN_RUN`` lines one by one: one is read only when the
-        lines are short (the last run's took ``line_s`` each: ``MIN_RUN`` of them within
-        ``RUN_DRAIN`` of the window, a raster's), and, when the planner has less room than
-        ``MIN_RUN`` of them, once it has (an awaitable that waits, holding the lines' turn as
-        a line waiting for room does). Returns how many lines it read, or an
-        awaitable of that: 0 when the first line is the one-line path's (the state takes no
-        runs, or the lines are long)."""
-        if not self.interpreter.takes_runs():
-            return 0
-        if self.check_mode:
-            run = self.interpreter.execute_plain(columns, start, stop)
-            return run.count
-        if self.line_s * MIN_RUN > self.planner.settings.max_planned_s * RUN_DRAIN:
-            self.line_s *= RUN_LINE_S_DECAY  # (the lines may grow short again: try now and then)
-            return 0
-        if self.planner.room_s() >= self._run_room_s() and not self.planner.is_full():
-            return self._read_run(columns, start, stop, self.epoch)
-        return self._run_with_room(columns, start, stop, self.epoch)
-
-    async def _run_with_room(self, columns: dict[str, np.ndarray], start: int, stop: int,
-                             epoch: int) -> int:
-        """:meth:`feed_plain` once the planner has room for ``MIN_RUN`` of the lines."""
-        while self.planner.is_full() or self.planner.room_s() < self._run_room_s():
-            self.room.clear()  # (set again after each tick while the window has room)
-            await self.room.wait()
-            if epoch != self.epoch:
-                raise CommandError(Error.BUSY, "motion was reset while these lines waited; "
-                                   "they were not run")
-        read = self._read_run(columns, start, stop, epoch)
-        return read if isinstance(read, int) else await read
-
-    def _run_room_s(self) -> float:
-        """The room a run waits for: ``RUN_FILL`` lines, within ``RUN_DRAIN`` of the window."""
-        return min(RUN_FILL * self.line_s, self.planner.settings.max_planned_s * RUN_DRAIN)
-
-    def _read_run(self, columns: dict[str, np.ndarray], start: int, stop: int,
-                  epoch: int) -> int | Awaitable[int]:
-        """Read the lines the planner has room for now (the last run's time a line, and a
-        quarter more, then exactly: :meth:`~server.motion.planner.Planner.room_for_run`) and
-        append their outputs: how many lines, or an awaitable of that while the rest of
-        their outputs waits for room (rare: the planner's room changed as it planned)."""
-        interpreter, planner = self.interpreter, self.planner
-        if self.line_s > 0.0:
-            stop = min(stop, start + int(1.25 * planner.room_s() / self.line_s) + 1)
-        run = interpreter.read_plain(columns, start, stop)
-        if run.ends.shape[0]:  # up to the first move with no room
-            moves, seconds = planner.room_for_run(run.ends, *run.move_feeds())
-            lines = run.lines_before(moves)
-            if not lines:
-                return 0
-            run = run.head(lines, interpreter.position)
-            self.line_s = seconds / lines
-        interpreter.commit_plain(run)
-        if not run.count:
-            return 0
-        outputs = run.outputs()
-        index = offer_run(planner, outputs)
-        if index:
-            self._note_input(_RUN)
-        if index == len(outputs.outputs):
-            return run.count
-        return self._feed_run(outputs, index, epoch, run.count)
-
-    async def _feed_run(self, run: MoveRun, index: int, epoch: int, lines: int) -> int:
-        """The rest of a run's outputs from ``index`` on, waiting for room (``epoch``: the
-        machine's when the run began: motion reset meanwhile refuses the rest); ``lines``."""
-        while index < len(run.outputs):
-            await self._wait_for_room(epoch)
-            taken = offer_run(self.planner, run, index)
-            if taken > index:
-                self._note_input(_RUN)
-            index = taken
-        return lines
 
     def interpret(self, command: Command) -> list[Output]:
         """The line's outputs from the interpreter; a target outside the travel alarms,

@@ -159,28 +159,14 @@ class PlannerIntake:
                 break
         return taken
 
-    def room_for_run(self, ends: FloatArray, feeds_mm_s: FloatArray,
-                     rapid: npt.NDArray[np.bool_]) -> tuple[int, float]:
-        """How many of these moves (a run's, as :meth:`append_run` takes them) it would take
-        now (fewer than it would when one is shorter than :data:`MIN_LENGTH_MM`, never more),
-        and their estimated time (s)."""
-        if not ends.shape[0] or self.is_full():
-            return 0, 0.0
-        if ends.shape[1] != len(self._chain_mm):
-            raise ValueError(f"expected {len(self._chain_mm)} coordinates, got {ends.shape[1]}")
-        _, _, estimates = self._run_estimates(ends, feeds_mm_s, rapid)
-        count, times = self._room_for(estimates)
-        return count, float(times[count - 1]) - self._time_estimate_s
-
-    def room_s(self) -> float:
-        """The motion time the window has room for before it is full (by time)."""
-        return self._max_planned_s - self._time_planned_s - self._time_estimate_s
-
-    def _run_estimates(self, ends: FloatArray, feeds: FloatArray, rapid: npt.NDArray[np.bool_]
-                       ) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Each move's axis deltas, length and time estimate (:meth:`append`'s, with numpy)."""
+    def _append_slice(self, moves: Sequence[Move], ends: FloatArray, feeds: FloatArray,
+                      rapid: npt.NDArray[np.bool_]) -> int:
+        count = len(moves)
         deltas = ends - np.vstack((np.asarray([self._chain_mm]), ends[:-1]))
-        lengths = np.fromiter(map(math.hypot, *deltas.T.tolist()), np.float64, len(ends))
+        lengths = np.fromiter(map(math.hypot, *deltas.T.tolist()), np.float64, count)
+        if float(lengths.min()) < MIN_LENGTH_MM:
+            return self._append_each(moves)
+        units = deltas * (1.0 / lengths)[:, None]
         feeds = np.where(feeds > 0.0, feeds, 0.0)
         limits = self._limits
         scaled = feeds * limits.feed_override
@@ -188,16 +174,6 @@ class PlannerIntake:
         if rapid.any():
             rapid_s = np.max(np.abs(deltas) * np.asarray(self._inv_rate), axis=1)
             estimates = np.where(rapid, rapid_s / limits.rapid_override, estimates)
-        return deltas, lengths, estimates
-
-    def _append_slice(self, moves: Sequence[Move], ends: FloatArray, feeds: FloatArray,
-                      rapid: npt.NDArray[np.bool_]) -> int:
-        count = len(moves)
-        deltas, lengths, estimates = self._run_estimates(ends, feeds, rapid)
-        if float(lengths.min()) < MIN_LENGTH_MM:
-            return self._append_each(moves)
-        units = deltas * (1.0 / lengths)[:, None]
-        feeds = np.where(feeds > 0.0, feeds, 0.0)
         taken, times = self._room_for(estimates)
         rows = np.stack((lengths, np.where(rapid, math.inf, feeds),
                          np.where(rapid, RAPID_OVERRIDE, FEED_OVERRIDE), np.zeros(count),

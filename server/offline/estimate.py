@@ -16,7 +16,7 @@ import itertools
 import math
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import replace
-from typing import TextIO
+from typing import TextIO, cast
 
 import numpy as np
 
@@ -27,12 +27,14 @@ from server.gcode.interpreter import Interpreter
 from server.gcode.plain import PlainRun, lines_read
 from server.machine.parts import interpreter_settings, planner_settings
 from server.motion.backend import Backend
-from server.motion.feed import MoveRun, offer, offer_run
+from server.motion.feed import offer
 from server.motion.moves import Action, Move, Output, Position, Sync
 from server.motion.planner import MIN_LENGTH_MM, Block, Planner
 from server.motion.stepgen import StepGenerator
 from server.offline.stats import JobStats
 
+Run = tuple[np.ndarray, np.ndarray, np.ndarray]
+"""A plain run's moves as arrays: their targets (a row each), feeds (mm/s), rapid or not."""
 OFFLINE_SYNC_BLOCKS = 1024  # no event loop to keep: fewer, larger syncs (the same plan)
 READ_CHUNK_CHARS = 1 << 16  # a job file is read this many characters at a time
 
@@ -52,8 +54,7 @@ class _Feeder:
     """Feeds the job's outputs until the planner is full, as a sender that keeps up would.
 
     A line's outputs may straddle a full planner (the chords of an arc), exactly as the live
-    machine waits for room between them; a run of plain lines is offered as a playing job
-    offers it (:func:`~server.motion.feed.offer_run`). Records the first refused line.
+    machine waits for room between them. Records the first refused line.
     """
 
     def __init__(
@@ -75,16 +76,17 @@ class _Feeder:
         self._where = [0]  # the number of the last line read
         self._read = lines_read(lines, interpreter, core.protocol.line_limit, self._where)
         self._on_line = on_line
-        self._waiting: list[Output] = []  # a line's outputs read, not yet queued
-        self._waiting_run: MoveRun | None = None  # a run's, from ``_run_index`` on
-        self._run_index = 0
+        self._waiting: list[Output] = []  # outputs read not yet queued
+        self._waiting_run: Run | None = None  # their arrays, when they are a run's moves
         self.done = False
 
     def refill(self) -> None:
         """Queue outputs until the planner is full (reading ahead a line, or a run of plain
         lines) or the job ends."""
-        if not self._queue_waiting():
-            return
+        if self._waiting:
+            self._waiting = self._queue(self._waiting, self._waiting_run)
+            if self._waiting:
+                return
         if self.done:  # the end of the job, or a refused line: read no further
             return
         planner, on_line, where = self.planner, self._on_line, self._where
@@ -94,9 +96,11 @@ class _Feeder:
             for item in self._read:
                 if on_line is not None:
                     on_line(where[0])
-                if isinstance(item, PlainRun):
-                    self._waiting_run, self._run_index = item.outputs(), 0
-                    if not self._queue_waiting():
+                if isinstance(item, PlainRun):  # (a plan needs no follow action)
+                    moves, feeds_mm_s, rapid = item.moves()
+                    self._waiting = self._queue(list[Output](moves),
+                                                (item.ends, feeds_mm_s, rapid))
+                    if self._waiting:
                         return
                     full = is_full()
                     continue
@@ -105,8 +109,8 @@ class _Feeder:
                 if count == 1 and not full and type(outputs[0]) is Move:
                     full, index = append(outputs[0]), 1  # the common line: offer(), inline
                 if index < count:
-                    self._waiting = outputs[index:] if index else outputs
-                    if not self._queue_waiting():
+                    self._waiting = self._queue(outputs[index:] if index else outputs)
+                    if self._waiting:
                         return
                     full = is_full()
         except CommandError as exc:
@@ -115,25 +119,26 @@ class _Feeder:
             self.stats.lines = where[0]
         self.done = True
 
-    def _queue_waiting(self) -> bool:
-        """Offer what was read and not yet queued as the live machine does (a line's outputs
-        with :func:`~server.motion.feed.offer`, a run's with ``offer_run``) until the planner
-        is full; whether all of it went. Sync requests need no machine here."""
-        run = self._waiting_run
+    def _queue(self, outputs: list[Output], run: Run | None = None) -> list[Output]:
+        """Offer ``outputs`` as the live machine does (:func:`~server.motion.feed.offer`) until
+        the planner is full; return those left over. Sync requests need no machine here.
+        A run's moves (``run``: their targets, feeds and kinds) are appended at once
+        (:meth:`~server.motion.planner.Planner.append_run`: the same blocks)."""
+        self._waiting_run = None
         if run is not None:
-            self._run_index = offer_run(self.planner, run, self._run_index)
-            if self._run_index < len(run.outputs):
-                return False
-            self._waiting_run = None
-        outputs, index = self._waiting, 0
+            moves = cast("list[Move]", outputs)  # (a run's: every output is a move)
+            taken = 0 if self.planner.is_full() else self.planner.append_run(moves, *run)
+            if taken < len(outputs):
+                self._waiting_run = (run[0][taken:], run[1][taken:], run[2][taken:])
+                return outputs[taken:]
+            return []
+        index = 0
         while index < len(outputs):
             index = offer(self.planner, outputs, index)
             if index < len(outputs) and type(outputs[index]) is not Sync:
-                self._waiting = outputs[index:]  # the planner is full
-                return False
+                return outputs[index:]  # the planner is full
             index += 1
-        self._waiting = []
-        return True
+        return []
 
 
 def _pipeline(

@@ -50,24 +50,18 @@ import time
 from collections import defaultdict
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Protocol, TypeVar
+from typing import Protocol
 
 from server.errors import CommandError, Error
 from server.gcode.interpreter import LineKind
 from server.gcode.parser import Line, parse_line
 from server.runtime.turn import Turn
 
-if TYPE_CHECKING:
-    import numpy as np
-
-T = TypeVar("T")
 HandlerResult = list[str] | None
 Outcome = list[str] | Awaitable[list[str]]  # a line's messages, or the wait for them
 Deferred = Callable[["asyncio.Future[list[str]]"], None]  # takes a line's answer-to-come
 Handler = Callable[["Command"], Awaitable[HandlerResult] | HandlerResult]
 Classifier = Callable[[Line], LineKind]
-RunHandler = Callable[["Columns", int, int], int | Awaitable[int]]
-Columns = dict[str, "np.ndarray"]  # a chunk's plain lines parsed: each letter's values
 
 _NAMED = re.compile(r"([A-Za-z][A-Za-z_\-]+)(?:\s+(.*))?$", re.S)
 _NAME_LETTERS = frozenset(string.ascii_letters + "_-")  # a name's second character
@@ -151,7 +145,6 @@ class Dispatcher:
         self._locked_by = locked_by
         self._entries: defaultdict[str, _Entry] = defaultdict(_Entry)
         self._gcode: Handler | None = None
-        self._runs: RunHandler | None = None
         self._classify: Classifier = lambda line: LineKind.EFFECT
         self._turn = Turn()
         self._is_locked = is_locked
@@ -178,15 +171,12 @@ class Dispatcher:
         entry.when_locked = entry.when_locked or when_locked
         entry.query = entry.query or query
 
-    def set_gcode_handler(self, handler: Handler, classify: Classifier | None = None,
-                          runs: RunHandler | None = None) -> None:
-        """The handler of every G-code line (the machine), what decides what a line does
-        (without it, every line is an effect: read-only sources may run none) and, for a
-        machine that takes them, the handler of runs of plain lines (:meth:`begin_run`)."""
+    def set_gcode_handler(self, handler: Handler, classify: Classifier | None = None) -> None:
+        """The handler of every G-code line (the machine) and what decides what a line does
+        (without it, every line is an effect: read-only sources may run none)."""
         self._gcode = handler
         if classify is not None:
             self._classify = classify
-        self._runs = runs
 
     def names(self) -> list[str]:
         """Every registered command name."""
@@ -251,37 +241,6 @@ class Dispatcher:
             return outcome
         return self._then_release(outcome)
 
-    def begin_run(self, columns: Columns, start: int, stop: int, source: Source,
-                  ticket: int) -> int | Awaitable[int]:
-        """Plain lines ``start`` to ``stop`` of a parsed chunk at once (a playing job's:
-        :func:`~server.gcode.plain.plain_spans`), in order with every other source as
-        :meth:`begin` runs each of them (one turn, one check of the ticket, the source and
-        the lock: plain lines are effects): how many lines it read, or an awaitable of that
-        which the caller must await at once (the lines hold their turn until then); 0 when it
-        took none (no run handler, the turn is taken, or the first line is the one-line
-        path's: the caller sends it as a line). Raises CommandError as :meth:`begin` does."""
-        if self._closed:
-            raise CommandError(Error.BUSY, "shutting down")
-        if self._runs is None or not self._turn.free:
-            return 0
-        self.last_command_s = time.monotonic()
-        if ticket != self.stops():
-            self._check_ticket(ticket)
-        if source is not self._owner or not source.can_control:
-            self._check_source(source, query=False)
-        if self._is_locked():
-            raise self._locked_out("G-code")
-        self._turn.taken = True
-        try:
-            outcome = self._runs(columns, start, stop)
-        except BaseException:
-            self._turn.release()
-            raise
-        if isinstance(outcome, int):
-            self._turn.release()
-            return outcome
-        return self._then_release(outcome)
-
     def _check_ticket(self, ticket: int) -> None:
         if ticket != self.stops():
             raise CommandError(Error.BUSY, "a stop came after this line was sent: not run")
@@ -299,7 +258,7 @@ class Dispatcher:
         finally:
             self._turn.release()
 
-    async def _then_release(self, outcome: Awaitable[T]) -> T:
+    async def _then_release(self, outcome: Awaitable[list[str]]) -> list[str]:
         try:
             return await outcome
         finally:

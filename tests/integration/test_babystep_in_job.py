@@ -23,22 +23,15 @@ DZ_MM = 0.05  # 20 steps of Z at 400 steps/mm
 
 
 def recording(app: App) -> list[Target]:
-    """Every move target the planner takes from now on, alone or in a run of plain lines
-    (the real planner still plans them)."""
+    """Every move target the planner takes from now on (the real planner still plans it)."""
     planner, taken = app.kernel.machine.planner, []
-    append, append_run = planner.append, planner.append_run
+    append = planner.append
 
     def append_and_record(move):  # type: ignore[no-untyped-def]
         taken.append(move.target_mm)
         return append(move)
 
-    def append_run_and_record(moves, *arrays):  # type: ignore[no-untyped-def]
-        count = append_run(moves, *arrays)
-        taken.extend(move.target_mm for move in moves[:count])
-        return count
-
     planner.append = append_and_record  # type: ignore[method-assign]
-    planner.append_run = append_run_and_record  # type: ignore[method-assign]
     return taken
 
 

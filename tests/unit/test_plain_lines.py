@@ -22,7 +22,7 @@ from server.gcode.interpreter import Interpreter, InterpreterSettings
 from server.gcode.parser import parse_line, parse_plain
 from server.gcode.plain import PlainRun, lines_read
 from server.machine.parts import interpreter_settings
-from server.motion.moves import Output
+from server.motion.moves import Action, ActionName, Move, Output
 from server.offline import estimate as offline
 from server.offline.estimate import estimate, extent, file_chunks
 from tests.conftest import CORPUS, make_config
@@ -102,16 +102,33 @@ def test_a_chunk_with_a_line_ending_inside_a_line_is_left_to_the_one_line_path()
     assert not parse_plain(["G1 X1", "G1 X2\nG1 X3"]).plain.any()
 
 
+def planned(outputs: list[Output]) -> list[Output]:
+    """What a plan depends on: the outputs without follow spindle actions (a line's new S,
+    which the move carries as its ``s_value`` too)."""
+    kept: list[Output] = []
+    for output in outputs:
+        if isinstance(output, Move):
+            kept.append(replace(output, actions=[a for a in output.actions if not follows(a)]))
+        elif not (isinstance(output, Action) and follows(output)):
+            kept.append(output)
+    return kept
+
+
+def follows(action: Action) -> bool:
+    return action.name == ActionName.SPINDLE and action.lead_s == 0 and not action.stops_motion
+
+
 def one_by_one(lines: list[str], interpreter: Interpreter) -> tuple[list[Output], object]:
-    """The one-line path's outputs up to its first error, and that error."""
+    """The one-line path's outputs up to its first error (as a plan reads them), and that
+    error."""
     outputs: list[Output] = []
     for number, text in enumerate(lines, 1):
         try:
             parser.check_length(text, LIMIT_BYTES)
             outputs += interpreter.execute(parse_line(text))
         except CommandError as exc:
-            return outputs, (number, exc.code)
-    return outputs, None
+            return planned(outputs), (number, exc.code)
+    return planned(outputs), None
 
 
 def in_runs(lines: list[str], interpreter: Interpreter) -> tuple[list[Output], object, int]:
@@ -120,10 +137,10 @@ def in_runs(lines: list[str], interpreter: Interpreter) -> tuple[list[Output], o
     try:
         for item in lines_read(lines, interpreter, LIMIT_BYTES, where):
             runs += type(item) is PlainRun
-            outputs += item.outputs().outputs if type(item) is PlainRun else item
+            outputs += item.moves()[0] if type(item) is PlainRun else item
     except CommandError as exc:
-        return outputs, (where[0], exc.code), runs
-    return outputs, None, runs
+        return planned(outputs), (where[0], exc.code), runs
+    return planned(outputs), None, runs
 
 
 def interpreter(soft_limits: bool = False) -> Interpreter:

@@ -83,7 +83,6 @@ class GrblMachine(Machine):
     """The motion pipeline ends at a Grbl controller; see the module docstring."""
 
     counts_blocks = False  # the board executes the blocks: only its reports are known
-    feeds_runs = False  # the board takes every line as sent: a job's lines go one by one
 
     def __init__(self, config: Config, clock: Clock, events: EventBus, status: MachineStatus,
                  backend: Backend) -> None:
