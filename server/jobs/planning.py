@@ -10,7 +10,9 @@ priority (``motiond serve``'s loop runs at real-time priority where allowed, and
 starves on a busy host). A stop, an abort or the server's shutdown kills the child at
 once (:meth:`PlanProcess.cancel`); a child whose server is gone stops by itself within a
 chunk of the file (:data:`~server.offline.estimate.READ_CHUNK_CHARS`). Memory in the child
-is bounded as the plan's is (the file is read as the plan goes).
+is bounded as the plan's is (the file is read as the plan goes). The plans read one at a time
+(files of at most :data:`FIT_FIRST_BYTES`) go to one such child kept between them, the
+:class:`PlanWorker`: read warm, at a third of a fresh child's CPU.
 
 The interpreter sent to the child is a copy whose module codes are stand-ins
 (:meth:`~server.gcode.codes.CodeTable.stand_ins`): a module's state stays in the server.
@@ -279,7 +281,7 @@ def _answer(connection: Connection) -> tuple[str, Any] | None:
 def _serve(connection: Connection) -> None:
     """The plan worker: read each plan asked for, send the result (or the error)."""
     gc.disable()  # the pipeline makes no reference cycles (see server.cli.offline); any
-    parent = os.getppid()  # that a plan leaves are collected after it, the answer sent
+    parent = os.getppid()  # that a plan leaves are collected after it (the youngest objects)
 
     def stopped() -> bool:
         return os.getppid() != parent
@@ -300,15 +302,18 @@ def _serve(connection: Connection) -> None:
         except OSError:
             return
         del answer
-        gc.collect()
+        gc.collect(0)  # what this plan left (a full collection would go over, and copy,
+        # every object of the fork server's: tens of milliseconds)
 
 
 class JobPlans:
     """The plans of one kernel's job files: the fit first, the time filled in when known.
 
-    A file of at most :data:`IN_THREAD_BYTES` is planned whole in a thread (a few
-    milliseconds: less than a child's start), one of at most :data:`FIT_FIRST_BYTES` in a
-    child (a few tenths of a second at most: fit and time come together). For a larger one,
+    A file of at most :data:`FIT_FIRST_BYTES` is planned whole (fit and time together: a
+    few tenths of a second at most) by the :class:`PlanWorker`; one of at most
+    :data:`IN_THREAD_BYTES` in a thread until the worker runs (a few milliseconds: less than
+    its start), and any while the worker reads another plan in a thread or a child of its
+    own. For a larger one,
     :meth:`plan` reads the whole plan in one child and the fit alone in another (about a
     quarter of the work: it comes first, and on a busy host delays the time by no more than
     its share); it answers with
