@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import asyncio
 import copy
+import errno
 import gc
 import logging
 import multiprocessing
@@ -40,6 +41,7 @@ from server.jobs.reading import Stopped
 log = logging.getLogger("motiond.jobs")
 TIMING_GRACE_S = 0.2  # the fit waits this long for the time, which a small job has by then
 IN_THREAD_BYTES = 16_384  # a file this small is planned in a thread, in one pass (<10 ms)
+WORKER_IDLE_S = 60.0  # the plan worker ends after this long without a plan (its ~40 MB)
 KEPT_PLANS = 4  # job plans kept for files whose plan may be asked again (bounded memory each)
 FIT_FIRST_BYTES = 512 * 1024  # a bigger file's fit is read alone too (see JobPlans)
 CONTEXT = multiprocessing.get_context("forkserver")
@@ -169,10 +171,13 @@ class PlanWorker:
     here, holding the interpreter lock against the event loop. Started with its first plan
     (in a thread: the first start launches the fork server); a plan cancelled while it reads
     kills it at once (the next plan starts another). Between plans it waits on its pipe, no
-    CPU; it ends when the server does (the pipe closes) or at :meth:`close`. Its memory is
-    what the largest plan it read needed (files of at most :data:`FIT_FIRST_BYTES`)."""
+    CPU; it ends when the server does (the pipe closes), at :meth:`close`, or after
+    :data:`WORKER_IDLE_S` without a plan (its memory, ~40 MB here of which ~30 its own, goes
+    back to the host). Its memory is what the largest plan it read needed (files of at most
+    :data:`FIT_FIRST_BYTES`) beside the fork server's pages it wrote to."""
 
-    def __init__(self) -> None:
+    def __init__(self, idle_s: float = WORKER_IDLE_S) -> None:
+        self.idle_s = idle_s
         self._process: multiprocessing.process.BaseProcess | None = None
         self._connection: Connection | None = None
         self.busy = False
@@ -193,7 +198,7 @@ class PlanWorker:
             return self._connection
         self.close()
         ours, theirs = CONTEXT.Pipe()
-        process = CONTEXT.Process(target=_serve, args=(theirs,), daemon=True,
+        process = CONTEXT.Process(target=_serve, args=(theirs, self.idle_s), daemon=True,
                                   name="motiond plans")
         try:
             process.start()
@@ -228,18 +233,24 @@ class WorkerPlan(Generic[T]):
         self._cancelled = self._reading = False
 
     async def result(self) -> T | None:
-        """The reader's result, or None when cancelled first (or the process died). Raises
-        what the reader raised; RuntimeError when the worker is busy with another plan."""
+        """The reader's result, or None when cancelled first. Raises what the reader raised;
+        OSError when the process ended before it answered (twice: once it may, having been
+        idle too long as it was asked); RuntimeError when the worker reads another plan."""
         worker = self._worker
         if worker.busy:
             raise RuntimeError("the plan worker reads one plan at a time")
         worker.busy = True
         try:
             answer = await self._ask()
+            if answer is None and not self._cancelled:  # it ended as it was asked (idle):
+                worker.close()  # once more, from a new one
+                answer = await self._ask()
         finally:
             worker.busy = self._reading = False
         if answer is None:
             worker.close()  # killed, or died: the next plan starts another
+            if not self._cancelled:
+                raise OSError(errno.EPIPE, "the planning process ended before it answered")
             return None
         kind, value = answer
         if kind == "cancelled":
@@ -258,9 +269,7 @@ class WorkerPlan(Generic[T]):
             await _readable(connection)
             return await asyncio.to_thread(_answer, connection)
         except (OSError, EOFError):
-            if self._cancelled:
-                return None
-            raise
+            return None  # killed, or it ended (result() tells which)
 
     def cancel(self) -> None:
         """End the plan at once: the process is killed while it reads it."""
@@ -278,7 +287,7 @@ def _answer(connection: Connection) -> tuple[str, Any] | None:
     return answer
 
 
-def _serve(connection: Connection) -> None:
+def _serve(connection: Connection, idle_s: float) -> None:
     """The plan worker: read each plan asked for, send the result (or the error)."""
     gc.disable()  # the pipeline makes no reference cycles (see server.cli.offline); any
     parent = os.getppid()  # that a plan leaves are collected after it (the youngest objects)
@@ -288,6 +297,8 @@ def _serve(connection: Connection) -> None:
 
     while True:
         try:
+            if not connection.poll(idle_s):
+                return  # idle: its memory back to the host (the next plan starts another)
             reader, path, core, interpreter = connection.recv()
         except (EOFError, OSError):
             return  # the server is gone

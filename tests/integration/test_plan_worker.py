@@ -1,10 +1,12 @@
 """The plan worker (:class:`~server.jobs.planning.PlanWorker`): one planning process kept
 between plans, so a job's plan is read warm, not by a fresh child each time; a cancel kills it
-at once and the next plan starts another; it ends with the server."""
+at once and the next plan starts another; it ends with the server, or when idle."""
 
 from __future__ import annotations
 
 import asyncio
+import os
+import signal
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -114,5 +116,29 @@ async def test_an_error_in_the_worker_is_raised_where_the_plan_is_awaited(
         else:
             raise AssertionError("a missing file raises")
         assert worker.running, "the worker reads the next plan"
+    finally:
+        worker.close()
+
+
+async def test_an_idle_worker_ends_by_itself_and_one_that_died_is_replaced(
+    tmp_path: Path
+) -> None:
+    config = make_config()
+    interpreter = machine_interpreter(config)
+    path = tmp_path / "job.nc"
+    path.write_text("G1 X1\n")
+    worker = PlanWorker(idle_s=0.3)
+    try:
+        assert await worker.plan(quick_reader, path, config.core, interpreter).result() == "job.nc"
+        assert worker._process is not None  # noqa: SLF001
+        idle_pid = worker._process.pid  # noqa: SLF001
+        assert await ended(idle_pid), "idle: it ended by itself (its memory back to the host)"
+        assert await worker.plan(quick_reader, path, config.core, interpreter).result() == "job.nc"
+        assert worker._process is not None  # noqa: SLF001
+        killed_pid = worker._process.pid  # noqa: SLF001
+        assert killed_pid != idle_pid
+        os.kill(killed_pid, signal.SIGKILL)  # dies between plans, unknown to the server
+        assert await worker.plan(quick_reader, path, config.core, interpreter).result() == "job.nc"
+        assert worker._process is not None and worker._process.pid != killed_pid  # noqa: SLF001
     finally:
         worker.close()
