@@ -6,7 +6,11 @@ raster (about 45 MB) on a real ``motiond`` over TCP.
 * the operator's ``?`` meanwhile, from another process every 10 ms (p50, p99, worst);
 * SIGTERM during the check: how long until the server has exited;
 * in one process of its own, as a planning process reads it: the CPU of the fit alone and of
-  the whole plan, and that process's peak memory.
+  the whole plan, and that process's peak memory;
+* a medium job (``MEDIUM_LINES``, about 60 kB, written again before each ``play``: no plan
+  kept) played and aborted ``MEDIUM_PLAYS`` times: from ``play`` to its answer, and the CPU
+  of the server and its processes meanwhile (the plan's), the first play and the median of
+  the others.
 
 Run it on this tree and, side by side, on another (``--motiond-tree DIR``, e.g. a checkout
 of the previous commit): ``python -m benchmarks plan [--quick] [--motiond-tree DIR]``
@@ -27,6 +31,7 @@ import time
 from pathlib import Path
 
 from benchmarks.common import BenchResult, standalone
+from benchmarks.klipper_rig_hosts import cpu_ns
 from benchmarks.streaming_support import StatusProbe
 from tests.support.processes import AXES_TOML, REPO, free_port
 
@@ -34,6 +39,8 @@ LINES = 2_000_000
 QUICK_LINES = 200_000
 ROW_SEGMENTS = 1000
 TIMED_WITHIN_S = 600.0
+MEDIUM_LINES = 2_400
+MEDIUM_PLAYS = 6
 
 
 def write_raster(path: Path, count: int) -> None:
@@ -105,6 +112,32 @@ async def measure(tree: Path, data_dir: Path) -> dict[str, float]:
         process.terminate()
         await process.wait()
     return {"ready_s": ready_s, "timed_s": timed_s, **summary}
+
+
+async def medium_jobs(tree: Path, data_dir: Path) -> list[tuple[float, float]]:
+    """(ms from ``play`` to its answer, ms of CPU of the server and its processes) of each
+    play of a medium job, written again before each."""
+    process, port = await start_server(tree, data_dir)
+    plays = []
+    try:
+        reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        await reader.readline()  # the banner
+        for _ in range(MEDIUM_PLAYS):
+            write_raster(data_dir / "jobs" / "medium.nc", MEDIUM_LINES)
+            await asyncio.sleep(0.5)
+            cpu, started_s = cpu_ns(process.pid), time.perf_counter()
+            answer = await ask(reader, writer, "play medium.nc")
+            ready_ms = (time.perf_counter() - started_s) * 1e3
+            plays.append((ready_ms, (cpu_ns(process.pid) - cpu) / 1e6))
+            if answer[-1] != "ok":
+                raise RuntimeError(f"play: {answer}")
+            await ask(reader, writer, "abort")
+            await ask(reader, writer, "$X")
+        writer.close()
+    finally:
+        process.terminate()
+        await process.wait()
+    return plays
 
 
 async def sigterm_during_check(tree: Path, data_dir: Path) -> float:
@@ -185,6 +218,17 @@ def run(quick: bool, motiond_tree: Path | None = None) -> BenchResult:
                        worst=(figures["max_ms"], "ms"), sigterm_exit=(exit_s, "s"),
                        fit_cpu=(fit_s, "s"), plan_cpu=(plan_s, "s"),
                        plan_memory=(memory_mb, "MB"), load=(load, ""))
+        print(f"\na {MEDIUM_LINES:,}-line job played {MEDIUM_PLAYS} times (written again each "
+              "time): from play to its answer / CPU of the server and its processes")
+        for name, tree in trees:
+            plays = asyncio.run(medium_jobs(tree.resolve(), data_dir))
+            ready = sorted(ms for ms, _ in plays[1:])
+            cpu = sorted(ms for _, ms in plays[1:])
+            print(f"{name:12} first {plays[0][0]:6.0f} ms / {plays[0][1]:5.0f} ms CPU; then "
+                  f"{ready[len(ready) // 2]:5.0f} ms ({ready[0]:.0f}-{ready[-1]:.0f}) / "
+                  f"{cpu[len(cpu) // 2]:4.0f} ms CPU ({cpu[0]:.0f}-{cpu[-1]:.0f})")
+            result.add(f"{name} medium job", str(tree), first_ready=(plays[0][0], "ms"),
+                       ready=(ready[len(ready) // 2], "ms"), cpu=(cpu[len(cpu) // 2], "ms"))
     return result
 
 
