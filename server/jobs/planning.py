@@ -61,11 +61,9 @@ class PlanProcess(Generic[T]):
     def __init__(self, reader: Reader[T], path: Path, core: CoreConfig,
                  interpreter: Interpreter) -> None:
         """Nothing runs until :meth:`start`."""
-        portable = copy.copy(interpreter)  # the caller's own copy: only the codes change
-        portable.codes = interpreter.codes.stand_ins()
         self._receive, send = CONTEXT.Pipe(duplex=False)
         self._process = CONTEXT.Process(
-            target=_child, args=(send, reader, path, core, portable), daemon=True,
+            target=_child, args=(send, reader, path, core, _portable(interpreter)), daemon=True,
             name=f"plan {path.name}")
         self._send = send
         self._cancelled = False
@@ -134,13 +132,18 @@ async def _readable(connection: Connection) -> None:
         loop.remove_reader(descriptor)
 
 
+def _portable(interpreter: Interpreter) -> Interpreter:
+    """What a planning process is sent: a copy of the caller's own copy whose module codes are
+    stand-ins (a module's state stays in the server)."""
+    portable = copy.copy(interpreter)
+    portable.codes = interpreter.codes.stand_ins()
+    return portable
+
+
 def _receive(connection: Connection) -> tuple[str, Any] | None:
-    """The child's one message, or None when it died first (in a thread)."""
+    """The child's one message, or None when it died first (in a thread); the pipe closed."""
     try:
-        answer: tuple[str, Any] = connection.recv()
-        return answer
-    except EOFError:
-        return None
+        return _answer(connection)
     finally:
         connection.close()
 
@@ -150,15 +153,22 @@ def _child(send: Connection, reader: Reader[Any], path: Path, core: CoreConfig,
     """The planning process: read, send the result (or the error), exit."""
     gc.disable()  # the pipeline makes no reference cycles (see server.cli.offline)
     parent = os.getppid()
-    try:
-        answer: tuple[str, Any] = ("ok", reader(path, core, interpreter,
-                                                lambda: os.getppid() != parent))
-    except Stopped:
-        return  # the server is gone
-    except Exception as exc:  # noqa: BLE001 - the server raises it where it waits
-        answer = ("error", exc)
-    send.send(answer)
+    answer = _read(reader, path, core, interpreter, lambda: os.getppid() != parent)
+    if answer is not None:
+        send.send(answer)
     send.close()
+
+
+def _read(reader: Reader[Any], path: Path, core: CoreConfig, interpreter: Interpreter,
+          stopped: Callable[[], bool]) -> tuple[str, Any] | None:
+    """A planning process's answer: ("ok", the result) or ("error", what it raised); None
+    when ``stopped()`` ended it (the server is gone)."""
+    try:
+        return ("ok", reader(path, core, interpreter, stopped))
+    except Stopped:
+        return None
+    except Exception as exc:  # noqa: BLE001 - the server raises it where it waits
+        return ("error", exc)
 
 
 class PlanWorker:
@@ -184,7 +194,8 @@ class PlanWorker:
 
     @property
     def running(self) -> bool:
-        """Whether the process is there, warm (it has read a plan or is reading one)."""
+        """Whether its process is there (started, not ended: idle, reading, or warm from
+        the plans it read)."""
         return self._process is not None and self._process.exitcode is None
 
     def plan(self, reader: Reader[T], path: Path, core: CoreConfig,
@@ -226,9 +237,7 @@ class WorkerPlan(Generic[T]):
 
     def __init__(self, worker: PlanWorker, reader: Reader[T], path: Path, core: CoreConfig,
                  interpreter: Interpreter) -> None:
-        portable = copy.copy(interpreter)  # the caller's own copy: only the codes change
-        portable.codes = interpreter.codes.stand_ins()
-        self._request = (reader, path, core, portable)
+        self._request = (reader, path, core, _portable(interpreter))
         self._worker = worker
         self._cancelled = self._reading = False
 
@@ -291,10 +300,6 @@ def _serve(connection: Connection, idle_s: float) -> None:
     """The plan worker: read each plan asked for, send the result (or the error)."""
     gc.disable()  # the pipeline makes no reference cycles (see server.cli.offline); any
     parent = os.getppid()  # that a plan leaves are collected after it (the youngest objects)
-
-    def stopped() -> bool:
-        return os.getppid() != parent
-
     while True:
         try:
             if not connection.poll(idle_s):
@@ -302,12 +307,9 @@ def _serve(connection: Connection, idle_s: float) -> None:
             reader, path, core, interpreter = connection.recv()
         except (EOFError, OSError):
             return  # the server is gone
-        try:
-            answer: tuple[str, Any] = ("ok", reader(path, core, interpreter, stopped))
-        except Stopped:
+        answer = _read(reader, path, core, interpreter, lambda: os.getppid() != parent)
+        if answer is None:
             return
-        except Exception as exc:  # noqa: BLE001 - the server raises it where it waits
-            answer = ("error", exc)
         try:
             connection.send(answer)
         except OSError:
