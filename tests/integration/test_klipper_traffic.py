@@ -1,7 +1,7 @@
 """What a long move costs on the wire to a virtual Klipper MCU (its bytes decoded with Klipper's
-own msgproto): cruise runs as long as the hold-back allows, never cut where an acceleration's
-steps were sent, each still leaving the stall ride-through ahead of its first step, and the
-clock polls riding in the steps' blocks."""
+own msgproto): cruise runs as long as the hold-back allows (the first, the hold-back less the
+share a sample sends ahead of its turn), each still leaving the stall ride-through ahead of its
+first step, and the clock polls riding in the steps' blocks."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from collections.abc import Iterator
 import pytest
 
 from server.backends.klipper.backend import KlipperBackend
+from server.backends.klipper.schedule import SHARE_OF_HOLD_BACK
 from tests.integration.test_klipper_backend import check_steps, run_job
 from tests.support.klipper_machine import klipper_config, klipper_machine
 from tests.support.virtual_mcu import VirtualMcu
@@ -59,9 +60,13 @@ async def test_a_100_mm_cruise_sends_runs_as_long_as_the_hold_back_and_each_in_t
         cruise = [p["count"] for p in runs
                   if p["add"] == 0 and abs(p["interval"] - cruise_ticks) < 0.01 * cruise_ticks]
         # every run of the cruise spans the hold-back at least (but the last: the deceleration
-        # ends it), the first too (the acceleration's steps going out does not cut it)
-        hold_back_steps = backend.hold_back_s * SPEED_MM_S * STEPS_PER_MM  # 400
-        assert cruise and min(cruise[:-1]) >= 0.95 * hold_back_steps, cruise
+        # ends it); the first, the hold-back less the share at least (what turns within the
+        # share after a sample leaves at it: the acceleration's last run takes it along)
+        hold_back_steps = backend.hold_back_s * SPEED_MM_S * STEPS_PER_MM  # 1,200 (400)
+        share_steps = max(backend.flush_s, SHARE_OF_HOLD_BACK * backend.hold_back_s) * (
+            SPEED_MM_S * STEPS_PER_MM)
+        assert cruise and min(cruise[1:-1]) >= 0.95 * hold_back_steps, cruise
+        assert cruise[0] >= 0.95 * (hold_back_steps - share_steps), cruise
         cruise_s = (100.0 - SPEED_MM_S ** 2 / ACCEL_MM_S2) / SPEED_MM_S  # 0.967 s
         most_cruise = math.ceil(cruise_s / backend.hold_back_s)  # 20 (~16 at 20 ms flushes)
         assert len(cruise) <= most_cruise + 1, cruise

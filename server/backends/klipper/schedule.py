@@ -16,8 +16,9 @@ of it, ``HOLD_BACK_SHARE``), so a host stall of up to ``lead_time_s`` - hold-bac
 MCU's move queue (``move_count`` from its config) has room (:mod:`.movequeue`), in bursts that
 the link packs into as few message blocks as fit; messages that would only part-fill a burst's
 last block wait for more while none of them is due within ``lead_time_s`` - ``hold_back_s``
-and a flush (as a held-back run does), so blocks leave fuller; a sample sends what would
-turn before another flush could come, so turns close together take one wake-up. The motion's
+and the share (as a held-back run does), so blocks leave fuller; a sample sends what would
+turn within ``SHARE_OF_HOLD_BACK`` of the hold-back after it (the share: at least a flush),
+so the next sample comes no sooner and turns close together take one wake-up. The motion's
 timeline maps to the MCU's clock here too (:meth:`StepSchedule._scheduled_clock`), for the
 outputs (:mod:`.outputs`).
 
@@ -64,6 +65,12 @@ lead; the lead, and the stall the MCU rides through, shrink by as much) before t
 is steered back (:mod:`.printclock`)."""
 BEHIND_MAX_S = 0.05
 """The most it may fall behind (or a quarter of the lead: the lead grows by as much)."""
+SHARE_OF_HOLD_BACK = 0.5
+"""What turns within this share of the hold-back after a sample (75 ms at the default lead; at
+least a flush) leaves at it, so the next sample comes no sooner: a wake-up of the host costs
+more (0.3-0.6 ms of CPU on a shared 2-core VM, several times that on a small board computer)
+than what sending early costs on the wire (a run cut: a message of a few bytes; a block
+part-filled: its 5). Runs still grow for the rest of the hold-back."""
 SLICE_END_S = 1e-6  # a sample this little past the last piece's end is a late tick's slice
 
 
@@ -262,10 +269,12 @@ class StepSchedule:
     @property
     def _send_ahead_s(self) -> float:
         """What is due within this of a sample leaves at it: the lead less the hold-back,
-        and a flush more (what would turn before another flush could come goes with it: a
-        run of another axis, a message held to share a block), so that one sample serves the
-        turns that come close together."""
-        return self.lead_s - self.hold_back_s + self.flush_s
+        and the share more (what would turn within ``SHARE_OF_HOLD_BACK`` of the hold-back,
+        and at least before another flush could come, goes with it: a run of another axis, a
+        message held to share a block), so that one sample serves the turns that come close
+        together."""
+        share_s = max(self.flush_s, SHARE_OF_HOLD_BACK * self.hold_back_s)
+        return self.lead_s - self.hold_back_s + share_s
 
     def _flush(self, now_s: float) -> None:
         """Compress what is due soon (all of it when motion has no more pieces): steps that
@@ -285,7 +294,7 @@ class StepSchedule:
 
     def _pump(self) -> None:
         """Send queued messages in order while the MCU's move queue has room. Less than a
-        block of messages all due later than a flush must send (``_send_ahead_s`` ahead)
+        block of messages all due later than a sample must send (``_send_ahead_s`` ahead)
         waits for more, at flushes and between them alike, so they share blocks; a message so
         held still leaves at least ``lead_s`` - ``hold_back_s`` - ``flush_s`` ahead, as a
         held-back run does."""
