@@ -60,7 +60,9 @@ class Backend(Protocol):
     then ticks that often instead of at ``tick_hz`` (Klipper's: every flush; steps, actions and
     the laser's power are timed from the pieces, not from the ticks), and may say with
     ``next_sample_s(time_s)`` when it needs the sample after the one at ``time_s``: while
-    motion needs nothing of the ticks themselves, the step generator ticks then if later.
+    motion needs nothing of the ticks themselves, the step generator ticks then if later;
+    such sparse ticks each cover many blocks, so it may also set ``blocks_per_call``, how many
+    one call of the step generator goes through before the rest is sliced (default 64).
     One that has ``follow_power(name, period_s)`` returning True drives the output ``name``
     from each piece's ``power`` itself, at most every ``period_s`` (the laser module then
     stops sampling).

@@ -102,10 +102,10 @@ async def test_a_cruise_is_sampled_only_when_the_backend_needs_it(mcu: VirtualMc
 
 async def test_a_raster_sampled_in_late_tick_slices_keeps_the_laser_on_along_its_line(
         mcu: VirtualMcu) -> None:
-    """0.1 mm segments at 100 mm/s: a sample ~158 ms after the last spans more blocks than a
-    step generator call takes (64), so it comes in slices, each ending on a block's end. Such
-    a slice is not motion's end: the laser (M3, following the pieces) goes on once and off
-    once, never off and on again in between; every step is exact."""
+    """0.05 mm segments at 100 mm/s: a sample 75-158 ms after the last spans more blocks than
+    a step generator call takes (the backend's 128), so it comes in slices, each ending on a
+    block's end. Such a slice is not motion's end: the laser (M3, following the pieces) goes
+    on once and off once, never off and on again in between; every step is exact."""
     async with klipper_machine(mcu, lead_time_s=LEAD_S,
                                laser={"pin": "PA8", "maximum_power": 0.8}) as app:
         backend, stepgen = klipper(app), app.kernel.machine.stepgen
@@ -117,7 +117,7 @@ async def test_a_raster_sampled_in_late_tick_slices_keeps_the_laser_on_along_its
             return done
 
         stepgen.advance = counted  # type: ignore[method-assign]
-        segments = [f"G1 X{0.1 * k:.1f}" for k in range(1, 301)]
+        segments = [f"G1 X{0.05 * k:.2f}" for k in range(1, 601)]
         await submit_all(app, ["G0 X0 Y5", "M3 S500", "G1 F6000", *segments, "M5"])
         await app.kernel.machine.wait_idle()
         await asyncio.sleep(LEAD_S + 0.1)
@@ -127,7 +127,7 @@ async def test_a_raster_sampled_in_late_tick_slices_keeps_the_laser_on_along_its
         assert values == [0.4, 0.0], values
         assert [value for _, value in mcu.output_events("PA8")[1:]] == [102, 0]
         clocks, _ = mcu.step_clocks(backend.axes[0].oid)
-        assert len(clocks) == 300 * 8 and backend.fault is None
+        assert len(clocks) == 600 * 4 and backend.fault is None
 
 
 async def test_a_hold_between_sparse_samples_decelerates_and_turns_the_laser_off_at_once(

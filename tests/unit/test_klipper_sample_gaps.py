@@ -1,8 +1,9 @@
 """How often the Klipper backend asks to be sampled while motion runs: what turns within the
 share (half the hold-back) after a sample leaves at it, so no two samples come closer than that
-on the rig benchmark's jobs, while their steps stay exact. Each runs through the real planner,
-step generator and backend on a virtual clock (``benchmarks.bench_klipper_host``), ticking
-when the backend asks, as the server does."""
+on the rig benchmark's jobs, while their steps stay exact; and each of those sparse ticks is
+one call of the step generator, one sample (not sliced as a late tick is). Each runs through
+the real planner, step generator and backend on a virtual clock
+(``benchmarks.bench_klipper_host``), ticking when the backend asks, as the server does."""
 
 from __future__ import annotations
 
@@ -36,3 +37,21 @@ def test_samples_in_motion_come_at_least_the_share_apart_and_the_steps_stay_exac
     assert len(gaps_s) >= 5 and min(gaps_s) >= share_s, sorted(gaps_s)[:5]
     for index, axis in enumerate(backend.axes):
         assert axis.position == round(job.end[index] * STEPS_PER_MM), axis.name
+
+
+def test_a_sparse_tick_of_the_rig_raster_is_one_sample(monkeypatch: pytest.MonkeyPatch) -> None:
+    """~80 blocks a sample (0.1 mm segments at 100 mm/s, 9 samples a second): under the
+    backend's ``blocks_per_call``, so no tick is sliced into samples of its own."""
+    samples: list[float] = []
+    sample = OfflineBackend.sample
+
+    def counting(backend: OfflineBackend, time_s: float, *args: object) -> None:
+        samples.append(time_s)
+        sample(backend, time_s, *args)
+
+    monkeypatch.setattr(OfflineBackend, "sample", counting)
+    job = raster(lines=6)
+    _, _, backend = execute(0.0, job)
+    ticks = backend.ticks  # type: ignore[attr-defined]
+    assert len(job.path) / ticks > 64  # blocks a tick: more than a late tick's slice
+    assert len(samples) <= ticks + 1, (len(samples), ticks)  # (the first tick, at rest)
