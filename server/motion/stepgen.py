@@ -10,11 +10,11 @@ Feed hold decelerates along the path (across block boundaries when needed) withi
 acceleration limit; resume re-plans the rest of the interrupted block from standstill.
 :mod:`server.runtime.ticks` is the thin asyncio task that calls :meth:`advance` at ``tick_hz``
 (or when :meth:`next_tick_s` says: a backend that times its own steps is sampled when it needs).
-One call goes through at most ``max_blocks_per_call`` blocks (or the backend's
-``blocks_per_call``): a tick late by many blocks (at
-20,000 segments/s a 50 ms stall is 1,000 blocks) is caught up in slices, with the event loop
-running other callbacks in between, instead of in one long call. A backend that times its own
-steps (a Klipper MCU) also gets the trajectory as pieces (:mod:`server.motion.pieces`).
+One call goes through at most ``max_blocks_per_call`` blocks (64, or the backend's
+``blocks_per_call``): a tick late by many blocks (at 20,000 segments/s a 50 ms stall is 1,000
+blocks) is caught up in slices, with the event loop running other callbacks in between,
+instead of in one long call. A backend that times its own steps (a Klipper MCU) also gets
+the trajectory as pieces (:mod:`server.motion.pieces`).
 """
 
 from __future__ import annotations
@@ -96,7 +96,7 @@ class StepGenerator:
         *,
         tick_hz: float = 1000.0,
         start_delay_s: float = 0.05,
-        max_blocks_per_call: int = 64,
+        max_blocks_per_call: int | None = None,
     ) -> None:
         self.planner = planner
         self.backend = backend
@@ -105,7 +105,8 @@ class StepGenerator:
         # a backend that times its own steps from the pieces needs fewer ticks (Klipper's)
         self.tick_s = getattr(backend, "tick_s", None) or 1.0 / tick_hz
         self.start_delay_s = start_delay_s
-        self.max_blocks_per_call = int(getattr(backend, "blocks_per_call", max_blocks_per_call))
+        self.max_blocks_per_call = max_blocks_per_call or int(
+            getattr(backend, "blocks_per_call", 64))
         self.last_input_s = -math.inf
         self.before_pop: Callable[[], None] | None = None  # offline feeders refill here
         self.probe_towards = True  # G38.2/3 stop on contact; G38.4/5 on loss of contact
