@@ -108,6 +108,20 @@ async def after_reset(client: GrblClient, listen_s: float = 3.0) -> list[str]:
     return lines
 
 
+async def until_moved(client: GrblClient, x_mm: float, timeout_s: float = 10.0) -> None:
+    """Poll ``?`` until the machine runs past ``x_mm`` in X: the move is under way (the rig's
+    Grbl reset on its first Run report raised no alarm, three times in three)."""
+    loop = asyncio.get_running_loop()
+    deadline_s = loop.time() + timeout_s
+    while True:
+        report = await client.report()
+        x = float(report.partition("MPos:")[2].partition(",")[0] or "nan")
+        if report.startswith("<Run") and x > x_mm:
+            return
+        assert loop.time() < deadline_s, f"the move never ran: {report}"
+        await asyncio.sleep(0.01)
+
+
 async def setting_numbers(client: GrblClient) -> list[str]:
     return [line.partition("=")[0] for line in await client.send("$$") if line != "ok"]
 
@@ -129,7 +143,7 @@ async def test_a_reset_in_motion_is_alarm_3_the_banner_then_the_unlock_message(
         tmp_path: Path) -> None:
     async def reset_in_motion(client: GrblClient) -> list[str]:
         await client.send("G1 X10 F1200")
-        await asyncio.sleep(0.2)
+        await until_moved(client, 0.5)  # (a loaded rig starts late: a fixed wait missed)
         return (await after_reset(client))[:3]
 
     board_run, ours = await side_by_side(tmp_path, reset_in_motion)
