@@ -356,11 +356,11 @@ class JobPlans:
         worker = self._worker
         if size_bytes <= FIT_FIRST_BYTES and not worker.busy and (
                 worker.running or size_bytes > IN_THREAD_BYTES):
-            plan = await self._in_worker(path, core, interpreter)
+            plan = await self._whole(worker.plan(read_plan, path, core, interpreter))
         elif size_bytes <= IN_THREAD_BYTES:
             plan = await self._in_thread(path, core, interpreter)
         elif size_bytes <= FIT_FIRST_BYTES:
-            plan = await self._in_process(path, core, interpreter)
+            plan = await self._whole(PlanProcess(read_plan, path, core, interpreter))
         else:
             plan = await self._in_processes(path, core, interpreter)
         self._kept.pop(path.name, None)
@@ -379,17 +379,11 @@ class JobPlans:
         finally:
             self._stops.discard(stop)
 
-    async def _in_worker(self, path: Path, core: CoreConfig,
-                         interpreter: Interpreter) -> JobPlan:
-        plan = await self._read(self._worker.plan(read_plan, path, core, interpreter))
-        if plan is None:  # cancelled
-            raise Stopped
-        return plan
-
-    async def _in_process(self, path: Path, core: CoreConfig,
-                          interpreter: Interpreter) -> JobPlan:
-        plan = await self._read(PlanProcess(read_plan, path, core, interpreter))
-        if plan is None:  # cancelled
+    async def _whole(self, process: PlanProcess[JobPlan] | WorkerPlan[JobPlan]) -> JobPlan:
+        """The whole plan as ``process`` (the worker's, or a child's) reads it; Stopped when
+        cancelled."""
+        plan = await self._read(process)
+        if plan is None:
             raise Stopped
         return plan
 
