@@ -44,6 +44,13 @@ class Piece:
     accel_mm_s2: float
     power: PowerLaw | None = None
 
+    def lasting(self, duration_s: float) -> Piece:
+        """The same piece, ``duration_s`` long (cut short, or lengthened by the blocks that
+        continue it): a constructor call, not :func:`dataclasses.replace`'s look at the fields,
+        several times a tick."""
+        return Piece(self.start_s, duration_s, self.start_mm, self.unit, self.start_mm_s,
+                     self.accel_mm_s2, self.power)
+
 
 class Backend(Protocol):
     """What a hardware or simulated machine must provide.

@@ -120,8 +120,7 @@ class PieceReporter:
         """Tell the backend the open piece as it stands, if blocks lengthened it since."""
         run = self._run
         if run is not None and self._run_s != run.duration_s:
-            run = self._run = Piece(run.start_s, self._run_s, run.start_mm, run.unit,
-                                    run.start_mm_s, run.accel_mm_s2, run.power)
+            run = self._run = run.lasting(self._run_s)
             self.backend.trajectory(run)
 
     def _close(self) -> None:

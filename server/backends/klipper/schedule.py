@@ -33,7 +33,6 @@ from __future__ import annotations
 import logging
 import time
 from collections import deque
-from dataclasses import replace
 from typing import TYPE_CHECKING
 
 from server.backends.klipper.mcu import KlipperFault, Mcu
@@ -142,7 +141,7 @@ class StepSchedule:
             pieces.pop()
         if pieces and pieces[-1].start_s + pieces[-1].duration_s > start_s:
             last = pieces.pop()
-            cut = replace(last, duration_s=start_s - last.start_s)
+            cut = last.lasting(start_s - last.start_s)
             pieces.append(cut)
             if last is self._head:
                 self._head = cut

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import bisect
 from collections import deque
-from dataclasses import replace
 
 from server.motion.backend import Piece
 
@@ -42,7 +41,7 @@ class Trail:
             pieces.pop()
         if pieces and pieces[-1].start_s + pieces[-1].duration_s > at_s + EPSILON_S:
             last = pieces.pop()
-            pieces.append(replace(last, duration_s=max(0.0, at_s - last.start_s)))
+            pieces.append(last.lasting(max(0.0, at_s - last.start_s)))
 
     def clear(self) -> None:
         self._pieces.clear()
