@@ -167,6 +167,19 @@ class Interpreter:
             self.position = run.position
         return run
 
+    def rewind(self, run: PlainRun, lines: int) -> None:
+        """Back to the state after the first ``lines`` lines of ``run``, the last run
+        executed (:meth:`execute_plain`): the lines after them are read again later (a live
+        job's span that the planner had no room for whole)."""
+        modal = self._modal
+        self.position, modal.motion, modal.feed, modal.s = run.after(lines)
+
+    def runs_state(self) -> tuple[object, ...]:
+        """Everything :meth:`execute_plain` reads: equal states read the same lines alike."""
+        modal = self._modal
+        return (self.position, self._wco, self._geo, modal.motion, modal.feed, modal.s,
+                modal.tool_mode, modal.inches, modal.incremental, modal.inverse_time)
+
     def classify(self, line: Line) -> LineKind:
         """What ``line`` may do (see :class:`LineKind`); unknown words count as effects.
 

@@ -19,15 +19,15 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from server.gcode.modal import G0, G1, MM_PER_INCH, Geometry, ModalState
 from server.gcode.parser import check_length, parse_line, parse_plain
-from server.motion.moves import Move, MoveKind, Output, Position, ToolMode
+from server.motion.moves import Action, ActionName, Move, MoveKind, Output, Position, ToolMode
 
 if TYPE_CHECKING:
     from server.gcode.interpreter import Interpreter
@@ -35,6 +35,7 @@ if TYPE_CHECKING:
 CHUNK_LINES = 4096  # lines parsed at once (bounded memory: a chunk and its arrays)
 MIN_RUN = 32  # fewer plain lines in a row are read one by one (a run costs ~30 lines)
 _KINDS = (MoveKind.FEED, MoveKind.RAPID)  # by "rapid", False or True
+_SPINDLE = ActionName.SPINDLE
 
 
 @dataclass(slots=True)
@@ -49,7 +50,8 @@ class PlainRun:
         s: the modal S after each line.
         tool_mode: the modal M3/M4/M5 (the same for the whole run).
         position: the position after the run; ``motion``, ``feed_mm_min``, ``s_last``: the
-            modal state after it.
+            modal state after it; ``s_before``, ``position_before``, ``motion_before``,
+            ``feed_before``: the state before it.
     """
 
     count: int
@@ -63,6 +65,10 @@ class PlainRun:
     motion: int
     feed_mm_min: float
     s_last: float
+    s_before: float
+    position_before: Position
+    motion_before: int
+    feed_before: float
 
     def moves(self) -> tuple[list[Move], np.ndarray, np.ndarray]:
         """The run's moves without their follow actions (the S changes; a line that only
@@ -75,6 +81,41 @@ class PlainRun:
                          map(_KINDS.__getitem__, rapid.tolist()),
                          itertools.repeat(self.tool_mode), self.s[moved].tolist()))
         return moves, speeds, rapid
+
+    def outputs(self) -> tuple[list[Output], list[int]]:
+        """Every output of the run's lines, in order, and the run's line each comes from:
+        what the one-line path gives for each line (a move, with the action of a new S; a
+        line that only changed S, that action alone), equal field for field. What a live
+        job's span queues."""
+        mode, moved, s = self.tool_mode, self.moved.tolist(), self.s.tolist()
+        changed = (self.s != _before(self.s, self.s_before)).tolist()
+        speeds = np.where(self.rapid, math.inf, self.feeds_mm_min / 60.0).tolist()
+        kinds = self.rapid.tolist()
+        ends = iter(map(tuple, self.ends.tolist()))
+        outputs: list[Output] = []
+        lines: list[int] = []
+        for line in range(self.count):
+            actions = [Action(_SPINDLE, {"mode": mode, "s": s[line]})] if changed[line] else []
+            if moved[line]:
+                outputs.append(Move(next(ends), speeds[line], _KINDS[kinds[line]], mode, s[line],
+                                    None, actions))
+            elif actions:
+                outputs += actions
+            else:
+                continue
+            lines.append(line)
+        return outputs, lines
+
+    def after(self, lines: int) -> tuple[Position, int, float, float]:
+        """The position and the modal motion, feed (mm/min) and S after the run's first
+        ``lines`` lines (``lines <= count``; 0: before the run)."""
+        if not lines:
+            return self.position_before, self.motion_before, self.feed_before, self.s_before
+        last = lines - 1
+        moves = int(np.count_nonzero(self.moved[:lines]))
+        position = tuple(self.ends[moves - 1].tolist()) if moves else self.position_before
+        return (position, G0 if self.rapid[last] else G1, float(self.feeds_mm_min[last]),
+                float(self.s[last]))
 
 
 def plain_run(geo: Geometry, modal: ModalState, wco: Position, position: Position,
@@ -105,7 +146,8 @@ def plain_run(geo: Geometry, modal: ModalState, wco: Position, position: Positio
         tuple(ends[-1].tolist()) if ends.shape[0] else position,
         int(motion[last]) if count else modal.motion,
         float(feeds[last]) if count else modal.feed,
-        float(s_after[last]) if count else modal.s)
+        float(s_after[last]) if count else modal.s, modal.s, position, modal.motion,
+        modal.feed)
 
 
 def _moves(owns: list[tuple[np.ndarray | None, np.ndarray]], position: Position,
@@ -211,52 +253,99 @@ def _before(values: np.ndarray, start: float) -> np.ndarray:
     return shifted
 
 
+@dataclass(slots=True)
+class PlainSpan:
+    """Lines ``start`` to ``stop`` of a chunk read by :func:`plain_items` (``columns``: the
+    chunk's, from :func:`~server.gcode.parser.parse_plain`), to be read as one run.
+
+    Whoever reads it sets ``taken`` (its lines read so far, from ``start``) and ``count``
+    (how many of them the interpreter takes as a run, :meth:`Interpreter.execute_plain
+    <server.gcode.interpreter.Interpreter.execute_plain>`); a live job's span is read as the
+    planner has room (:meth:`GcodeFeed.handle_span <server.machine.feed.GcodeFeed.handle_span>`)
+    and keeps the run's outputs between readings (``outputs``, ``lines``: each one's line of
+    the run, ``queued``: how many are in the planner), valid while the interpreter's
+    ``state`` is the one they left it in. ``hurry``, when given, is asked at each reading:
+    True, and it queues one line only (something waits for the next line boundary).
+    """
+
+    columns: dict[str, np.ndarray]
+    start: int
+    stop: int
+    taken: int = 0
+    count: int = 0
+    run: PlainRun | None = None
+    first: int = 0  # the line of the span the run begins at
+    outputs: list[Output] = field(default_factory=list)
+    lines: list[int] = field(default_factory=list)
+    queued: int = 0
+    state: object = None
+    hurry: Callable[[], bool] | None = None  # True: a reading queues one line (see above)
+
+    def read(self, run: PlainRun) -> None:
+        """``run`` (from the line after those taken) is what the span reads from now on."""
+        self.run, self.first, self.queued = run, self.taken, 0
+        self.count = self.taken + run.count
+        self.outputs, self.lines = run.outputs()
+
+
+def plain_items(chunk: list[str], axes: Iterable[str], limit_bytes: int,
+                takes_runs: Callable[[], bool]) -> Iterator[int | PlainSpan]:
+    """How to read ``chunk`` (lines without their endings): the index of each line to read
+    alone, and a :class:`PlainSpan` for each run of at least :data:`MIN_RUN` plain lines (no
+    line over ``limit_bytes``) while ``takes_runs()`` (the interpreter's state, asked as the
+    reading gets there). A span is given again while part of what the interpreter takes of it
+    is still to read (the planner had no room for it); then the line after is read alone (the
+    first one the interpreter's fast path did not take), and the run goes on from the next.
+    A span the interpreter took none of is read line by line."""
+    if not takes_runs():  # (G91 is seldom left: a chunk at a time)
+        yield from range(len(chunk))
+        return
+    plain = parse_plain(chunk)
+    taken = plain.plain & words_taken(axes, plain.columns, len(chunk)) & (
+        np.fromiter(map(len, chunk), np.int64, len(chunk)) * 4 <= limit_bytes)
+    index = 0
+    for start, stop in _runs(taken):
+        yield from range(index, start)
+        index = start
+        while index < stop and takes_runs():
+            span = PlainSpan(plain.columns, index, stop)
+            yield span
+            while 0 < span.taken < span.count:
+                yield span
+            if not span.taken:
+                break
+            index += span.taken
+            if index < stop:  # the line the fast path did not take
+                yield index
+                index += 1
+    yield from range(index, len(chunk))
+
+
 def lines_read(lines: Iterable[str], interpreter: Interpreter, limit_bytes: int,
                where: list[int]) -> Iterator[PlainRun | list[Output]]:
-    """Read ``lines`` through ``interpreter``: a :class:`PlainRun` for each run of plain
-    lines, the outputs of each other line (the one-line path, which raises its
-    :class:`~server.errors.CommandError`); ``where[0]`` is the number of the last line read
-    (the refused one, on an error). A line over ``limit_bytes`` is refused (error 11)."""
+    """Read ``lines`` through ``interpreter`` (:func:`plain_items`, :data:`CHUNK_LINES` at a
+    time): a :class:`PlainRun` for each run of plain lines, the outputs of each other line
+    (the one-line path, which raises its :class:`~server.errors.CommandError`); ``where[0]``
+    is the number of the last line read (the refused one, on an error). A line over
+    ``limit_bytes`` is refused (error 11)."""
     lines, base = iter(lines), 0
-    axes = interpreter.settings.axis_names
+    axes, execute = interpreter.settings.axis_names, interpreter.execute
     while chunk := list(itertools.islice(lines, CHUNK_LINES)):
-        if not interpreter.takes_runs():  # (G91 is seldom left: a chunk at a time)
-            yield from _one_by_one(chunk, 0, len(chunk), base, interpreter, limit_bytes, where)
-            base += len(chunk)
-            continue
-        plain = parse_plain(chunk)
-        taken = plain.plain & words_taken(axes, plain.columns, len(chunk)) & (
-            np.fromiter(map(len, chunk), np.int64, len(chunk)) * 4 <= limit_bytes)
-        index = 0
-        for start, stop in _runs(taken):
-            yield from _one_by_one(chunk, index, start, base, interpreter, limit_bytes, where)
-            index = start
-            if not interpreter.takes_runs():  # (nor will it before a line that is not plain)
+        for item in plain_items(chunk, axes, limit_bytes, interpreter.takes_runs):
+            if type(item) is int:
+                text = chunk[item]
+                where[0] = base + item + 1
+                if 4 * len(text) > limit_bytes:  # only such a line may be too long
+                    check_length(text, limit_bytes)
+                yield execute(parse_line(text))
                 continue
-            while index < stop:
-                run = interpreter.execute_plain(plain.columns, index, stop)
-                where[0] = base + index + run.count
-                if run.count:
-                    yield run
-                    index += run.count
-                if index < stop:  # the line the fast path did not take
-                    yield from _one_by_one(chunk, index, index + 1, base, interpreter,
-                                           limit_bytes, where)
-                    index += 1
-        yield from _one_by_one(chunk, index, len(chunk), base, interpreter, limit_bytes, where)
+            assert isinstance(item, PlainSpan)
+            run = interpreter.execute_plain(item.columns, item.start, item.stop)
+            item.taken = item.count = run.count
+            where[0] = base + item.start + run.count
+            if run.count:
+                yield run
         base += len(chunk)
-
-
-def _one_by_one(chunk: list[str], start: int, stop: int, base: int, interpreter: Interpreter,
-                limit_bytes: int, where: list[int]) -> Iterator[list[Output]]:
-    """The outputs of lines ``start`` to ``stop`` of ``chunk``, each read alone."""
-    execute = interpreter.execute
-    for index in range(start, stop):
-        text = chunk[index]
-        where[0] = base + index + 1
-        if 4 * len(text) > limit_bytes:  # only such a line may be too long
-            check_length(text, limit_bytes)
-        yield execute(parse_line(text))
 
 
 def _runs(taken: np.ndarray) -> list[tuple[int, int]]:

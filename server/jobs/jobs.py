@@ -1,11 +1,12 @@
 """Stored jobs: play through the dispatcher, progress, abort, suspend (the files themselves:
 :mod:`.store`).
 
-Playing a file streams its lines through the same dispatcher a sender uses, so the job is
-executed, flow-controlled and error-checked exactly like streamed G-code; the first line that is
-refused stops the job with a message naming the line. A line answered downstream (a Grbl
-controller) is deferred by the dispatcher: the job sends on while it is in the controller's
-buffer and stops at the first answer that is an error. A job file is never held in memory
+Playing a file streams its lines through the same dispatcher a sender uses (:mod:`.player`),
+so the job is executed, flow-controlled and error-checked exactly like streamed G-code (its
+runs of plain lines read at once, to the same effect); the first line that is refused stops
+the job with a message naming the line. A line answered downstream (a Grbl controller) is
+deferred by the dispatcher: the job sends on while it is in the controller's buffer and
+stops at the first answer that is an error. A job file is never held in memory
 whole: it is planned by reading it through in processes of their own (:mod:`.planning`): its
 fit before anything moves, its time filled in when known; then its lines are read again as
 they are sent.
@@ -16,18 +17,17 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections import deque
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
 from server.errors import CommandError, Error
-from server.gcode.parser import check_length
 from server.jobs.clock import JobClock, JobPlan
 from server.jobs.interjections import Interjections
 from server.jobs.planning import JobPlans
-from server.jobs.reading import Stopped, read_lines
+from server.jobs.player import send_lines
+from server.jobs.reading import Stopped, read_batches
 from server.jobs.store import JobStore
 from server.motion.moves import Action, ActionName
 from server.offline.stats import format_duration
@@ -45,7 +45,6 @@ if TYPE_CHECKING:
     from server.runtime.state import MachineStatus
 
 log = logging.getLogger("motiond.jobs")
-YIELD_AFTER_S = 0.0003  # the job feeder gives other tasks a turn at least this often
 
 
 class JobHost(Protocol):
@@ -85,13 +84,6 @@ class JobProgress:
     started_s: float = 0.0
     paused_for: str | None = None
     fit: dict[str, object] | None = None
-
-
-@dataclass(slots=True)
-class _Percent:
-    """Where :func:`read_lines` writes the share of the file read (the job counts lines)."""
-
-    percent: float = 0.0
 
 
 @dataclass(slots=True)
@@ -335,9 +327,9 @@ class Jobs(JobStore):
             self._clock = JobClock(plan.timing, machine.stepgen.state,
                                    counts_blocks=machine.counts_blocks)
             async with contextlib.aclosing(
-                read_lines(path, core.protocol.line_limit, _Percent())
-            ) as lines:
-                await self._stream(lines, progress, source)
+                read_batches(path, core.protocol.line_limit)
+            ) as batches:
+                await self._stream(batches, progress, source)
         except OSError as exc:
             self._fail(progress, f"cannot read {path.name}: {exc.strerror}")
         except CommandError as exc:  # the plan: the file went, or a stop came
@@ -348,49 +340,14 @@ class Jobs(JobStore):
             self._interjections.release()  # the job is over: what waits did not run
 
     async def _stream(
-        self, lines: AsyncIterator[str], progress: JobProgress, source: _JobSource
+        self, batches: AsyncIterator[list[str]], progress: JobProgress, source: _JobSource
     ) -> None:
-        dispatcher, machine = self.kernel.dispatcher, self.kernel.machine
-        begin = dispatcher.begin
-        loop = asyncio.get_running_loop()
-        turn_s = loop.time()
-        limit = self.kernel.config.core.protocol.line_limit
-        pending: deque[tuple[int, asyncio.Future[list[str]]]] = deque()
-        interjections = self._interjections
-        waiting = interjections.waiting  # (a deque's truth costs a fifth of a method's)
-
-        def as_job(text: str, ticket: int) -> Awaitable[list[str]]:
-            return dispatcher.submit(text, source, ticket)
-
-        number = 0
-        async for line in lines:
-            number += 1
-            try:
-                if waiting:  # a requester's line, in the job's order (a baby-step)
-                    await interjections.run(as_job)
-                check_length(line, limit)  # error 11, as a stream refuses it
-                # (submit, without its coroutine for the line that needs no wait: most)
-                outcome = begin(line, source, source.ticket, _deferring(pending, number))
-                if not isinstance(outcome, list):
-                    await outcome
-                if pending:
-                    await _settle(pending, wait=False)
-            except _LineFailed as failed:
-                self._fail(progress, failed.text)
-                return
-            except CommandError as exc:
-                self._fail(progress, f"line {number}: error:{exc.code} {exc.message}")
-                return
-            progress.lines_done = number
-            progress.percent = min(100.0, 100.0 * number / max(1, progress.lines_total))
-            if loop.time() - turn_s > YIELD_AFTER_S:  # lines that never wait must not hog
-                await asyncio.sleep(0)
-                turn_s = loop.time()
-        try:
-            await interjections.run(as_job)
-            await _settle(pending, wait=True)
-        except _LineFailed as failed:
-            self._fail(progress, failed.text)
+        machine = self.kernel.machine
+        failure = await send_lines(batches, progress, source, self.kernel.dispatcher,
+                                   lambda: machine.interpreter, self.kernel.config.core,
+                                   self._interjections)
+        if failure is not None:
+            self._fail(progress, failure)
             return
         await machine.wait_idle()
         if self.kernel.state is MachineState.ALARM:
@@ -456,31 +413,6 @@ class Jobs(JobStore):
 
     def _resume(self, command: Command) -> None:
         self.resume()
-
-
-def _deferring(
-    pending: deque[tuple[int, asyncio.Future[list[str]]]], number: int
-) -> Callable[[asyncio.Future[list[str]]], None]:
-    """The ``defer`` of line ``number``: its answer-to-come joins ``pending``."""
-    return lambda future: pending.append((number, future))
-
-
-class _LineFailed(Exception):
-    def __init__(self, text: str) -> None:
-        super().__init__(text)
-        self.text = text
-
-
-async def _settle(pending: deque[tuple[int, asyncio.Future[list[str]]]], *, wait: bool) -> None:
-    """Drop the deferred answers that came (all of them, waiting, with ``wait``); raise
-    :class:`_LineFailed` naming the first line the controller refused."""
-    while pending and (wait or pending[0][1].done()):
-        number, future = pending[0]
-        try:
-            await future
-        except CommandError as exc:
-            raise _LineFailed(f"line {number}: error:{exc.code} {exc.message}") from exc
-        pending.popleft()
 
 
 def _clock(seconds: float) -> str:

@@ -1,6 +1,6 @@
 """Reading a job file as it plays: never whole, file I/O in threads, its plan stoppable.
 
-:func:`read_lines` gives the lines to the player :data:`READ_LINES` at a time, read in a thread;
+:func:`read_batches` gives the lines to the player :data:`READ_LINES` at a time, read in a thread;
 :func:`until` lets a plan read through the file (:mod:`server.jobs.clock`) give up soon after
 it is no longer wanted (within a chunk of the file). Memory is bounded by a
 batch of lines and the planner's window, whatever the file's size.
@@ -12,32 +12,20 @@ import asyncio
 import itertools
 from collections.abc import AsyncGenerator, Callable, Iterator
 from pathlib import Path
-from typing import Protocol
 
 from server.offline.estimate import file_lines
 
 READ_LINES = 1000  # a job file is read this many lines at a time (in a thread)
 
 
-class Progress(Protocol):
-    percent: float
-
-
-async def read_lines(
-    path: Path, limit_chars: int, progress: Progress
-) -> AsyncGenerator[str, None]:
-    """The file's lines (see :func:`file_lines`); ``progress.percent`` follows the characters
-    read (close the generator, ``contextlib.aclosing``, to close the file early)."""
-    size = max(1, (await asyncio.to_thread(path.stat)).st_size)
+async def read_batches(path: Path, limit_chars: int) -> AsyncGenerator[list[str], None]:
+    """The file's lines (see :func:`file_lines`), :data:`READ_LINES` at a time (close the
+    generator, ``contextlib.aclosing``, to close the file early)."""
     handle = await asyncio.to_thread(path.open, errors="replace")
     try:
         lines = file_lines(handle, limit_chars)
-        read_chars = 0
         while batch := await asyncio.to_thread(_take, lines, READ_LINES):
-            for line in batch:
-                read_chars += len(line) + 1
-                progress.percent = min(99.9, 100.0 * read_chars / size)
-                yield line
+            yield batch
     finally:
         handle.close()
 

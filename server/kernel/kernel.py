@@ -238,7 +238,8 @@ class Kernel:
             locked_by=self._locked_by,
         )
         self.dispatcher.set_gcode_handler(
-            self.machine.handle_gcode, lambda line: self.machine.interpreter.classify(line)
+            self.machine.handle_gcode, lambda line: self.machine.interpreter.classify(line),
+            self.machine.handle_span if self.machine.reads_spans else None,
         )
         self.jobs = Jobs(self)
         self.control = MachineControl(self.machine, self.jobs)

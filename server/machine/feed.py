@@ -23,6 +23,7 @@ from server.runtime.events import MachineState
 if TYPE_CHECKING:
     from server.config import CoreConfig
     from server.gcode.interpreter import Interpreter
+    from server.gcode.plain import PlainSpan
     from server.machine.machine import SyncHandler
     from server.motion.planner import Planner
     from server.motion.stepgen import StepGenerator
@@ -71,6 +72,42 @@ class GcodeFeed:
             self._arm_probe(outputs)
             if _has_dwell(outputs) and getattr(command.source, "dwell_waits", False):
                 outputs.append(_WAIT)  # Grbl's G4: ok once the motion and the dwell have run
+        return self._queue(outputs)
+
+    def handle_span(self, span: PlainSpan) -> list[str] | Awaitable[list[str]]:
+        """A span of a job's plain lines (:func:`~server.gcode.plain.plain_items`) read at
+        once as far as the interpreter takes them, queued as far as the planner has room
+        (``span.taken``: the lines whose outputs are all in the planner; the interpreter is
+        left after them, where the next reading of the span goes on): the same outputs, in
+        the same order, as each line through :meth:`handle_gcode`. Waits for room first when
+        the planner is full, as a line does before its first output; queues one line's
+        outputs alone when ``span.hurry()`` says a line waits for the next line boundary (a
+        job's baby-step)."""
+        if self.check_mode or not self.planner.is_full():
+            return self._read_span(span)
+        return self._span_after_room(span, self.epoch)
+
+    async def _span_after_room(self, span: PlainSpan, epoch: int) -> list[str]:
+        await self._wait_for_room(epoch)
+        return self._read_span(span)
+
+    def _read_span(self, span: PlainSpan) -> list[str]:
+        interpreter = self.interpreter
+        if span.run is None or span.state != interpreter.runs_state():  # (read afresh when
+            span.read(interpreter.execute_plain(  # a line ran since: a baby-step)
+                span.columns, span.start + span.taken, span.stop))
+        run, outputs, start = span.run, span.outputs, span.queued
+        assert run is not None
+        one = span.hurry is not None and span.hurry() and start < len(outputs)
+        index = span.queued = self._offer(outputs, start, start + 1 if one else None)
+        lines = run.count if index == len(outputs) else span.lines[index]
+        interpreter.rewind(run, lines)  # (where the run's lines in the planner leave it)
+        span.taken = span.first + lines
+        span.state = interpreter.runs_state()
+        return []
+
+    def _queue(self, outputs: list[Output]) -> list[str] | Awaitable[list[str]]:
+        """Offer a line's outputs; nothing when all were taken, else the wait for the rest."""
         epoch = self.epoch
         index = self._offer(outputs, 0)
         if index == len(outputs):
@@ -103,15 +140,17 @@ class GcodeFeed:
             index = self._offer(outputs, index)
         return messages
 
-    def _offer(self, outputs: list[Output], index: int) -> int:
-        """Offer ``outputs[index:]`` to the planner (:func:`~server.motion.feed.offer`, as
-        ``estimate`` does) up to the next sync request or a full planner; in check mode they
-        are interpreted, never planned. Returns the index of the first output not taken."""
+    def _offer(self, outputs: list[Output], index: int, stop: int | None = None) -> int:
+        """Offer ``outputs[index:stop]`` to the planner (:func:`~server.motion.feed.offer`,
+        as ``estimate`` does) up to the next sync request or a full planner; in check mode
+        they are interpreted, never planned. Returns the index of the first output not
+        taken."""
+        stop = len(outputs) if stop is None else stop
         if self.check_mode:
-            while index < len(outputs) and type(outputs[index]) is not Sync:
+            while index < stop and type(outputs[index]) is not Sync:
                 index += 1
             return index
-        taken = offer(self.planner, outputs, index)
+        taken = offer(self.planner, outputs, index, stop)
         if taken > index:
             self._note_input(_RUN)
         return taken

@@ -62,6 +62,7 @@ class Machine(GcodeFeed, RealtimeCommands):
     """Owns the motion pipeline; see the module docstring."""
 
     counts_blocks = True  # the step generator's blocks_done counts the blocks executed
+    reads_spans = True  # a job's plain lines may come as spans (handle_span)
 
     def __init__(self, config: Config, clock: Clock, events: EventBus, status: MachineStatus,
                  backend: Backend) -> None:

@@ -50,11 +50,12 @@ import time
 from collections import defaultdict
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Any, Protocol
 
 from server.errors import CommandError, Error
 from server.gcode.interpreter import LineKind
 from server.gcode.parser import Line, parse_line
+from server.gcode.plain import PlainSpan
 from server.runtime.turn import Turn
 
 HandlerResult = list[str] | None
@@ -62,6 +63,7 @@ Outcome = list[str] | Awaitable[list[str]]  # a line's messages, or the wait for
 Deferred = Callable[["asyncio.Future[list[str]]"], None]  # takes a line's answer-to-come
 Handler = Callable[["Command"], Awaitable[HandlerResult] | HandlerResult]
 Classifier = Callable[[Line], LineKind]
+SpanHandler = Callable[[PlainSpan], Outcome]  # reads and queues a span (sets its ``taken``)
 
 _NAMED = re.compile(r"([A-Za-z][A-Za-z_\-]+)(?:\s+(.*))?$", re.S)
 _NAME_LETTERS = frozenset(string.ascii_letters + "_-")  # a name's second character
@@ -145,6 +147,7 @@ class Dispatcher:
         self._locked_by = locked_by
         self._entries: defaultdict[str, _Entry] = defaultdict(_Entry)
         self._gcode: Handler | None = None
+        self._spans: SpanHandler | None = None
         self._classify: Classifier = lambda line: LineKind.EFFECT
         self._turn = Turn()
         self._is_locked = is_locked
@@ -171,10 +174,12 @@ class Dispatcher:
         entry.when_locked = entry.when_locked or when_locked
         entry.query = entry.query or query
 
-    def set_gcode_handler(self, handler: Handler, classify: Classifier | None = None) -> None:
-        """The handler of every G-code line (the machine) and what decides what a line does
-        (without it, every line is an effect: read-only sources may run none)."""
-        self._gcode = handler
+    def set_gcode_handler(self, handler: Handler, classify: Classifier | None = None,
+                          spans: SpanHandler | None = None) -> None:
+        """The handler of every G-code line (the machine), what decides what a line does
+        (without it, every line is an effect: read-only sources may run none) and, where the
+        machine reads a job's plain lines at once, the handler of their spans."""
+        self._gcode, self._spans = handler, spans
         if classify is not None:
             self._classify = classify
 
@@ -226,13 +231,33 @@ class Dispatcher:
         named = _named(stripped)
         if named and _key(named.group(1)) in self._immediate:
             return self._route(text, stripped, named, source, None, ticket)
+        return self._in_order(ticket, self._route, text, stripped, named, source, defer, ticket)
+
+    def begin_span(self, span: PlainSpan, source: Source, ticket: int) -> Outcome:
+        """A span of a job's plain lines (:func:`~server.gcode.plain.plain_items`) as
+        :meth:`begin` runs a line: in order, checked as one G-code line is (its source, the
+        lock, the ticket), then read and queued by the span handler as far as the interpreter
+        takes it (``span.taken``; none when the machine reads no spans, :attr:`reads_spans`)."""
+        if self._closed:
+            raise CommandError(Error.BUSY, "shutting down")
+        self.last_command_s = time.monotonic()
+        return self._in_order(ticket, self._span, span, source)
+
+    @property
+    def reads_spans(self) -> bool:
+        """Whether :meth:`begin_span` reads spans (the machine's handler says so)."""
+        return self._spans is not None
+
+    def _in_order(self, ticket: int, route: Callable[..., Outcome], *args: Any) -> Outcome:
+        """``route(*args)`` in its turn: at once when no other source's line holds it, with
+        ``ticket`` checked (a line a stop overtook is not run)."""
         if not self._turn.free:
-            return self._in_turn(text, stripped, named, source, ticket, defer)
+            return self._in_turn(ticket, route, args)
         if ticket != self.stops():  # (_check_ticket, without its call for every line)
             self._check_ticket(ticket)
         self._turn.taken = True
         try:
-            outcome = self._route(text, stripped, named, source, defer, ticket)
+            outcome = route(*args)
         except BaseException:
             self._turn.release()
             raise
@@ -245,18 +270,27 @@ class Dispatcher:
         if ticket != self.stops():
             raise CommandError(Error.BUSY, "a stop came after this line was sent: not run")
 
-    async def _in_turn(self, text: str, stripped: str, named: re.Match[str] | None,
-                       source: Source, ticket: int, defer: Deferred | None) -> list[str]:
+    async def _in_turn(self, ticket: int, route: Callable[..., Outcome],
+                       args: tuple[Any, ...]) -> list[str]:
         """A line that waits for its turn behind another source's."""
         await self._turn.take()
         try:
             if self._closed:
                 raise CommandError(Error.BUSY, "shutting down")
             self._check_ticket(ticket)
-            outcome = self._route(text, stripped, named, source, defer, ticket)
+            outcome = route(*args)
             return outcome if isinstance(outcome, list) else await outcome
         finally:
             self._turn.release()
+
+    def _span(self, span: PlainSpan, source: Source) -> Outcome:
+        if source is not self._owner or not source.can_control:
+            self._check_source(source, query=False)
+        if self._is_locked():
+            raise self._locked_out("G-code")
+        if self._spans is None:
+            return []  # (nothing taken: the caller reads the lines one by one)
+        return self._spans(span)
 
     async def _then_release(self, outcome: Awaitable[list[str]]) -> list[str]:
         try:

@@ -83,6 +83,7 @@ class GrblMachine(Machine):
     """The motion pipeline ends at a Grbl controller; see the module docstring."""
 
     counts_blocks = False  # the board executes the blocks: only its reports are known
+    reads_spans = False  # every line goes to the board as it was written
 
     def __init__(self, config: Config, clock: Clock, events: EventBus, status: MachineStatus,
                  backend: Backend) -> None:
