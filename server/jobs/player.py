@@ -91,6 +91,8 @@ async def send_lines(batches: AsyncIterator[list[str]], progress: Progress, sour
                         outcome = begin_span(item, source, source.ticket)
                     if not isinstance(outcome, list):
                         await outcome
+                        if type(item) is not int:  # a span that waited for room: the loop
+                            turn_s = loop.time()  # ran the others meanwhile
                     if pending:
                         await _settle(pending, wait=False)
                 except _LineFailed as failed:
