@@ -75,6 +75,9 @@ async def send_lines(batches: AsyncIterator[list[str]], progress: Progress, sour
         for first in range(0, len(batch), SPAN_CHUNK_LINES):
             chunk = batch[first : first + SPAN_CHUNK_LINES]
             for item in plain_items(chunk, axes, limit, takes_runs):
+                if loop.time() - turn_s > YIELD_AFTER_S:  # lines that never wait must not
+                    await asyncio.sleep(0)  # hog the loop (asked before each line or span:
+                    turn_s = loop.time()  # a chunk's parse, then its first span's reading)
                 try:
                     if waiting:  # a requester's line, in the job's order (a baby-step)
                         await interjections.run(as_job)
@@ -103,9 +106,6 @@ async def send_lines(batches: AsyncIterator[list[str]], progress: Progress, sour
                     number = base + item.start + item.taken
                 progress.lines_done = number
                 progress.percent = min(100.0, 100.0 * number / max(1, progress.lines_total))
-                if loop.time() - turn_s > YIELD_AFTER_S:  # lines that never wait must not
-                    await asyncio.sleep(0)  # hog the loop
-                    turn_s = loop.time()
             base += len(chunk)
     try:
         await interjections.run(as_job)

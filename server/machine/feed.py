@@ -34,6 +34,8 @@ if TYPE_CHECKING:
 
 _RUN, _IDLE = MachineState.RUN, MachineState.IDLE  # (an enum member's look-up costs a call)
 _WAIT = Sync(SyncKind.WAIT)
+SPAN_READING_OUTPUTS = 50  # a span queues at most this many outputs a reading (a job's player
+# then gives the loop a turn if it has had its own: a reading holds it well under a millisecond)
 
 
 def _has_dwell(outputs: list[Output]) -> bool:
@@ -99,7 +101,8 @@ class GcodeFeed:
         run, outputs, start = span.run, span.outputs, span.queued
         assert run is not None
         one = span.hurry is not None and span.hurry() and start < len(outputs)
-        index = span.queued = self._offer(outputs, start, start + 1 if one else None)
+        stop = start + 1 if one else min(len(outputs), start + SPAN_READING_OUTPUTS)
+        index = span.queued = self._offer(outputs, start, stop)
         lines = run.count if index == len(outputs) else span.lines[index]
         interpreter.rewind(run, lines)  # (where the run's lines in the planner leave it)
         span.taken = span.first + lines
