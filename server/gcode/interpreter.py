@@ -162,9 +162,7 @@ class Interpreter:
                         {letter: values[start:stop] for letter, values in columns.items()},
                         stop - start)
         if run.count:
-            modal = self._modal
-            modal.motion, modal.feed, modal.s = run.motion, run.feed_mm_min, run.s_last
-            self.position = run.position
+            self.rewind(run, run.count)  # (to the state after the whole run)
         return run
 
     def rewind(self, run: PlainRun, lines: int) -> None:

@@ -49,9 +49,8 @@ class PlainRun:
         feeds_mm_min: the feed of each line (mm/min); ``rapid`` per line: G0.
         s: the modal S after each line.
         tool_mode: the modal M3/M4/M5 (the same for the whole run).
-        position: the position after the run; ``motion``, ``feed_mm_min``, ``s_last``: the
-            modal state after it; ``s_before``, ``position_before``, ``motion_before``,
-            ``feed_before``: the state before it.
+        s_before, position_before, motion_before, feed_before: the state before it (the
+            state after any number of its lines: :meth:`after`).
     """
 
     count: int
@@ -61,10 +60,6 @@ class PlainRun:
     rapid: np.ndarray
     s: np.ndarray
     tool_mode: ToolMode
-    position: Position
-    motion: int
-    feed_mm_min: float
-    s_last: float
     s_before: float
     position_before: Position
     motion_before: int
@@ -76,11 +71,15 @@ class PlainRun:
         (mm/s) and whether each is a rapid (their targets are :attr:`ends`, a row each)."""
         moved = self.moved
         rapid = self.rapid[moved]
-        speeds = np.where(self.rapid, math.inf, self.feeds_mm_min / 60.0)[moved]
+        speeds = self._speeds_mm_s()[moved]
         moves = list(map(Move, map(tuple, self.ends.tolist()), speeds.tolist(),
                          map(_KINDS.__getitem__, rapid.tolist()),
                          itertools.repeat(self.tool_mode), self.s[moved].tolist()))
         return moves, speeds, rapid
+
+    def _speeds_mm_s(self) -> np.ndarray:
+        """Each line's move speed (mm/s) as the one-line path gives it: G0 at infinity."""
+        return np.where(self.rapid, math.inf, self.feeds_mm_min / 60.0)
 
     def outputs(self) -> tuple[list[Output], list[int]]:
         """Every output of the run's lines, in order, and the run's line each comes from:
@@ -89,8 +88,7 @@ class PlainRun:
         job's span queues."""
         mode, moved, s = self.tool_mode, self.moved.tolist(), self.s.tolist()
         changed = (self.s != _before(self.s, self.s_before)).tolist()
-        speeds = np.where(self.rapid, math.inf, self.feeds_mm_min / 60.0).tolist()
-        kinds = self.rapid.tolist()
+        speeds, kinds = self._speeds_mm_s().tolist(), self.rapid.tolist()
         ends = iter(map(tuple, self.ends.tolist()))
         outputs: list[Output] = []
         lines: list[int] = []
@@ -140,14 +138,8 @@ def plain_run(geo: Geometry, modal: ModalState, wco: Position, position: Positio
         return plain_run(geo, modal, wco, position, columns, inside)  # up to the line outside
     moved, ends = _moves(owns, position, count)
     s_after = _spindle(columns.get("S"), modal.s, count)
-    last = count - 1
-    return PlainRun(
-        count, moved, ends, feeds, motion == G0, s_after, modal.tool_mode,
-        tuple(ends[-1].tolist()) if ends.shape[0] else position,
-        int(motion[last]) if count else modal.motion,
-        float(feeds[last]) if count else modal.feed,
-        float(s_after[last]) if count else modal.s, modal.s, position, modal.motion,
-        modal.feed)
+    return PlainRun(count, moved, ends, feeds, motion == G0, s_after, modal.tool_mode,
+                    modal.s, position, modal.motion, modal.feed)
 
 
 def _moves(owns: list[tuple[np.ndarray | None, np.ndarray]], position: Position,

@@ -126,6 +126,7 @@ async def test_a_refused_line_amid_a_span_stops_the_job_at_that_line(
 
 
 async def test_a_stop_while_a_span_waits_for_room_ends_the_job_and_queues_nothing_more() -> None:
+    """(The job is M3 with a new S now and then: the stop leaves the tool off, M5.)"""
     async with running(make_config()) as app:
         taken = recording(app)
         jobs, machine = app.kernel.jobs, app.kernel.machine
@@ -136,6 +137,7 @@ async def test_a_stop_while_a_span_waits_for_room_ends_the_job_and_queues_nothin
             await app.clock.sleep(0.001)  # type: ignore[attr-defined]
         assert jobs.progress().state == "running" and 0 < len(taken) < LINES  # type: ignore[union-attr]
         before = len(taken)
+        assert " M3 " in machine.interpreter.gc_report()
         app.kernel.control.reset()  # Ctrl-X: the player is cancelled where it waits
         await asyncio.wait({jobs._task})  # noqa: SLF001
         await app.clock.sleep(1.0)  # type: ignore[attr-defined]
@@ -144,3 +146,5 @@ async def test_a_stop_while_a_span_waits_for_room_ends_the_job_and_queues_nothin
         assert progress is not None and progress.state in ("failed", "aborted")
         assert not machine.stepgen.state.moving and len(machine.planner) == 0
         assert machine.interpreter.position == machine.stepgen.state.position_mm
+        modal = machine.interpreter.gc_report()
+        assert " M5 " in modal and modal.endswith(" S0]"), "the tool off in the modal state"
