@@ -247,6 +247,15 @@ class BlockColumns:
             self.clear()
         return values
 
+    def drop_front(self, count: int) -> bool:
+        """Remove ``count`` columns from the head (already synced); True when that emptied
+        the window."""
+        self.head += count
+        if self.head == self.tail:
+            self.clear()
+            return True
+        return False
+
     def pop_front_many(self, count: int) -> FloatArray:
         """Remove ``count`` columns from the head (already synced); return a copy of their first
         ``read_rows`` rows."""

@@ -30,6 +30,7 @@ from collections.abc import Callable
 from server.motion.backend import Backend, Piece, PowerLaw
 from server.motion.moves import Move, Position
 from server.motion.planner import Block
+from server.motion.planner_intake import Geometry
 
 PowerOf = Callable[[Move, float], PowerLaw | None]
 """A block's tool power from its move and nominal speed (mm/s); None: off."""
@@ -56,6 +57,7 @@ class PieceReporter:
         self._run: Piece | None = None  # the open piece, as the backend was last told it
         self._run_s = 0.0  # its duration with the blocks that continued it since
         self._run_end_mm: Position = ()  # where the last block it covers ends
+        self._lengthened = False  # the last block did
 
     def block(self, start_s: float, block: Block) -> None:
         """A block's three phases, starting at ``start_s`` (or the open piece lengthened)."""
@@ -72,10 +74,12 @@ class PieceReporter:
                     and self._continues(run, block)):
                 self._run_s += t1 + t2 + t3
                 self._run_end_mm = block.end_mm
+                self._lengthened = True
                 return
             if self._run_s != run.duration_s:  # (_close, without a call for nothing to tell)
                 self.flush()
             self._run = None
+        self._lengthened = False
         d1 = 0.5 * t1 * (entry + cruise)
         if t1 > 0.0:
             if t2 <= JOIN_S and t3 <= JOIN_S:  # a ramp to the end: blocks continuing it
@@ -92,29 +96,63 @@ class PieceReporter:
             self._open(self._piece(start_s + t1 + t2, t3, block, d1 + cruise * t2, cruise,
                                    (block.exit_mm_s - cruise) / t3, power), block)
 
+    @property
+    def lengthening(self) -> bool:
+        """Whether the last block lengthened the open piece: such blocks come in runs (a
+        raster's line), where :meth:`lengthen` takes the rest at once."""
+        return self._lengthened
+
+    def carried(self, geometry: list[Geometry]) -> int:
+        """How many of the blocks of ``geometry`` (the planner's
+        :meth:`~server.motion.planner.Planner.final_geometry`) go on from the open piece's end
+        along its direction without an action, one after the other (the first test of
+        :meth:`block`'s; :meth:`lengthen` tests their motion)."""
+        run = self._run
+        if run is None:
+            return 0
+        unit, end_mm, count = run.unit, self._run_end_mm, 0
+        for move, actions, start, end, block_unit in geometry:
+            if move is None or actions or start != end_mm or block_unit != unit:
+                break
+            end_mm = end
+            count += 1
+        return count
+
+    def lengthen(self, now_s: float, left_s: float, rows: list[list[float]],
+                 geometry: list[Geometry]) -> tuple[int, float]:
+        """How many of the blocks given by ``rows`` and ``geometry`` (all :meth:`carried`;
+        the first starting ``left_s`` before ``now_s``, each the next) only lengthen the open
+        piece and end by ``now_s``; the piece is lengthened by them. Returns their count and
+        ``left_s`` less their durations: what as many :meth:`block` calls would do, without a
+        block object each (a raster's line is hundreds of such blocks)."""
+        run = self._run
+        assert run is not None
+        power_of, power, run_s, count = self.power_of, run.power, self._run_s, 0
+        for ((length, _, _, _, _, _, nominal, _, entry, cruise, exit_, t1, t2, t3, duration),
+             (move, _, _, end, _)) in zip(rows, geometry, strict=True):
+            if left_s < duration or length <= 0.0:
+                break
+            law = None if power_of is None else power_of(move, nominal)  # type: ignore[arg-type]
+            start_s = now_s - left_s
+            if not ((law is power or law == power)
+                    and abs(start_s - run.start_s - run_s) <= JOIN_S + 8 * math.ulp(start_s)
+                    and _carries_on(run, run_s, entry, cruise, exit_, t1, t2, t3)):
+                break
+            run_s += t1 + t2 + t3
+            self._run_end_mm = end
+            left_s -= duration
+            count += 1
+        self._run_s = run_s
+        return count, left_s
+
     def _open(self, piece: Piece, block: Block) -> None:
         """``piece`` runs to the end of ``block``: blocks that continue it lengthen it."""
         self._run, self._run_s, self._run_end_mm = piece, piece.duration_s, block.end_mm
 
     def _continues(self, run: Piece, block: Block) -> bool:
-        """Whether ``block``'s motion is ``run``'s carried on: a cruise at its speed, or one
-        ramp at its acceleration from the speed it reaches (the other phases under
-        ``JOIN_S``)."""
-        t1, t2, t3 = block.accel_s, block.cruise_s, block.decel_s
-        a = run.accel_mm_s2
-        if a == 0.0:
-            return t1 <= JOIN_S and t3 <= JOIN_S and block.cruise_mm_s == run.start_mm_s
-        if t2 > JOIN_S:
-            return False
-        if t3 <= JOIN_S < t1:
-            ramp_a, from_mm_s = (block.cruise_mm_s - block.entry_mm_s) / t1, block.entry_mm_s
-        elif t1 <= JOIN_S < t3:
-            ramp_a, from_mm_s = (block.exit_mm_s - block.cruise_mm_s) / t3, block.cruise_mm_s
-        else:
-            return False
-        reached_mm_s = run.start_mm_s + a * self._run_s
-        return (abs(ramp_a - a) <= SAME_ACCEL * abs(a)
-                and abs(from_mm_s - reached_mm_s) <= SAME_SPEED_MM_S)
+        """Whether ``block``'s motion is ``run``'s carried on (:func:`_carries_on`)."""
+        return _carries_on(run, self._run_s, block.entry_mm_s, block.cruise_mm_s,
+                           block.exit_mm_s, block.accel_s, block.cruise_s, block.decel_s)
 
     def flush(self) -> None:
         """Tell the backend the open piece as it stands, if blocks lengthened it since."""
@@ -178,3 +216,24 @@ def back_s(v_end: float, a: float, distance_mm: float) -> float:
     if distance_mm <= 0.0:
         return 0.0
     return 2.0 * distance_mm / (v_end + math.sqrt(v_end * v_end + 2.0 * a * distance_mm))
+
+
+def _carries_on(run: Piece, run_s: float, entry: float, cruise: float, exit_: float,
+                t1: float, t2: float, t3: float) -> bool:
+    """Whether a block of these speeds and phase durations is ``run`` (``run_s`` long so far)
+    carried on: a cruise at its speed, or one ramp at its acceleration from the speed it
+    reaches (the other phases under ``JOIN_S``)."""
+    a = run.accel_mm_s2
+    if a == 0.0:
+        return t1 <= JOIN_S and t3 <= JOIN_S and cruise == run.start_mm_s
+    if t2 > JOIN_S:
+        return False
+    if t3 <= JOIN_S < t1:
+        ramp_a, from_mm_s = (cruise - entry) / t1, entry
+    elif t1 <= JOIN_S < t3:
+        ramp_a, from_mm_s = (exit_ - cruise) / t3, cruise
+    else:
+        return False
+    reached_mm_s = run.start_mm_s + a * run_s
+    return (abs(ramp_a - a) <= SAME_ACCEL * abs(a)
+            and abs(from_mm_s - reached_mm_s) <= SAME_SPEED_MM_S)

@@ -205,6 +205,44 @@ class Planner(PlannerIntake):
         return Block(move, actions, start, end, unit, length, nominal, accel,
                      entry, cruise, exit_, ramp1, flat, ramp2, lead, duration)  # fmt: skip
 
+    def final_geometry(self, most: int) -> list[Geometry]:
+        """The geometry of up to ``most`` blocks from the head whose speeds the last plan
+        made final, left in place: what as many :meth:`pop` calls would give with no append
+        in between (the settled blocks; all planned ones while nothing was appended since
+        the plan). Empty when the head needs a plan first (:meth:`pop` plans it). Their
+        numbers: :meth:`final_rows`; :meth:`drop_head` removes those taken."""
+        if self._head_dirty or self._planned <= 0:
+            return []
+        count = min(self._settled if self._dirty else self._planned, most)
+        head = self._geometry_head
+        return self._geometry[head : head + count] if count > 0 else []
+
+    def final_rows(self, first: int, count: int) -> list[list[float]]:
+        """The numbers of ``count`` of those blocks from the ``first`` (0: the head), as
+        :meth:`pop` reads them (the rows up to the duration)."""
+        columns = self._columns
+        head = columns.head + first
+        return columns.data[:_POP_ROWS, head : head + count].T.tolist()  # type: ignore[no-any-return]
+
+    def drop_head(self, rows: list[list[float]]) -> None:
+        """Remove the head blocks whose numbers are ``rows`` (the first of
+        :meth:`final_head`'s, in order), as as many :meth:`pop` calls would."""
+        count = len(rows)
+        if not count:
+            return
+        geometry, head = self._geometry, self._geometry_head
+        geometry[head : head + count] = [_TAKEN] * count
+        self._drop_geometry(count)
+        self._planned -= count
+        self._settled -= count
+        self._start_mm_s = rows[-1][EXIT]
+        planned_s = self._time_planned_s
+        for row in rows:  # one at a time, as pop() does: the same float
+            planned_s -= row[DURATION]
+        self._time_planned_s = planned_s
+        if self._columns.drop_front(count):
+            self._clear_window()
+
     def pop_settled(self) -> SettledBlocks | None:
         """Commit and remove the head and every block after it that the last plan settled, at
         once; None with no block waiting (pending follow actions stay for :meth:`pop`).

@@ -30,6 +30,10 @@ from server.motion.moves import Action, MoveKind, Position, ToolMode
 from server.motion.pieces import PieceReporter, PowerOf
 from server.motion.planner import Block, Planner
 
+LENGTHEN_CHUNK = 32
+"""Blocks whose numbers :meth:`StepGenerator._lengthen` reads at once (most ticks end within
+a few dozen: numbers read for blocks past the tick's end are read again at the next)."""
+
 
 class HoldState(enum.Enum):
     NONE = "none"
@@ -242,8 +246,11 @@ class StepGenerator:
         t = cursor.time_s + dt
         block = cursor.block
         budget = self.max_blocks_per_call
+        pieces = self._pieces
         while True:
             if block is None:
+                if pieces is not None and pieces.lengthening and self._running and budget > 1:
+                    t, budget = self._lengthen(now_s, t, budget)
                 block = self._next_block(now_s, now_s - t)
                 budget -= 1
                 if block is None:
@@ -252,8 +259,8 @@ class StepGenerator:
                 if self.state.hold is not HoldState.NONE:  # a pause action stopped us
                     cursor.block, cursor.time_s, cursor.distance_mm = block, 0.0, 0.0
                     return 0.0
-                if self._pieces is not None:
-                    self._pieces.block(now_s - t, block)
+                if pieces is not None:
+                    pieces.block(now_s - t, block)
             if t < block.duration_s:
                 break
             if budget <= 0:
@@ -270,6 +277,35 @@ class StepGenerator:
         if block is not None:
             self.state.motion_time_s += dt
         return 0.0
+
+    def _lengthen(self, now_s: float, left_s: float, budget: int) -> tuple[float, int]:
+        """The blocks from the planner's head that only lengthen the open piece and end
+        within this call, taken at once (:meth:`PieceReporter.lengthen`): what as many turns
+        of :meth:`_advance`'s loop would do with them, without a block object each. Returns
+        the time left and the budget left (at least one block, for the next)."""
+        pieces, planner = self._pieces, self.planner
+        assert pieces is not None
+        if self.before_pop is not None:
+            return left_s, budget
+        geometry = planner.final_geometry(budget - 1)
+        carried = pieces.carried(geometry)
+        taken: list[list[float]] = []
+        while len(taken) < carried:
+            first = len(taken)
+            rows = planner.final_rows(first, min(carried - first, LENGTHEN_CHUNK))
+            count, left_s = pieces.lengthen(now_s, left_s, rows,
+                                            geometry[first : first + len(rows)])
+            taken += rows[:count]
+            if count < len(rows):
+                break
+        if taken:
+            planner.drop_head(taken)
+            move, _, _, end_mm, _ = geometry[len(taken) - 1]
+            state = self.state
+            state.kind = move.kind if move is not None else None
+            state.position_mm = end_mm
+            state.blocks_done += len(taken)
+        return left_s, budget - len(taken)
 
     def _next_block(self, now_s: float, start_s: float) -> Block | None:
         planner = self.planner

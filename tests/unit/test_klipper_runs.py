@@ -6,6 +6,7 @@ block (``JOIN_S`` below zero: no block ever continues a piece), and compares eve
 
 from __future__ import annotations
 
+import random
 from collections.abc import Callable
 from types import SimpleNamespace
 from typing import Any
@@ -57,14 +58,17 @@ def follows_speed(move: Move, nominal_mm_s: float) -> PowerLaw | None:
     return PowerLaw(0.0, move.s_value / 1000.0 / nominal_mm_s, 1.0)
 
 
-def drive(moves: list[Move], merge: bool, monkeypatch: pytest.MonkeyPatch,
+def drive(moves: list[Move | Action], merge: bool, monkeypatch: pytest.MonkeyPatch,
           script: Script | None = None, board: list[Any] | None = None,
           power_of: Callable[[Move, float], PowerLaw | None] | None = None,
+          tick_s: Callable[[int], float] = lambda tick: TICK_S, fed: bool = False,
           ) -> tuple[list[tuple[str, Any]], list[Piece]]:
-    """Every message the backend sends for ``moves`` (``script``: what to do to the step
-    generator at which tick), and every piece the step generator gave it (``board``: gets
-    where the backend says the board is, and how fast, after every tick). The laser's power
-    is S (M3), or ``power_of``'s."""
+    """Every message the backend sends for ``moves`` (an action: the planner's, in order;
+    ``script``: what to do to the step generator at which tick), and every piece the step
+    generator gave it (``board``: gets where the backend says the board is, and how fast,
+    and the step generator's state, after every tick). The laser's power is S (M3), or
+    ``power_of``'s. ``tick_s(k)``: how long tick k is; ``fed``: the planner is given the
+    moves as a sender would, a batch whenever its window has room (else all at once)."""
     monkeypatch.setattr(pieces_module, "JOIN_S", 1e-9 if merge else -1.0)
     axes = {a: {"steps_per_mm": 80, "max_rate_mm_s": 200, "accel_mm_s2": 2000, "max_mm": 300}
             for a in "xy"}
@@ -92,19 +96,34 @@ def drive(moves: list[Move], merge: bool, monkeypatch: pytest.MonkeyPatch,
     backend.follow_power("PA8", 0.001)
     stepgen.follow_power(power_of or (lambda move, nominal_mm_s: PowerLaw(move.s_value / 1000.0)
                                       if move.s_value > 0.0 else None))
-    for move in moves:
-        planner.append(move)
+    waiting = list(reversed(moves))
+
+    def refill() -> None:  # all at once; ``fed``: a batch whenever the window has room
+        while waiting and (not fed or planner.has_room() or not planner.is_full()):
+            move = waiting.pop()
+            if isinstance(move, Action):
+                planner.append_action(move)
+            else:
+                planner.append(move)
+            if fed and planner.is_full():
+                return
+
+    refill()
     now_s = 0.0
     stepgen.tick(now_s)
     stepgen.request_start()
     for tick in range(5000):
         if script and tick in script:
             script[tick](stepgen)
-        now_s += TICK_S
+        refill()
+        now_s += tick_s(tick)
         backend.now_s = mcu.link.now_s = now_s
         stepgen.tick(now_s)
         if board is not None:
-            board.append((backend.position_at_mm(now_s), backend.speed_at_mm_s(now_s)))
+            state = stepgen.state
+            board.append((backend.position_at_mm(now_s), backend.speed_at_mm_s(now_s),
+                          state.position_mm, state.blocks_done, state.kind,
+                          state.motion_time_s, state.line_number, len(stepgen.planner)))
         if stepgen.idle and stepgen.state.hold is HoldState.NONE and not backend.ticks_when_idle:
             break
     return mcu.link.messages, given
@@ -210,10 +229,11 @@ def test_status_reads_the_board_where_block_by_block_puts_it_inside_a_run(
     drive(raster(2), True, monkeypatch, script, merged)
     drive(raster(2), False, monkeypatch, dict(script), single)
     assert len(merged) == len(single) > 60
-    for (position, speed), (expected, expected_speed) in zip(merged, single, strict=True):
+    for (position, speed, *_), (expected, expected_speed, *_) in zip(merged, single,
+                                                                    strict=True):
         assert position == pytest.approx(expected, abs=1e-9)
         assert speed == pytest.approx(expected_speed, abs=1e-9)
-    cruising = [speed for _, speed in merged if speed == pytest.approx(100.0)]
+    cruising = [speed for _, speed, *_ in merged if speed == pytest.approx(100.0)]
     assert len(cruising) > 20  # the board was read inside the runs, at cruise
 
 
@@ -283,3 +303,85 @@ def test_a_run_is_merged_however_long_the_host_has_been_up(
         elapsed_s += block.duration_s
     reporter.flush()
     assert len({piece.start_s for piece in given}) <= 3  # ramp up, cruise, ramp down
+
+
+def one_at_a_time(self: StepGenerator, now_s: float, left_s: float,
+                  budget: int) -> tuple[float, int]:
+    """``StepGenerator._lengthen`` taking no block: each goes through the loop, one by one."""
+    return left_s, budget
+
+
+def random_job(seed: int) -> list[Move | Action]:
+    """Lines of short segments, S changing now and then (back to the same
+    value, too), an action or a dwell here and there, a corner, a rapid, a line along Y
+    (odd seeds: segments of random lengths; even: all 0.05 mm, 0.5 ms at 100 mm/s)."""
+    rng = random.Random(seed)
+    job: list[Move | Action] = []
+    x, y, s_value, feed_mm_s = 10.0, 10.0, 800.0, 100.0
+    for line in range(6):
+        along_y = line == 3
+        direction = 1 if line % 2 == 0 else -1
+        for _ in range(rng.randrange(60, 220) if seed % 2 else rng.randrange(300, 500)):
+            step = rng.choice([0.1, 0.05, 0.3] if seed % 2 else [0.05]) * direction
+            x, y = (x, round(y + step, 3)) if along_y else (round(x + step, 3), y)
+            if rng.random() < 0.03:
+                s_value = rng.choice([400.0, 800.0, 800.0])
+            if rng.random() < 0.01:
+                feed_mm_s = rng.choice([60.0, 100.0])
+            move = Move((x, y), feed_mm_s, MoveKind.FEED, ToolMode.CW, s_value)
+            if rng.random() < 0.01:
+                move.actions = [Action(ActionName.COOLANT, {"mist": True, "flood": False})]
+            job.append(move)
+            if rng.random() < 0.005:
+                job.append(Action(ActionName.DWELL, {"seconds": 0.01}, lead_s=0.01,
+                                  stops_motion=True))
+        y = round(y + 0.2, 3)
+        job.append(Move((x, y), 100.0, MoveKind.RAPID if line % 2 else MoveKind.FEED,
+                        ToolMode.CW, 0.0))
+    job.pop()  # it ends on a line's ramp down: motion stops inside a run's tick
+    return job
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_blocks_taken_at_once_are_what_the_loop_makes_of_them_one_by_one(
+        monkeypatch: pytest.MonkeyPatch, seed: int) -> None:
+    """The step generator takes the blocks that only lengthen the open piece at once
+    (``StepGenerator._lengthen``): the board gets the same messages, the backend the same
+    pieces (to the last bit), and the step generator publishes the same state after every
+    tick, the planner fed as a sender would (and given the job at once), through ticks long
+    and short, ticks past the block budget (120 ms of 0.05 mm
+    blocks), power changes, feed overrides, actions, dwells, a hold and a halt."""
+    rng = random.Random(seed)
+    ticks = [rng.choice([0.001, 0.007, 0.02, 0.05, 0.12]) for _ in range(5000)]
+    hold_at = rng.randrange(20, 60)
+    script: Script = {hold_at: StepGenerator.hold, hold_at + 30: StepGenerator.resume,
+                      hold_at + 45: lambda stepgen: stepgen.planner.set_overrides(0.6),
+                      hold_at + 55: lambda stepgen: stepgen.planner.set_overrides(1.3)}
+    if seed == 5:
+        script[hold_at + 50] = StepGenerator.stop_now
+    job = random_job(seed)
+    power_of = follows_speed if seed % 3 == 0 else None
+    states: list[Any] = []
+    taken = []
+    lengthen = pieces_module.PieceReporter.lengthen
+
+    def counted(self: pieces_module.PieceReporter, *args: Any) -> tuple[int, float]:
+        count, left_s = lengthen(self, *args)
+        taken.append(count)
+        return count, left_s
+
+    monkeypatch.setattr(pieces_module.PieceReporter, "lengthen", counted)
+    at_once, pieces = drive(job, True, monkeypatch, dict(script), states, power_of,
+                            ticks.__getitem__, fed=seed < 4)
+    with monkeypatch.context() as patched:
+        patched.setattr(StepGenerator, "_lengthen", one_at_a_time)
+        states_one: list[Any] = []
+        one_by_one, pieces_one = drive(job, True, patched, dict(script), states_one,
+                                       power_of, ticks.__getitem__, fed=seed < 4)
+    assert at_once == one_by_one
+    assert [repr(p) for p in pieces] == [repr(p) for p in pieces_one]
+    assert repr(states) == repr(states_one)
+    assert len(states) > 30 and sum(taken) > len(job) / 2, (sum(taken), len(job))
+    done = [state[3] for state in states]
+    if seed % 2 == 0:  # a 120 ms tick of 0.5 ms blocks: in slices (blocks_per_call)
+        assert max(b - a for a, b in zip(done, done[1:], strict=False)) > 128
