@@ -46,8 +46,8 @@ from server.errors import CommandError, Error
 from server.gcode.codes import CodeCall
 from server.kernel.module import ApiCaller, ApiParams, Module, ModuleConfig, ModuleContext
 from server.motion.backend import PowerLaw
+from server.motion.motion_state import HoldState, MotionState
 from server.motion.moves import Action, Move, MoveKind, Output, Sync, SyncKind, ToolMode
-from server.motion.stepgen import HoldState, MotionState
 from server.runtime.clock import VirtualClock
 from server.runtime.dispatcher import Command
 from server.runtime.events import Event, MachineState

@@ -26,7 +26,7 @@ from pydantic import Field
 from server.api.jobs import NameParams
 from server.api.methods import Methods, MethodTable, Params
 from server.errors import CommandError, Error
-from server.motion.stepgen import HoldState
+from server.motion.motion_state import HoldState
 from server.offline.fit import frame_lines
 from server.runtime.events import Event, MachineState
 

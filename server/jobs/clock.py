@@ -29,7 +29,7 @@ import numpy as np
 from server.config import CoreConfig
 from server.gcode.interpreter import Interpreter
 from server.jobs.reading import until
-from server.motion.stepgen import MotionState
+from server.motion.motion_state import MotionState
 from server.offline.estimate import estimate, extent, file_chunks
 from server.offline.fit import Fit, check_fit
 from server.offline.stats import JobStats

@@ -29,9 +29,9 @@ from server.kernel.module import ApiHandler, ApiMethod, ApiParams, Module
 from server.kernel.status import build_status
 from server.machine.machine import Machine, SyncHandler
 from server.machine.settings import Setting
+from server.motion.motion_state import MotionState
 from server.motion.moves import Action, Move, Position, SyncKind
 from server.motion.pieces import PowerOf
-from server.motion.stepgen import MotionState
 from server.protocol.reports import format_lock
 from server.runtime.clock import Clock, on_grid_s
 from server.runtime.dispatcher import Dispatcher, Handler, SystemSource

@@ -27,9 +27,9 @@ if TYPE_CHECKING:
     from server.config import CoreConfig
     from server.gcode.codes import CodeFactory
     from server.machine.machine import SyncHandler
+    from server.motion.motion_state import MotionState
     from server.motion.moves import Action, Move, Position, SyncKind
     from server.motion.pieces import PowerOf
-    from server.motion.stepgen import MotionState
     from server.runtime.clock import Clock
     from server.runtime.dispatcher import Handler
     from server.runtime.events import MachineState

@@ -12,8 +12,8 @@ from typing import TYPE_CHECKING, Any
 
 from server.errors import ALARM_MEANINGS
 from server.machine.parts import on_step_grid
+from server.motion.motion_state import HoldState, MotionState
 from server.motion.moves import MoveKind, ToolMode
-from server.motion.stepgen import HoldState, MotionState
 from server.protocol.reports import StatusSnapshot, sender_blocks
 from server.runtime.events import MachineState
 

@@ -15,8 +15,8 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from server.errors import Alarm
+from server.motion.motion_state import HoldState
 from server.motion.moves import Position, ToolMode
-from server.motion.stepgen import HoldState
 from server.protocol.events import Realtime
 from server.protocol.reports import UNLOCK_HINT
 from server.runtime.events import Event, MachineState

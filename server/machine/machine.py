@@ -31,9 +31,10 @@ from server.machine.feed import GcodeFeed
 from server.machine.parts import interpreter_settings, planner_settings
 from server.machine.settings import Settings
 from server.motion.backend import Backend
+from server.motion.motion_state import HoldState
 from server.motion.moves import Action, ActionName, SyncKind, ToolMode
 from server.motion.planner import Planner
-from server.motion.stepgen import HoldState, StepGenerator
+from server.motion.stepgen import StepGenerator
 from server.paths import settings_path
 from server.protocol.reports import StatusSnapshot
 from server.runtime.clock import Clock, VirtualClock

@@ -19,61 +19,19 @@ the trajectory as pieces (:mod:`server.motion.pieces`).
 
 from __future__ import annotations
 
-import enum
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Protocol
 
 from server.motion.backend import Backend
-from server.motion.moves import Action, MoveKind, Position, ToolMode
+from server.motion.motion_state import HoldState, MotionListener, MotionState
+from server.motion.moves import Action, MoveKind, Position
 from server.motion.pieces import PieceReporter, PowerOf
 from server.motion.planner import Block, Planner
 
 LENGTHEN_CHUNK = 32
 """Blocks whose numbers :meth:`StepGenerator._lengthen` reads at once (most ticks end within
 a few dozen: numbers read for blocks past the tick's end are read again at the next)."""
-
-
-class HoldState(enum.Enum):
-    NONE = "none"
-    DECELERATING = "decelerating"  # Grbl's Hold:1
-    STOPPED = "stopped"  # Grbl's Hold:0
-
-
-@dataclass(slots=True)
-class MotionState:
-    """What the step generator publishes at every tick (sampled by modules and status).
-
-    Units: mm, mm/s, seconds on the kernel's clock.
-    """
-
-    time_s: float = 0.0
-    position_mm: Position = ()
-    speed_mm_s: float = 0.0
-    nominal_mm_s: float = 0.0
-    kind: MoveKind | None = None
-    tool_mode: ToolMode = ToolMode.OFF
-    s_value: float = 0.0
-    line_number: int | None = None
-    queue_depth: int = 0
-    moving: bool = False
-    hold: HoldState = HoldState.NONE
-    blocks_done: int = 0
-    motion_time_s: float = 0.0  # planned time of all completed blocks and the current one so far
-
-
-class MotionListener(Protocol):
-    """What the step generator tells its owner."""
-
-    def on_action(self, action: Action) -> None:
-        """Motion reached an ordered action."""
-
-    def on_idle(self) -> None:
-        """The queue ran empty and motion stopped."""
-
-    def on_hold_stopped(self) -> None:
-        """A feed hold (or jog cancel) came to a stop."""
 
 
 @dataclass(slots=True)

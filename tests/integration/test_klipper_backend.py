@@ -22,7 +22,7 @@ from server.backends.klipper.steptimes import step_target
 from server.errors import CommandError
 from server.kernel.status import snapshot
 from server.motion.backend import Piece
-from server.motion.stepgen import HoldState
+from server.motion.motion_state import HoldState
 from server.runtime.dispatcher import SystemSource
 from server.runtime.events import MachineState
 from tests.conftest import CORPUS

@@ -18,7 +18,7 @@ import pytest
 
 from server.app import App
 from server.backends.klipper.backend import SAMPLE_GAP_MAX_S, KlipperBackend
-from server.motion.stepgen import HoldState
+from server.motion.motion_state import HoldState
 from tests.integration.test_klipper_faults import wait_for_alarm
 from tests.support.helpers import submit_all
 from tests.support.klipper_machine import klipper_machine

@@ -18,8 +18,8 @@ from server.app import App
 from server.backends.sim import SimBackend
 from server.config_loader import load_config
 from server.errors import CommandError, ConfigError
+from server.motion.motion_state import HoldState
 from server.motion.moves import MoveKind, ToolMode
-from server.motion.stepgen import HoldState
 from tests.conftest import make_config
 from tests.support.helpers import SOURCE, running, submit_all
 

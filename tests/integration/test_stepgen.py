@@ -13,9 +13,10 @@ from server.config import CoreConfig
 from server.gcode.interpreter import Interpreter
 from server.gcode.parser import parse_line
 from server.machine.parts import interpreter_settings, planner_settings
+from server.motion.motion_state import HoldState
 from server.motion.moves import Move, MoveKind
 from server.motion.planner import Planner
-from server.motion.stepgen import HoldState, StepGenerator
+from server.motion.stepgen import StepGenerator
 from server.offline.estimate import estimate, execute, iterate_blocks
 from server.offline.stats import JobStats
 from server.runtime.events import MachineState

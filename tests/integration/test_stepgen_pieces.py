@@ -9,9 +9,10 @@ import random
 from server.backends.null import NullBackend
 from server.machine.parts import planner_settings
 from server.motion.backend import Piece
+from server.motion.motion_state import HoldState
 from server.motion.moves import Move, MoveKind
 from server.motion.planner import Planner
-from server.motion.stepgen import HoldState, StepGenerator
+from server.motion.stepgen import StepGenerator
 from tests.conftest import make_config
 from tests.integration.test_stepgen import Quiet, Ticker
 

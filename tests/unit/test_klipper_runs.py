@@ -18,9 +18,10 @@ from server.config_loader import build_config
 from server.machine.parts import planner_settings
 from server.motion import pieces as pieces_module
 from server.motion.backend import Piece, PowerLaw
+from server.motion.motion_state import HoldState
 from server.motion.moves import Action, ActionName, Move, MoveKind, ToolMode
 from server.motion.planner import Planner
-from server.motion.stepgen import HoldState, StepGenerator
+from server.motion.stepgen import StepGenerator
 from tests.unit.test_klipper_mcu_time import CLOCK_HZ, FittedMcu
 
 TICK_S = 0.007  # not a multiple of a block's 1 ms: ticks fall inside blocks and runs

@@ -52,8 +52,8 @@ from server.errors import ALARM_MEANINGS, Alarm, CommandError, Error
 from server.gcode.parser import Line, parse_line
 from server.machine.machine import Machine
 from server.motion.backend import Backend
+from server.motion.motion_state import HoldState
 from server.motion.moves import Move, Output, Sync, SyncKind, ToolMode
-from server.motion.stepgen import HoldState
 from server.protocol.events import Realtime
 from server.protocol.reports import UNLOCK_HINT, StatusSnapshot
 from server.runtime.clock import Clock
