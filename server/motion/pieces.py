@@ -102,47 +102,35 @@ class PieceReporter:
         raster's line), where :meth:`lengthen` takes the rest at once."""
         return self._lengthened
 
-    def carried(self, geometry: list[Geometry]) -> int:
-        """How many of the blocks of ``geometry`` (the planner's
-        :meth:`~server.motion.planner.Planner.final_geometry`) go on from the open piece's end
-        along its direction without an action, one after the other (the first test of
-        :meth:`block`'s; :meth:`lengthen` tests their motion)."""
-        run = self._run
-        if run is None:
-            return 0
-        unit, end_mm, count = run.unit, self._run_end_mm, 0
-        for move, actions, start, end, block_unit in geometry:
-            if move is None or actions or start != end_mm or block_unit != unit:
-                break
-            end_mm = end
-            count += 1
-        return count
-
     def lengthen(self, now_s: float, left_s: float, rows: list[list[float]],
                  geometry: list[Geometry]) -> tuple[int, float]:
-        """How many of the blocks given by ``rows`` and ``geometry`` (all :meth:`carried`;
-        the first starting ``left_s`` before ``now_s``, each the next) only lengthen the open
-        piece and end by ``now_s``; the piece is lengthened by them. Returns their count and
-        ``left_s`` less their durations: what as many :meth:`block` calls would do, without a
-        block object each (a raster's line is hundreds of such blocks)."""
+        """How many of the blocks given by ``rows`` and ``geometry`` (the planner's
+        :meth:`~server.motion.planner.Planner.final_rows`: the first starting ``left_s``
+        before ``now_s``, each the next) only lengthen the open piece and end by ``now_s``;
+        the piece is lengthened by them. Returns their count and ``left_s`` less their
+        durations: what as many :meth:`block` calls would do, without a block object each
+        (a raster's line is hundreds of such blocks)."""
         run = self._run
-        assert run is not None
-        power_of, power, run_s, count = self.power_of, run.power, self._run_s, 0
+        if run is None:
+            return 0, left_s
+        power_of, unit, power = self.power_of, run.unit, run.power
+        run_s, end_mm, count = self._run_s, self._run_end_mm, 0
         for ((length, _, _, _, _, _, nominal, _, entry, cruise, exit_, t1, t2, t3, duration),
-             (move, _, _, end, _)) in zip(rows, geometry, strict=True):
-            if left_s < duration or length <= 0.0:
+             (move, actions, start, end, block_unit)) in zip(rows, geometry, strict=True):
+            if (left_s < duration or move is None or length <= 0.0 or actions
+                    or start != end_mm or block_unit != unit):
                 break
-            law = None if power_of is None else power_of(move, nominal)  # type: ignore[arg-type]
+            law = None if power_of is None else power_of(move, nominal)
             start_s = now_s - left_s
             if not ((law is power or law == power)
                     and abs(start_s - run.start_s - run_s) <= JOIN_S + 8 * math.ulp(start_s)
                     and _carries_on(run, run_s, entry, cruise, exit_, t1, t2, t3)):
                 break
             run_s += t1 + t2 + t3
-            self._run_end_mm = end
+            end_mm = end
             left_s -= duration
             count += 1
-        self._run_s = run_s
+        self._run_s, self._run_end_mm = run_s, end_mm
         return count, left_s
 
     def _open(self, piece: Piece, block: Block) -> None:

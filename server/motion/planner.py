@@ -205,24 +205,24 @@ class Planner(PlannerIntake):
         return Block(move, actions, start, end, unit, length, nominal, accel,
                      entry, cruise, exit_, ramp1, flat, ramp2, lead, duration)  # fmt: skip
 
-    def final_geometry(self, most: int) -> list[Geometry]:
-        """The geometry of up to ``most`` blocks from the head whose speeds the last plan
-        made final, left in place: what as many :meth:`pop` calls would give with no append
-        in between (the settled blocks; all planned ones while nothing was appended since
-        the plan). Empty when the head needs a plan first (:meth:`pop` plans it). Their
-        numbers: :meth:`final_rows`; :meth:`drop_head` removes those taken."""
+    def final_count(self) -> int:
+        """How many blocks from the head the last plan made final: what as many :meth:`pop`
+        calls would give with no append in between (the settled blocks; all planned ones
+        while nothing was appended since the plan); 0 when the head needs a plan first
+        (:meth:`pop` plans it). Their numbers: :meth:`final_rows`; :meth:`drop_head`
+        removes those taken."""
         if self._head_dirty or self._planned <= 0:
-            return []
-        count = min(self._settled if self._dirty else self._planned, most)
-        head = self._geometry_head
-        return self._geometry[head : head + count] if count > 0 else []
+            return 0
+        return max(0, self._settled if self._dirty else self._planned)
 
-    def final_rows(self, first: int, count: int) -> list[list[float]]:
-        """The numbers of ``count`` of those blocks from the ``first`` (0: the head), as
-        :meth:`pop` reads them (the rows up to the duration)."""
-        columns = self._columns
-        head = columns.head + first
-        return columns.data[:_POP_ROWS, head : head + count].T.tolist()  # type: ignore[no-any-return]
+    def final_rows(self, first: int, count: int) -> tuple[list[list[float]], list[Geometry]]:
+        """The numbers (as :meth:`pop` reads them: the rows up to the duration) and the
+        geometry of ``count`` of those blocks from the ``first`` (0: the head), left in
+        place."""
+        columns, head = self._columns, self._columns.head + first
+        rows = columns.data[:_POP_ROWS, head : head + count].T.tolist()
+        geometry = self._geometry_head + first
+        return rows, self._geometry[geometry : geometry + count]
 
     def drop_head(self, rows: list[list[float]]) -> None:
         """Remove the head blocks whose numbers are ``rows`` (the first of

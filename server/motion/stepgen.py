@@ -28,6 +28,7 @@ from server.motion.motion_state import HoldState, MotionListener, MotionState
 from server.motion.moves import Action, MoveKind, Position
 from server.motion.pieces import PieceReporter, PowerOf
 from server.motion.planner import Block, Planner
+from server.motion.planner_intake import Geometry
 
 LENGTHEN_CHUNK = 32
 """Blocks whose numbers :meth:`StepGenerator._lengthen` reads at once (most ticks end within
@@ -238,27 +239,29 @@ class StepGenerator:
 
     def _lengthen(self, now_s: float, left_s: float, budget: int) -> tuple[float, int]:
         """The blocks from the planner's head that only lengthen the open piece and end
-        within this call, taken at once (:meth:`PieceReporter.lengthen`): what as many turns
-        of :meth:`_advance`'s loop would do with them, without a block object each. Returns
-        the time left and the budget left (at least one block, for the next)."""
+        within this call, taken at once (:meth:`PieceReporter.lengthen`, a chunk of their
+        numbers at a time): what as many turns of :meth:`_advance`'s loop would do with
+        them, without a block object each. Returns the time left and the budget left (at
+        least one block, for the next)."""
         pieces, planner = self._pieces, self.planner
         assert pieces is not None
         if self.before_pop is not None:
             return left_s, budget
-        geometry = planner.final_geometry(budget - 1)
-        carried = pieces.carried(geometry)
+        final = min(planner.final_count(), budget - 1)
         taken: list[list[float]] = []
-        while len(taken) < carried:
-            first = len(taken)
-            rows = planner.final_rows(first, min(carried - first, LENGTHEN_CHUNK))
-            count, left_s = pieces.lengthen(now_s, left_s, rows,
-                                            geometry[first : first + len(rows)])
-            taken += rows[:count]
+        end: Geometry | None = None
+        while len(taken) < final:
+            rows, geometry = planner.final_rows(len(taken), min(final - len(taken),
+                                                                LENGTHEN_CHUNK))
+            count, left_s = pieces.lengthen(now_s, left_s, rows, geometry)
+            if count:
+                taken += rows[:count]
+                end = geometry[count - 1]
             if count < len(rows):
                 break
-        if taken:
+        if end is not None:
             planner.drop_head(taken)
-            move, _, _, end_mm, _ = geometry[len(taken) - 1]
+            move, _, _, end_mm, _ = end
             state = self.state
             state.kind = move.kind if move is not None else None
             state.position_mm = end_mm

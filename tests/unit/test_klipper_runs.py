@@ -313,9 +313,10 @@ def one_at_a_time(self: StepGenerator, now_s: float, left_s: float,
 
 
 def random_job(seed: int) -> list[Move | Action]:
-    """Lines of short segments, S changing now and then (back to the same
-    value, too), an action or a dwell here and there, a corner, a rapid, a line along Y
-    (odd seeds: segments of random lengths; even: all 0.05 mm, 0.5 ms at 100 mm/s)."""
+    """Lines of short segments (odd seeds: of random lengths; even: all 0.05 mm, 0.5 ms at
+    100 mm/s), S changing now and then (back to the same value, too), an action or a dwell
+    here and there, a corner, a rapid, a line along Y, a line bent slightly here and there
+    (at full speed: only the direction tells its blocks apart)."""
     rng = random.Random(seed)
     job: list[Move | Action] = []
     x, y, s_value, feed_mm_s = 10.0, 10.0, 800.0, 100.0
@@ -325,6 +326,8 @@ def random_job(seed: int) -> list[Move | Action]:
         for _ in range(rng.randrange(60, 220) if seed % 2 else rng.randrange(300, 500)):
             step = rng.choice([0.1, 0.05, 0.3] if seed % 2 else [0.05]) * direction
             x, y = (x, round(y + step, 3)) if along_y else (round(x + step, 3), y)
+            if line == 4 and rng.random() < 0.2:  # a bend too slight to slow down at
+                y = round(y + 0.0001, 4)
             if rng.random() < 0.03:
                 s_value = rng.choice([400.0, 800.0, 800.0])
             if rng.random() < 0.01:
