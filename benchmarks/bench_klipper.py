@@ -70,7 +70,6 @@ PINS = {"x": ("A0", "A1", True), "y": ("A3", "A4", False)}  # step, dir, dir inv
 SETTLE_S = 0.5
 IDLE_SETTLE_S = 1.5  # the idle job's window starts at rest: motiond's loop monitor samples the
 # loop every tick for a second after each command (QUIET_AFTER_S), a cost of the command
-DONE_SLACK_S = 0.2  # a step this long after a window's end is still its job's (a lead is more)
 
 
 @dataclass
@@ -176,13 +175,20 @@ def inexact_where(rises: np.ndarray, start: int, end: int) -> str:
             "before its end")
 
 
-def done_after_ms(gpio: GpioLog, sync: np.ndarray, start: int, end: int, end_ns: int) -> float:
-    """How long after the board's last step the window ended (the host said the job was
-    done): negative when a step came later, up to ``DONE_SLACK_S`` after the window's end
-    (the next job's first step comes a lead later)."""
-    until = end + DONE_SLACK_S * analysis.FREQ_HZ
-    last = max((c for step, _, _ in PINS.values() for c, v in gpio.edges.get(step, [])
-                if v == 1 and start <= c < until), default=None)
+def done_after_ms(gpio: GpioLog, sync: np.ndarray, start: int, end_ns: int,
+                  wanted: dict[str, int]) -> float:
+    """How long after the job's last step the host said it was done (the window's end):
+    negative when that step came later. The job's last step is its own: on each step pin
+    the ``wanted[pin]``-th rise from the window's start (its gross count), so the next job's
+    first steps, which may come within a lead of the end, never count. NaN when fewer came."""
+    last = None
+    for step, count in wanted.items():
+        if not count:
+            continue
+        rises = [c for c, v in gpio.edges.get(step, []) if v == 1 and c >= start]
+        if len(rises) < count:
+            return float("nan")
+        last = rises[count - 1] if last is None else max(last, rises[count - 1])
     if last is None:
         return float("nan")
     return (end_ns - float(np.interp(last, sync[:, 0], sync[:, 1]))) / 1e6
@@ -243,7 +249,9 @@ def analyse(rig: Rig, windows: list[Window], clock_log: Path | None = None) -> l
             fig.motion_s = seconds
             last_ns = float(np.interp(all_edges[-1], sync[:, 0], sync[:, 1]))
             fig.wall_s = (last_ns - window.start_ns) / 1e9
-            fig.done_after_ms = done_after_ms(gpio, sync, start, end, window.end_ns)
+            fig.done_after_ms = done_after_ms(gpio, sync, start, window.end_ns, {
+                step: window.job.steps(0 if axis == "x" else 1)[0]
+                for axis, (step, _, _) in PINS.items()})
         wire = serial.window(start, end)
         fig.cpu_per_s = window.cpu_s / seconds
         used = window.threads

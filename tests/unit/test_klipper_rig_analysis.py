@@ -3,6 +3,7 @@ error, cruise ppm), the firmware's clock slips, and the blocks on the wire."""
 
 from __future__ import annotations
 
+import math
 import os
 import threading
 import time
@@ -172,20 +173,21 @@ def test_a_count_that_is_off_says_where_the_steps_lie_in_the_window() -> None:
     assert inexact_where(np.array([]), 0, 1) == "no step"
 
 
-def test_done_after_counts_from_the_last_step_even_one_past_the_window_s_end() -> None:
-    """The host said done 7.5 ms after the last step (its clock 1 s = 1e9 ns per 20 M
-    cycles); a step 2 ms after the window's end makes it -2 ms; the next job's, a lead
-    later, does not count."""
+def test_done_after_counts_from_the_job_s_own_last_step_wherever_it_falls() -> None:
+    """The host said done 7.5 ms after the job's last step (its clock 1 s = 1e9 ns per 20 M
+    cycles); with a step more wanted, which came 2 ms after the window's end, -2 ms; the
+    next job's first step, however soon after, does not count; too few steps: NaN."""
     sync = np.array([[0, 5_000_000_000], [200_000_000, 15_000_000_000]], dtype=np.float64)
     gpio = GpioLog(edges={"A0": [(int(1.0 * FREQ_HZ), 1), (int(1.0 * FREQ_HZ) + 40, 0)],
                           "A3": [(int(0.5 * FREQ_HZ), 1)]})
     end_ns = 6_000_000_000 + 7_500_000
-    end = int(1.0075 * FREQ_HZ)
-    assert done_after_ms(gpio, sync, 0, end, end_ns) == pytest.approx(7.5)
+    assert done_after_ms(gpio, sync, 0, end_ns, {"A0": 1, "A3": 1}) == pytest.approx(7.5)
     gpio.edges["A3"].append((int(1.0095 * FREQ_HZ), 1))  # 2 ms after the window's end
-    assert done_after_ms(gpio, sync, 0, end, end_ns) == pytest.approx(-2.0)
-    gpio.edges["A0"].append((int(1.3 * FREQ_HZ), 1))  # the next job's first step
-    assert done_after_ms(gpio, sync, 0, end, end_ns) == pytest.approx(-2.0)
+    assert done_after_ms(gpio, sync, 0, end_ns, {"A0": 1, "A3": 2}) == pytest.approx(-2.0)
+    gpio.edges["A0"].append((int(1.05 * FREQ_HZ), 1))  # the next job's first step
+    assert done_after_ms(gpio, sync, 0, end_ns, {"A0": 1, "A3": 2}) == pytest.approx(-2.0)
+    assert done_after_ms(gpio, sync, 0, end_ns, {"A0": 1, "A3": 1}) == pytest.approx(7.5)
+    assert math.isnan(done_after_ms(gpio, sync, 0, end_ns, {"A0": 3, "A3": 1}))
 
 
 def test_the_clock_fit_is_checked_against_when_the_mcu_read_each_clock() -> None:
