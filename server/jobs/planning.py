@@ -7,9 +7,12 @@ of a 10 MB raster). So a plan (:func:`~server.jobs.clock.read_plan`, and the fit
 that has the pipeline imported already (a fork costs milliseconds, not an interpreter's
 start-up), and sends its one result back through a pipe. The children run at ordinary
 priority (``motiond serve``'s loop runs at real-time priority where allowed, and a niced plan
-starves on a busy host). A stop, an abort or the server's shutdown kills the child at
-once (:meth:`PlanProcess.cancel`); a child whose server is gone stops by itself within a
-chunk of the file (:data:`~server.offline.estimate.READ_CHUNK_CHARS`). Memory in the child
+starves on a busy host: at nice 10, with two CPU-bound programs on a 2-core host, the
+2,000,000-line job of ``benchmarks plan`` was ready in 38 s, not 7.5, and timed in 103, not
+15; on an idle host it brought a ``?`` client on the same host from a p99 of 4 ms to 1).
+A stop, an abort or the server's shutdown kills the child at once
+(:meth:`PlanProcess.cancel`); a child whose server is gone stops by itself within a chunk of
+the file (:data:`~server.offline.estimate.READ_CHUNK_CHARS`). Memory in the child
 is bounded as the plan's is (the file is read as the plan goes). The plans read one at a time
 (files of at most :data:`FIT_FIRST_BYTES`) go to one such child kept between them, the
 :class:`PlanWorker`: read warm, at a third of a fresh child's CPU.
