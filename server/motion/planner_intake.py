@@ -35,8 +35,12 @@ if TYPE_CHECKING:
 MIN_LENGTH_MM = 1e-6
 """Moves shorter than this are dropped; the next block starts where the last one ended, so
 the skipped displacement is not lost."""
-RUN_SLICE = 128
-"""Moves of a run appended at once (:meth:`PlannerIntake.append_run`)."""
+RUN_SLICE = 512
+"""Moves of a run appended at once (:meth:`PlannerIntake.append_run`): about what a window
+takes at a time (the default 0.5 s of 1 ms blocks), so each of the slice's dozen numpy calls
+serves hundreds of moves (those past the window's room are read again at the next call):
+``estimate`` of a 200,000-line raster 8 % faster than in slices of 128, of the rig's 2,415-line
+raster 12 %."""
 REFILL_FRACTION = 16
 """A full window takes more blocks once it has drained 1/16 of its bounds (of ``max_blocks``,
 at least one block, and of ``max_planned_s``): see :meth:`PlannerIntake.has_room`."""

@@ -14,6 +14,7 @@ from server.machine.parts import planner_settings
 from server.motion.block import Block
 from server.motion.moves import Action, Move, MoveKind
 from server.motion.planner import MIN_LENGTH_MM, Planner, PlannerSettings
+from server.motion.planner_intake import RUN_SLICE
 from server.motion.trapezoid import junction_speed_sq, plan_window, plan_window_reference
 
 XYZ = PlannerSettings(max_rate_mm_s=(500.0, 500.0, 50.0), accel_mm_s2=(1000.0, 1000.0, 100.0))
@@ -631,14 +632,17 @@ def test_a_plan_made_before_more_appends_does_not_settle_the_head_exit() -> None
     assert head is not None and head.exit_mm_s == pytest.approx(100.0)
 
 
-@pytest.mark.parametrize("seed", range(3))
-def test_a_run_appended_at_once_plans_the_blocks_of_its_moves_one_by_one(seed: int) -> None:
+@pytest.mark.parametrize(("seed", "window"), [(0, 40), (1, 40), (2, 40), (3, 1400)])
+def test_a_run_appended_at_once_plans_the_blocks_of_its_moves_one_by_one(
+        seed: int, window: int) -> None:
     """:meth:`Planner.append_run` (a job's plain lines, planned) against :meth:`append`: the
-    same blocks, rows and geometry to the bit, through full windows, rapids, feeds of 0, a
-    move shorter than MIN_LENGTH_MM and actions pending before the run."""
+    same blocks, rows and geometry to the bit, through full windows (of 40 blocks; of 1,400,
+    taken in several slices of RUN_SLICE at once), rapids, feeds of 0, a move shorter than
+    MIN_LENGTH_MM and actions pending before the run."""
     rng = random.Random(seed)
     settings = PlannerSettings(max_rate_mm_s=(500.0, 500.0, 50.0),
-                               accel_mm_s2=(1000.0, 1000.0, 100.0), max_blocks=40,
+                               accel_mm_s2=(1000.0, 1000.0, 100.0), max_blocks=window,
+                               max_planned_s=0.5 if window < RUN_SLICE else 1e9,
                                sync_blocks=16)
     here, moves = (0.0, 0.0, 0.0), []
     for index in range(1500):
@@ -650,15 +654,16 @@ def test_a_run_appended_at_once_plans_the_blocks_of_its_moves_one_by_one(seed: i
     ends = np.asarray([move.target_mm for move in moves])
     feeds = np.asarray([move.feed_mm_s for move in moves])
     rapid = np.asarray([move.kind is MoveKind.RAPID for move in moves])
-    taken_by = {}
+    taken_by, most = {}, 0
     for at_once in (False, True):
         planner = Planner(settings, (0.0, 0.0, 0.0))
         planner.append_action(Action("switch", {"on": True}))
         popped, index = [], 0
         while index < len(moves):
             if at_once:
-                index += planner.append_run(moves[index:], ends[index:], feeds[index:],
-                                            rapid[index:])
+                taken = planner.append_run(moves[index:], ends[index:], feeds[index:],
+                                           rapid[index:])
+                index, most = index + taken, max(most, taken)
             else:
                 while index < len(moves) and not planner.append(moves[index]):
                     index += 1
@@ -667,7 +672,8 @@ def test_a_run_appended_at_once_plans_the_blocks_of_its_moves_one_by_one(seed: i
             popped.append((settled.rows.tobytes(), settled.geometry) if settled else None)
         popped += [(block.entry_mm_s, block.exit_mm_s, block.move) for block in run(planner)]
         taken_by[at_once] = (popped, planner.moves_appended, planner.position_mm)
-    assert len(taken_by[True][0]) > 1500 / 40
+    assert len(taken_by[True][0]) > 1500 / window
+    assert most > RUN_SLICE if window > RUN_SLICE else most <= window, most
     assert taken_by[True] == taken_by[False]
 
 
