@@ -139,8 +139,9 @@ class BlockColumns:
     """The per-block numbers of a window of blocks, one column per block, rows by quantity.
 
     The ``input_rows`` are given when a block is pushed; the other rows are derived and planned
-    by the owner. Pushing only stages the values in a list (O(1), no numpy call); :meth:`sync`
-    copies staged columns into the array in one operation and says which columns are new.
+    by the owner. Pushing only stages the values in a list (O(1), no numpy call), and a run's
+    rows pushed at once stay an array (not a list and back); :meth:`sync` copies staged
+    columns into the array in one operation and says which columns are new.
     Columns ``head .. tail-1`` are the window; the array grows by doubling and is compacted when
     the window has drifted to its end.
 
@@ -164,7 +165,8 @@ class BlockColumns:
         self.head = 0
         self.tail = 0  # including staged columns
         self._synced = 0
-        self._staged: list[float] = []  # the values of the staged columns, one after another
+        self._staged: list[float] = []  # the values of the columns pushed one by one since
+        self._segments: list[FloatArray] = []  # ... the staged columns before them, as rows
         # (rows of data, positions in a column's values) for each run of consecutive input rows
         self._runs: list[tuple[slice, slice]] = []
         start = 0
@@ -187,10 +189,18 @@ class BlockColumns:
         return self.tail - self._synced >= self.sync_every
 
     def push_rows(self, rows: FloatArray) -> bool:
-        """:meth:`push` each row of ``rows`` (a column's ``input_rows`` values each), at once."""
-        self._staged += rows.ravel().tolist()
+        """:meth:`push` each row of ``rows`` (a column's ``input_rows`` values each), at once
+        (kept as they are until :meth:`sync`; the caller does not change them)."""
+        if self._staged:
+            self._segments.append(self._staged_rows())
+        self._segments.append(rows)
         self.tail += rows.shape[0]
         return self.tail - self._synced >= self.sync_every
+
+    def _staged_rows(self) -> FloatArray:
+        """The columns pushed one by one since the last segment, as rows; none staged now."""
+        staged, self._staged = self._staged, []
+        return np.fromiter(staged, np.float64, len(staged)).reshape(-1, len(self.input_rows))
 
     def push_front(self, values: tuple[float, ...]) -> int:
         """Put a column given by its ``input_rows`` values before the head; return its index."""
@@ -207,17 +217,19 @@ class BlockColumns:
 
         Afterwards ``data[:, head:tail]`` is the whole window.
         """
-        staged = self._staged
-        if not staged:
+        if not self._staged and not self._segments:
             return self.tail
         if self.tail > self.data.shape[1]:
             self._relocate(front=0)
-        first, width = self._synced, len(self.input_rows)
-        columns = np.fromiter(staged, np.float64, len(staged)).reshape(-1, width).T
+        first = self._synced
+        segments = self._segments
+        if self._staged:
+            segments.append(self._staged_rows())
+        columns = (segments[0] if len(segments) == 1 else np.concatenate(segments)).T
         for rows, values in self._runs:
             self.data[rows, first : self.tail] = columns[values]
         self._synced = self.tail
-        self._staged = []
+        self._segments = []
         return first
 
     def window(self) -> FloatArray:
@@ -268,7 +280,7 @@ class BlockColumns:
     def clear(self) -> None:
         """Empty the window."""
         self.head = self.tail = self._synced = 0
-        self._staged = []
+        self._staged, self._segments = [], []
         self._read = []
 
     def _relocate(self, front: int) -> None:
