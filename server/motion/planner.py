@@ -50,7 +50,13 @@ from server.motion.limits import (
     kind_and_feed,
 )
 from server.motion.moves import Action, Move, Position
-from server.motion.planner_intake import MIN_LENGTH_MM, REFILL_FRACTION, Geometry, PlannerIntake
+from server.motion.planner_intake import (
+    MIN_LENGTH_MM,
+    REFILL_FRACTION,
+    Geometry,
+    PlannerIntake,
+    path_length,
+)
 from server.motion.trapezoid import plan_prefix
 
 __all__ = ["MIN_LENGTH_MM", "Block", "Planner", "PlannerSettings", "SettledBlocks"]
@@ -323,7 +329,7 @@ class Planner(PlannerIntake):
         """Build an unplanned block from ``start_mm`` to ``end_mm`` (speeds and times zero)."""
         start, end = tuple(start_mm), tuple(end_mm)
         delta = [e - s for e, s in zip(end, start, strict=True)]
-        length = math.hypot(*delta)
+        length = path_length(delta)
         if length < MIN_LENGTH_MM or move is None:
             return unplanned_block(move, actions, start, end, self._zero)
         unit = tuple([x / length for x in delta])

@@ -50,6 +50,17 @@ Geometry = tuple[Move | None, list[Action], Position, Position, Position]
 """A waiting block's ``(move, actions, start_mm, end_mm, unit)``, as in :class:`Block`."""
 
 
+def path_length(delta: Sequence[float]) -> float:
+    """The length (mm) of a move of ``delta`` (mm per axis): the square root of the sum of the
+    squares, added in axis order, as :meth:`PlannerIntake.append_run` computes a run's with
+    numpy: the same floats (``math.hypot`` rounds differently, and one call a move costs as
+    much as the rest of a run's arithmetic)."""
+    squares = 0.0
+    for value in delta:
+        squares += value * value
+    return math.sqrt(squares)
+
+
 class PlannerIntake:
     """Appending and back-pressure; see the module docstring."""
 
@@ -94,21 +105,21 @@ class PlannerIntake:
             x0, y0, z0 = start
             x1, y1, z1 = target
             delta: Sequence[float] = (x1 - x0, y1 - y0, z1 - z0)
-            length = math.hypot(*delta)
-            inverse = 1.0 / length if length >= MIN_LENGTH_MM else 0.0
             dx, dy, dz = delta
+            length = math.sqrt(dx * dx + dy * dy + dz * dz)  # (path_length, unrolled)
+            inverse = 1.0 / length if length >= MIN_LENGTH_MM else 0.0
             unit: tuple[float, ...] = (dx * inverse, dy * inverse, dz * inverse)
         elif len(start) == 2:  # a laser's XY, the same
             x0, y0 = start
             x1, y1 = target
             delta = (x1 - x0, y1 - y0)
-            length = math.hypot(*delta)
-            inverse = 1.0 / length if length >= MIN_LENGTH_MM else 0.0
             dx, dy = delta
+            length = math.sqrt(dx * dx + dy * dy)
+            inverse = 1.0 / length if length >= MIN_LENGTH_MM else 0.0
             unit = (dx * inverse, dy * inverse)
         else:
             delta = list(map(sub, target, start))
-            length = math.hypot(*delta)
+            length = path_length(delta)
             inverse = 1.0 / length if length >= MIN_LENGTH_MM else 0.0
             unit = tuple([x * inverse for x in delta])
         self.position_mm = target
@@ -167,7 +178,10 @@ class PlannerIntake:
                       rapid: npt.NDArray[np.bool_]) -> int:
         count = len(moves)
         deltas = ends - np.vstack((np.asarray([self._chain_mm]), ends[:-1]))
-        lengths = np.fromiter(map(math.hypot, *deltas.T.tolist()), np.float64, count)
+        squares = deltas[:, 0] * deltas[:, 0]  # (path_length's, a move a row)
+        for axis in range(1, deltas.shape[1]):
+            squares += deltas[:, axis] * deltas[:, axis]
+        lengths = np.sqrt(squares)
         if float(lengths.min()) < MIN_LENGTH_MM:
             return self._append_each(moves)
         units = deltas * (1.0 / lengths)[:, None]
