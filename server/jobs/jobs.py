@@ -347,6 +347,9 @@ class Jobs(JobStore):
                                    lambda: machine.interpreter, self.kernel.config.core,
                                    self._interjections)
         if failure is not None:
+            if self.kernel.state is MachineState.ALARM and f": error:{Error.BUSY} " in failure:
+                # a line refused because the alarm's stop came after it was sent: the alarm
+                failure = f"{failure.partition(':')[0]}: stopped by an alarm"
             self._fail(progress, failure)
             return
         await machine.wait_idle()
