@@ -231,8 +231,8 @@ class Planner(PlannerIntake):
         return rows, self._geometry[geometry : geometry + count]
 
     def drop_head(self, rows: list[list[float]]) -> None:
-        """Remove the head blocks whose numbers are ``rows`` (the first of
-        :meth:`final_head`'s, in order), as as many :meth:`pop` calls would."""
+        """Remove the head blocks whose numbers are ``rows`` (the first :meth:`final_rows`
+        gave, in order), as as many :meth:`pop` calls would."""
         count = len(rows)
         if not count:
             return
