@@ -57,7 +57,9 @@ class PieceReporter:
         self._run: Piece | None = None  # the open piece, as the backend was last told it
         self._run_s = 0.0  # its duration with the blocks that continued it since
         self._run_end_mm: Position = ()  # where the last block it covers ends
-        self._lengthened = False  # the last block did
+        self.lengthening = False
+        """Whether the last block lengthened the open piece: such blocks come in runs (a
+        raster's line), where :meth:`lengthen` takes the rest at once."""
 
     def block(self, start_s: float, block: Block) -> None:
         """A block's three phases, starting at ``start_s`` (or the open piece lengthened)."""
@@ -74,12 +76,12 @@ class PieceReporter:
                     and self._continues(run, block)):
                 self._run_s += t1 + t2 + t3
                 self._run_end_mm = block.end_mm
-                self._lengthened = True
+                self.lengthening = True
                 return
             if self._run_s != run.duration_s:  # (_close, without a call for nothing to tell)
                 self.flush()
             self._run = None
-        self._lengthened = False
+        self.lengthening = False
         d1 = 0.5 * t1 * (entry + cruise)
         if t1 > 0.0:
             if t2 <= JOIN_S and t3 <= JOIN_S:  # a ramp to the end: blocks continuing it
@@ -95,12 +97,6 @@ class PieceReporter:
         if t3 > 0.0:
             self._open(self._piece(start_s + t1 + t2, t3, block, d1 + cruise * t2, cruise,
                                    (block.exit_mm_s - cruise) / t3, power), block)
-
-    @property
-    def lengthening(self) -> bool:
-        """Whether the last block lengthened the open piece: such blocks come in runs (a
-        raster's line), where :meth:`lengthen` takes the rest at once."""
-        return self._lengthened
 
     def lengthen(self, now_s: float, left_s: float, rows: list[list[float]],
                  geometry: list[Geometry]) -> tuple[int, float]:
